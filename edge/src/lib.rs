@@ -1,0 +1,13 @@
+//! The scan3d edge: everything that runs on the Raspberry Pi.
+//!
+//! - [`clock`]: the edge's monotonic clock, passed in so a simulation can scale time.
+//! - [`lidar`]: the sans-I/O driver contract shared by both lidars, and the sample types.
+//! - [`drivers`]: RPLidar A1/A2 and Scanse Sweep protocol state machines (bytes in, events out).
+//! - [`timing`]: per-sample timestamps from serial arrival times, and revolution assembly.
+//! - [`serial`]: the thin I/O shell that runs a driver on a serial port, surviving unplug/replug.
+//! - [`probe`]: the `scan3d-edge probe` wiring check.
+#![warn(missing_docs)]
+
+pub mod clock;
+pub mod drivers;
+pub mod lidar;

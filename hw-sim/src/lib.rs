@@ -1,0 +1,19 @@
+//! Simulated scan3d hardware, so everything runs and is tested without a Pi.
+//!
+//! - [`world`]: a conference room with ground truth, ray intersection and a glass wall.
+//! - [`noise`]: per-sensor range noise models.
+//! - [`device`]: the sans-I/O emulator contract (host bytes in, paced wire units out).
+//! - [`rplidar`], [`sweep`]: the two lidar emulators speaking the real wire protocols.
+//! - [`faults`]: stray bytes, bit flips and dropped bytes, with a log of what was really sent.
+//! - [`pty`]: runs an emulator on a Linux pty behind a symlink, paced at the wire rate.
+//! - [`demo`]: the README's demo.
+#![warn(missing_docs)]
+
+pub mod demo;
+pub mod device;
+pub mod faults;
+pub mod noise;
+pub mod pty;
+pub mod rplidar;
+pub mod sweep;
+pub mod world;

@@ -1,0 +1,2 @@
+//! `scan3d-sim`: simulated scan3d hardware.
+fn main() {}

@@ -1,0 +1,1 @@
+//! scan3d wire protocol (being written).
