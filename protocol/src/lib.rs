@@ -1,1 +1,90 @@
-//! scan3d wire protocol (being written).
+//! The scan3d wire protocol: the frames the edge (Raspberry Pi daemon) and the server exchange.
+//!
+//! Pure code: serde types, postcard encoding and a length-prefixed framing with a decoder over
+//! byte slices. No I/O, no async, no clock; the edge's uplink and the server's ingest wrap it.
+//!
+//! # Wire layout
+//!
+//! Every frame is a fixed 10-byte header followed by a postcard payload:
+//!
+//! ```text
+//!  0      3 4    5 6          9 10                        10+len
+//! +--------+------+------------+---------------------------+
+//! | "S3DP" | ver  |    len     |  postcard(Frame)          |
+//! |  magic | u16  |  u32 LE    |  session_id  varint u64   |
+//! | 4 bytes|  LE  |  payload   |  seq         varint u64   |
+//! |        |      |  bytes     |  body tag    varint       |
+//! |        |      |            |  body fields ...          |
+//! +--------+------+------------+---------------------------+
+//! ```
+//!
+//! - `magic` is ASCII `S3DP` (`53 33 44 50`), see [`MAGIC`].
+//! - `ver` is [`PROTOCOL_VERSION`]; a receiver rejects any other version
+//!   ([`DecodeError::UnsupportedVersion`]).
+//! - `len` counts payload bytes only; header + payload is at most [`MAX_FRAME_LEN`] (4 MiB).
+//! - The payload is the [`Frame`] in postcard's format: integers wider than a byte as LEB128
+//!   varints (signed ones zig-zagged), `f32`/`f64` as little-endian IEEE 754, `bool` and `u8` as
+//!   one byte, strings and vectors as a varint length then the items, `Option` as `00` or
+//!   `01` + value, enum variants as a varint index. It must fill `len` exactly.
+//!
+//! For example, `Frame { session_id: 1, seq: 2, body: Heartbeat { sent_ns: 3 } }` is
+//! `53 33 44 50 01 00 04 00 00 00 01 02 07 03`.
+//!
+//! # Frames
+//!
+//! Every [`Frame`] carries the edge's session id (random `u64` per edge boot) and a sequence
+//! number (per session, per direction). Its [`Body`] is one of (the tag is the wire value):
+//!
+//! | tag | body | direction | content |
+//! | --- | --- | --- | --- |
+//! | 0 | [`Hello`] | edge → server | device name, software and protocol version, [`SensorInfo`] per sensor |
+//! | 1 | [`LidarRevolution`] | edge → server | one 360° revolution: angle, range, quality and time offset per sample, t0/t1 |
+//! | 2 | [`ImuSample`] | edge → server | accel, gyro, mag triples, optional orientation quaternion |
+//! | 3 | [`StepperState`] | edge → server | commanded angle, step index, holding / released |
+//! | 4 | [`TimePing`] | server → edge | NTP t0 (server clock) |
+//! | 5 | [`TimePong`] | edge → server | t0 echoed, t1 receive and t2 send (edge clock); the server adds t3 |
+//! | 6 | [`Ack`] | both | highest contiguous sequence number, or a range |
+//! | 7 | [`Heartbeat`] | both | sender's clock |
+//! | 8 | [`DeviceStatus`] | edge → server | sensor lost / back, acquisition paused / resumed, with a reason |
+//! | 9 | [`Command`] | server → edge | start static scan at a named position, stop it, set a motor speed |
+//!
+//! Sensors are named by [`SensorId`] (0 rplidar, 1 sweep, 2 imu, 3 stepper). All edge times are
+//! nanoseconds on the edge's monotonic clock.
+//!
+//! **Reordering enum variants or struct fields breaks the wire**: new variants go at the end, and
+//! any other change needs a new [`PROTOCOL_VERSION`].
+//!
+//! # Use
+//!
+//! ```
+//! use scan3d_protocol::{Frame, FrameReader, Heartbeat, decode, encode};
+//!
+//! let frame = Frame::new(0x5eed, 0, Heartbeat { sent_ns: 42 });
+//! let bytes = encode(&frame)?;
+//! assert_eq!(decode(&bytes)?, (frame.clone(), bytes.len()));
+//!
+//! // From a stream, in arbitrary chunks:
+//! let mut reader = FrameReader::new();
+//! reader.push(&bytes[..3]);
+//! assert_eq!(reader.next_frame()?, None);
+//! reader.push(&bytes[3..]);
+//! assert_eq!(reader.next_frame()?, Some(frame));
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
+#![warn(missing_docs)]
+
+mod codec;
+mod frame;
+mod types;
+mod version;
+
+pub use codec::{
+    DecodeError, EncodeError, FrameHeader, FrameReader, HEADER_LEN, MAGIC, MAX_FRAME_LEN, decode,
+    decode_header, encode,
+};
+pub use frame::{Body, Direction, Frame};
+pub use types::{
+    Ack, Command, DeviceStatus, Heartbeat, Hello, ImuSample, LidarRevolution, RevolutionSample,
+    SampleTimeError, SensorId, SensorInfo, StatusEvent, StepperState, TimePing, TimePong,
+};
+pub use version::{IncompatibleVersion, PROTOCOL_VERSION, check_compatible};

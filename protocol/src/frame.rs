@@ -1,0 +1,129 @@
+//! [`Frame`]: the unit exchanged between edge and server, and its [`Body`].
+
+use serde::{Deserialize, Serialize};
+
+use crate::types::{
+    Ack, Command, DeviceStatus, Heartbeat, Hello, ImuSample, LidarRevolution, StepperState,
+    TimePing, TimePong,
+};
+
+/// One message with its session and sequence number.
+///
+/// Both directions of a connection use the **edge's** session id (random per edge boot); each
+/// direction numbers its own frames from 0 within the session. The server acknowledges edge frames
+/// with [`Ack`] by these sequence numbers, and resent frames keep their original number, so
+/// receiving one twice is harmless.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Frame {
+    /// Random id chosen by the edge at boot; a new id means a new edge clock epoch.
+    pub session_id: u64,
+    /// Per-session, per-direction sequence number.
+    pub seq: u64,
+    /// The message.
+    pub body: Body,
+}
+
+impl Frame {
+    /// A frame carrying `body` (anything convertible, e.g. a [`Hello`] or an [`Ack`]).
+    pub fn new(session_id: u64, seq: u64, body: impl Into<Body>) -> Self {
+        Frame {
+            session_id,
+            seq,
+            body: body.into(),
+        }
+    }
+}
+
+/// Which way a message normally travels.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Direction {
+    /// Sent by the edge to the server.
+    EdgeToServer,
+    /// Sent by the server to the edge.
+    ServerToEdge,
+    /// Either side may send it.
+    Both,
+}
+
+/// The message inside a [`Frame`].
+///
+/// **The variant order is the wire tag** (postcard writes the variant index as a varint) and must
+/// never change: add new variants at the end only, and bump [`crate::PROTOCOL_VERSION`] for
+/// anything else.
+///
+/// | tag | variant | direction |
+/// | --- | --- | --- |
+/// | 0 | [`Body::Hello`] | edge → server |
+/// | 1 | [`Body::Revolution`] | edge → server |
+/// | 2 | [`Body::Imu`] | edge → server |
+/// | 3 | [`Body::Stepper`] | edge → server |
+/// | 4 | [`Body::TimePing`] | server → edge |
+/// | 5 | [`Body::TimePong`] | edge → server |
+/// | 6 | [`Body::Ack`] | both |
+/// | 7 | [`Body::Heartbeat`] | both |
+/// | 8 | [`Body::Status`] | edge → server |
+/// | 9 | [`Body::Command`] | server → edge |
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum Body {
+    /// Edge identity and sensor inventory; first frame of a connection.
+    Hello(Hello),
+    /// One lidar revolution with per-sample times.
+    Revolution(LidarRevolution),
+    /// One IMU reading.
+    Imu(ImuSample),
+    /// Stepper state change.
+    Stepper(StepperState),
+    /// Time-sync request carrying the server's send time.
+    TimePing(TimePing),
+    /// Time-sync answer carrying t0, t1 and t2.
+    TimePong(TimePong),
+    /// Acknowledgement of received frames.
+    Ack(Ack),
+    /// Keep-alive.
+    Heartbeat(Heartbeat),
+    /// Sensor lost / back, acquisition paused / resumed.
+    Status(DeviceStatus),
+    /// Order from the server.
+    Command(Command),
+}
+
+impl Body {
+    /// Which way this message normally travels, so a receiver can reject misdirected frames.
+    pub fn direction(&self) -> Direction {
+        match self {
+            Body::Hello(_)
+            | Body::Revolution(_)
+            | Body::Imu(_)
+            | Body::Stepper(_)
+            | Body::TimePong(_)
+            | Body::Status(_) => Direction::EdgeToServer,
+            Body::TimePing(_) | Body::Command(_) => Direction::ServerToEdge,
+            Body::Ack(_) | Body::Heartbeat(_) => Direction::Both,
+        }
+    }
+}
+
+macro_rules! body_from {
+    ($($ty:ident => $variant:ident),* $(,)?) => {
+        $(
+            impl From<$ty> for Body {
+                fn from(value: $ty) -> Self {
+                    Body::$variant(value)
+                }
+            }
+        )*
+    };
+}
+
+body_from! {
+    Hello => Hello,
+    LidarRevolution => Revolution,
+    ImuSample => Imu,
+    StepperState => Stepper,
+    TimePing => TimePing,
+    TimePong => TimePong,
+    Ack => Ack,
+    Heartbeat => Heartbeat,
+    DeviceStatus => Status,
+    Command => Command,
+}

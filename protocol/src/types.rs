@@ -1,0 +1,337 @@
+//! The message bodies carried by a [`crate::Frame`].
+//!
+//! All types are plain data (integers, floats, strings, vectors, enums) so that neither side needs
+//! a maths library to use them. Times named `*_ns` are nanoseconds; which clock they are on is said
+//! on each field (almost always the edge's monotonic clock).
+//!
+//! **Wire stability:** postcard encodes struct fields in declaration order and enum variants by
+//! their index. Reordering fields or variants, inserting a variant anywhere but at the end, or
+//! changing a field's type breaks the wire and needs a new [`crate::PROTOCOL_VERSION`].
+
+use std::fmt;
+
+use serde::{Deserialize, Serialize};
+
+/// Which sensor a message is about: a one-byte id, kept open (a newtype, not an enum) so a newer
+/// edge can report sensors an older server does not know by name.
+///
+/// | value | sensor |
+/// | --- | --- |
+/// | 0 | [`SensorId::RPLIDAR`] — horizontal Slamtec RPLidar A1/A2 |
+/// | 1 | [`SensorId::SWEEP`] — vertical Scanse Sweep |
+/// | 2 | [`SensorId::IMU`] — MPU-9250 + AK8963 |
+/// | 3 | [`SensorId::STEPPER`] — the stepper that turns the Sweep |
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(transparent)]
+pub struct SensorId(pub u8);
+
+impl SensorId {
+    /// The horizontal RPLidar (localisation scans).
+    pub const RPLIDAR: SensorId = SensorId(0);
+    /// The vertical Scanse Sweep (mapping scans).
+    pub const SWEEP: SensorId = SensorId(1);
+    /// The 9-axis IMU.
+    pub const IMU: SensorId = SensorId(2);
+    /// The stepper motor under the Sweep.
+    pub const STEPPER: SensorId = SensorId(3);
+
+    /// The sensor's short name, or `None` for an id this version does not know.
+    pub fn name(self) -> Option<&'static str> {
+        match self {
+            SensorId::RPLIDAR => Some("rplidar"),
+            SensorId::SWEEP => Some("sweep"),
+            SensorId::IMU => Some("imu"),
+            SensorId::STEPPER => Some("stepper"),
+            _ => None,
+        }
+    }
+}
+
+impl fmt::Display for SensorId {
+    /// The short name (`rplidar`, `sweep`, …), or `sensor#N` for an unknown id.
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.name() {
+            Some(name) => f.write_str(name),
+            None => write!(f, "sensor#{}", self.0),
+        }
+    }
+}
+
+/// Identity of one sensor attached to the edge, as reported in [`Hello`].
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SensorInfo {
+    /// Which sensor this is.
+    pub sensor: SensorId,
+    /// Model as the device reports it, e.g. `"A1"`, `"Sweep"`, `"MPU-9250"`.
+    pub model: String,
+    /// Firmware version as text (empty if the device has none to report).
+    pub firmware: String,
+    /// Serial number as text (empty if the device has none to report).
+    pub serial: String,
+}
+
+/// First frame an edge sends on a new connection: who it is and what it has.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Hello {
+    /// The edge's configured name, e.g. `"trolley-pi"`.
+    pub device_name: String,
+    /// The edge software version, e.g. `"0.1.0"`.
+    pub software_version: String,
+    /// The protocol version the edge speaks ([`crate::PROTOCOL_VERSION`] when it was built).
+    pub protocol_version: u16,
+    /// The sensors the edge found at start-up.
+    pub sensors: Vec<SensorInfo>,
+}
+
+impl Hello {
+    /// A hello for this build: `protocol_version` is [`crate::PROTOCOL_VERSION`].
+    pub fn new(
+        device_name: impl Into<String>,
+        software_version: impl Into<String>,
+        sensors: Vec<SensorInfo>,
+    ) -> Self {
+        Hello {
+            device_name: device_name.into(),
+            software_version: software_version.into(),
+            protocol_version: crate::PROTOCOL_VERSION,
+            sensors,
+        }
+    }
+
+    /// Whether this build can talk to the peer that sent this hello
+    /// (see [`crate::check_compatible`]).
+    pub fn check_compatible(&self) -> Result<(), crate::IncompatibleVersion> {
+        crate::check_compatible(self.protocol_version)
+    }
+}
+
+/// One sample of a [`LidarRevolution`] (13 bytes or less on the wire: two `f32`, one `u8` and a
+/// varint `u32`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct RevolutionSample {
+    /// Beam angle in degrees in `[0, 360)`, in the device's own convention
+    /// (RPLidar clockwise seen from above, Sweep counter-clockwise).
+    pub angle_deg: f32,
+    /// Range in metres; `0.0` means "no return".
+    pub range_m: f32,
+    /// RPLidar: 6-bit quality (0–63). Sweep: signal strength (0–255).
+    pub quality: u8,
+    /// Sample time as an offset in nanoseconds from the revolution's
+    /// [`t0_ns`](LidarRevolution::t0_ns): offsets keep a sample to 4 bytes of varint for
+    /// revolutions up to 268 ms (5 bytes up to 4.29 s) where an absolute `u64` would take 8–9.
+    pub offset_ns: u32,
+}
+
+/// Why a sample could not be added to a [`LidarRevolution`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[error(
+    "sample time {t_ns} ns is not within u32 nanoseconds after the revolution start {t0_ns} ns"
+)]
+pub struct SampleTimeError {
+    /// The revolution's start time.
+    pub t0_ns: u64,
+    /// The rejected sample time.
+    pub t_ns: u64,
+}
+
+/// One 360° revolution of a lidar, with a measurement time for every sample.
+///
+/// Sample times are stored as `u32` offsets from `t0_ns` (so a revolution may span at most
+/// `u32::MAX` ns ≈ 4.29 s, four times the slowest Sweep rate). A 2000-sample revolution encodes to
+/// about 26 KB.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LidarRevolution {
+    /// Which lidar (normally [`SensorId::RPLIDAR`] or [`SensorId::SWEEP`]).
+    pub sensor: SensorId,
+    /// Edge monotonic clock (ns) at the start of the revolution; the base for sample offsets.
+    pub t0_ns: u64,
+    /// Edge monotonic clock (ns) at the end of the revolution (the next one's start).
+    pub t1_ns: u64,
+    /// The samples in the order the device produced them.
+    pub samples: Vec<RevolutionSample>,
+}
+
+impl LidarRevolution {
+    /// An empty revolution spanning `t0_ns..t1_ns` on the edge clock.
+    pub fn new(sensor: SensorId, t0_ns: u64, t1_ns: u64) -> Self {
+        LidarRevolution {
+            sensor,
+            t0_ns,
+            t1_ns,
+            samples: Vec::new(),
+        }
+    }
+
+    /// Appends a sample measured at `t_ns` (edge clock). Fails if `t_ns` is before `t0_ns` or more
+    /// than `u32::MAX` ns after it.
+    pub fn push(
+        &mut self,
+        angle_deg: f32,
+        range_m: f32,
+        quality: u8,
+        t_ns: u64,
+    ) -> Result<(), SampleTimeError> {
+        let offset_ns = t_ns
+            .checked_sub(self.t0_ns)
+            .and_then(|d| u32::try_from(d).ok())
+            .ok_or(SampleTimeError {
+                t0_ns: self.t0_ns,
+                t_ns,
+            })?;
+        self.samples.push(RevolutionSample {
+            angle_deg,
+            range_m,
+            quality,
+            offset_ns,
+        });
+        Ok(())
+    }
+
+    /// The absolute edge-clock time (ns) of each sample, in order (`t0_ns + offset_ns`, saturating
+    /// at `u64::MAX` for nonsense input instead of overflowing).
+    pub fn sample_times_ns(&self) -> impl Iterator<Item = u64> + '_ {
+        self.samples
+            .iter()
+            .map(|s| self.t0_ns.saturating_add(u64::from(s.offset_ns)))
+    }
+}
+
+/// One IMU reading, converted from raw counts to physical units on the edge.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ImuSample {
+    /// Edge monotonic clock (ns) when the registers were read.
+    pub t_ns: u64,
+    /// Acceleration x, y, z in m/s² (sensor frame).
+    pub accel_mps2: [f32; 3],
+    /// Angular rate x, y, z in rad/s (sensor frame).
+    pub gyro_radps: [f32; 3],
+    /// Magnetic field x, y, z in µT, already rotated into the accelerometer's axes.
+    pub mag_ut: [f32; 3],
+    /// Orientation quaternion `[w, x, y, z]` from the edge's Madgwick filter, if it runs.
+    pub orientation: Option<[f32; 4]>,
+}
+
+/// The stepper that turns the Sweep: where it was told to be and whether it holds.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct StepperState {
+    /// Edge monotonic clock (ns) when this state took effect.
+    pub t_ns: u64,
+    /// Commanded yaw of the Sweep in degrees (from the step index and the steps per turn).
+    pub commanded_angle_deg: f32,
+    /// Signed step count since the static scan started (negative if turned backwards).
+    pub step_index: i64,
+    /// `true` while the coils are energised and hold position, `false` once released.
+    pub holding: bool,
+}
+
+/// First half of an NTP-style exchange, sent by the server.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TimePing {
+    /// Server clock (ns) when the ping was sent (NTP t0).
+    pub t0_ns: u64,
+}
+
+/// The edge's answer to a [`TimePing`]. The server records its own receive time t3 and has the
+/// four NTP timestamps: offset = ((t1 − t0) + (t2 − t3)) / 2, delay = (t3 − t0) − (t2 − t1).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TimePong {
+    /// The ping's `t0_ns`, echoed (server clock).
+    pub t0_ns: u64,
+    /// Edge monotonic clock (ns) when the ping was received (NTP t1).
+    pub t1_ns: u64,
+    /// Edge monotonic clock (ns) when this pong was sent (NTP t2).
+    pub t2_ns: u64,
+}
+
+/// Acknowledgement of frames received in the opposite direction of the same session.
+///
+/// Variant order is part of the wire: `UpTo` = 0, `Range` = 1.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Ack {
+    /// Every sequence number `<= seq` is durably recorded (highest contiguous).
+    UpTo {
+        /// The highest contiguous acknowledged sequence number.
+        seq: u64,
+    },
+    /// Sequence numbers `first..=last` are durably recorded (a block past a gap).
+    Range {
+        /// First acknowledged sequence number.
+        first: u64,
+        /// Last acknowledged sequence number (inclusive).
+        last: u64,
+    },
+}
+
+impl Ack {
+    /// Whether this ack covers sequence number `seq`.
+    pub fn covers(&self, seq: u64) -> bool {
+        match *self {
+            Ack::UpTo { seq: top } => seq <= top,
+            Ack::Range { first, last } => first <= seq && seq <= last,
+        }
+    }
+}
+
+/// "Still here" when there is nothing else to send; either side may send it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Heartbeat {
+    /// The sender's clock (ns) when it was sent (edge monotonic or server clock).
+    pub sent_ns: u64,
+}
+
+/// What happened to a sensor or to acquisition.
+///
+/// Variant order is part of the wire: `SensorLost` = 0, `SensorBack` = 1,
+/// `AcquisitionPaused` = 2, `AcquisitionResumed` = 3.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum StatusEvent {
+    /// The sensor stopped answering or was unplugged.
+    SensorLost,
+    /// The sensor answers again after having been lost.
+    SensorBack,
+    /// The edge stopped acquiring from the sensor on purpose (e.g. spool full, command).
+    AcquisitionPaused,
+    /// Acquisition from the sensor continues.
+    AcquisitionResumed,
+}
+
+/// A change in the edge's state worth a log line on the server.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct DeviceStatus {
+    /// Edge monotonic clock (ns) when it happened.
+    pub t_ns: u64,
+    /// The sensor concerned.
+    pub sensor: SensorId,
+    /// What happened.
+    pub event: StatusEvent,
+    /// Why, for a human: e.g. `"no answer to GET_HEALTH after 3 attempts"`.
+    pub reason: String,
+}
+
+/// An order from the server to the edge.
+///
+/// Variant order is part of the wire: `StartStaticScan` = 0, `StopStaticScan` = 1,
+/// `SetMotorSpeed` = 2.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum Command {
+    /// Start a static 3D scan (the stepper turns the Sweep) at a named, known position.
+    StartStaticScan {
+        /// Name of the position, e.g. `"p1"`; used to splice positions later.
+        position: String,
+        /// Position x in metres in the map frame.
+        x_m: f64,
+        /// Position y in metres in the map frame.
+        y_m: f64,
+        /// Heading in degrees in the map frame, if known.
+        heading_deg: Option<f64>,
+    },
+    /// Stop the running static scan and release the stepper.
+    StopStaticScan,
+    /// Set a lidar's rotation rate.
+    SetMotorSpeed {
+        /// Which lidar.
+        sensor: SensorId,
+        /// Target rotation rate in revolutions per second (Hz).
+        hz: f32,
+    },
+}
