@@ -6,8 +6,12 @@
 //! - [`timing`]: per-sample timestamps from serial arrival times, and revolution assembly.
 //! - [`serial`]: the thin I/O shell that runs a driver on a serial port, surviving unplug/replug.
 //! - [`probe`]: the `scan3d-edge probe` wiring check.
+//! - [`config`]: the daemon's TOML configuration (`edge.toml`).
 #![warn(missing_docs)]
 
 pub mod clock;
 pub mod drivers;
 pub mod lidar;
+pub mod probe;
+pub mod serial;
+pub mod timing;
