@@ -9,7 +9,9 @@
 //! - [`config`]: the daemon's TOML configuration (`edge.toml`).
 #![warn(missing_docs)]
 
+pub mod cli;
 pub mod clock;
+pub mod config;
 pub mod drivers;
 pub mod lidar;
 pub mod probe;

@@ -1,0 +1,171 @@
+//! The `scan3d-edge` command line, as a library so tests can run it in-process.
+
+use std::io::Write;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use clap::{Args, Parser, Subcommand, ValueEnum};
+
+use crate::clock::{Clock, MonotonicClock, ScaledClock};
+use crate::config::EdgeConfig;
+use crate::drivers::rplidar::{Rplidar, RplidarConfig, ScanMode};
+use crate::drivers::sweep::{Sweep, SweepConfig};
+use crate::lidar::LidarDriver;
+use crate::probe::{self, ProbeLine, ProbeOptions};
+
+/// scan3d edge daemon and wiring tools (Raspberry Pi side).
+#[derive(Debug, Parser)]
+#[command(name = "scan3d-edge", version, about)]
+pub struct Cli {
+    /// What to do.
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// `scan3d-edge` subcommands.
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Talk to one lidar and print its info, health and a few revolutions as JSON lines.
+    #[command(subcommand)]
+    Probe(ProbeCommand),
+    /// Parse and validate an edge.toml, then print what it configures.
+    CheckConfig {
+        /// The configuration file.
+        #[arg(long, default_value = "/etc/scan3d/edge.toml")]
+        config: PathBuf,
+    },
+}
+
+/// `scan3d-edge probe …`
+#[derive(Debug, Subcommand)]
+pub enum ProbeCommand {
+    /// Probe a Slamtec RPLidar A1/A2.
+    Rplidar {
+        /// Serial device (e.g. /dev/rplidar or /dev/ttyUSB0).
+        path: PathBuf,
+        /// Baud rate: 115200 (A1, A2M4–M8) or 256000 (A2M7, A2M12).
+        #[arg(long, default_value_t = 115_200)]
+        baud: u32,
+        /// Scan mode.
+        #[arg(long, value_enum, default_value_t = ProbeScanMode::Express)]
+        mode: ProbeScanMode,
+        /// Revolutions, timeout, time scale.
+        #[command(flatten)]
+        common: ProbeArgs,
+    },
+    /// Probe a Scanse Sweep.
+    Sweep {
+        /// Serial device (e.g. /dev/sweep or /dev/ttyUSB1).
+        path: PathBuf,
+        /// Revolutions, timeout, time scale.
+        #[command(flatten)]
+        common: ProbeArgs,
+    },
+}
+
+/// Options shared by both probes.
+#[derive(Debug, Args)]
+pub struct ProbeArgs {
+    /// Full revolutions to print before stopping the device.
+    #[arg(long, default_value_t = 3)]
+    pub revolutions: usize,
+    /// Give up after this many seconds (device time).
+    #[arg(long, default_value_t = 30)]
+    pub timeout: u64,
+    /// Run the edge clock this many times faster than real time (only for a simulated device
+    /// started with the same `--time-scale`).
+    #[arg(long, default_value_t = 1.0)]
+    pub time_scale: f64,
+}
+
+/// RPLidar scan modes selectable from the command line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum ProbeScanMode {
+    /// 5-byte nodes, ~2000 samples/s.
+    Standard,
+    /// Legacy express capsules, ~4000 samples/s.
+    Express,
+}
+
+/// Runs a parsed command line, writing its output to `out`.
+pub fn execute(cli: Cli, out: &mut dyn Write) -> anyhow::Result<()> {
+    match cli.command {
+        Command::Probe(ProbeCommand::Rplidar {
+            path,
+            baud,
+            mode,
+            common,
+        }) => {
+            let config = RplidarConfig {
+                baud,
+                scan_mode: match mode {
+                    ProbeScanMode::Standard => ScanMode::Standard,
+                    ProbeScanMode::Express => ScanMode::Express,
+                },
+                ..RplidarConfig::default()
+            };
+            run_probe(&mut Rplidar::new(config), path, baud, &common, out)
+        }
+        Command::Probe(ProbeCommand::Sweep { path, common }) => {
+            let mut driver = Sweep::new(SweepConfig::default())?;
+            run_probe(&mut driver, path, 115_200, &common, out)
+        }
+        Command::CheckConfig { config } => {
+            let config = EdgeConfig::load(&config)?;
+            writeln!(out, "device {}", config.device_name)?;
+            if let Some(r) = &config.rplidar {
+                writeln!(
+                    out,
+                    "rplidar {} at {} baud, {:?} scan",
+                    r.path.display(),
+                    r.driver.baud,
+                    r.driver.scan_mode
+                )?;
+            }
+            if let Some(s) = &config.sweep {
+                Sweep::new(s.driver.clone())?;
+                writeln!(out, "sweep {}", s.path.display())?;
+            }
+            Ok(())
+        }
+    }
+}
+
+fn run_probe(
+    driver: &mut dyn LidarDriver,
+    path: PathBuf,
+    baud: u32,
+    common: &ProbeArgs,
+    out: &mut dyn Write,
+) -> anyhow::Result<()> {
+    anyhow::ensure!(common.revolutions > 0, "--revolutions must be at least 1");
+    anyhow::ensure!(
+        common.time_scale.is_finite() && common.time_scale > 0.0,
+        "--time-scale must be a positive number"
+    );
+    let clock: Arc<dyn Clock> = if common.time_scale == 1.0 {
+        Arc::new(MonotonicClock::new())
+    } else {
+        Arc::new(ScaledClock::new(common.time_scale))
+    };
+    let options = ProbeOptions {
+        path,
+        baud,
+        revolutions: common.revolutions,
+        deadline_ns: common.timeout.saturating_mul(1_000_000_000),
+    };
+    let mut write_error = None;
+    probe::run(driver, &options, clock, |line: &ProbeLine| {
+        if write_error.is_none() {
+            let result = serde_json::to_string(line)
+                .map_err(std::io::Error::other)
+                .and_then(|json| writeln!(out, "{json}"))
+                .and_then(|()| out.flush());
+            write_error = result.err();
+        }
+    })?;
+    match write_error {
+        Some(e) => Err(e.into()),
+        None => Ok(()),
+    }
+}

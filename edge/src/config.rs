@@ -1,0 +1,155 @@
+//! The edge daemon's configuration file (`edge.toml`; example in `deploy/edge.toml`).
+//!
+//! Every lidar section is optional: a Pi wired to one lidar simply leaves the other out.
+
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+
+use crate::drivers::rplidar::RplidarConfig;
+use crate::drivers::sweep::SweepConfig;
+
+/// The whole `edge.toml`.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EdgeConfig {
+    /// Name this edge announces to the server (also its certificate's name).
+    pub device_name: String,
+    /// Directory for the edge's state (spool, logs); created if missing.
+    #[serde(default = "default_state_dir")]
+    pub state_dir: PathBuf,
+    /// The localisation lidar, if wired.
+    pub rplidar: Option<RplidarSection>,
+    /// The mapping lidar, if wired.
+    pub sweep: Option<SweepSection>,
+}
+
+fn default_state_dir() -> PathBuf {
+    PathBuf::from("/var/lib/scan3d-edge")
+}
+
+/// `[rplidar]`: where the RPLidar is and how to drive it.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(try_from = "toml::Table")]
+pub struct RplidarSection {
+    /// Serial device, normally the udev link `/dev/rplidar`.
+    pub path: PathBuf,
+    /// Driver settings (scan mode, baud, motor PWM, timeouts), written in the same table.
+    pub driver: RplidarConfig,
+}
+
+/// `[sweep]`: where the Scanse Sweep is and how to drive it.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(try_from = "toml::Table")]
+pub struct SweepSection {
+    /// Serial device, normally the udev link `/dev/sweep`.
+    pub path: PathBuf,
+    /// Driver settings (motor speed, sample rate, timeouts), written in the same table.
+    pub driver: SweepConfig,
+}
+
+/// Splits a device table into its `path` and the driver settings. (serde's `flatten` would
+/// silently accept misspelt keys; the driver configs deny unknown fields, so we split by hand.)
+fn split_section<T: serde::de::DeserializeOwned>(
+    mut table: toml::Table,
+) -> Result<(PathBuf, T), String> {
+    let path = match table.remove("path") {
+        Some(toml::Value::String(path)) => PathBuf::from(path),
+        Some(other) => return Err(format!("`path` must be a string, got {}", other.type_str())),
+        None => return Err("missing `path` (the serial device, e.g. \"/dev/rplidar\")".into()),
+    };
+    let driver = T::deserialize(toml::Value::Table(table)).map_err(|e| e.to_string())?;
+    Ok((path, driver))
+}
+
+impl TryFrom<toml::Table> for RplidarSection {
+    type Error = String;
+    fn try_from(table: toml::Table) -> Result<Self, String> {
+        let (path, driver) = split_section(table).map_err(|e| format!("[rplidar]: {e}"))?;
+        Ok(Self { path, driver })
+    }
+}
+
+impl TryFrom<toml::Table> for SweepSection {
+    type Error = String;
+    fn try_from(table: toml::Table) -> Result<Self, String> {
+        let (path, driver) = split_section(table).map_err(|e| format!("[sweep]: {e}"))?;
+        Ok(Self { path, driver })
+    }
+}
+
+/// Why a configuration could not be used.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// The file could not be read.
+    #[error("cannot read {path}: {source}")]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// The TOML is malformed or has unknown / mistyped keys.
+    #[error("{path}: {message}")]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// The parser's message, with line and column.
+        message: String,
+    },
+}
+
+impl EdgeConfig {
+    /// Parses a configuration from TOML text; `origin` names it in errors.
+    pub fn from_toml_str(text: &str, origin: &Path) -> Result<Self, ConfigError> {
+        toml::from_str(text).map_err(|e| ConfigError::Parse {
+            path: origin.to_path_buf(),
+            message: e.to_string().trim_end().replace('\n', " "),
+        })
+    }
+
+    /// Reads and parses the configuration file at `path`.
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::from_toml_str(&text, path)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::drivers::rplidar::ScanMode;
+
+    #[test]
+    fn the_shipped_example_config_parses() {
+        let path = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../deploy/edge.toml"));
+        let config = EdgeConfig::load(path).expect("deploy/edge.toml must parse");
+        assert_eq!(config.device_name, "edge-pi-01");
+        let rplidar = config.rplidar.expect("rplidar section");
+        assert_eq!(rplidar.path, Path::new("/dev/rplidar"));
+        assert_eq!(rplidar.driver.scan_mode, ScanMode::Express);
+        assert_eq!(rplidar.driver.baud, 115_200);
+        let sweep = config.sweep.expect("sweep section");
+        assert_eq!(sweep.path, Path::new("/dev/sweep"));
+        assert_eq!(sweep.driver.motor_hz, Some(5));
+    }
+
+    #[test]
+    fn unknown_keys_are_reported_with_their_place() {
+        let text = "device_name = \"x\"\n[rplidar]\npath = \"/dev/rplidar\"\nbaudrate = 9600\n";
+        let err = EdgeConfig::from_toml_str(text, Path::new("edge.toml")).unwrap_err();
+        let message = err.to_string();
+        assert!(message.starts_with("edge.toml:"), "{message}");
+        assert!(message.contains("baudrate"), "{message}");
+    }
+
+    #[test]
+    fn sections_are_optional() {
+        let config = EdgeConfig::from_toml_str("device_name = \"bench\"", Path::new("x")).unwrap();
+        assert!(config.rplidar.is_none() && config.sweep.is_none());
+        assert_eq!(config.state_dir, Path::new("/var/lib/scan3d-edge"));
+    }
+}
