@@ -102,9 +102,16 @@ pub enum ConfigError {
 impl EdgeConfig {
     /// Parses a configuration from TOML text; `origin` names it in errors.
     pub fn from_toml_str(text: &str, origin: &Path) -> Result<Self, ConfigError> {
-        toml::from_str(text).map_err(|e| ConfigError::Parse {
-            path: origin.to_path_buf(),
-            message: e.to_string().trim_end().replace('\n', " "),
+        toml::from_str(text).map_err(|e| {
+            let message = match e.span() {
+                Some(span) => {
+                    let before = text.get(..span.start).unwrap_or_default();
+                    let line = before.bytes().filter(|&b| b == b'\n').count() + 1;
+                    format!("line {line}: {}", e.message())
+                }
+                None => e.message().to_string(),
+            };
+            ConfigError::Parse { path: origin.to_path_buf(), message }
         })
     }
 
@@ -142,7 +149,7 @@ mod tests {
         let text = "device_name = \"x\"\n[rplidar]\npath = \"/dev/rplidar\"\nbaudrate = 9600\n";
         let err = EdgeConfig::from_toml_str(text, Path::new("edge.toml")).unwrap_err();
         let message = err.to_string();
-        assert!(message.starts_with("edge.toml:"), "{message}");
+        assert!(message.starts_with("edge.toml: line 2:"), "{message}");
         assert!(message.contains("baudrate"), "{message}");
     }
 
