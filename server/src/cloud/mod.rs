@@ -1,0 +1,12 @@
+//! Point clouds: 3D assembly (later issues), filters (later issues) and export.
+
+pub mod ply;
+
+/// One point of a cloud with the intensity the sensor reported for it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CloudPoint {
+    /// Position in metres (frame given by the cloud's producer).
+    pub position: [f32; 3],
+    /// Sensor quality / signal strength, as reported.
+    pub intensity: f32,
+}
