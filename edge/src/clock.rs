@@ -29,7 +29,9 @@ pub struct MonotonicClock {
 impl MonotonicClock {
     /// A clock whose epoch is now.
     pub fn new() -> Self {
-        Self { epoch: Instant::now() }
+        Self {
+            epoch: Instant::now(),
+        }
     }
 }
 
@@ -60,8 +62,15 @@ impl ScaledClock {
     ///
     /// Non-finite or non-positive scales are treated as 1.
     pub fn new(scale: f64) -> Self {
-        let scale = if scale.is_finite() && scale > 0.0 { scale } else { 1.0 };
-        Self { epoch: Instant::now(), scale }
+        let scale = if scale.is_finite() && scale > 0.0 {
+            scale
+        } else {
+            1.0
+        };
+        Self {
+            epoch: Instant::now(),
+            scale,
+        }
     }
 
     /// The time-scale factor.
@@ -87,11 +96,18 @@ mod tests {
     #[test]
     fn scaled_clock_runs_faster_and_converts_durations_back() {
         let clock = ScaledClock::new(10.0);
-        assert_eq!(clock.real_duration(1_000_000_000), Duration::from_millis(100));
+        assert_eq!(
+            clock.real_duration(1_000_000_000),
+            Duration::from_millis(100)
+        );
         let a = clock.now_ns();
         std::thread::sleep(Duration::from_millis(20));
         let b = clock.now_ns();
-        assert!(b - a >= 200_000_000, "10x clock advanced only {} ns in 20 ms", b - a);
+        assert!(
+            b - a >= 200_000_000,
+            "10x clock advanced only {} ns in 20 ms",
+            b - a
+        );
     }
 
     #[test]

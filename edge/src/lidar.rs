@@ -117,7 +117,9 @@ pub enum LidarEvent {
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum DriverError {
     /// The device did not answer `command` within the deadline, after retries.
-    #[error("no answer to {command} after {attempts} attempts (is this the right port and baud rate?)")]
+    #[error(
+        "no answer to {command} after {attempts} attempts (is this the right port and baud rate?)"
+    )]
     NoAnswer {
         /// The command name, e.g. `"GET_INFO"` or `"ID"`.
         command: &'static str,
