@@ -9,6 +9,7 @@
 //! - [`config`]: the daemon's TOML configuration (`edge.toml`).
 #![warn(missing_docs)]
 
+pub mod acquisition;
 pub mod cli;
 pub mod clock;
 pub mod config;

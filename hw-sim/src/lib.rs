@@ -5,6 +5,7 @@
 //! - [`device`]: the sans-I/O emulator contract (host bytes in, paced wire units out).
 //! - [`rplidar`], [`sweep`]: the two lidar emulators speaking the real wire protocols.
 //! - [`faults`]: stray bytes, bit flips and dropped bytes, with a log of what was really sent.
+//! - [`mounts`]: where the emulated sensors sit in the room.
 //! - [`pty`]: runs an emulator on a Linux pty behind a symlink, paced at the wire rate.
 //! - [`demo`]: the README's demo.
 #![warn(missing_docs)]
@@ -12,6 +13,7 @@
 pub mod demo;
 pub mod device;
 pub mod faults;
+pub mod mounts;
 pub mod noise;
 pub mod pty;
 pub mod rplidar;
