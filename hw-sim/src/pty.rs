@@ -611,8 +611,9 @@ mod tests {
 
     use super::*;
 
-    /// Answers "ping" with "pong", "burst" with 36 units of 64 bytes (one sample each), and says
-    /// "HELLO" once at power-on, before any client can be there.
+    /// Answers "ping" with "pong", "burst" with 36 units of 64 bytes and "flood" with 10 units of
+    /// 1000 bytes (one sample per unit), and says "HELLO" once at power-on, before any client can
+    /// be there.
     struct TestDevice {
         events: Arc<Mutex<Vec<&'static str>>>,
         out: Vec<WireUnit>,
@@ -639,6 +640,20 @@ mod tests {
                     };
                     self.out.push(WireUnit {
                         bytes: vec![i; 64],
+                        samples: vec![sample],
+                    });
+                }
+            } else if bytes == b"flood" {
+                // 10 000 bytes at once: more than the 2880-byte backlog bound (0.25 s of wire).
+                for i in 0..10u8 {
+                    let sample = RawSample {
+                        angle_deg: f32::from(i),
+                        range_m: 2.0,
+                        quality: 10,
+                        new_revolution: false,
+                    };
+                    self.out.push(WireUnit {
+                        bytes: vec![i; 1000],
                         samples: vec![sample],
                     });
                 }
@@ -790,6 +805,27 @@ mod tests {
                 .all(|(i, s)| s.sample.angle_deg == i as f32 && !s.touched)
         );
         assert_eq!(handle.stats().bytes_written, 36 * 64);
+        drop(port);
+        drop(handle);
+        let _ = std::fs::remove_dir_all(dir);
+    }
+
+    #[test]
+    fn overrun_drops_whole_units_and_counts_them() {
+        let (handle, _events, dir) = spawn("overrun");
+        let mut port = open(handle.link());
+        port.write_all(b"flood").unwrap();
+        // Units 0 and 1 fit in the bound (2000 ≤ 2880 bytes); the other eight are dropped.
+        let got = read_n(port.as_mut(), 2000);
+        assert!(got[..1000].iter().all(|&b| b == 0) && got[1000..].iter().all(|&b| b == 1));
+        assert!(wait_for(|| handle.sent_log().len() == 2));
+        std::thread::sleep(Duration::from_millis(100));
+        let stats = handle.stats();
+        assert_eq!(
+            (stats.bytes_written, stats.bytes_dropped_overrun),
+            (2000, 8000)
+        );
+        assert_eq!(handle.sent_log().len(), 2);
         drop(port);
         drop(handle);
         let _ = std::fs::remove_dir_all(dir);
