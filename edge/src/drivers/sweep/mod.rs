@@ -16,7 +16,9 @@
 //! [`DriverError::NoAnswer`]. Receipts are hunted for by their two-letter echo, so garbage and
 //! data blocks still in flight (e.g. before `DX00P\n`) are skipped.
 //!
-//! Data blocks are framed by [`block::Framer`]. Blocks with the communication-error bit (e0) are
+//! Data blocks are framed by [`block::Framer`]: a block is emitted only once the aligned block
+//! after it confirms it (one block of latency), so a window that passes the weak mod-255
+//! checksum by chance is not emitted. Blocks with the communication-error bit (e0) are
 //! counted ([`Sweep::error_blocks`]) and not emitted; as libsweep does, their sync bit still cuts
 //! revolutions: it is carried to the next emitted sample's `new_revolution`.
 
