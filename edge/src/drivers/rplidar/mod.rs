@@ -1,0 +1,665 @@
+//! Slamtec RPLidar A1/A2 driver: a sans-I/O [`LidarDriver`] (research notes §1).
+//!
+//! Layers, each usable on its own:
+//! - [`codec`]: request builders (exact bytes), response-descriptor hunting, GET_INFO /
+//!   GET_HEALTH / GET_SAMPLERATE / GET_ACC_BOARD_FLAG payloads;
+//! - [`nodes`]: standard 5-byte scan nodes with a plausibility-checked resync;
+//! - [`capsules`]: legacy 84-byte express capsules with angle reconstruction;
+//! - [`Rplidar`]: the session state machine below.
+//!
+//! # Session
+//!
+//! [`LidarDriver::start`] runs, one step after another:
+//!
+//! 1. `STOP`, wait [`RplidarConfig::stop_wait_ms`] (bytes in flight keep arriving), then
+//!    [`Transmit::FlushInput`]. With [`RplidarConfig::reset_on_start`] (or [`Rplidar::reset`]):
+//!    `RESET` instead, wait [`RplidarConfig::reset_wait_ms`] for the reboot and its ASCII banner,
+//!    then flush.
+//! 2. `GET_INFO`, retried every [`RplidarConfig::info_timeout_ms`] up to
+//!    [`RplidarConfig::info_attempts`] times (or [`RplidarConfig::info_attempts_after_reset`]),
+//!    then [`DriverError::NoAnswer`]. Garbage before the answer (a banner, stale nodes) is
+//!    skipped by descriptor hunting. Emits [`LidarEvent::Info`].
+//! 3. Model major ≥ 2 (A2): `GET_ACC_BOARD_FLAG` (if [`RplidarConfig::query_acc_board`]); bit 0
+//!    set, no answer, or not asked → the motor is driven by `SET_MOTOR_PWM`; bit 0 clear → by
+//!    DTR. Major 1 (A1): DTR.
+//! 4. `GET_HEALTH` → [`LidarEvent::Health`]. Status Error (protection stop) →
+//!    [`LidarEvent::Failed`] with [`DriverError::Device`]: the device needs a reset or a power
+//!    cycle, which the caller decides (e.g. by calling [`Rplidar::reset`]).
+//! 5. `GET_SAMPLERATE` when the firmware is ≥ 1.17 (no answer, or older firmware: 476 µs).
+//! 6. Motor on (`SET_MOTOR_PWM(motor_pwm)` or `SetDtr(false)`), then `SCAN` / `FORCE_SCAN` or
+//!    `EXPRESS_SCAN` (working mode 0, legacy capsules; firmware < 1.17 falls back to standard).
+//!    The descriptor → [`LidarEvent::Scanning`], then [`LidarEvent::Sample`]s.
+//!
+//! While scanning, a stream that yields no valid frame for [`RplidarConfig::answer_timeout_ms`]
+//! (or [`RplidarConfig::spinup_timeout_ms`] right after the descriptor, while the motor spins
+//! up) produces a warning and the handshake restarts from step 1: the device may have been
+//! reset or replugged. Other single answers time out after `answer_timeout_ms` and are retried
+//! up to [`RplidarConfig::answer_attempts`] times.
+//!
+//! [`LidarDriver::stop`] sends `STOP`, then `SET_MOTOR_PWM(0)` (PWM motor) or `SetDtr(true)`
+//! (DTR motor), and goes idle.
+//!
+//! # Counters
+//!
+//! [`DriverStats::frames_rejected`] and [`DriverStats::resyncs`] both count framing losses in the
+//! sample stream (a node or capsule at an expected boundary that failed its checks);
+//! [`DriverStats::bytes_discarded`] counts every byte skipped while hunting, received while no
+//! answer was expected, or dropped by a flush.
+
+pub mod capsules;
+pub mod codec;
+pub mod nodes;
+
+use std::collections::VecDeque;
+
+use serde::Deserialize;
+
+use crate::lidar::{
+    ArrivedSample, DriverError, DriverStats, HealthStatus, LidarDriver, LidarEvent, LidarKind,
+    RawSample, Transmit,
+};
+use capsules::CapsuleParser;
+use codec::{ExpectedAnswer, Hunt, InfoAnswer, SampleRate};
+use nodes::NodeParser;
+
+const MS: u64 = 1_000_000;
+/// First firmware with EXPRESS_SCAN and GET_SAMPLERATE (1.17).
+const FW_1_17: u16 = 0x0111;
+
+/// Which scan command the driver starts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ScanMode {
+    /// SCAN (or FORCE_SCAN): 5-byte nodes with a per-sample quality.
+    Standard,
+    /// EXPRESS_SCAN with legacy 84-byte capsules (fw ≥ 1.17): about twice the sample rate.
+    #[default]
+    Express,
+}
+
+/// RPLidar driver settings (the `[rplidar]` table of the edge config; every field optional).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RplidarConfig {
+    /// Scan mode to request (default express).
+    pub scan_mode: ScanMode,
+    /// In standard mode, send FORCE_SCAN (no wait for stable rotation) instead of SCAN.
+    pub force_scan: bool,
+    /// A2 motor PWM duty (0..1023) sent before scanning (default 660, as the SDK).
+    pub motor_pwm: u16,
+    /// Ask an A2 for GET_ACC_BOARD_FLAG before choosing PWM motor control (default true).
+    pub query_acc_board: bool,
+    /// Serial baud rate. The driver never uses it: the I/O shell opens the port with it.
+    /// 115200 for A1 and A2M4–M8 (default), 256000 for A2M7/A2M12/A3.
+    pub baud: u32,
+    /// Time to wait for a single answer or, while scanning, for the next valid frame (2 s).
+    pub answer_timeout_ms: u64,
+    /// Tries for GET_HEALTH, GET_SAMPLERATE, GET_ACC_BOARD_FLAG and the scan request (2).
+    pub answer_attempts: u32,
+    /// Time to wait for each GET_INFO answer (500 ms, the SDK's `connect()` value).
+    pub info_timeout_ms: u64,
+    /// GET_INFO tries after STOP before giving up (4).
+    pub info_attempts: u32,
+    /// Wait after STOP before flushing the input (100 ms, as the SDK).
+    pub stop_wait_ms: u64,
+    /// Send RESET instead of STOP at the start of each handshake (default false).
+    pub reset_on_start: bool,
+    /// Wait after RESET for the reboot and its ASCII banner before flushing (1000 ms).
+    pub reset_wait_ms: u64,
+    /// GET_INFO tries after RESET (30, i.e. 15 s like rplidar_ros).
+    pub info_attempts_after_reset: u32,
+    /// Time allowed from the scan descriptor to the first valid frame: an A1 sends nothing until
+    /// its motor has spun up, which takes well over 1 s (5000 ms).
+    pub spinup_timeout_ms: u64,
+}
+
+impl Default for RplidarConfig {
+    fn default() -> Self {
+        Self {
+            scan_mode: ScanMode::Express,
+            force_scan: false,
+            motor_pwm: 660,
+            query_acc_board: true,
+            baud: 115_200,
+            answer_timeout_ms: 2000,
+            answer_attempts: 2,
+            info_timeout_ms: 500,
+            info_attempts: 4,
+            stop_wait_ms: 100,
+            reset_on_start: false,
+            reset_wait_ms: 1000,
+            info_attempts_after_reset: 30,
+            spinup_timeout_ms: 5000,
+        }
+    }
+}
+
+/// How the motor is switched, decided from GET_INFO (and GET_ACC_BOARD_FLAG).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Motor {
+    Unknown,
+    Dtr,
+    Pwm,
+}
+
+/// A request whose answer the session waits for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Step {
+    Info,
+    AccBoard,
+    Health,
+    SampleRate,
+    Scan,
+}
+
+#[derive(Debug, Clone)]
+struct Pending {
+    step: Step,
+    answer: ExpectedAnswer,
+    request: Vec<u8>,
+    attempts: u32,
+    max_attempts: u32,
+    timeout_ns: u64,
+    deadline: u64,
+    got_descriptor: bool,
+}
+
+#[derive(Debug, Clone)]
+enum StreamParser {
+    Nodes(NodeParser),
+    Capsules(CapsuleParser),
+}
+
+#[derive(Debug, Clone)]
+enum Phase {
+    Idle,
+    /// Waiting after STOP/RESET; then flush and GET_INFO with `info_attempts` tries.
+    Settling {
+        until: u64,
+        info_attempts: u32,
+    },
+    Awaiting(Pending),
+    Scanning {
+        parser: StreamParser,
+        deadline: u64,
+    },
+}
+
+/// The RPLidar A1/A2 protocol state machine. See the [module docs](self) for the session.
+#[derive(Debug, Clone)]
+pub struct Rplidar {
+    config: RplidarConfig,
+    phase: Phase,
+    /// Received bytes not consumed yet.
+    buf: Vec<u8>,
+    /// Stream offset of `buf[0]` (bytes received before it).
+    buf_offset: u64,
+    /// `(stream offset just past a read, now_ns of that read)`, oldest first, for `arrival_ns`.
+    reads: VecDeque<(u64, u64)>,
+    transmits: VecDeque<Transmit>,
+    events: VecDeque<LidarEvent>,
+    stats: DriverStats,
+    info: Option<InfoAnswer>,
+    motor: Motor,
+    sample_rate: SampleRate,
+    resyncs_reported: u64,
+    next_resync_report: u64,
+}
+
+impl Rplidar {
+    /// An idle driver; call [`LidarDriver::start`] once the port is open.
+    pub fn new(config: RplidarConfig) -> Self {
+        Self {
+            config,
+            phase: Phase::Idle,
+            buf: Vec::with_capacity(4096),
+            buf_offset: 0,
+            reads: VecDeque::new(),
+            transmits: VecDeque::new(),
+            events: VecDeque::new(),
+            stats: DriverStats::default(),
+            info: None,
+            motor: Motor::Unknown,
+            sample_rate: SampleRate::DEFAULT,
+            resyncs_reported: 0,
+            next_resync_report: 0,
+        }
+    }
+
+    /// The settings this driver was built with.
+    pub fn config(&self) -> &RplidarConfig {
+        &self.config
+    }
+
+    /// The last GET_INFO answer of this session, if any.
+    pub fn device(&self) -> Option<&InfoAnswer> {
+        self.info.as_ref()
+    }
+
+    /// Restarts the handshake with RESET instead of STOP: the core reboots and prints an ASCII
+    /// banner, so the driver waits [`RplidarConfig::reset_wait_ms`], flushes, and polls GET_INFO
+    /// up to [`RplidarConfig::info_attempts_after_reset`] times. Use it to clear a protection
+    /// stop ([`HealthStatus::Error`]).
+    pub fn reset(&mut self, now_ns: u64) {
+        self.transmits.clear();
+        self.motor = Motor::Unknown;
+        self.begin(now_ns, true);
+    }
+
+    /// Starts a handshake (STOP or RESET), dropping any parser state and buffered bytes.
+    fn begin(&mut self, now: u64, reset: bool) {
+        self.discard_buffer();
+        self.info = None;
+        self.sample_rate = SampleRate::DEFAULT;
+        if reset {
+            self.transmits.push_back(Transmit::Write(codec::reset()));
+            self.phase = Phase::Settling {
+                until: now + self.config.reset_wait_ms * MS,
+                info_attempts: self.config.info_attempts_after_reset,
+            };
+        } else {
+            self.transmits.push_back(Transmit::Write(codec::stop()));
+            self.phase = Phase::Settling {
+                until: now + self.config.stop_wait_ms * MS,
+                info_attempts: self.config.info_attempts,
+            };
+        }
+    }
+
+    fn discard_buffer(&mut self) {
+        self.stats.bytes_discarded += self.buf.len() as u64;
+        self.consume(self.buf.len());
+    }
+
+    /// Drops the first `n` buffered bytes.
+    fn consume(&mut self, n: usize) {
+        let n = n.min(self.buf.len());
+        self.buf.drain(..n);
+        self.buf_offset += n as u64;
+        while self
+            .reads
+            .front()
+            .is_some_and(|&(end, _)| end <= self.buf_offset)
+        {
+            self.reads.pop_front();
+        }
+    }
+
+    fn fail(&mut self, error: DriverError) {
+        self.events.push_back(LidarEvent::Failed(error));
+        self.phase = Phase::Idle;
+    }
+
+    fn warn(&mut self, text: String) {
+        self.events.push_back(LidarEvent::Warning(text));
+    }
+
+    /// Sends a request whose answer is awaited.
+    fn request(&mut self, now: u64, step: Step, max_attempts: u32, timeout_ms: u64) {
+        let (request, answer) = match step {
+            Step::Info => (codec::get_info(), codec::ANSWER_INFO),
+            Step::AccBoard => (codec::get_acc_board_flag(), codec::ANSWER_ACC_BOARD_FLAG),
+            Step::Health => (codec::get_health(), codec::ANSWER_HEALTH),
+            Step::SampleRate => (codec::get_samplerate(), codec::ANSWER_SAMPLERATE),
+            Step::Scan => self.scan_request(),
+        };
+        self.transmits.push_back(Transmit::Write(request.clone()));
+        self.phase = Phase::Awaiting(Pending {
+            step,
+            answer,
+            request,
+            attempts: 1,
+            max_attempts: max_attempts.max(1),
+            timeout_ns: timeout_ms * MS,
+            deadline: now + timeout_ms * MS,
+            got_descriptor: false,
+        });
+    }
+
+    fn express_supported(&self) -> bool {
+        self.info.is_some_and(|i| i.firmware >= FW_1_17)
+    }
+
+    fn scan_request(&self) -> (Vec<u8>, ExpectedAnswer) {
+        match (
+            self.config.scan_mode,
+            self.express_supported(),
+            self.config.force_scan,
+        ) {
+            (ScanMode::Express, true, _) => (codec::express_scan(0), codec::ANSWER_EXPRESS),
+            (_, _, true) => (codec::force_scan(), codec::ANSWER_FORCE_SCAN),
+            _ => (codec::scan(), codec::ANSWER_SCAN),
+        }
+    }
+
+    fn answer_request(&mut self, now: u64, step: Step) {
+        self.request(
+            now,
+            step,
+            self.config.answer_attempts,
+            self.config.answer_timeout_ms,
+        );
+    }
+
+    fn after_info(&mut self, now: u64, info: InfoAnswer) {
+        self.events.push_back(LidarEvent::Info(info.device_info()));
+        self.info = Some(info);
+        if !matches!(info.major(), 1 | 2) {
+            self.warn(format!(
+                "model byte 0x{:02X} is neither an A1 nor an A2; trying the A-series protocol",
+                info.model
+            ));
+        }
+        if info.major() >= 2 {
+            if self.config.query_acc_board {
+                self.answer_request(now, Step::AccBoard);
+                return;
+            }
+            self.motor = Motor::Pwm;
+        } else {
+            self.motor = Motor::Dtr;
+        }
+        self.answer_request(now, Step::Health);
+    }
+
+    fn after_health(&mut self, now: u64) {
+        if self.express_supported() {
+            self.answer_request(now, Step::SampleRate);
+        } else {
+            self.start_scan(now);
+        }
+    }
+
+    fn start_scan(&mut self, now: u64) {
+        match self.motor {
+            Motor::Pwm => self
+                .transmits
+                .push_back(Transmit::Write(codec::set_motor_pwm(self.config.motor_pwm))),
+            Motor::Dtr | Motor::Unknown => self.transmits.push_back(Transmit::SetDtr(false)),
+        }
+        if self.config.scan_mode == ScanMode::Express && !self.express_supported() {
+            self.warn("firmware older than 1.17 has no express scan; using standard scan".into());
+        }
+        self.answer_request(now, Step::Scan);
+    }
+
+    /// Handles a complete single answer (`payload.len() == pending.answer.len`).
+    fn on_answer(&mut self, now: u64, step: Step, payload: &[u8]) {
+        match step {
+            Step::Info => {
+                if let Ok(p) = <&[u8; 20]>::try_from(payload) {
+                    self.after_info(now, InfoAnswer::parse(p));
+                }
+            }
+            Step::AccBoard => {
+                if let Ok(p) = <&[u8; 4]>::try_from(payload) {
+                    self.motor = if codec::parse_acc_board_pwm(p) {
+                        Motor::Pwm
+                    } else {
+                        Motor::Dtr
+                    };
+                }
+                self.answer_request(now, Step::Health);
+            }
+            Step::Health => {
+                let Ok(p) = <&[u8; 3]>::try_from(payload) else {
+                    return;
+                };
+                match codec::parse_health(p) {
+                    Ok((status, error_code)) => {
+                        self.events
+                            .push_back(LidarEvent::Health { status, error_code });
+                        if status == HealthStatus::Error {
+                            self.fail(DriverError::Device(format!(
+                                "health status Error (protection stop), error code 0x{error_code:04X}; \
+                                 reset or power-cycle the device"
+                            )));
+                            return;
+                        }
+                    }
+                    Err(e) => self.warn(format!("GET_HEALTH: {e}; continuing")),
+                }
+                self.after_health(now);
+            }
+            Step::SampleRate => {
+                if let Ok(p) = <&[u8; 4]>::try_from(payload) {
+                    self.sample_rate = SampleRate::parse(p);
+                }
+                self.start_scan(now);
+            }
+            // The scan answer has no single payload: see `on_scan_descriptor`.
+            Step::Scan => {}
+        }
+    }
+
+    fn on_scan_descriptor(&mut self, now: u64, answer: &ExpectedAnswer) {
+        let (parser, period_us) = if answer.data_type == codec::ANSWER_EXPRESS.data_type {
+            (
+                StreamParser::Capsules(CapsuleParser::new()),
+                self.sample_rate.express_us,
+            )
+        } else {
+            (
+                StreamParser::Nodes(NodeParser::new()),
+                self.sample_rate.standard_us,
+            )
+        };
+        self.events.push_back(LidarEvent::Scanning {
+            sample_period_ns: u64::from(period_us) * 1000,
+        });
+        self.resyncs_reported = self.stats.resyncs;
+        self.phase = Phase::Scanning {
+            parser,
+            deadline: now + self.config.spinup_timeout_ms * MS,
+        };
+    }
+
+    fn on_timeout(&mut self, now: u64, pending: Pending) {
+        if pending.attempts < pending.max_attempts {
+            self.warn(format!(
+                "no answer to {} (attempt {}/{}), retrying",
+                pending.answer.command, pending.attempts, pending.max_attempts
+            ));
+            self.discard_buffer();
+            self.transmits
+                .push_back(Transmit::Write(pending.request.clone()));
+            self.phase = Phase::Awaiting(Pending {
+                attempts: pending.attempts + 1,
+                deadline: now + pending.timeout_ns,
+                got_descriptor: false,
+                ..pending
+            });
+            return;
+        }
+        let no_answer = DriverError::NoAnswer {
+            command: pending.answer.command,
+            attempts: pending.attempts,
+        };
+        match pending.step {
+            Step::Info | Step::Health | Step::Scan => self.fail(no_answer),
+            Step::AccBoard => {
+                self.warn(format!(
+                    "{no_answer}; assuming PWM motor control (model is A2)"
+                ));
+                self.motor = Motor::Pwm;
+                self.answer_request(now, Step::Health);
+            }
+            Step::SampleRate => {
+                self.warn(format!("{no_answer}; assuming 476 µs per sample"));
+                self.start_scan(now);
+            }
+        }
+    }
+
+    /// Runs the current phase over the buffered bytes until it needs more.
+    fn process(&mut self, now: u64) {
+        loop {
+            match &mut self.phase {
+                Phase::Idle | Phase::Settling { .. } => {
+                    self.discard_buffer();
+                    return;
+                }
+                Phase::Awaiting(pending) if !pending.got_descriptor => {
+                    match codec::hunt_descriptor(&self.buf, &pending.answer) {
+                        Hunt::Found(at) => {
+                            pending.got_descriptor = true;
+                            let answer = pending.answer;
+                            let step = pending.step;
+                            self.stats.bytes_discarded += at as u64;
+                            self.consume(at + codec::DESCRIPTOR_LEN);
+                            if step == Step::Scan {
+                                self.on_scan_descriptor(now, &answer);
+                            }
+                        }
+                        Hunt::NotYet { discard } => {
+                            self.stats.bytes_discarded += discard as u64;
+                            self.consume(discard);
+                            return;
+                        }
+                    }
+                }
+                Phase::Awaiting(pending) => {
+                    let len = usize::try_from(pending.answer.len).unwrap_or(usize::MAX);
+                    let step = pending.step;
+                    let Some(payload) = self.buf.get(..len) else {
+                        return;
+                    };
+                    let payload = payload.to_vec();
+                    self.consume(len);
+                    self.on_answer(now, step, &payload);
+                }
+                Phase::Scanning { .. } => {
+                    self.parse_stream(now);
+                    return;
+                }
+            }
+        }
+    }
+
+    fn parse_stream(&mut self, now: u64) {
+        let Phase::Scanning { parser, deadline } = &mut self.phase else {
+            return;
+        };
+        let events = &mut self.events;
+        let reads = &self.reads;
+        let base = self.buf_offset;
+        let mut read_index = 0;
+        let mut emitted = 0u64;
+        let mut emit = |sample: RawSample, end: usize| {
+            let end = base + end as u64;
+            while reads
+                .get(read_index)
+                .is_some_and(|&(read_end, _)| read_end < end)
+            {
+                read_index += 1;
+            }
+            let arrival_ns = reads.get(read_index).map_or(now, |&(_, t)| t);
+            events.push_back(LidarEvent::Sample(ArrivedSample { sample, arrival_ns }));
+            emitted += 1;
+        };
+        let (consumed, frames) = match parser {
+            StreamParser::Nodes(p) => p.parse(&self.buf, &mut self.stats, &mut emit),
+            StreamParser::Capsules(p) => p.parse(&self.buf, &mut self.stats, &mut emit),
+        };
+        if frames > 0 {
+            *deadline = now + self.config.answer_timeout_ms * MS;
+        }
+        self.stats.samples_emitted += emitted;
+        self.consume(consumed);
+        if self.stats.resyncs > self.resyncs_reported && now >= self.next_resync_report {
+            let lost = self.stats.resyncs - self.resyncs_reported;
+            self.resyncs_reported = self.stats.resyncs;
+            self.next_resync_report = now + 1000 * MS;
+            self.warn(format!(
+                "scan stream lost framing {lost} time(s); resynchronised"
+            ));
+        }
+    }
+}
+
+impl LidarDriver for Rplidar {
+    fn kind(&self) -> LidarKind {
+        LidarKind::Rplidar
+    }
+
+    fn start(&mut self, now_ns: u64) {
+        self.transmits.clear();
+        self.motor = Motor::Unknown;
+        self.begin(now_ns, self.config.reset_on_start);
+    }
+
+    fn stop(&mut self, _now_ns: u64) {
+        self.transmits.push_back(Transmit::Write(codec::stop()));
+        match self.motor {
+            Motor::Pwm => self
+                .transmits
+                .push_back(Transmit::Write(codec::set_motor_pwm(0))),
+            Motor::Dtr => self.transmits.push_back(Transmit::SetDtr(true)),
+            Motor::Unknown => {}
+        }
+        self.discard_buffer();
+        self.phase = Phase::Idle;
+    }
+
+    fn handle_input(&mut self, now_ns: u64, bytes: &[u8]) {
+        if bytes.is_empty() {
+            return;
+        }
+        self.stats.bytes_in += bytes.len() as u64;
+        self.buf.extend_from_slice(bytes);
+        self.reads
+            .push_back((self.buf_offset + self.buf.len() as u64, now_ns));
+        self.process(now_ns);
+    }
+
+    fn handle_timeout(&mut self, now_ns: u64) {
+        match std::mem::replace(&mut self.phase, Phase::Idle) {
+            Phase::Settling {
+                until,
+                info_attempts,
+            } if now_ns >= until => {
+                self.discard_buffer();
+                self.transmits.push_back(Transmit::FlushInput);
+                self.request(
+                    now_ns,
+                    Step::Info,
+                    info_attempts,
+                    self.config.info_timeout_ms,
+                );
+            }
+            Phase::Awaiting(pending) if now_ns >= pending.deadline => {
+                self.on_timeout(now_ns, pending);
+            }
+            Phase::Scanning { deadline, .. } if now_ns >= deadline => {
+                self.warn(
+                    "scan stream went silent (the device may have been reset); restarting the \
+                     handshake"
+                        .into(),
+                );
+                self.begin(now_ns, false);
+            }
+            other => self.phase = other,
+        }
+    }
+
+    fn poll_timeout(&self) -> Option<u64> {
+        match &self.phase {
+            Phase::Idle => None,
+            Phase::Settling { until, .. } => Some(*until),
+            Phase::Awaiting(pending) => Some(pending.deadline),
+            Phase::Scanning { deadline, .. } => Some(*deadline),
+        }
+    }
+
+    fn poll_transmit(&mut self) -> Option<Transmit> {
+        self.transmits.pop_front()
+    }
+
+    fn poll_event(&mut self) -> Option<LidarEvent> {
+        self.events.pop_front()
+    }
+
+    fn stats(&self) -> DriverStats {
+        self.stats
+    }
+}
