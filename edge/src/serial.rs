@@ -161,14 +161,12 @@ fn session<D: LidarDriver + ?Sized>(
             return Ok(());
         }
         let now = clock.now_ns();
-        if let Some(deadline) = driver.poll_timeout() {
-            if deadline <= now {
-                driver.handle_timeout(now);
-                continue;
-            }
+        let deadline = driver.poll_timeout();
+        if deadline.is_some_and(|deadline| deadline <= now) {
+            driver.handle_timeout(now);
+            continue;
         }
-        let wait = driver
-            .poll_timeout()
+        let wait = deadline
             .map(|deadline| clock.real_duration(deadline.saturating_sub(now)))
             .unwrap_or(options.max_read_wait)
             .clamp(Duration::from_millis(1), options.max_read_wait);
@@ -201,11 +199,11 @@ fn flush_transmits<D: LidarDriver + ?Sized>(
             }
             Transmit::FlushInput => port.clear(ClearBuffer::Input).map_err(|e| e.to_string())?,
             Transmit::SetDtr(level) => {
-                if let Err(e) = port.write_data_terminal_ready(level) {
-                    if !dtr_warning.0 {
-                        tracing::info!(error = %e, "cannot set DTR (no modem lines, e.g. a pty); motor left as is");
-                        dtr_warning.0 = true;
-                    }
+                if let Err(e) = port.write_data_terminal_ready(level)
+                    && !dtr_warning.0
+                {
+                    tracing::info!(error = %e, "cannot set DTR (no modem lines, e.g. a pty); motor left as is");
+                    dtr_warning.0 = true;
                 }
             }
         }

@@ -95,14 +95,8 @@ impl Lane {
         driver: Box<dyn LidarDriver + Send>,
         baud: u32,
         clock: &SharedClock,
-        args: &DemoArgs,
-        seed: u64,
+        options: PtyOptions,
     ) -> anyhow::Result<Self> {
-        let options = PtyOptions {
-            time_scale: args.time_scale,
-            faults: FaultConfig::corrupt(args.corrupt),
-            seed,
-        };
         let pty = PtyDevice::spawn(link.clone(), device, options)
             .with_context(|| format!("cannot start the emulated {name}"))?;
         let (acquisition, events) = Acquisition::spawn(
@@ -198,6 +192,15 @@ impl Lane {
     }
 }
 
+/// Pty options of one emulated lidar: the demo's time scale and faults, its own fault seed.
+fn pty_options(args: &DemoArgs, seed_offset: u64) -> PtyOptions {
+    PtyOptions {
+        time_scale: args.time_scale,
+        faults: FaultConfig::corrupt(args.corrupt),
+        seed: args.seed.wrapping_add(seed_offset),
+    }
+}
+
 /// RPLidar angles are clockwise seen from above: the sensor-plane point is at −θ.
 fn rplidar_plane_point(angle_deg: f32, range_m: f32) -> [f32; 3] {
     let a = -angle_deg.to_radians();
@@ -252,8 +255,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
             })),
             rplidar_cfg.baud,
             &clock,
-            args,
-            args.seed.wrapping_add(100),
+            pty_options(args, 100),
         )?,
         Lane::start(
             "sweep",
@@ -266,8 +268,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
             Box::new(Sweep::new(SweepConfig::default())?),
             115_200,
             &clock,
-            args,
-            args.seed.wrapping_add(101),
+            pty_options(args, 101),
         )?,
     ];
 
