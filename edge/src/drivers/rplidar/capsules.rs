@@ -200,3 +200,206 @@ fn to_f32_deg(a: f64) -> f32 {
     let f = a as f32;
     if f >= 360.0 { 0.0 } else { f }
 }
+
+#[cfg(test)]
+pub(super) mod tests {
+    use super::*;
+
+    /// Encodes a legacy capsule from the layout in the notes (§1.7), independently of the
+    /// decoder: `samples[k] = (distance_mm, dθ_q3)`.
+    pub(crate) fn encode(start_q6: u16, restart: bool, samples: &[(u16, u8); 32]) -> [u8; 84] {
+        let mut b = [0u8; 84];
+        let start = start_q6 | if restart { 0x8000 } else { 0 };
+        b[2..4].copy_from_slice(&start.to_le_bytes());
+        for j in 0..16 {
+            let (d1, t1) = samples[2 * j];
+            let (d2, t2) = samples[2 * j + 1];
+            let f1 = (d1 << 2) | u16::from(t1 >> 4);
+            let f2 = (d2 << 2) | u16::from(t2 >> 4);
+            let at = 4 + 5 * j;
+            b[at..at + 2].copy_from_slice(&f1.to_le_bytes());
+            b[at + 2..at + 4].copy_from_slice(&f2.to_le_bytes());
+            b[at + 4] = (t1 & 0x0F) | ((t2 & 0x0F) << 4);
+        }
+        let checksum = b[2..].iter().fold(0u8, |a, x| a ^ x);
+        b[0] = 0xA0 | (checksum & 0x0F);
+        b[1] = 0x50 | (checksum >> 4);
+        b
+    }
+
+    /// Capsule `i`'s samples: distance `1000·(i+1) + k` (0 for k = 1), dθ = k (0..31).
+    fn samples(i: u16) -> [(u16, u8); 32] {
+        std::array::from_fn(|k| (if k == 1 { 0 } else { 1000 * (i + 1) + k as u16 }, k as u8))
+    }
+
+    /// The expected sample `k` of capsule `i` (start `omega`°, `diff`°), from the notes' formula.
+    fn expected(i: u16, k: usize, omega: f64, diff: f64) -> RawSample {
+        let (d, t) = samples(i)[k];
+        let theta = (omega + diff * k as f64 / 32.0 - f64::from(t) / 8.0).rem_euclid(360.0);
+        RawSample {
+            angle_deg: theta as f32,
+            range_m: f32::from(d) / 1000.0,
+            quality: if d == 0 { 0 } else { 47 },
+            new_revolution: false,
+        }
+    }
+
+    fn run(bytes: &[u8]) -> (Vec<(RawSample, usize)>, DriverStats) {
+        let mut parser = CapsuleParser::new();
+        let mut stats = DriverStats::default();
+        let mut out = Vec::new();
+        let mut buf = Vec::new();
+        let mut base = 0;
+        // Odd-sized reads to exercise partial capsules.
+        for chunk in bytes.chunks(37) {
+            buf.extend_from_slice(chunk);
+            let (consumed, _) = parser.parse(&buf, &mut stats, |s, end| out.push((s, base + end)));
+            buf.drain(..consumed);
+            base += consumed;
+        }
+        (out, stats)
+    }
+
+    /// Capsules `i` at `i · 30°` for the given indices (an index not listed is "lost").
+    fn stream(indices: &[u16]) -> Vec<u8> {
+        indices
+            .iter()
+            .flat_map(|&i| encode(i * 30 * 64, false, &samples(i)))
+            .collect()
+    }
+
+    #[test]
+    fn consecutive_capsules_decode_with_the_sdk_formula() {
+        let (out, stats) = run(&stream(&[0, 1]));
+        assert_eq!(out.len(), 32, "the second capsule waits for a successor");
+        // Hand-computed: k = 0: 0 − 0/8 = 0°; k = 1: 0.9375 − 0.125 = 0.8125° with no return;
+        // k = 8: 7.5 − 1 = 6.5°; k = 31: 29.0625 − 3.875 = 25.1875°.
+        assert_eq!(
+            out[0].0,
+            RawSample {
+                angle_deg: 0.0,
+                range_m: 1.0,
+                quality: 47,
+                new_revolution: false
+            }
+        );
+        assert_eq!(
+            out[1].0,
+            RawSample {
+                angle_deg: 0.8125,
+                range_m: 0.0,
+                quality: 0,
+                new_revolution: false
+            }
+        );
+        assert_eq!(out[8].0.angle_deg, 6.5);
+        assert_eq!(out[31].0.angle_deg, 25.1875);
+        for (k, (s, end)) in out.iter().enumerate() {
+            assert_eq!(*s, expected(0, k, 0.0, 30.0));
+            assert_eq!(*end, 168, "decoded when the second capsule completed");
+        }
+        assert_eq!(stats, DriverStats::default());
+    }
+
+    #[test]
+    fn negative_angles_wrap_and_the_revolution_flag_follows_the_base_angle() {
+        // 340° then 10°: diff 30°; base angles 340 + 0.9375·k cross 360° at k = 22 (0.625°).
+        // Sample 0 of the first capsule has dθ 0; sample 3 has 0.375° at 342.8125 − 0.375.
+        let bytes = [
+            encode(340 * 64, false, &samples(0)),
+            encode(10 * 64, false, &samples(1)),
+        ];
+        let bytes: Vec<u8> = bytes.concat();
+        let (out, _) = run(&[bytes.as_slice(), &encode(40 * 64, false, &samples(2))].concat());
+        assert_eq!(out.len(), 64);
+        let flagged: Vec<usize> = out
+            .iter()
+            .enumerate()
+            .filter(|(_, (s, _))| s.new_revolution)
+            .map(|(k, _)| k)
+            .collect();
+        assert_eq!(flagged, [22]);
+        // k = 22: base 0.625°, dθ 22/8 = 2.75° → 357.875°, flagged although θ did not wrap.
+        assert_eq!(out[22].0.angle_deg, 357.875);
+        assert_eq!(out[3].0.angle_deg, 342.4375);
+        // k = 23: base 1.5625, dθ 2.875 → 358.6875.
+        assert_eq!(out[23].0.angle_deg, 358.6875);
+    }
+
+    #[test]
+    fn corrupt_capsule_is_skipped_and_one_lost_capsule_is_recovered() {
+        let mut bytes = stream(&[0, 1, 2, 3, 4]);
+        bytes[2 * 84 + 40] ^= 0x10; // capsule 2 fails its checksum
+        let (out, stats) = run(&bytes);
+        let got: Vec<RawSample> = out.iter().map(|(s, _)| *s).collect();
+        let mut want: Vec<RawSample> = (0..32).map(|k| expected(0, k, 0.0, 30.0)).collect();
+        // Capsule 1 is held across the error and decoded with half the 60° gap to capsule 3.
+        want.extend((0..32).map(|k| expected(1, k, 30.0, 30.0)));
+        want.extend((0..32).map(|k| expected(3, k, 90.0, 30.0)));
+        assert_eq!(got, want);
+        assert_eq!(
+            (stats.frames_rejected, stats.resyncs, stats.bytes_discarded),
+            (1, 1, 84)
+        );
+    }
+
+    #[test]
+    fn two_lost_capsules_drop_the_held_one() {
+        let mut bytes = stream(&[0, 1, 2, 3, 4, 5]);
+        bytes[2 * 84 + 10] ^= 0x01;
+        bytes[3 * 84 + 10] ^= 0x01;
+        let (out, stats) = run(&bytes);
+        let sources: Vec<u16> = out
+            .iter()
+            .map(|(s, _)| (s.range_m * 1000.0).round() as u16 / 1000)
+            .collect();
+        assert_eq!(
+            sources.iter().filter(|&&c| c == 1).count(),
+            31,
+            "capsule 0 (one no-return)"
+        );
+        assert_eq!(sources.iter().filter(|&&c| c == 5).count(), 31, "capsule 4");
+        assert_eq!(out.len(), 64, "capsule 1 dropped, 2 and 3 lost, 5 held");
+        assert_eq!(
+            (stats.frames_rejected, stats.resyncs, stats.bytes_discarded),
+            (1, 1, 168)
+        );
+    }
+
+    #[test]
+    fn stray_byte_between_capsules_loses_nothing() {
+        let mut bytes = stream(&[0, 1]);
+        bytes.push(0x42);
+        bytes.extend(stream(&[2, 3]));
+        let (out, stats) = run(&bytes);
+        let got: Vec<RawSample> = out.iter().map(|(s, _)| *s).collect();
+        let want: Vec<RawSample> = (0..3u16)
+            .flat_map(|i| (0..32).map(move |k| expected(i, k, f64::from(i) * 30.0, 30.0)))
+            .collect();
+        assert_eq!(got, want);
+        assert_eq!((stats.resyncs, stats.bytes_discarded), (1, 1));
+    }
+
+    #[test]
+    fn restart_flag_drops_the_held_capsule() {
+        let mut bytes = stream(&[0, 1]);
+        bytes.extend(encode(200 * 64, true, &samples(7)));
+        bytes.extend(encode(230 * 64, false, &samples(8)));
+        let (out, _) = run(&bytes);
+        let got: Vec<RawSample> = out.iter().map(|(s, _)| *s).collect();
+        let mut want: Vec<RawSample> = (0..32).map(|k| expected(0, k, 0.0, 30.0)).collect();
+        want.extend((0..32).map(|k| expected(7, k, 200.0, 30.0)));
+        assert_eq!(got, want);
+    }
+
+    #[test]
+    fn sync_nibbles_and_angle_range_are_checked() {
+        let good = encode(0, false, &samples(0));
+        assert!(Capsule::decode(&good).is_some());
+        let mut bad_sync = good;
+        bad_sync[1] = (bad_sync[1] & 0x0F) | 0x60;
+        assert!(Capsule::decode(&bad_sync).is_none());
+        // 400° has a valid checksum but is not an angle.
+        assert!(Capsule::decode(&encode(400 * 64, false, &samples(0))).is_none());
+    }
+}

@@ -663,3 +663,416 @@ impl LidarDriver for Rplidar {
         self.stats
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::lidar::DeviceInfo;
+
+    const INFO_DESC: [u8; 7] = [0xA5, 0x5A, 0x14, 0x00, 0x00, 0x00, 0x04];
+    const HEALTH_DESC: [u8; 7] = [0xA5, 0x5A, 0x03, 0x00, 0x00, 0x00, 0x06];
+    const RATE_DESC: [u8; 7] = [0xA5, 0x5A, 0x04, 0x00, 0x00, 0x00, 0x15];
+    const ACC_DESC: [u8; 7] = [0xA5, 0x5A, 0x04, 0x00, 0x00, 0x00, 0xFF];
+    const SCAN_DESC: [u8; 7] = [0xA5, 0x5A, 0x05, 0x00, 0x00, 0x40, 0x81];
+    const EXPRESS_DESC: [u8; 7] = [0xA5, 0x5A, 0x54, 0x00, 0x00, 0x40, 0x82];
+    const SERIAL: [u8; 16] = [
+        0x9E, 0xE2, 0x9A, 0xF0, 0xC4, 0xE3, 0x9E, 0xD5, 0xA3, 0xE5, 0x9E, 0xF2, 0x5A, 0x63, 0x3E,
+        0x1B,
+    ];
+    const SERIAL_TEXT: &str = "9EE29AF0C4E39ED5A3E59EF25A633E1B";
+    const BANNER: &[u8] = b"RP LIDAR System.\r\nFirmware Ver 1.25 - rc2, HW Ver 5\r\nModel: 18\r\n";
+
+    fn ms(t: u64) -> u64 {
+        t * MS
+    }
+
+    fn info_answer(model: u8, fw_major: u8, fw_minor: u8) -> Vec<u8> {
+        let mut v = INFO_DESC.to_vec();
+        v.extend_from_slice(&[model, fw_minor, fw_major, 0x05]);
+        v.extend_from_slice(&SERIAL);
+        v
+    }
+
+    fn answer(desc: [u8; 7], payload: &[u8]) -> Vec<u8> {
+        [&desc[..], payload].concat()
+    }
+
+    fn tx(d: &mut Rplidar) -> Vec<Transmit> {
+        std::iter::from_fn(|| d.poll_transmit()).collect()
+    }
+
+    fn ev(d: &mut Rplidar) -> Vec<LidarEvent> {
+        std::iter::from_fn(|| d.poll_event()).collect()
+    }
+
+    fn w(bytes: &[u8]) -> Transmit {
+        Transmit::Write(bytes.to_vec())
+    }
+
+    /// STOP, the 100 ms wait, flush and the first GET_INFO.
+    fn to_get_info(d: &mut Rplidar) {
+        d.start(0);
+        assert_eq!(tx(d), [w(&[0xA5, 0x25])]);
+        assert_eq!(d.poll_timeout(), Some(ms(100)));
+        d.handle_timeout(ms(99));
+        assert!(tx(d).is_empty());
+        d.handle_timeout(ms(100));
+        assert_eq!(tx(d), [Transmit::FlushInput, w(&[0xA5, 0x50])]);
+        assert_eq!(d.poll_timeout(), Some(ms(600)));
+    }
+
+    #[test]
+    fn a1_express_handshake_and_samples() {
+        let mut d = Rplidar::new(RplidarConfig::default());
+        assert_eq!(d.kind(), LidarKind::Rplidar);
+        to_get_info(&mut d);
+        // Stale nodes and a stale SCAN descriptor before the answer, split over two reads.
+        let mut input = vec![0xBE, 0x01, 0x2D, 0x70, 0x17];
+        input.extend_from_slice(&SCAN_DESC);
+        input.extend(info_answer(0x18, 1, 29));
+        d.handle_input(ms(110), &input[..15]);
+        assert!(ev(&mut d).is_empty());
+        d.handle_input(ms(111), &input[15..]);
+        assert_eq!(
+            ev(&mut d),
+            [LidarEvent::Info(DeviceInfo {
+                model: "A1".into(),
+                firmware: "1.29".into(),
+                hardware: 5,
+                serial: SERIAL_TEXT.into(),
+            })]
+        );
+        assert_eq!(tx(&mut d), [w(&[0xA5, 0x52])]);
+        assert_eq!(d.poll_timeout(), Some(ms(2111)));
+
+        d.handle_input(ms(120), &answer(HEALTH_DESC, &[0, 0, 0]));
+        assert_eq!(
+            ev(&mut d),
+            [LidarEvent::Health {
+                status: HealthStatus::Good,
+                error_code: 0
+            }]
+        );
+        assert_eq!(tx(&mut d), [w(&[0xA5, 0x59])]);
+
+        d.handle_input(ms(130), &answer(RATE_DESC, &[0xDC, 0x01, 0xFA, 0x00]));
+        assert_eq!(
+            tx(&mut d),
+            [
+                Transmit::SetDtr(false),
+                w(&[0xA5, 0x82, 0x05, 0x00, 0x00, 0x00, 0x00, 0x00, 0x22])
+            ]
+        );
+        assert!(ev(&mut d).is_empty());
+
+        d.handle_input(ms(140), &EXPRESS_DESC);
+        assert_eq!(
+            ev(&mut d),
+            [LidarEvent::Scanning {
+                sample_period_ns: 250_000
+            }]
+        );
+        assert_eq!(d.poll_timeout(), Some(ms(5140)), "spin-up allowance");
+
+        let samples: [(u16, u8); 32] = std::array::from_fn(|k| (2000 + k as u16, 0));
+        let c0 = capsules::tests::encode(0, false, &samples);
+        let c1 = capsules::tests::encode(30 * 64, false, &samples);
+        d.handle_input(ms(150), &c0);
+        d.handle_input(ms(160), &c1[..50]);
+        assert!(ev(&mut d).is_empty());
+        d.handle_input(ms(170), &c1[50..]);
+        let events = ev(&mut d);
+        assert_eq!(events.len(), 32);
+        for (k, e) in events.iter().enumerate() {
+            let want = RawSample {
+                angle_deg: 30.0 * k as f32 / 32.0,
+                range_m: f32::from(2000 + k as u16) / 1000.0,
+                quality: 47,
+                new_revolution: false,
+            };
+            assert_eq!(
+                *e,
+                LidarEvent::Sample(ArrivedSample {
+                    sample: want,
+                    arrival_ns: ms(170)
+                })
+            );
+        }
+        assert_eq!(
+            d.poll_timeout(),
+            Some(ms(2170)),
+            "watchdog re-armed by good frames"
+        );
+
+        let stats = d.stats();
+        assert_eq!(stats.bytes_in, (input.len() + 10 + 11 + 7 + 168) as u64);
+        assert_eq!(stats.bytes_discarded, 12, "stale node and stale descriptor");
+        assert_eq!(stats.samples_emitted, 32);
+        assert_eq!((stats.frames_rejected, stats.resyncs), (0, 0));
+
+        d.stop(ms(200));
+        assert_eq!(tx(&mut d), [w(&[0xA5, 0x25]), Transmit::SetDtr(true)]);
+        assert_eq!(d.poll_timeout(), None);
+    }
+
+    #[test]
+    fn a2_standard_handshake_uses_pwm() {
+        let config = RplidarConfig {
+            scan_mode: ScanMode::Standard,
+            ..RplidarConfig::default()
+        };
+        let mut d = Rplidar::new(config);
+        to_get_info(&mut d);
+        d.handle_input(ms(110), &info_answer(0x28, 1, 29));
+        assert!(matches!(&ev(&mut d)[..], [LidarEvent::Info(i)] if i.model == "A2"));
+        assert_eq!(
+            tx(&mut d),
+            [w(&[0xA5, 0xFF, 0x04, 0x00, 0x00, 0x00, 0x00, 0x5E])]
+        );
+        d.handle_input(ms(120), &answer(ACC_DESC, &[1, 0, 0, 0]));
+        assert_eq!(tx(&mut d), [w(&[0xA5, 0x52])]);
+        // Error code 0x0102 little-endian.
+        d.handle_input(ms(130), &answer(HEALTH_DESC, &[1, 0x02, 0x01]));
+        assert_eq!(
+            ev(&mut d),
+            [LidarEvent::Health {
+                status: HealthStatus::Warning,
+                error_code: 0x0102
+            }]
+        );
+        assert_eq!(tx(&mut d), [w(&[0xA5, 0x59])]);
+        d.handle_input(ms(140), &answer(RATE_DESC, &[0xDC, 0x01, 0xFA, 0x00]));
+        assert_eq!(
+            tx(&mut d),
+            [w(&[0xA5, 0xF0, 0x02, 0x94, 0x02, 0xC1]), w(&[0xA5, 0x20])]
+        );
+
+        let mut input = SCAN_DESC.to_vec();
+        input.extend_from_slice(&[0xBD, 0x01, 0x00, 0x40, 0x1F]); // S, 0°, 2 m
+        input.extend(nodes::tests::encode(false, 47, 64, 6000)); // 1°, 1.5 m
+        input.extend(nodes::tests::encode(false, 47, 128, 0)); // 2°, no return
+        d.handle_input(ms(150), &input);
+        assert_eq!(
+            ev(&mut d),
+            [
+                LidarEvent::Scanning {
+                    sample_period_ns: 476_000
+                },
+                LidarEvent::Sample(ArrivedSample {
+                    sample: RawSample {
+                        angle_deg: 0.0,
+                        range_m: 2.0,
+                        quality: 47,
+                        new_revolution: true
+                    },
+                    arrival_ns: ms(150),
+                }),
+                LidarEvent::Sample(ArrivedSample {
+                    sample: RawSample {
+                        angle_deg: 1.0,
+                        range_m: 1.5,
+                        quality: 47,
+                        new_revolution: false
+                    },
+                    arrival_ns: ms(150),
+                }),
+            ]
+        );
+        // The last node waits for its successor, then carries its own read's time.
+        d.handle_input(ms(160), &nodes::tests::encode(false, 47, 192, 4));
+        assert_eq!(
+            ev(&mut d),
+            [LidarEvent::Sample(ArrivedSample {
+                sample: RawSample {
+                    angle_deg: 2.0,
+                    range_m: 0.0,
+                    quality: 47,
+                    new_revolution: false
+                },
+                arrival_ns: ms(150),
+            })]
+        );
+        d.stop(ms(200));
+        assert_eq!(
+            tx(&mut d),
+            [w(&[0xA5, 0x25]), w(&[0xA5, 0xF0, 0x02, 0x00, 0x00, 0x57])]
+        );
+    }
+
+    #[test]
+    fn old_firmware_skips_samplerate_and_express() {
+        let mut d = Rplidar::new(RplidarConfig::default());
+        to_get_info(&mut d);
+        d.handle_input(ms(110), &info_answer(0x18, 1, 10));
+        ev(&mut d);
+        assert_eq!(tx(&mut d), [w(&[0xA5, 0x52])]);
+        d.handle_input(ms(120), &answer(HEALTH_DESC, &[0, 0, 0]));
+        assert_eq!(tx(&mut d), [Transmit::SetDtr(false), w(&[0xA5, 0x20])]);
+        let events = ev(&mut d);
+        assert!(matches!(
+            &events[..],
+            [LidarEvent::Health { .. }, LidarEvent::Warning(_)]
+        ));
+        d.handle_input(ms(130), &SCAN_DESC);
+        assert_eq!(
+            ev(&mut d),
+            [LidarEvent::Scanning {
+                sample_period_ns: 476_000
+            }]
+        );
+    }
+
+    #[test]
+    fn get_info_retries_then_fails() {
+        let mut d = Rplidar::new(RplidarConfig::default());
+        to_get_info(&mut d);
+        for (attempt, t) in [(1, 600), (2, 1100), (3, 1600)] {
+            d.handle_timeout(ms(t));
+            assert_eq!(
+                tx(&mut d),
+                [w(&[0xA5, 0x50])],
+                "retry after attempt {attempt}"
+            );
+            assert!(matches!(&ev(&mut d)[..], [LidarEvent::Warning(_)]));
+            assert_eq!(d.poll_timeout(), Some(ms(t + 500)));
+        }
+        d.handle_timeout(ms(2100));
+        assert!(tx(&mut d).is_empty());
+        assert_eq!(
+            ev(&mut d),
+            [LidarEvent::Failed(DriverError::NoAnswer {
+                command: "GET_INFO",
+                attempts: 4
+            })]
+        );
+        assert_eq!(d.poll_timeout(), None);
+        // Idle: input is dropped and counted.
+        d.handle_input(ms(2200), &info_answer(0x18, 1, 29));
+        assert!(ev(&mut d).is_empty());
+        assert_eq!(d.stats().bytes_discarded, 27);
+    }
+
+    #[test]
+    fn late_answer_after_a_retry_is_accepted() {
+        let mut d = Rplidar::new(RplidarConfig::default());
+        to_get_info(&mut d);
+        d.handle_timeout(ms(600));
+        tx(&mut d);
+        ev(&mut d);
+        d.handle_input(ms(700), &info_answer(0x18, 1, 29));
+        assert!(matches!(&ev(&mut d)[..], [LidarEvent::Info(_)]));
+    }
+
+    #[test]
+    fn reset_skips_the_banner() {
+        let config = RplidarConfig {
+            reset_on_start: true,
+            ..RplidarConfig::default()
+        };
+        let mut d = Rplidar::new(config);
+        d.start(0);
+        assert_eq!(tx(&mut d), [w(&[0xA5, 0x40])]);
+        assert_eq!(d.poll_timeout(), Some(ms(1000)));
+        d.handle_input(ms(20), &BANNER[..30]);
+        d.handle_timeout(ms(1000));
+        assert_eq!(tx(&mut d), [Transmit::FlushInput, w(&[0xA5, 0x50])]);
+        // Late banner bytes before the answer are skipped by descriptor hunting.
+        let mut input = BANNER[30..].to_vec();
+        input.extend(info_answer(0x18, 1, 29));
+        d.handle_input(ms(1010), &input);
+        assert!(matches!(&ev(&mut d)[..], [LidarEvent::Info(i)] if i.serial == SERIAL_TEXT));
+        assert_eq!(d.stats().bytes_discarded, BANNER.len() as u64);
+        // After a reset, GET_INFO is retried up to 30 times.
+        let mut d = Rplidar::new(RplidarConfig {
+            reset_on_start: true,
+            ..RplidarConfig::default()
+        });
+        d.start(0);
+        d.handle_timeout(ms(1000));
+        for i in 1..30 {
+            d.handle_timeout(ms(1000 + 500 * i));
+        }
+        assert!(
+            ev(&mut d)
+                .iter()
+                .all(|e| matches!(e, LidarEvent::Warning(_)))
+        );
+        d.handle_timeout(ms(1000 + 500 * 30));
+        assert_eq!(
+            ev(&mut d),
+            [LidarEvent::Failed(DriverError::NoAnswer {
+                command: "GET_INFO",
+                attempts: 30
+            })]
+        );
+    }
+
+    #[test]
+    fn public_reset_sends_reset() {
+        let mut d = Rplidar::new(RplidarConfig::default());
+        to_get_info(&mut d);
+        d.reset(ms(300));
+        assert_eq!(tx(&mut d), [w(&[0xA5, 0x40])]);
+        assert_eq!(d.poll_timeout(), Some(ms(1300)));
+    }
+
+    #[test]
+    fn health_error_fails() {
+        let mut d = Rplidar::new(RplidarConfig::default());
+        to_get_info(&mut d);
+        d.handle_input(ms(110), &info_answer(0x18, 1, 29));
+        ev(&mut d);
+        tx(&mut d);
+        d.handle_input(ms(120), &answer(HEALTH_DESC, &[2, 0x05, 0x80]));
+        let events = ev(&mut d);
+        assert_eq!(
+            events[0],
+            LidarEvent::Health {
+                status: HealthStatus::Error,
+                error_code: 0x8005
+            }
+        );
+        assert!(
+            matches!(&events[1], LidarEvent::Failed(DriverError::Device(m)) if m.contains("0x8005"))
+        );
+        assert!(tx(&mut d).is_empty());
+        assert_eq!(d.poll_timeout(), None);
+    }
+
+    #[test]
+    fn silent_stream_restarts_the_handshake() {
+        let config = RplidarConfig {
+            scan_mode: ScanMode::Standard,
+            ..RplidarConfig::default()
+        };
+        let mut d = Rplidar::new(config);
+        to_get_info(&mut d);
+        d.handle_input(ms(110), &info_answer(0x18, 1, 29));
+        d.handle_input(ms(120), &answer(HEALTH_DESC, &[0, 0, 0]));
+        d.handle_input(ms(130), &answer(RATE_DESC, &[0xDC, 0x01, 0xFA, 0x00]));
+        d.handle_input(ms(140), &SCAN_DESC);
+        ev(&mut d);
+        tx(&mut d);
+        // Garbage does not count as progress.
+        d.handle_input(ms(3000), &[0x00; 40]);
+        assert!(matches!(&ev(&mut d)[..], [LidarEvent::Warning(m)] if m.contains("framing")));
+        assert_eq!(d.stats().resyncs, 1);
+        assert_eq!(d.poll_timeout(), Some(ms(5140)));
+        d.handle_timeout(ms(5140));
+        assert!(matches!(&ev(&mut d)[..], [LidarEvent::Warning(_)]));
+        assert_eq!(tx(&mut d), [w(&[0xA5, 0x25])]);
+        assert_eq!(d.poll_timeout(), Some(ms(5240)));
+    }
+
+    #[test]
+    fn config_deserialises_with_defaults() {
+        let c: RplidarConfig = toml::from_str("scan_mode = \"standard\"\nmotor_pwm = 500").unwrap();
+        assert_eq!(c.scan_mode, ScanMode::Standard);
+        assert_eq!(c.motor_pwm, 500);
+        assert_eq!(
+            (c.baud, c.answer_timeout_ms, c.info_attempts),
+            (115_200, 2000, 4)
+        );
+        assert!(toml::from_str::<RplidarConfig>("scan_mod = \"standard\"").is_err());
+    }
+}

@@ -216,11 +216,11 @@ impl NodeParser {
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
 
     /// Encodes a node from the layout in the notes (§1.6), independently of the decoder.
-    fn encode(start: bool, quality: u8, angle_q6: u16, distance_q2: u16) -> [u8; 5] {
+    pub(crate) fn encode(start: bool, quality: u8, angle_q6: u16, distance_q2: u16) -> [u8; 5] {
         let b0 = (quality << 2) | if start { 0b01 } else { 0b10 };
         let angle = (angle_q6 << 1) | 1;
         let [a0, a1] = angle.to_le_bytes();
