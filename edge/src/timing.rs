@@ -94,11 +94,7 @@ impl RevolutionAssembler {
 
     /// Add a sample; returns the revolution it completed, if any.
     pub fn push(&mut self, sample: ArrivedSample) -> Option<Revolution> {
-        let wraps = self
-            .current
-            .last()
-            .is_some_and(|prev| sample.sample.angle_deg + 180.0 < prev.sample.angle_deg);
-        let boundary = sample.sample.new_revolution || wraps;
+        let boundary = sample.sample.new_revolution || self.wraps_without_flag(&sample);
         let mut finished = None;
         if boundary {
             if self.in_revolution {
@@ -111,6 +107,22 @@ impl RevolutionAssembler {
         }
         self.current.push(sample);
         finished
+    }
+
+    /// The beam crossed 0° again although the start flag is missing (the flagged sample was
+    /// lost to corruption).
+    ///
+    /// A crossing only ends a revolution that already covers most of a turn: reported angles
+    /// may step backwards by a few degrees around the flag (RPLidar express angles carry a
+    /// per-sample correction of up to 8°), so the flagged sample can read 357° and its
+    /// successors 359° and then 0.3°, all in the same revolution.
+    fn wraps_without_flag(&self, sample: &ArrivedSample) -> bool {
+        let (Some(first), Some(last)) = (self.current.first(), self.current.last()) else {
+            return false;
+        };
+        let crosses_zero = sample.sample.angle_deg + 180.0 < last.sample.angle_deg;
+        let covered = angle_progress(first.sample.angle_deg, last.sample.angle_deg);
+        self.in_revolution && crosses_zero && covered >= 270.0
     }
 
     fn finish(&mut self) -> Option<Revolution> {
@@ -132,10 +144,16 @@ pub fn stamp_revolution(samples: &[ArrivedSample], latency_ns: u64) -> Revolutio
             samples: Vec::new(),
         };
     };
-    let start_angle = first.sample.angle_deg as f64;
+    // Unwrapped angle travelled since the first sample; small backward steps stay negative.
+    let mut travelled = 0.0;
+    let mut previous = first.sample.angle_deg;
     let progress: Vec<f64> = samples
         .iter()
-        .map(|s| (s.sample.angle_deg as f64 - start_angle).rem_euclid(360.0))
+        .map(|s| {
+            travelled += signed_step(previous, s.sample.angle_deg);
+            previous = s.sample.angle_deg;
+            travelled
+        })
         .collect();
     // Arrivals relative to the first one keep the arithmetic in a well-conditioned range.
     let base = first.arrival_ns;
@@ -162,6 +180,16 @@ pub fn stamp_revolution(samples: &[ArrivedSample], latency_ns: u64) -> Revolutio
             })
             .collect(),
     }
+}
+
+/// Degrees from `from` to `to` going forwards, in `[0, 360)`.
+fn angle_progress(from: f32, to: f32) -> f64 {
+    (f64::from(to) - f64::from(from)).rem_euclid(360.0)
+}
+
+/// The step from `from` to `to` taken the short way round, in `[-180, 180)`.
+fn signed_step(from: f32, to: f32) -> f64 {
+    (f64::from(to) - f64::from(from) + 180.0).rem_euclid(360.0) - 180.0
 }
 
 /// Fits the line `y = a + b·x` that lies on or below every point and is as close to them as
@@ -334,12 +362,32 @@ mod tests {
         });
         let mut out = Vec::new();
         out.extend(asm.push(sample(0.0, true, 10)));
-        out.extend(asm.push(sample(120.0, false, 20)));
-        out.extend(asm.push(sample(240.0, false, 30)));
+        for (k, angle) in [60.0, 120.0, 180.0, 240.0, 300.0].into_iter().enumerate() {
+            out.extend(asm.push(sample(angle, false, 20 + 10 * k as u64)));
+        }
         // The flagged sample at 0° of the next revolution was lost; 10° arrives instead.
-        out.extend(asm.push(sample(10.0, false, 45)));
+        out.extend(asm.push(sample(10.0, false, 85)));
         assert_eq!(out.len(), 1);
-        assert_eq!(out[0].samples.len(), 3);
+        assert_eq!(out[0].samples.len(), 6);
+    }
+
+    #[test]
+    fn small_backward_steps_after_the_start_flag_do_not_cut_the_revolution() {
+        let mut asm = RevolutionAssembler::new(TimingConfig {
+            latency_ns: 0,
+            min_samples: 2,
+        });
+        let mut out = Vec::new();
+        // Express angles carry a per-sample correction: the flagged sample may read 357° and
+        // its successors 358°, 359.5°, then 0.3° and onwards, all in the same revolution.
+        let angles = [357.0, 358.0, 359.5, 0.3, 90.0, 180.0, 270.0, 350.0];
+        for (k, &a) in angles.iter().enumerate() {
+            out.extend(asm.push(sample(a, k == 0, 1000 * k as u64)));
+        }
+        out.extend(asm.push(sample(356.5, true, 9000)));
+        assert_eq!(out.len(), 1);
+        assert_eq!(out[0].samples.len(), angles.len());
+        assert!(out[0].samples.windows(2).all(|w| w[0].t_ns <= w[1].t_ns));
     }
 
     #[test]

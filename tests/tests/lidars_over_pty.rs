@@ -151,16 +151,40 @@ fn sweep_rig(
     Rig::start(name, Box::new(device), Box::new(driver), 115_200, faults)
 }
 
+/// How strictly a decoded sample must equal the one the emulator sent.
+#[derive(Clone, Copy, PartialEq)]
+enum Integrity {
+    /// Every field is protected by a checksum (express capsules, Sweep blocks): a decoded
+    /// sample must equal a sent one.
+    Checksummed,
+    /// RPLidar standard nodes carry no checksum: a bit flip inside the quality, distance or
+    /// low angle bits leaves a well-framed node with a wrong value that no receiver can detect.
+    /// Such a sample is tolerated, but only where the injector touched that very node, and only
+    /// within the driver's angle-consistency window (10° steps), which catches larger flips.
+    UnprotectedFields,
+}
+
 /// Matches decoded samples, in order, against the emulator's log. Panics if a decoded sample
 /// does not appear in the log (after the previous match). Returns, over the stretch of the log
 /// the edge was reading, (untouched samples sent, untouched samples decoded).
-fn match_against_log(revolutions: &[Revolution], sent: &[SentSample]) -> (usize, usize) {
+///
+/// Angles may differ by up to 0.05° (an eighth of the express sample spacing): when one capsule
+/// is lost, the driver still decodes the capsule before it by interpolating across the gap.
+fn match_against_log(
+    revolutions: &[Revolution],
+    sent: &[SentSample],
+    integrity: Integrity,
+) -> (usize, usize) {
     let decoded: Vec<&TimedSample> = revolutions.iter().flat_map(|r| &r.samples).collect();
     assert!(!decoded.is_empty(), "nothing decoded");
     let same = |d: &TimedSample, s: &SentSample| {
-        (d.angle_deg - s.sample.angle_deg).abs() < 0.01
+        let angle_error = (d.angle_deg - s.sample.angle_deg).abs();
+        let exact = angle_error < 0.05
             && (d.range_m - s.sample.range_m).abs() < 0.0005
-            && d.quality == s.sample.quality
+            && d.quality == s.sample.quality;
+        let undetectable_flip =
+            s.touched && integrity == Integrity::UnprotectedFields && angle_error < 10.0;
+        exact || undetectable_flip
     };
     let mut cursor = 0;
     let mut matched = Vec::with_capacity(decoded.len());
@@ -210,7 +234,7 @@ fn check_rplidar(name: &str, model: RplidarModel, baud: u32, mode: ScanMode) {
     );
     assert_eq!(info.firmware, "1.29");
     assert_eq!(info.hardware, 7);
-    let (sent_ok, decoded_ok) = match_against_log(&revolutions, &sent);
+    let (sent_ok, decoded_ok) = match_against_log(&revolutions, &sent, Integrity::Checksummed);
     assert_eq!(
         decoded_ok, sent_ok,
         "a clean line must lose nothing between the first and last decoded sample"
@@ -270,12 +294,12 @@ fn sweep_waits_for_the_motor_to_settle_after_a_speed_change_then_streams() {
     assert!(started.elapsed().as_secs_f64() * TIME_SCALE >= 3.0);
     let (revolutions, info, sent) = rig.stop();
     assert_eq!(info.expect("device info").model, "Sweep");
-    let (sent_ok, decoded_ok) = match_against_log(&revolutions, &sent);
+    let (sent_ok, decoded_ok) = match_against_log(&revolutions, &sent, Integrity::Checksummed);
     assert_eq!(decoded_ok, sent_ok);
     assert_period_near(&revolutions[1..], 7.0);
 }
 
-fn check_corruption(mut rig: Rig, revolutions: usize) {
+fn check_corruption(mut rig: Rig, revolutions: usize, integrity: Integrity) {
     rig.collect(revolutions, Duration::from_secs(30));
     let (revolutions, _, sent) = rig.stop();
     let touched = sent.iter().filter(|s| s.touched).count();
@@ -283,7 +307,7 @@ fn check_corruption(mut rig: Rig, revolutions: usize) {
         touched > 0,
         "the fault injector touched nothing: the test proves nothing"
     );
-    let (sent_ok, decoded_ok) = match_against_log(&revolutions, &sent);
+    let (sent_ok, decoded_ok) = match_against_log(&revolutions, &sent, integrity);
     let ratio = decoded_ok as f64 / sent_ok as f64;
     assert!(
         ratio >= 0.95,
@@ -303,6 +327,7 @@ fn rplidar_express_survives_corruption() {
             faults,
         ),
         25,
+        Integrity::Checksummed,
     );
 }
 
@@ -318,6 +343,7 @@ fn rplidar_standard_survives_corruption() {
             faults,
         ),
         25,
+        Integrity::UnprotectedFields,
     );
 }
 
@@ -333,7 +359,7 @@ fn sweep_survives_corruption() {
         SweepConfig::default(),
         FaultConfig::corrupt(1e-3),
     );
-    check_corruption(rig, 25);
+    check_corruption(rig, 25, Integrity::Checksummed);
 }
 
 #[test]
