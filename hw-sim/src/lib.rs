@@ -6,6 +6,7 @@
 //! - [`rplidar`], [`sweep`]: the two lidar emulators speaking the real wire protocols.
 //! - [`faults`]: stray bytes, bit flips and dropped bytes, with a log of what was really sent.
 //! - [`mounts`]: where the emulated sensors sit in the room.
+//! - [`pair`]: a driver wired straight to an emulator in memory (deterministic tests, benches).
 //! - [`pty`]: runs an emulator on a Linux pty behind a symlink, paced at the wire rate.
 //! - [`demo`]: the README's demo.
 #![warn(missing_docs)]
@@ -15,6 +16,7 @@ pub mod device;
 pub mod faults;
 pub mod mounts;
 pub mod noise;
+pub mod pair;
 pub mod pty;
 pub mod rplidar;
 pub mod sweep;
