@@ -9,45 +9,14 @@ use std::time::Duration;
 
 use anyhow::Context;
 use clap::{Args, Parser, Subcommand, ValueEnum};
-use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion};
 use scan3d_hw_sim::demo::{self, DemoArgs};
 use scan3d_hw_sim::device::Device;
 use scan3d_hw_sim::faults::FaultConfig;
+use scan3d_hw_sim::mounts;
 use scan3d_hw_sim::pty::{PtyDevice, PtyOptions};
 use scan3d_hw_sim::rplidar::{RplidarEmulator, RplidarEmulatorConfig, RplidarModel};
 use scan3d_hw_sim::sweep::{SweepEmulator, SweepEmulatorConfig};
 use scan3d_hw_sim::world::World;
-
-/// Where the emulated sensors sit in the default room (world frame: metres, z up).
-mod poses {
-    use super::*;
-
-    /// RPLidar position: horizontal scan plane, 0.4 m above the floor in the middle of the room.
-    pub const RPLIDAR_POSITION_M: [f64; 3] = [4.0, 3.0, 0.4];
-    /// Sweep position: 1 m above the floor in the middle of the room.
-    pub const SWEEP_POSITION_M: [f64; 3] = [4.0, 3.0, 1.0];
-
-    /// RPLidar pose: sensor axes = world axes (azimuth 0 along +x, counter-clockwise seen from
-    /// above).
-    pub fn rplidar() -> Isometry3<f64> {
-        let [x, y, z] = RPLIDAR_POSITION_M;
-        Isometry3::translation(x, y, z)
-    }
-
-    /// Sweep pose: a vertical scan plane (the x–z plane) with sensor azimuth 0 pointing up
-    /// (+z) and azimuth 90° along +x; the spin axis (sensor +z) is world +y.
-    pub fn sweep() -> Isometry3<f64> {
-        let [x, y, z] = SWEEP_POSITION_M;
-        // Columns: images of the sensor x, y and z axes in the world.
-        let m = Matrix3::new(
-            0.0, 1.0, 0.0, //
-            0.0, 0.0, 1.0, //
-            1.0, 0.0, 0.0,
-        );
-        let rotation = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(m));
-        Isometry3::from_parts(Translation3::new(x, y, z), rotation)
-    }
-}
 
 /// Simulated scan3d hardware.
 #[derive(Debug, Parser)]
@@ -215,7 +184,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             };
             config.validate()?;
             let world = load_world(args.common.world.as_ref())?;
-            let scanner = RplidarEmulator::default_scanner(world, poses::rplidar());
+            let scanner = RplidarEmulator::default_scanner(world, mounts::rplidar());
             let device = RplidarEmulator::new(config, scanner, args.common.seed);
             serve(&args.common, Box::new(device))
         }
@@ -223,7 +192,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             device: DeviceCommand::Sweep(args),
         } => {
             let world = load_world(args.common.world.as_ref())?;
-            let scanner = SweepEmulator::default_scanner(world, poses::sweep());
+            let scanner = SweepEmulator::default_scanner(world, mounts::sweep());
             let device =
                 SweepEmulator::new(SweepEmulatorConfig::default(), scanner, args.common.seed);
             serve(&args.common, Box::new(device))
@@ -232,14 +201,19 @@ fn run(cli: Cli) -> anyhow::Result<()> {
 }
 
 fn main() {
+    let cli = Cli::parse();
+    // The demo prints its own summary; devices log their plugging and client connections.
+    let default_level = match cli.command {
+        Command::Demo(_) => "warn",
+        Command::Device { .. } => "info",
+    };
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default_level)),
         )
         .with_writer(std::io::stderr)
         .init();
-    let cli = Cli::parse();
     if let Err(e) = run(cli) {
         eprintln!("scan3d-sim: error: {}", one_line(&e));
         std::process::exit(1);
@@ -269,18 +243,8 @@ mod tests {
     use super::*;
 
     #[test]
-    fn sweep_azimuth_zero_points_up_and_ninety_along_x() {
-        let pose = poses::sweep();
-        let up = pose.rotation * Vector3::x();
-        assert!((up - Vector3::z()).norm() < 1e-12);
-        let side = pose.rotation * Vector3::y();
-        assert!((side - Vector3::x()).norm() < 1e-12);
-        assert_eq!(pose * Point3::origin(), Point3::new(4.0, 3.0, 1.0));
-    }
-
-    #[test]
     fn rplidar_pose_is_horizontal() {
-        let pose = poses::rplidar();
+        let pose = mounts::rplidar();
         assert!((pose.rotation * Vector3::x() - Vector3::x()).norm() < 1e-12);
         assert_eq!(pose * Point3::origin(), Point3::new(4.0, 3.0, 0.4));
     }

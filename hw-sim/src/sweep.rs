@@ -84,7 +84,7 @@ impl Default for SweepEmulatorConfig {
             reboot_ms: 1_000,
             model: "SWEEP".to_owned(),
             protocol_version: "01".to_owned(),
-            firmware_version: "01".to_owned(),
+            firmware_version: "11".to_owned(),
             hardware_version: "1".to_owned(),
             serial_number: "00000001".to_owned(),
             bitrate: 115_200,
@@ -558,7 +558,7 @@ mod tests {
     fn version_and_device_info() {
         let mut dev = emulator(0);
         // libsweep's layout: model(5) protocol(2) firmware(2) hardware(1) serial(8) LF = 21 bytes.
-        assert_eq!(send(&mut dev, 0, b"IV\n"), b"IVSWEEP0101100000001\n");
+        assert_eq!(send(&mut dev, 0, b"IV\n"), b"IVSWEEP0111100000001\n");
         assert_eq!(send(&mut dev, 0, b"ID\n"), b"ID115200110050500\n");
         assert_eq!(send(&mut dev, 0, b"LR03\n"), b"LR03\n00P\n");
         assert_eq!(send(&mut dev, 0, b"MS10\n"), b"MS10\n00P\n");
