@@ -111,7 +111,10 @@ impl EdgeConfig {
                 }
                 None => e.message().to_string(),
             };
-            ConfigError::Parse { path: origin.to_path_buf(), message }
+            ConfigError::Parse {
+                path: origin.to_path_buf(),
+                message,
+            }
         })
     }
 

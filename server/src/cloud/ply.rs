@@ -31,8 +31,14 @@ mod tests {
     #[test]
     fn header_and_body_are_exact() {
         let points = [
-            CloudPoint { position: [1.0, -2.0, 0.5], intensity: 47.0 },
-            CloudPoint { position: [0.0, 0.0, 0.0], intensity: 0.0 },
+            CloudPoint {
+                position: [1.0, -2.0, 0.5],
+                intensity: 47.0,
+            },
+            CloudPoint {
+                position: [0.0, 0.0, 0.0],
+                intensity: 0.0,
+            },
         ];
         let mut bytes = Vec::new();
         write_ply(&mut bytes, &points).unwrap();
