@@ -13,7 +13,7 @@ use std::thread::JoinHandle;
 use std::time::Duration;
 
 use crate::clock::SharedClock;
-use crate::lidar::{DeviceInfo, DriverError, DriverStats, HealthStatus, LidarDriver, LidarEvent};
+use crate::lidar::{DriverStats, LidarDriver, LidarEvent};
 use crate::serial::{self, SerialError, SerialEvent, SerialOptions};
 use crate::timing::{Revolution, RevolutionAssembler, TimingConfig};
 
@@ -24,26 +24,12 @@ pub enum AcquisitionEvent {
     Opened,
     /// The device went away; the thread keeps trying to reopen it.
     Lost(String),
-    /// The device identified itself.
-    Info(DeviceInfo),
-    /// RPLidar health.
-    Health {
-        /// Status.
-        status: HealthStatus,
-        /// Device error code.
-        error_code: u16,
-    },
-    /// The device is streaming.
-    Scanning {
-        /// Nominal sample period, ns.
-        sample_period_ns: u64,
-    },
     /// A full revolution with per-sample times.
     Revolution(Revolution),
-    /// A recoverable problem.
-    Warning(String),
-    /// The driver gave up; the thread restarts the handshake after a pause.
-    Failed(DriverError),
+    /// Any other driver event: info, health, scanning, warnings, and `Failed` (after which the
+    /// thread restarts the handshake following a pause). Samples never come this way: they
+    /// arrive assembled as [`AcquisitionEvent::Revolution`]s.
+    Driver(LidarEvent),
 }
 
 /// What the thread leaves behind when it stops.
@@ -154,20 +140,13 @@ fn forward(
             Some(rev) => AcquisitionEvent::Revolution(rev),
             None => return ControlFlow::Continue(()),
         },
-        SerialEvent::Driver(LidarEvent::Info(info)) => AcquisitionEvent::Info(info),
-        SerialEvent::Driver(LidarEvent::Health { status, error_code }) => {
-            AcquisitionEvent::Health { status, error_code }
-        }
-        SerialEvent::Driver(LidarEvent::Scanning { sample_period_ns }) => {
-            AcquisitionEvent::Scanning { sample_period_ns }
-        }
-        SerialEvent::Driver(LidarEvent::Warning(text)) => AcquisitionEvent::Warning(text),
-        SerialEvent::Driver(LidarEvent::Failed(error)) => {
+        SerialEvent::Driver(failure @ LidarEvent::Failed(_)) => {
             assembler.reset();
             *failed = true;
-            let _ = tx.send(AcquisitionEvent::Failed(error));
+            let _ = tx.send(AcquisitionEvent::Driver(failure));
             return ControlFlow::Break(());
         }
+        SerialEvent::Driver(other) => AcquisitionEvent::Driver(other),
     };
     if tx.send(out).is_err() {
         ControlFlow::Break(())

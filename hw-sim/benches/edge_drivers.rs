@@ -19,7 +19,7 @@ use scan3d_edge::lidar::{LidarDriver, LidarEvent};
 use scan3d_edge::timing::{RevolutionAssembler, TimingConfig};
 use scan3d_hw_sim::device::Device;
 use scan3d_hw_sim::mounts;
-use scan3d_hw_sim::pair::{Chunk, Pair};
+use scan3d_hw_sim::pair::{Chunk, Pair, replay};
 use scan3d_hw_sim::rplidar::{RplidarEmulator, RplidarEmulatorConfig};
 use scan3d_hw_sim::sweep::{SweepEmulator, SweepEmulatorConfig};
 use scan3d_hw_sim::world::World;
@@ -113,24 +113,13 @@ fn streams() -> Vec<Stream> {
 fn decode(stream: &Stream) -> u64 {
     let mut driver = (stream.make_driver)();
     let mut assembler = RevolutionAssembler::new(TimingConfig::default());
-    driver.start(0);
     let mut samples = 0;
-    for (now, bytes) in &stream.chunks {
-        if driver
-            .poll_timeout()
-            .is_some_and(|deadline| deadline <= *now)
-        {
-            driver.handle_timeout(*now);
+    replay(driver.as_mut(), &stream.chunks, |event| {
+        if let LidarEvent::Sample(sample) = event {
+            samples += 1;
+            black_box(assembler.push(sample));
         }
-        driver.handle_input(*now, bytes);
-        while driver.poll_transmit().is_some() {}
-        while let Some(event) = driver.poll_event() {
-            if let LidarEvent::Sample(sample) = event {
-                samples += 1;
-                black_box(assembler.push(sample));
-            }
-        }
-    }
+    });
     samples
 }
 

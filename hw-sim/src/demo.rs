@@ -15,7 +15,7 @@ use scan3d_edge::acquisition::{Acquisition, AcquisitionEvent, AcquisitionSummary
 use scan3d_edge::clock::{ScaledClock, SharedClock};
 use scan3d_edge::drivers::rplidar::{Rplidar, RplidarConfig};
 use scan3d_edge::drivers::sweep::{Sweep, SweepConfig};
-use scan3d_edge::lidar::{DeviceInfo, LidarDriver};
+use scan3d_edge::lidar::{DeviceInfo, LidarDriver, LidarEvent};
 use scan3d_edge::serial::SerialOptions;
 use scan3d_edge::timing::{Revolution, TimingConfig};
 use scan3d_server::cloud::CloudPoint;
@@ -57,7 +57,6 @@ struct Lane {
     events: Receiver<AcquisitionEvent>,
     info: Option<DeviceInfo>,
     revolutions: Vec<Revolution>,
-    reconnects: u32,
 }
 
 /// What the demo measured for one lidar.
@@ -112,26 +111,24 @@ impl Lane {
             events,
             info: None,
             revolutions: Vec::new(),
-            reconnects: 0,
         })
     }
 
     fn drain(&mut self) {
         while let Ok(event) = self.events.try_recv() {
             match event {
-                AcquisitionEvent::Info(info) => self.info = Some(info),
+                AcquisitionEvent::Driver(LidarEvent::Info(info)) => self.info = Some(info),
                 AcquisitionEvent::Revolution(rev) => self.revolutions.push(rev),
                 AcquisitionEvent::Lost(reason) => {
-                    self.reconnects += 1;
                     tracing::warn!(lidar = self.name, %reason, "lost the device");
                 }
-                AcquisitionEvent::Warning(text) => tracing::info!(lidar = self.name, "{text}"),
-                AcquisitionEvent::Failed(error) => {
+                AcquisitionEvent::Driver(LidarEvent::Warning(text)) => {
+                    tracing::info!(lidar = self.name, "{text}")
+                }
+                AcquisitionEvent::Driver(LidarEvent::Failed(error)) => {
                     tracing::warn!(lidar = self.name, %error, "driver gave up; restarting")
                 }
-                AcquisitionEvent::Opened
-                | AcquisitionEvent::Health { .. }
-                | AcquisitionEvent::Scanning { .. } => {}
+                AcquisitionEvent::Opened | AcquisitionEvent::Driver(_) => {}
             }
         }
     }

@@ -83,11 +83,14 @@ impl<D: LidarDriver, E: Device> Pair<D, E> {
     }
 }
 
-/// Feeds recorded chunks to a fresh driver (as the serial shell would) and returns how many
-/// samples it decoded. Transmits are discarded: the recording already holds the answers.
-pub fn replay<D: LidarDriver + ?Sized>(driver: &mut D, chunks: &[Chunk]) -> u64 {
+/// Feeds recorded chunks to a driver from its start, as the serial shell would, handing every
+/// event to `on_event`. Transmits are discarded: the recording already holds the answers.
+pub fn replay<D: LidarDriver + ?Sized>(
+    driver: &mut D,
+    chunks: &[Chunk],
+    mut on_event: impl FnMut(LidarEvent),
+) {
     driver.start(0);
-    let mut samples = 0;
     for (now, bytes) in chunks {
         if driver
             .poll_timeout()
@@ -98,10 +101,9 @@ pub fn replay<D: LidarDriver + ?Sized>(driver: &mut D, chunks: &[Chunk]) -> u64 
         driver.handle_input(*now, bytes);
         while driver.poll_transmit().is_some() {}
         while let Some(event) = driver.poll_event() {
-            samples += u64::from(matches!(event, LidarEvent::Sample(_)));
+            on_event(event);
         }
     }
-    samples
 }
 
 #[cfg(test)]
@@ -201,7 +203,10 @@ mod tests {
             live += u64::from(matches!(e, LidarEvent::Sample(_)))
         });
         let chunks = pair.recording.take().unwrap_or_default();
-        let replayed = replay(&mut Rplidar::new(RplidarConfig::default()), &chunks);
+        let mut replayed = 0;
+        replay(&mut Rplidar::new(RplidarConfig::default()), &chunks, |e| {
+            replayed += u64::from(matches!(e, LidarEvent::Sample(_)));
+        });
         assert!(live > 1000);
         assert_eq!(replayed, live);
     }

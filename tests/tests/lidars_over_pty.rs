@@ -13,7 +13,7 @@ use scan3d_edge::acquisition::{Acquisition, AcquisitionEvent};
 use scan3d_edge::clock::{ScaledClock, SharedClock};
 use scan3d_edge::drivers::rplidar::{Rplidar, RplidarConfig, ScanMode};
 use scan3d_edge::drivers::sweep::{Sweep, SweepConfig};
-use scan3d_edge::lidar::{DeviceInfo, LidarDriver};
+use scan3d_edge::lidar::{DeviceInfo, LidarDriver, LidarEvent};
 use scan3d_edge::serial::SerialOptions;
 use scan3d_edge::timing::{Revolution, TimedSample, TimingConfig};
 use scan3d_hw_sim::device::Device;
@@ -91,9 +91,9 @@ impl Rig {
                 .events
                 .recv_timeout(left.min(Duration::from_millis(100)))
             {
-                Ok(AcquisitionEvent::Info(info)) => self.info = Some(info),
+                Ok(AcquisitionEvent::Driver(LidarEvent::Info(info))) => self.info = Some(info),
                 Ok(AcquisitionEvent::Revolution(rev)) => self.revolutions.push(rev),
-                Ok(AcquisitionEvent::Failed(e)) => panic!("driver failed: {e}"),
+                Ok(AcquisitionEvent::Driver(LidarEvent::Failed(e))) => panic!("driver failed: {e}"),
                 Ok(_) | Err(_) => {}
             }
         }
