@@ -18,3 +18,4 @@ pub mod lidar;
 pub mod probe;
 pub mod serial;
 pub mod timing;
+pub mod uplink;

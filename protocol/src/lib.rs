@@ -88,3 +88,7 @@ pub use types::{
     SampleTimeError, SensorId, SensorInfo, StatusEvent, StepperState, TimePing, TimePong,
 };
 pub use version::{IncompatibleVersion, PROTOCOL_VERSION, check_compatible};
+
+/// The QUIC/TLS application protocol name (ALPN) of the edge↔server link; it carries the
+/// protocol version so a mismatched peer fails the TLS handshake with a clear reason.
+pub const ALPN: &[u8] = b"scan3d/1";

@@ -1,7 +1,13 @@
 //! The scan3d server: ingest, pose, 3D assembly, occupancy octree and map metrics.
 //!
 //! Stages follow the data flow, one module each (see `ARCHITECTURE.md`); today:
+//! - [`ingest`]: QUIC server with mutual TLS, durable MCAP session recordings, time sync.
 //! - [`cloud`]: point-cloud types and PLY export.
+//! - [`config`]: the daemon's `server.toml`.
+//! - [`cli`]: the `scan3d` subcommands.
 #![warn(missing_docs)]
 
+pub mod cli;
 pub mod cloud;
+pub mod config;
+pub mod ingest;

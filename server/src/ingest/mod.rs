@@ -1,0 +1,13 @@
+//! Ingest: the QUIC server that edges stream to, and the durable session recordings.
+//!
+//! - [`pki`]: the private CA, server certificate and edge bundles (`scan3d pair`).
+//! - [`tls`]: rustls/quinn configuration for mutual TLS, and the edge's identity.
+//! - [`recorder`]: MCAP session recordings, acknowledged only once durable.
+//! - [`timesync`]: NTP-style offset / round-trip estimates per edge.
+//! - [`server`]: the endpoint, one task per edge connection.
+
+pub mod pki;
+pub mod recorder;
+pub mod server;
+pub mod timesync;
+pub mod tls;
