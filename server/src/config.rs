@@ -1,1 +1,239 @@
-//! (being written)
+//! The server daemon's configuration file (`server.toml`; example in `deploy/server.toml`).
+//!
+//! Every key is optional: an empty file gives [`ServerConfig::default`], which listens on
+//! `[::]:4433` (dual stack: on Linux, with the default `net.ipv6.bindv6only = 0`, IPv4 edges reach
+//! it too, as `::ffff:a.b.c.d`). On a host booted with IPv6 disabled, set `listen = "0.0.0.0:4433"`.
+
+use std::net::{Ipv6Addr, SocketAddr};
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use serde::{Deserialize, Deserializer};
+
+/// The whole `server.toml`.
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ServerConfig {
+    /// UDP address the QUIC endpoint binds to.
+    pub listen: SocketAddr,
+    /// The directory given to `scan3d pair --dir`: the CA, the server certificate and key.
+    pub pki_dir: PathBuf,
+    /// Root of the recordings: sessions live in `data_dir/sessions/<edge>/<session-id>/`.
+    pub data_dir: PathBuf,
+    /// How often (ms) the recorder finishes a chunk, syncs it and acknowledges its frames. Bounds
+    /// the acknowledgement latency; shorter means more, smaller chunks and more fsyncs.
+    #[serde(deserialize_with = "positive_u64")]
+    pub commit_interval_ms: u64,
+    /// How often (ms) the server pings each edge for a time-sync exchange.
+    #[serde(deserialize_with = "positive_u64")]
+    pub time_sync_interval_ms: u64,
+    /// Edges connected at once; further connections are refused.
+    #[serde(deserialize_with = "positive_usize")]
+    pub max_connections: usize,
+}
+
+impl Default for ServerConfig {
+    fn default() -> Self {
+        Self {
+            listen: SocketAddr::from((Ipv6Addr::UNSPECIFIED, 4433)),
+            pki_dir: PathBuf::from("/etc/scan3d/pki"),
+            data_dir: PathBuf::from("/var/lib/scan3d"),
+            commit_interval_ms: 100,
+            time_sync_interval_ms: 1000,
+            max_connections: 16,
+        }
+    }
+}
+
+/// Rejects 0 (an interval of 0 ms would spin; the error carries the key's place in the file).
+fn positive_u64<'de, D: Deserializer<'de>>(deserializer: D) -> Result<u64, D::Error> {
+    let value = u64::deserialize(deserializer)?;
+    if value == 0 {
+        return Err(serde::de::Error::invalid_value(
+            serde::de::Unexpected::Unsigned(0),
+            &"a positive number",
+        ));
+    }
+    Ok(value)
+}
+
+/// Rejects 0 (a server accepting no connection at all is a configuration mistake).
+fn positive_usize<'de, D: Deserializer<'de>>(deserializer: D) -> Result<usize, D::Error> {
+    let value = usize::deserialize(deserializer)?;
+    if value == 0 {
+        return Err(serde::de::Error::invalid_value(
+            serde::de::Unexpected::Unsigned(0),
+            &"a positive number",
+        ));
+    }
+    Ok(value)
+}
+
+/// Why a configuration could not be used.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// The file could not be read.
+    #[error("cannot read {path}: {source}")]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// The TOML is malformed or has unknown / mistyped / out-of-range keys.
+    #[error("{path}: {message}")]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// The parser's message, with line.
+        message: String,
+    },
+}
+
+impl ServerConfig {
+    /// Parses a configuration from TOML text; `origin` names it in errors.
+    pub fn from_toml_str(text: &str, origin: &Path) -> Result<Self, ConfigError> {
+        toml::from_str(text).map_err(|e| {
+            let message = match e.span() {
+                Some(span) => {
+                    let before = text.get(..span.start).unwrap_or_default();
+                    let line = before.bytes().filter(|&b| b == b'\n').count() + 1;
+                    format!("line {line}: {}", e.message())
+                }
+                None => e.message().to_string(),
+            };
+            ConfigError::Parse {
+                path: origin.to_path_buf(),
+                message,
+            }
+        })
+    }
+
+    /// Reads and parses the configuration file at `path`.
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::from_toml_str(&text, path)
+    }
+
+    /// [`commit_interval_ms`](Self::commit_interval_ms) as a [`Duration`].
+    pub fn commit_interval(&self) -> Duration {
+        Duration::from_millis(self.commit_interval_ms)
+    }
+
+    /// [`time_sync_interval_ms`](Self::time_sync_interval_ms) as a [`Duration`].
+    pub fn time_sync_interval(&self) -> Duration {
+        Duration::from_millis(self.time_sync_interval_ms)
+    }
+
+    /// Where the recordings live: `data_dir/sessions`.
+    pub fn sessions_dir(&self) -> PathBuf {
+        self.data_dir.join("sessions")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(text: &str) -> Result<ServerConfig, ConfigError> {
+        ServerConfig::from_toml_str(text, Path::new("server.toml"))
+    }
+
+    #[test]
+    fn the_shipped_example_config_parses() {
+        let path = Path::new(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../deploy/server.toml"
+        ));
+        let config = ServerConfig::load(path).expect("deploy/server.toml must parse");
+        assert_eq!(config.listen, "[::]:4433".parse::<SocketAddr>().unwrap());
+        assert_eq!(config.pki_dir, Path::new("/etc/scan3d/pki"));
+        assert_eq!(config.data_dir, Path::new("/var/lib/scan3d"));
+        assert_eq!(config.commit_interval_ms, 100);
+        assert_eq!(config.time_sync_interval_ms, 1000);
+        assert_eq!(config.max_connections, 16);
+    }
+
+    #[test]
+    fn an_empty_file_gives_the_documented_defaults() {
+        let config = parse("").unwrap();
+        assert_eq!(config.listen.to_string(), "[::]:4433");
+        assert_eq!(config.pki_dir, Path::new("/etc/scan3d/pki"));
+        assert_eq!(config.data_dir, Path::new("/var/lib/scan3d"));
+        assert_eq!(config.commit_interval(), Duration::from_millis(100));
+        assert_eq!(config.time_sync_interval(), Duration::from_secs(1));
+        assert_eq!(config.max_connections, 16);
+        assert_eq!(config.sessions_dir(), Path::new("/var/lib/scan3d/sessions"));
+        assert_eq!(config, ServerConfig::default());
+    }
+
+    #[test]
+    fn every_key_is_read() {
+        let text = "listen = \"127.0.0.1:5000\"\npki_dir = \"/tmp/pki\"\ndata_dir = \"/srv/d\"\n\
+                    commit_interval_ms = 250\ntime_sync_interval_ms = 500\nmax_connections = 2\n";
+        let config = parse(text).unwrap();
+        assert_eq!(
+            config,
+            ServerConfig {
+                listen: SocketAddr::from(([127, 0, 0, 1], 5000)),
+                pki_dir: PathBuf::from("/tmp/pki"),
+                data_dir: PathBuf::from("/srv/d"),
+                commit_interval_ms: 250,
+                time_sync_interval_ms: 500,
+                max_connections: 2,
+            }
+        );
+    }
+
+    #[test]
+    fn unknown_keys_are_reported_with_their_line() {
+        let text = "listen = \"0.0.0.0:4433\"\n\ndatadir = \"/x\"\n";
+        let message = parse(text).unwrap_err().to_string();
+        assert!(message.starts_with("server.toml: line 3:"), "{message}");
+        assert!(message.contains("datadir"), "{message}");
+    }
+
+    #[test]
+    fn a_bad_address_is_reported_with_its_line() {
+        let text = "# comment\nlisten = \"laptop:4433\"\n";
+        let message = parse(text).unwrap_err().to_string();
+        assert!(message.starts_with("server.toml: line 2:"), "{message}");
+    }
+
+    #[test]
+    fn zero_intervals_and_limits_are_refused_with_their_line() {
+        for (key, line) in [
+            ("commit_interval_ms", 2),
+            ("time_sync_interval_ms", 2),
+            ("max_connections", 2),
+        ] {
+            let text = format!("data_dir = \"/d\"\n{key} = 0\n");
+            let message = parse(&text).unwrap_err().to_string();
+            assert!(
+                message.starts_with(&format!("server.toml: line {line}:")),
+                "{key}: {message}"
+            );
+            assert!(message.contains("positive"), "{key}: {message}");
+        }
+    }
+
+    #[test]
+    fn negative_and_mistyped_values_are_refused() {
+        assert!(parse("commit_interval_ms = -5").is_err());
+        assert!(parse("max_connections = \"16\"").is_err());
+        assert!(parse("pki_dir = 3").is_err());
+    }
+
+    #[test]
+    fn a_missing_file_names_the_path() {
+        let path = Path::new("/nonexistent/scan3d/server.toml");
+        let message = ServerConfig::load(path).unwrap_err().to_string();
+        assert!(
+            message.starts_with("cannot read /nonexistent/scan3d/server.toml:"),
+            "{message}"
+        );
+    }
+}
