@@ -22,6 +22,50 @@ pub struct EdgeConfig {
     pub rplidar: Option<RplidarSection>,
     /// The mapping lidar, if wired.
     pub sweep: Option<SweepSection>,
+    /// Where to stream to. Without it the daemon only acquires (and logs).
+    pub uplink: Option<UplinkSection>,
+}
+
+/// `[uplink]`: the server to stream to and the edge's credentials.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct UplinkSection {
+    /// The server's address, `host:port` (e.g. `"laptop.local:4433"`).
+    pub server: String,
+    /// The name the server's certificate carries (one of the `--server-name`s given to
+    /// `scan3d pair`); defaults to the host part of `server`.
+    pub server_name: Option<String>,
+    /// The edge bundle copied from `scan3d pair` (edge.pem, edge.key, ca.pem).
+    #[serde(default = "default_pki_dir")]
+    pub pki_dir: PathBuf,
+    /// Frames kept in memory before spilling to disk, MiB.
+    #[serde(default = "default_spool_memory_mb")]
+    pub spool_memory_mb: u64,
+    /// Frames kept on disk under `state_dir/spool` before acquisition pauses, MiB.
+    #[serde(default = "default_spool_disk_mb")]
+    pub spool_disk_mb: u64,
+}
+
+impl UplinkSection {
+    /// The TLS name to expect: `server_name`, or the host part of `server`.
+    pub fn tls_name(&self) -> &str {
+        match &self.server_name {
+            Some(name) => name,
+            None => self.server.rsplit_once(':').map_or(self.server.as_str(), |(host, _)| host),
+        }
+    }
+}
+
+fn default_pki_dir() -> PathBuf {
+    PathBuf::from("/etc/scan3d/pki")
+}
+
+fn default_spool_memory_mb() -> u64 {
+    8
+}
+
+fn default_spool_disk_mb() -> u64 {
+    256
 }
 
 fn default_state_dir() -> PathBuf {
@@ -145,6 +189,10 @@ mod tests {
         let sweep = config.sweep.expect("sweep section");
         assert_eq!(sweep.path, Path::new("/dev/sweep"));
         assert_eq!(sweep.driver.motor_hz, Some(5));
+        let uplink = config.uplink.expect("uplink section");
+        assert_eq!(uplink.server, "laptop.local:4433");
+        assert_eq!(uplink.tls_name(), "laptop.local");
+        assert_eq!(uplink.pki_dir, Path::new("/etc/scan3d/pki"));
     }
 
     #[test]
