@@ -8,6 +8,7 @@ use clap::{Args, Parser, Subcommand, ValueEnum};
 
 use crate::clock::{Clock, MonotonicClock, ScaledClock};
 use crate::config::EdgeConfig;
+use crate::daemon;
 use crate::drivers::rplidar::{Rplidar, RplidarConfig, ScanMode};
 use crate::drivers::sweep::{Sweep, SweepConfig};
 use crate::lidar::LidarDriver;
@@ -16,10 +17,14 @@ use crate::probe::{self, ProbeLine, ProbeOptions};
 /// scan3d edge daemon and wiring tools (Raspberry Pi side).
 #[derive(Debug, Parser)]
 #[command(name = "scan3d-edge", version, about)]
+#[command(args_conflicts_with_subcommands = true)]
 pub struct Cli {
-    /// What to do.
+    /// Run the daemon with this configuration (the default when no subcommand is given).
+    #[arg(long, global = false, default_value = "/etc/scan3d/edge.toml")]
+    pub config: PathBuf,
+    /// A one-shot tool instead of the daemon.
     #[command(subcommand)]
-    pub command: Command,
+    pub command: Option<Command>,
 }
 
 /// `scan3d-edge` subcommands.
@@ -89,7 +94,10 @@ pub enum ProbeScanMode {
 
 /// Runs a parsed command line, writing its output to `out`.
 pub fn execute(cli: Cli, out: &mut dyn Write) -> anyhow::Result<()> {
-    match cli.command {
+    let Some(command) = cli.command else {
+        return run_daemon(&cli.config);
+    };
+    match command {
         Command::Probe(ProbeCommand::Rplidar {
             path,
             baud,
@@ -167,5 +175,52 @@ fn run_probe(
     match write_error {
         Some(e) => Err(e.into()),
         None => Ok(()),
+    }
+}
+
+/// `scan3d-edge --config edge.toml`: runs the daemon until SIGTERM or SIGINT.
+fn run_daemon(config_path: &std::path::Path) -> anyhow::Result<()> {
+    let config = EdgeConfig::load(config_path)?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    runtime.block_on(async {
+        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        tokio::spawn(async move {
+            wait_for_termination().await;
+            let _ = stop_tx.send(true);
+        });
+        let clock: Arc<dyn Clock> = Arc::new(MonotonicClock::new());
+        let session_id = rand::random::<u64>();
+        tracing::info!(device = %config.device_name, session = format!("{session_id:016x}"), "edge daemon starting");
+        let report = daemon::run(config, clock, session_id, stop_rx).await?;
+        for (sensor, lidar) in &report.lidars {
+            tracing::info!(%sensor, revolutions = lidar.revolutions, samples = lidar.samples, pauses = lidar.pauses, "lidar summary");
+        }
+        if let Some(uplink) = &report.uplink {
+            tracing::info!(submitted = uplink.submitted, sent = uplink.frames_sent, acks = uplink.acks, connections = uplink.connections, "uplink summary");
+        }
+        Ok(())
+    })
+}
+
+/// Resolves on SIGTERM (systemd stop) or SIGINT (Ctrl-C).
+pub async fn wait_for_termination() {
+    use tokio::signal::unix::{SignalKind, signal};
+    match (
+        signal(SignalKind::terminate()),
+        signal(SignalKind::interrupt()),
+    ) {
+        (Ok(mut term), Ok(mut int)) => {
+            tokio::select! {
+                _ = term.recv() => tracing::info!("SIGTERM: shutting down"),
+                _ = int.recv() => tracing::info!("SIGINT: shutting down"),
+            }
+        }
+        _ => {
+            tracing::error!("cannot install signal handlers; stop with SIGKILL only");
+            std::future::pending::<()>().await;
+        }
     }
 }

@@ -13,6 +13,7 @@ pub mod acquisition;
 pub mod cli;
 pub mod clock;
 pub mod config;
+pub mod daemon;
 pub mod drivers;
 pub mod lidar;
 pub mod probe;

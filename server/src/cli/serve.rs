@@ -1,10 +1,100 @@
-//! `scan3d serve` (being written).
+//! `scan3d serve --config server.toml`: the server daemon. Records every edge's frames and
+//! acknowledges them once durable; SIGTERM commits, closes every recording and exits 0.
+
+use std::path::{Path, PathBuf};
+
+use crate::config::ServerConfig;
+use crate::ingest::server::{IngestConfig, IngestServer};
 
 /// Options of `scan3d serve`.
 #[derive(Debug, clap::Args)]
-pub struct ServeArgs {}
+pub struct ServeArgs {
+    /// The server configuration.
+    #[arg(long, default_value = "/etc/scan3d/server.toml")]
+    pub config: PathBuf,
+}
 
-/// Runs `scan3d serve`.
-pub fn run(_args: &ServeArgs) -> anyhow::Result<()> {
-    anyhow::bail!("scan3d serve is not built yet")
+impl From<&ServerConfig> for IngestConfig {
+    fn from(config: &ServerConfig) -> Self {
+        IngestConfig {
+            listen: config.listen,
+            pki_dir: config.pki_dir.clone(),
+            data_dir: config.data_dir.clone(),
+            commit_interval: config.commit_interval(),
+            time_sync_interval: config.time_sync_interval(),
+            max_connections: config.max_connections,
+        }
+    }
+}
+
+/// Runs the daemon until SIGTERM / SIGINT.
+pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
+    serve(&args.config)
+}
+
+fn serve(config_path: &Path) -> anyhow::Result<()> {
+    let config = ServerConfig::load(config_path)?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?;
+    runtime.block_on(async {
+        let server = IngestServer::bind(IngestConfig::from(&config))?;
+        tracing::info!(listen = %server.local_addr()?, data_dir = %config.data_dir.display(), "scan3d server ready");
+        notify_systemd(&[sd_notify::NotifyState::Ready]);
+        let watchdog = tokio::spawn(watchdog_pings());
+        let stats = server
+            .run(None, async {
+                wait_for_termination().await;
+                notify_systemd(&[sd_notify::NotifyState::Stopping]);
+            })
+            .await;
+        watchdog.abort();
+        tracing::info!(
+            connections = stats.connections,
+            refused = stats.refused,
+            frames = stats.frames,
+            duplicates = stats.duplicates,
+            rejected = stats.rejected,
+            "scan3d server stopped"
+        );
+        Ok(())
+    })
+}
+
+/// Resolves on SIGTERM (systemd stop) or SIGINT (Ctrl-C).
+async fn wait_for_termination() {
+    use tokio::signal::unix::{SignalKind, signal};
+    match (
+        signal(SignalKind::terminate()),
+        signal(SignalKind::interrupt()),
+    ) {
+        (Ok(mut term), Ok(mut int)) => {
+            tokio::select! {
+                _ = term.recv() => tracing::info!("SIGTERM: shutting down"),
+                _ = int.recv() => tracing::info!("SIGINT: shutting down"),
+            }
+        }
+        _ => {
+            tracing::error!("cannot install signal handlers; stop with SIGKILL only");
+            std::future::pending::<()>().await;
+        }
+    }
+}
+
+fn notify_systemd(state: &[sd_notify::NotifyState]) {
+    if let Err(e) = sd_notify::notify(state) {
+        tracing::debug!(error = %e, "sd_notify failed (not under systemd?)");
+    }
+}
+
+/// Pets systemd's watchdog at half its period while the runtime is alive.
+async fn watchdog_pings() {
+    let Some(period) = sd_notify::watchdog_enabled() else {
+        return;
+    };
+    let mut tick = tokio::time::interval(period / 2);
+    loop {
+        tick.tick().await;
+        notify_systemd(&[sd_notify::NotifyState::Watchdog]);
+    }
 }

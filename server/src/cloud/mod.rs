@@ -1,6 +1,7 @@
 //! Point clouds: 3D assembly (later issues), filters (later issues) and export.
 
 pub mod ply;
+pub mod scans;
 
 /// One point of a cloud with the intensity the sensor reported for it.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -1,0 +1,432 @@
+//! The QUIC client that carries the edge's frames to the server and never loses one.
+//!
+//! Producers (acquisition threads) call [`UplinkHandle::submit`]: the frame gets the next
+//! sequence number of this boot's session and goes into the [`Spool`]. The [`Uplink`] task
+//! connects with the edge bundle, sends everything unsent in order, and removes frames from
+//! the spool only when the server acknowledges them (after they are on its disk). After a
+//! reconnect everything unacknowledged is sent again; the server ignores what it already has.
+//!
+//! A connection the server closes during the TLS handshake, or right after it with a crypto
+//! error, means the server refused this edge's certificate: that is logged as an error on
+//! every attempt and counted in [`UplinkStats::auth_failures`], and retried with a long backoff
+//! (the operator may be fixing the pairing), never silently.
+
+use std::net::SocketAddr;
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use scan3d_protocol::{Ack, Body, Command, Frame, FrameReader, TimePong, encode};
+use tokio::sync::{Notify, mpsc, watch};
+
+use super::spool::{Spool, SpoolConfig, SpoolError};
+use crate::clock::SharedClock;
+
+/// How to reach the server.
+#[derive(Debug, Clone)]
+pub struct UplinkConfig {
+    /// `host:port` of `scan3d serve`.
+    pub server: String,
+    /// The name the server certificate must carry.
+    pub server_name: String,
+    /// TLS client configuration from the edge bundle ([`super::tls::client_config`]).
+    pub client_config: quinn::ClientConfig,
+    /// Where and how much to spool.
+    pub spool: SpoolConfig,
+    /// First reconnect delay (doubles up to `max_backoff`).
+    pub min_backoff: Duration,
+    /// Longest reconnect delay after ordinary failures.
+    pub max_backoff: Duration,
+    /// Reconnect delay after the server refused the certificate.
+    pub auth_backoff: Duration,
+    /// On shutdown, how long to keep sending before leaving the rest in the on-disk spool.
+    pub drain_timeout: Duration,
+}
+
+impl UplinkConfig {
+    /// Defaults: 200 ms … 5 s backoff, 30 s after an authentication failure, 3 s drain.
+    pub fn new(
+        server: String,
+        server_name: String,
+        client_config: quinn::ClientConfig,
+        spool: SpoolConfig,
+    ) -> Self {
+        Self {
+            server,
+            server_name,
+            client_config,
+            spool,
+            min_backoff: Duration::from_millis(200),
+            max_backoff: Duration::from_secs(5),
+            auth_backoff: Duration::from_secs(30),
+            drain_timeout: Duration::from_secs(3),
+        }
+    }
+}
+
+/// Counters of the uplink.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct UplinkStats {
+    /// Frames accepted by [`UplinkHandle::submit`].
+    pub submitted: u64,
+    /// Frames refused because the spool was full (the caller paused acquisition).
+    pub refused_full: u64,
+    /// Connections established.
+    pub connections: u64,
+    /// Connections the server refused for the certificate.
+    pub auth_failures: u64,
+    /// Frames written to a connection (resends included).
+    pub frames_sent: u64,
+    /// Acknowledgements received.
+    pub acks: u64,
+    /// The last connection problem, for status displays.
+    pub last_error: Option<String>,
+}
+
+/// Why a frame was not taken.
+#[derive(Debug, thiserror::Error)]
+pub enum SubmitError {
+    /// The spool is full: pause acquisition until [`UplinkHandle::has_room`].
+    #[error("spool full: the server has not acknowledged enough frames")]
+    Full,
+    /// The frame cannot be encoded (over the size limit).
+    #[error("cannot encode the frame: {0}")]
+    Encode(#[from] scan3d_protocol::EncodeError),
+    /// The spool's disk failed.
+    #[error("spool: {0}")]
+    Spool(SpoolError),
+}
+
+struct Inner {
+    spool: Mutex<Spool>,
+    next_seq: Mutex<u64>,
+    wake: Notify,
+    session_id: u64,
+    clock: SharedClock,
+    stats: Mutex<UplinkStats>,
+    commands: mpsc::UnboundedSender<Command>,
+}
+
+impl Inner {
+    fn spool(&self) -> MutexGuard<'_, Spool> {
+        self.spool.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    fn stats(&self) -> MutexGuard<'_, UplinkStats> {
+        self.stats.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+/// The producers' side of the uplink; cheap to clone.
+#[derive(Clone)]
+pub struct UplinkHandle {
+    inner: Arc<Inner>,
+}
+
+impl UplinkHandle {
+    /// Queues a frame for the server; returns its sequence number.
+    pub fn submit(&self, body: impl Into<Body>) -> Result<u64, SubmitError> {
+        let body = body.into();
+        let mut next_seq = self
+            .inner
+            .next_seq
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        let seq = *next_seq;
+        let bytes = encode(&Frame::new(self.inner.session_id, seq, body))?;
+        match self.inner.spool().push(self.inner.session_id, seq, bytes) {
+            Ok(()) => {}
+            Err(SpoolError::Full) => {
+                self.inner.stats().refused_full += 1;
+                return Err(SubmitError::Full);
+            }
+            Err(e) => return Err(SubmitError::Spool(e)),
+        }
+        *next_seq += 1;
+        drop(next_seq);
+        self.inner.stats().submitted += 1;
+        self.inner.wake.notify_one();
+        Ok(seq)
+    }
+
+    /// After a [`SubmitError::Full`]: whether enough has been acknowledged to resume.
+    pub fn has_room(&self) -> bool {
+        self.inner.spool().has_room()
+    }
+
+    /// Frames waiting for an acknowledgement.
+    pub fn pending(&self) -> usize {
+        self.inner.spool().len()
+    }
+
+    /// This boot's session id.
+    pub fn session_id(&self) -> u64 {
+        self.inner.session_id
+    }
+
+    /// A snapshot of the counters.
+    pub fn stats(&self) -> UplinkStats {
+        self.inner.stats().clone()
+    }
+}
+
+/// The connection task; see the module docs.
+pub struct Uplink {
+    inner: Arc<Inner>,
+    config: UplinkConfig,
+}
+
+/// How one connection attempt ended.
+enum SessionEnd {
+    Shutdown,
+    AuthRefused(String),
+    Lost(String),
+}
+
+impl Uplink {
+    /// Opens the spool (recovering frames a previous run left on disk) and picks this boot's
+    /// session id. Commands from the server arrive on the returned receiver.
+    pub fn new(
+        config: UplinkConfig,
+        clock: SharedClock,
+        session_id: u64,
+    ) -> Result<(Self, UplinkHandle, mpsc::UnboundedReceiver<Command>), SpoolError> {
+        let spool = Spool::open(config.spool.clone())?;
+        let (commands, commands_rx) = mpsc::unbounded_channel();
+        let inner = Arc::new(Inner {
+            spool: Mutex::new(spool),
+            next_seq: Mutex::new(0),
+            wake: Notify::new(),
+            session_id,
+            clock,
+            stats: Mutex::new(UplinkStats::default()),
+            commands,
+        });
+        let handle = UplinkHandle {
+            inner: inner.clone(),
+        };
+        Ok((Self { inner, config }, handle, commands_rx))
+    }
+
+    /// Connects, sends and reconnects until `shutdown` turns true; then sends for at most
+    /// `drain_timeout` more and leaves the rest in the on-disk spool for the next start.
+    pub async fn run(self, mut shutdown: watch::Receiver<bool>) -> UplinkStats {
+        let endpoint = match quinn::Endpoint::client(SocketAddr::from(([0, 0, 0, 0], 0))) {
+            Ok(mut endpoint) => {
+                endpoint.set_default_client_config(self.config.client_config.clone());
+                Some(endpoint)
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "cannot open a UDP socket; frames stay spooled");
+                None
+            }
+        };
+        let mut backoff = self.config.min_backoff;
+        while let Some(endpoint) = &endpoint {
+            if *shutdown.borrow() {
+                break;
+            }
+            let started = Instant::now();
+            let end = match self.resolve().await {
+                Ok(addr) => self.session(endpoint, addr, &mut shutdown).await,
+                Err(reason) => SessionEnd::Lost(reason),
+            };
+            let wait = match end {
+                SessionEnd::Shutdown => break,
+                SessionEnd::AuthRefused(reason) => {
+                    tracing::error!(server = %self.config.server, %reason,
+                        "the server refused this edge's certificate; check that pki_dir holds the bundle `scan3d pair` made for this edge on this server");
+                    let mut stats = self.inner.stats();
+                    stats.auth_failures += 1;
+                    stats.last_error = Some(format!("authentication refused: {reason}"));
+                    self.config.auth_backoff
+                }
+                SessionEnd::Lost(reason) => {
+                    tracing::warn!(server = %self.config.server, %reason, "uplink down; retrying");
+                    self.inner.stats().last_error = Some(reason);
+                    if started.elapsed() > Duration::from_secs(10) {
+                        backoff = self.config.min_backoff;
+                    }
+                    let wait = backoff;
+                    backoff = (backoff * 2).min(self.config.max_backoff);
+                    wait
+                }
+            };
+            tokio::select! {
+                () = tokio::time::sleep(wait) => {}
+                _ = shutdown.changed() => {}
+            }
+        }
+        if let Some(endpoint) = endpoint {
+            endpoint.close(0u32.into(), b"edge shutting down");
+            endpoint.wait_idle().await;
+        }
+        let mut spool = self.inner.spool();
+        if let Err(e) = spool.shutdown_flush() {
+            tracing::error!(error = %e, "could not write the spool to disk");
+        }
+        let left = spool.len();
+        drop(spool);
+        if left > 0 {
+            tracing::info!(
+                frames = left,
+                "unacknowledged frames kept on disk for the next start"
+            );
+        }
+        self.inner.stats().clone()
+    }
+
+    async fn resolve(&self) -> Result<SocketAddr, String> {
+        let mut addrs = tokio::net::lookup_host(&self.config.server)
+            .await
+            .map_err(|e| format!("cannot resolve {}: {e}", self.config.server))?;
+        addrs
+            .next()
+            .ok_or_else(|| format!("{} resolves to no address", self.config.server))
+    }
+
+    async fn session(
+        &self,
+        endpoint: &quinn::Endpoint,
+        addr: SocketAddr,
+        shutdown: &mut watch::Receiver<bool>,
+    ) -> SessionEnd {
+        let connecting = match endpoint.connect(addr, &self.config.server_name) {
+            Ok(connecting) => connecting,
+            Err(e) => return SessionEnd::Lost(format!("cannot connect to {addr}: {e}")),
+        };
+        let connection = tokio::select! {
+            result = connecting => match result {
+                Ok(connection) => connection,
+                Err(e) if is_auth_failure(&e) => return SessionEnd::AuthRefused(e.to_string()),
+                Err(e) => return SessionEnd::Lost(format!("cannot connect to {addr}: {e}")),
+            },
+            _ = shutdown.changed() => return SessionEnd::Shutdown,
+        };
+        let (mut send, recv) = match connection.open_bi().await {
+            Ok(streams) => streams,
+            Err(e) if is_auth_failure(&e) => return SessionEnd::AuthRefused(e.to_string()),
+            Err(e) => return SessionEnd::Lost(format!("cannot open a stream: {e}")),
+        };
+        tracing::info!(server = %addr, session = format!("{:016x}", self.inner.session_id), "uplink connected");
+        self.inner.stats().connections += 1;
+        self.inner.spool().rewind();
+        let reader = tokio::spawn(read_from_server(recv, self.inner.clone()));
+        let mut drain_until: Option<tokio::time::Instant> = None;
+        let end = loop {
+            // Send everything not yet sent on this connection, in order.
+            let next = self.inner.spool().next_unsent();
+            if let Some(frame) = next {
+                tokio::select! {
+                    written = send.write_all(&frame.bytes) => match written {
+                        Ok(()) => self.inner.stats().frames_sent += 1,
+                        Err(e) => break lost_or_refused(&connection, format!("write failed: {e}")),
+                    },
+                    _ = connection.closed() => break lost_or_refused(&connection, "connection closed".into()),
+                }
+                continue;
+            }
+            if let Some(deadline) = drain_until {
+                if self.inner.spool().is_empty() || tokio::time::Instant::now() >= deadline {
+                    connection.close(0u32.into(), b"edge shutting down");
+                    break SessionEnd::Shutdown;
+                }
+            }
+            let wait_drain = async {
+                match drain_until {
+                    Some(deadline) => {
+                        tokio::time::sleep_until(
+                            deadline.min(tokio::time::Instant::now() + Duration::from_millis(50)),
+                        )
+                        .await
+                    }
+                    None => std::future::pending().await,
+                }
+            };
+            tokio::select! {
+                () = self.inner.wake.notified() => {}
+                () = wait_drain => {}
+                _ = shutdown.changed(), if drain_until.is_none() => {
+                    drain_until = Some(tokio::time::Instant::now() + self.config.drain_timeout);
+                }
+                _ = connection.closed() => break lost_or_refused(&connection, "connection closed".into()),
+            }
+        };
+        reader.abort();
+        end
+    }
+}
+
+/// Reads acks, time-sync pings and commands from the server until the stream ends.
+async fn read_from_server(mut recv: quinn::RecvStream, inner: Arc<Inner>) {
+    let mut reader = FrameReader::new();
+    let handle = UplinkHandle {
+        inner: inner.clone(),
+    };
+    loop {
+        let chunk = match recv.read_chunk(64 * 1024, true).await {
+            Ok(Some(chunk)) => chunk,
+            Ok(None) | Err(_) => return,
+        };
+        let received_ns = inner.clock.now_ns();
+        reader.push(&chunk.bytes);
+        loop {
+            let frame = match reader.next_frame() {
+                Ok(Some(frame)) => frame,
+                Ok(None) => break,
+                Err(e) if e.is_fatal() => {
+                    tracing::warn!(error = %e, "the server sent something that is not scan3d frames");
+                    return;
+                }
+                Err(e) => {
+                    tracing::warn!(error = %e, "skipping a malformed frame from the server");
+                    continue;
+                }
+            };
+            match frame.body {
+                Body::Ack(Ack::UpTo { seq }) => {
+                    inner.spool().ack(frame.session_id, seq);
+                    inner.stats().acks += 1;
+                }
+                Body::Ack(Ack::Range { first, last }) => {
+                    inner.spool().ack_range(frame.session_id, first, last);
+                    inner.stats().acks += 1;
+                }
+                Body::TimePing(ping) => {
+                    let pong = TimePong {
+                        t0_ns: ping.t0_ns,
+                        t1_ns: received_ns,
+                        t2_ns: inner.clock.now_ns(),
+                    };
+                    if let Err(e) = handle.submit(pong) {
+                        tracing::debug!(error = %e, "time-sync pong not sent");
+                    }
+                }
+                Body::Command(command) => {
+                    tracing::info!(?command, "command from the server");
+                    let _ = inner.commands.send(command);
+                }
+                other => tracing::debug!(?other, "ignoring an unexpected frame from the server"),
+            }
+        }
+    }
+}
+
+/// Classifies the end of a connection that was up.
+fn lost_or_refused(connection: &quinn::Connection, fallback: String) -> SessionEnd {
+    match connection.close_reason() {
+        Some(e) if is_auth_failure(&e) => SessionEnd::AuthRefused(e.to_string()),
+        Some(e) => SessionEnd::Lost(e.to_string()),
+        None => SessionEnd::Lost(fallback),
+    }
+}
+
+/// A TLS alert from the peer (QUIC crypto error codes 0x100–0x1ff): with mutual TLS this is the
+/// server refusing our certificate (TLS 1.3 reports it only after the client thinks it is done).
+fn is_auth_failure(error: &quinn::ConnectionError) -> bool {
+    let is_crypto = |code: quinn::TransportErrorCode| (0x100..=0x1ff).contains(&u64::from(code));
+    match error {
+        quinn::ConnectionError::ConnectionClosed(close) => is_crypto(close.error_code),
+        quinn::ConnectionError::TransportError(e) => is_crypto(e.code),
+        _ => false,
+    }
+}
