@@ -8,6 +8,7 @@
 //! - [`mounts`]: where the emulated sensors sit in the room.
 //! - [`pair`]: a driver wired straight to an emulator in memory (deterministic tests, benches).
 //! - [`pty`]: runs an emulator on a Linux pty behind a symlink, paced at the wire rate.
+//! - [`rig`]: a whole installation (lidars, certificates, server, edge daemon) for the demo and tests.
 //! - [`demo`]: the README's demo.
 #![warn(missing_docs)]
 
@@ -18,6 +19,7 @@ pub mod mounts;
 pub mod noise;
 pub mod pair;
 pub mod pty;
+pub mod rig;
 pub mod rplidar;
 pub mod sweep;
 pub mod world;

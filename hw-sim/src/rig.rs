@@ -1,0 +1,351 @@
+//! A whole simulated installation, for the demo and the end-to-end tests: both lidars on ptys,
+//! certificates paired in a directory, the server's ingest endpoint and the edge daemon — the
+//! same code that runs on the laptop and the Pi, wired over real ptys and real QUIC.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+use std::time::Duration;
+
+use anyhow::Context;
+use scan3d_edge::clock::SharedClock;
+use scan3d_edge::config::{EdgeConfig, RplidarSection, SweepSection, UplinkSection};
+use scan3d_edge::daemon::{self, DaemonReport};
+use scan3d_edge::drivers::rplidar::RplidarConfig;
+use scan3d_edge::drivers::sweep::SweepConfig;
+use scan3d_protocol::{Body, SensorId};
+use scan3d_server::ingest::pki::{self, PairRequest};
+use scan3d_server::ingest::recorder::read_session;
+use scan3d_server::ingest::server::{IngestConfig, IngestEvent, IngestServer, IngestStats};
+use tokio::sync::{mpsc, oneshot, watch};
+
+use crate::faults::{FaultConfig, SentSample};
+use crate::mounts;
+use crate::pty::{PtyDevice, PtyHandle, PtyOptions};
+use crate::rplidar::{RplidarEmulator, RplidarEmulatorConfig};
+use crate::sweep::{SweepEmulator, SweepEmulatorConfig};
+use crate::world::World;
+
+/// The simulated edge's name (its certificate's CN).
+pub const EDGE_NAME: &str = "sim-edge";
+
+/// How the simulated lidars run.
+#[derive(Debug, Clone)]
+pub struct LidarOptions {
+    /// Simulated seconds per real second.
+    pub time_scale: f64,
+    /// Per-byte corruption on both lines.
+    pub corrupt: f64,
+    /// Seed of the world noise and the faults.
+    pub seed: u64,
+    /// The Sweep's motor settle time (simulated ms).
+    pub sweep_settle_ms: u64,
+}
+
+impl Default for LidarOptions {
+    fn default() -> Self {
+        Self {
+            time_scale: 10.0,
+            corrupt: 0.0,
+            seed: 1,
+            sweep_settle_ms: 6000,
+        }
+    }
+}
+
+/// An emulated RPLidar A1 (express) and Scanse Sweep on ptys in the default room.
+pub struct SimLidars {
+    /// The RPLidar's pty.
+    pub rplidar: PtyHandle,
+    /// The Sweep's pty.
+    pub sweep: PtyHandle,
+}
+
+impl SimLidars {
+    /// Starts both devices with their links in `links_dir`.
+    pub fn start(links_dir: &Path, options: &LidarOptions) -> anyhow::Result<Self> {
+        std::fs::create_dir_all(links_dir)
+            .with_context(|| format!("cannot create {}", links_dir.display()))?;
+        let world = Arc::new(World::conference_room());
+        let pty = |seed_offset: u64| PtyOptions {
+            time_scale: options.time_scale,
+            faults: FaultConfig::corrupt(options.corrupt),
+            seed: options.seed.wrapping_add(seed_offset),
+        };
+        let rplidar = RplidarEmulator::new(
+            RplidarEmulatorConfig::default(),
+            RplidarEmulator::default_scanner(world.clone(), mounts::rplidar()),
+            options.seed,
+        );
+        let sweep = SweepEmulator::new(
+            SweepEmulatorConfig {
+                settle_ms: options.sweep_settle_ms,
+                ..Default::default()
+            },
+            SweepEmulator::default_scanner(world, mounts::sweep()),
+            options.seed.wrapping_add(1),
+        );
+        Ok(Self {
+            rplidar: PtyDevice::spawn(links_dir.join("rplidar"), Box::new(rplidar), pty(100))
+                .context("cannot start the emulated RPLidar")?,
+            sweep: PtyDevice::spawn(links_dir.join("sweep"), Box::new(sweep), pty(101))
+                .context("cannot start the emulated Sweep")?,
+        })
+    }
+
+    /// An edge configuration reading these devices (and streaming if `uplink` is given).
+    pub fn edge_config(&self, state_dir: &Path, uplink: Option<UplinkSection>) -> EdgeConfig {
+        EdgeConfig {
+            device_name: EDGE_NAME.into(),
+            state_dir: state_dir.to_path_buf(),
+            rplidar: Some(RplidarSection {
+                path: self.rplidar.link().to_path_buf(),
+                driver: RplidarConfig::default(),
+            }),
+            sweep: Some(SweepSection {
+                path: self.sweep.link().to_path_buf(),
+                driver: SweepConfig::default(),
+            }),
+            uplink,
+        }
+    }
+
+    /// Everything a device put on the wire so far.
+    pub fn sent(&self, sensor: SensorId) -> Vec<SentSample> {
+        if sensor == SensorId::RPLIDAR {
+            self.rplidar.sent_log().snapshot()
+        } else {
+            self.sweep.sent_log().snapshot()
+        }
+    }
+
+    /// Stops both devices and removes their links.
+    pub fn shutdown(self) {
+        self.rplidar.shutdown();
+        self.sweep.shutdown();
+    }
+}
+
+/// Pairs a CA, a `localhost` server certificate and the [`EDGE_NAME`] bundle in `pki_dir`.
+pub fn pair_certificates(pki_dir: &Path) -> anyhow::Result<PathBuf> {
+    let outcome = pki::pair(&PairRequest {
+        dir: pki_dir.to_path_buf(),
+        edge: EDGE_NAME.into(),
+        server_names: Vec::new(),
+        force: true,
+    })?;
+    Ok(outcome.edge_dir)
+}
+
+/// The `[uplink]` section pointing the edge at `server` with the bundle in `bundle_dir`.
+pub fn uplink_section(server: std::net::SocketAddr, bundle_dir: &Path) -> UplinkSection {
+    UplinkSection {
+        server: server.to_string(),
+        server_name: Some("localhost".into()),
+        pki_dir: bundle_dir.to_path_buf(),
+        spool_memory_mb: 8,
+        spool_disk_mb: 256,
+    }
+}
+
+/// An ingest configuration on loopback port `port` (0 = any) recording under `data_dir`.
+pub fn ingest_config(pki_dir: &Path, data_dir: &Path, port: u16) -> IngestConfig {
+    IngestConfig {
+        listen: std::net::SocketAddr::from(([127, 0, 0, 1], port)),
+        pki_dir: pki_dir.to_path_buf(),
+        data_dir: data_dir.to_path_buf(),
+        commit_interval: Duration::from_millis(50),
+        time_sync_interval: Duration::from_millis(500),
+        max_connections: 8,
+    }
+}
+
+/// The ingest server on its own thread and runtime, as `scan3d serve` runs it.
+pub struct ServerThread {
+    addr: std::net::SocketAddr,
+    stop: Option<oneshot::Sender<()>>,
+    thread: Option<JoinHandle<IngestStats>>,
+    /// Everything the server reports (recorded frames, connections, time sync).
+    pub events: mpsc::UnboundedReceiver<IngestEvent>,
+}
+
+impl ServerThread {
+    /// Binds and starts serving.
+    pub fn start(config: IngestConfig) -> anyhow::Result<Self> {
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()?;
+        let server = runtime.block_on(async { IngestServer::bind(config) })?;
+        let addr = server.local_addr()?;
+        let (events_tx, events) = mpsc::unbounded_channel();
+        let (stop, stopped) = oneshot::channel::<()>();
+        let thread = std::thread::Builder::new()
+            .name("ingest server".into())
+            .spawn(move || {
+                runtime.block_on(server.run(Some(events_tx), async {
+                    let _ = stopped.await;
+                }))
+            })?;
+        Ok(Self {
+            addr,
+            stop: Some(stop),
+            thread: Some(thread),
+            events,
+        })
+    }
+
+    /// Where edges connect.
+    pub fn addr(&self) -> std::net::SocketAddr {
+        self.addr
+    }
+
+    /// Shuts down cleanly (commits, closes recordings) and returns the server's counters.
+    pub fn stop(mut self) -> IngestStats {
+        self.shutdown()
+    }
+
+    fn shutdown(&mut self) -> IngestStats {
+        if let Some(stop) = self.stop.take() {
+            let _ = stop.send(());
+        }
+        self.thread
+            .take()
+            .and_then(|t| t.join().ok())
+            .unwrap_or_default()
+    }
+}
+
+impl Drop for ServerThread {
+    fn drop(&mut self) {
+        self.shutdown();
+    }
+}
+
+/// The edge daemon on its own thread and runtime, as `scan3d-edge` runs it.
+pub struct EdgeThread {
+    stop: watch::Sender<bool>,
+    thread: Option<JoinHandle<anyhow::Result<DaemonReport>>>,
+}
+
+impl EdgeThread {
+    /// Starts the daemon with `config` on `clock`.
+    pub fn start(config: EdgeConfig, clock: SharedClock, session_id: u64) -> anyhow::Result<Self> {
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()?;
+        let (stop, stopped) = watch::channel(false);
+        let thread = std::thread::Builder::new()
+            .name("edge daemon".into())
+            .spawn(move || runtime.block_on(daemon::run(config, clock, session_id, stopped)))?;
+        Ok(Self {
+            stop,
+            thread: Some(thread),
+        })
+    }
+
+    /// Stops the daemon as SIGTERM would and returns its report.
+    pub fn stop(mut self) -> anyhow::Result<DaemonReport> {
+        let _ = self.stop.send(true);
+        match self.thread.take().map(JoinHandle::join) {
+            Some(Ok(result)) => result,
+            Some(Err(_)) => anyhow::bail!("the edge daemon panicked"),
+            None => anyhow::bail!("the edge daemon was already stopped"),
+        }
+    }
+}
+
+impl Drop for EdgeThread {
+    fn drop(&mut self) {
+        let _ = self.stop.send(true);
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+    }
+}
+
+/// Exactly-once accounting of one lidar's samples from emulator to recording.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Delivery {
+    /// The lidar.
+    pub sensor: SensorId,
+    /// Revolution frames in the recording.
+    pub revolutions: u64,
+    /// Samples in those frames.
+    pub recorded_samples: u64,
+    /// Samples the edge daemon handed to its uplink.
+    pub edge_samples: u64,
+    /// Samples the emulator sent between the first and the last recorded sample.
+    pub sent_in_span: u64,
+    /// Of those, samples that are not in the recording.
+    pub missing_in_span: u64,
+    /// Recorded samples that match nothing the emulator sent (must be 0).
+    pub unexplained: u64,
+}
+
+/// Compares a session recording with what the emulators sent and the edge submitted.
+///
+/// Every recorded sample must match, in order, one the emulator sent; everything the emulator
+/// sent between the first and last recorded sample must be recorded (a clean line loses
+/// nothing); and the recording must hold exactly the samples the edge submitted — one more
+/// would be a duplicate, one less a loss.
+pub fn account(
+    session_dir: &Path,
+    lidars: &SimLidars,
+    daemon: Option<&DaemonReport>,
+) -> anyhow::Result<Vec<Delivery>> {
+    let frames = read_session(session_dir)?;
+    let mut out = Vec::new();
+    for sensor in [SensorId::RPLIDAR, SensorId::SWEEP] {
+        let revolutions: Vec<_> = frames
+            .iter()
+            .filter_map(|f| match &f.frame.body {
+                Body::Revolution(rev) if rev.sensor == sensor => Some(rev),
+                _ => None,
+            })
+            .collect();
+        let recorded: Vec<(f32, f32, u8)> = revolutions
+            .iter()
+            .flat_map(|r| {
+                r.samples
+                    .iter()
+                    .map(|s| (s.angle_deg, s.range_m, s.quality))
+            })
+            .collect();
+        let sent = lidars.sent(sensor);
+        let mut delivery = Delivery {
+            sensor,
+            revolutions: revolutions.len() as u64,
+            recorded_samples: recorded.len() as u64,
+            edge_samples: daemon
+                .and_then(|d| d.lidars.get(&sensor))
+                .map_or(0, |l| l.samples),
+            sent_in_span: 0,
+            missing_in_span: 0,
+            unexplained: 0,
+        };
+        let same = |r: &(f32, f32, u8), s: &SentSample| {
+            (r.0 - s.sample.angle_deg).abs() < 0.05
+                && (r.1 - s.sample.range_m).abs() < 0.0005
+                && r.2 == s.sample.quality
+        };
+        let mut cursor = 0;
+        let mut matched = Vec::with_capacity(recorded.len());
+        for r in &recorded {
+            match sent[cursor..].iter().position(|s| same(r, s)) {
+                Some(offset) => {
+                    matched.push(cursor + offset);
+                    cursor += offset + 1;
+                }
+                None => delivery.unexplained += 1,
+            }
+        }
+        if let (Some(&first), Some(&last)) = (matched.first(), matched.last()) {
+            delivery.sent_in_span = (last - first + 1) as u64;
+            delivery.missing_in_span = delivery.sent_in_span - matched.len() as u64;
+        }
+        out.push(delivery);
+    }
+    Ok(out)
+}
