@@ -1,12 +1,212 @@
-//! `scan3d sessions` (being written).
+//! `scan3d sessions`: lists the recorded sessions under a data directory, as a table or as JSON
+//! lines (one object per session).
 
 use std::io::Write;
+use std::path::PathBuf;
+
+use anyhow::Context;
+
+use crate::ingest::recorder::{SessionSummary, list_sessions};
 
 /// Options of `scan3d sessions`.
 #[derive(Debug, clap::Args)]
-pub struct SessionsArgs {}
+pub struct SessionsArgs {
+    /// The server's data directory (`data_dir` in server.toml); sessions are under `DIR/sessions`.
+    #[arg(long, value_name = "DIR")]
+    pub data_dir: PathBuf,
+    /// Print one JSON object per session instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Lidar revolutions per sensor, from the `/scan3d/lidar/<sensor>` topic counts.
+fn revolutions(summary: &SessionSummary) -> Vec<(&str, u64)> {
+    summary
+        .frames_per_topic
+        .iter()
+        .filter_map(|(topic, &n)| Some((topic.strip_prefix("/scan3d/lidar/")?, n)))
+        .collect()
+}
+
+/// Seconds between the first and the last received frame.
+fn duration_s(summary: &SessionSummary) -> f64 {
+    match (summary.first_log_time_ns, summary.last_log_time_ns) {
+        (Some(first), Some(last)) => last.saturating_sub(first) as f64 / 1e9,
+        _ => 0.0,
+    }
+}
+
+fn json_line(summary: &SessionSummary) -> serde_json::Value {
+    serde_json::json!({
+        "edge": summary.edge,
+        "session": format!("{:016x}", summary.session_id),
+        "dir": summary.dir,
+        "files": summary.files,
+        "incomplete_files": summary.incomplete_files,
+        "frames": summary.frames,
+        "frames_per_topic": summary.frames_per_topic,
+        "revolutions": revolutions(summary).into_iter().collect::<std::collections::BTreeMap<_, _>>(),
+        "skipped_messages": summary.skipped_messages,
+        "first_log_time_ns": summary.first_log_time_ns,
+        "last_log_time_ns": summary.last_log_time_ns,
+        "duration_s": duration_s(summary),
+        "bytes": summary.bytes,
+    })
+}
 
 /// Runs `scan3d sessions`.
-pub fn run(_args: &SessionsArgs, _out: &mut dyn Write) -> anyhow::Result<()> {
-    anyhow::bail!("scan3d sessions is not built yet")
+pub fn run(args: &SessionsArgs, out: &mut dyn Write) -> anyhow::Result<()> {
+    let sessions = list_sessions(&args.data_dir)
+        .with_context(|| format!("cannot list sessions under {}", args.data_dir.display()))?;
+    if args.json {
+        for summary in &sessions {
+            writeln!(out, "{}", json_line(summary))?;
+        }
+        return Ok(());
+    }
+    if sessions.is_empty() {
+        writeln!(
+            out,
+            "no sessions under {}",
+            args.data_dir.join("sessions").display()
+        )?;
+        return Ok(());
+    }
+    let rows: Vec<[String; 6]> = sessions
+        .iter()
+        .map(|s| {
+            let revs = revolutions(s)
+                .into_iter()
+                .map(|(sensor, n)| format!("{sensor}={n}"))
+                .collect::<Vec<_>>()
+                .join(" ");
+            let files = if s.incomplete_files > 0 {
+                format!("{} ({} cut short)", s.files, s.incomplete_files)
+            } else {
+                s.files.to_string()
+            };
+            [
+                s.edge.clone(),
+                format!("{:016x}", s.session_id),
+                files,
+                s.frames.to_string(),
+                if revs.is_empty() { "-".into() } else { revs },
+                format!("{:.1} s", duration_s(s)),
+            ]
+        })
+        .collect();
+    let header = [
+        "EDGE",
+        "SESSION",
+        "FILES",
+        "FRAMES",
+        "REVOLUTIONS",
+        "DURATION",
+    ];
+    let mut widths = header.map(str::len);
+    for row in &rows {
+        for (width, cell) in widths.iter_mut().zip(row) {
+            *width = (*width).max(cell.len());
+        }
+    }
+    let mut print = |cells: [&str; 6]| -> std::io::Result<()> {
+        let line: Vec<String> = cells
+            .iter()
+            .zip(widths)
+            .enumerate()
+            .map(|(i, (cell, w))| match i {
+                // Numbers right-aligned.
+                2 | 3 => format!("{cell:>w$}"),
+                _ => format!("{cell:<w$}"),
+            })
+            .collect();
+        writeln!(out, "{}", line.join("  ").trim_end())
+    };
+    print(header)?;
+    for row in &rows {
+        print(row.each_ref().map(String::as_str))?;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ingest::recorder::SessionRecorder;
+    use scan3d_protocol::{Frame, Hello, LidarRevolution, SensorId, encode};
+
+    fn record(data_dir: &std::path::Path) {
+        let mut rec = SessionRecorder::open(data_dir, "trolley-pi", 0xabc).expect("open");
+        let frames = [
+            Frame::new(0xabc, 0, Hello::new("trolley-pi", "0.1.0", vec![])),
+            Frame::new(0xabc, 1, LidarRevolution::new(SensorId::RPLIDAR, 0, 1)),
+            Frame::new(0xabc, 2, LidarRevolution::new(SensorId::SWEEP, 0, 1)),
+            Frame::new(0xabc, 3, LidarRevolution::new(SensorId::RPLIDAR, 1, 2)),
+        ];
+        // Receive times 1.0 s .. 3.5 s after the epoch.
+        for (i, frame) in frames.iter().enumerate() {
+            let raw = encode(frame).expect("encode");
+            let t = 1_000_000_000 + i as u64 * 833_333_333;
+            rec.append(&raw, frame, t).expect("append");
+        }
+        rec.close().expect("close");
+    }
+
+    #[test]
+    fn table_lists_sessions_with_revolutions_per_lidar() {
+        let tmp = tempfile::tempdir().expect("tempdir");
+        record(tmp.path());
+        let mut out = Vec::new();
+        let args = SessionsArgs {
+            data_dir: tmp.path().to_path_buf(),
+            json: false,
+        };
+        run(&args, &mut out).expect("run");
+        let text = String::from_utf8(out).expect("utf8");
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines.len(), 2, "{text}");
+        assert_eq!(
+            lines[0],
+            "EDGE        SESSION           FILES  FRAMES  REVOLUTIONS        DURATION"
+        );
+        assert_eq!(
+            lines[1],
+            "trolley-pi  0000000000000abc      1       4  rplidar=2 sweep=1  2.5 s"
+        );
+    }
+
+    #[test]
+    fn json_lines_carry_counts() {
+        let tmp = tempfile::tempdir().expect("tempdir");
+        record(tmp.path());
+        let mut out = Vec::new();
+        let args = SessionsArgs {
+            data_dir: tmp.path().to_path_buf(),
+            json: true,
+        };
+        run(&args, &mut out).expect("run");
+        let text = String::from_utf8(out).expect("utf8");
+        let value: serde_json::Value = serde_json::from_str(text.trim_end()).expect("json");
+        assert_eq!(value["edge"], "trolley-pi");
+        assert_eq!(value["session"], "0000000000000abc");
+        assert_eq!(value["frames"], 4);
+        assert_eq!(value["revolutions"]["rplidar"], 2);
+        assert_eq!(value["revolutions"]["sweep"], 1);
+        assert_eq!(value["frames_per_topic"]["/scan3d/hello"], 1);
+        assert_eq!(value["first_log_time_ns"], 1_000_000_000u64);
+        assert_eq!(value["last_log_time_ns"], 3_499_999_999u64);
+    }
+
+    #[test]
+    fn empty_data_dir_says_so() {
+        let tmp = tempfile::tempdir().expect("tempdir");
+        let mut out = Vec::new();
+        let args = SessionsArgs {
+            data_dir: tmp.path().to_path_buf(),
+            json: false,
+        };
+        run(&args, &mut out).expect("run");
+        let text = String::from_utf8(out).expect("utf8");
+        assert!(text.starts_with("no sessions under "), "{text}");
+    }
 }
