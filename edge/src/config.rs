@@ -51,7 +51,10 @@ impl UplinkSection {
     pub fn tls_name(&self) -> &str {
         match &self.server_name {
             Some(name) => name,
-            None => self.server.rsplit_once(':').map_or(self.server.as_str(), |(host, _)| host),
+            None => self
+                .server
+                .rsplit_once(':')
+                .map_or(self.server.as_str(), |(host, _)| host),
         }
     }
 }

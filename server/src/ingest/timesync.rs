@@ -68,7 +68,10 @@ impl TimeSync {
 
     /// An estimator over the last `window` exchanges (at least 1).
     pub fn new(window: usize) -> Self {
-        Self { window: window.max(1), exchanges: VecDeque::new() }
+        Self {
+            window: window.max(1),
+            exchanges: VecDeque::new(),
+        }
     }
 
     /// Adds an exchange; ignores one whose timestamps are inconsistent (a pong that answers a
@@ -88,7 +91,10 @@ impl TimeSync {
     /// The current estimate, once there is at least one exchange.
     pub fn estimate(&self) -> Option<Estimate> {
         let latest = self.exchanges.back()?;
-        let best = self.exchanges.iter().min_by(|a, b| a.delay_ns().total_cmp(&b.delay_ns()))?;
+        let best = self
+            .exchanges
+            .iter()
+            .min_by(|a, b| a.delay_ns().total_cmp(&b.delay_ns()))?;
         Some(Estimate {
             offset_ns: best.offset_ns(),
             delay_ns: best.delay_ns(),
@@ -114,7 +120,12 @@ mod tests {
         let t1 = (t0 + up) as i64 + offset;
         let t2 = t1 + 10_000;
         let t3 = (t2 - offset) as u64 + down;
-        Exchange { t0_ns: t0, t1_ns: t1 as u64, t2_ns: t2 as u64, t3_ns: t3 }
+        Exchange {
+            t0_ns: t0,
+            t1_ns: t1 as u64,
+            t2_ns: t2 as u64,
+            t3_ns: t3,
+        }
     }
 
     #[test]
@@ -145,7 +156,12 @@ mod tests {
         sync.add(exchange(1_000, 0, 5_000, 5_000));
         sync.add(exchange(2_000, 0, 7_000, 7_000));
         assert_eq!(sync.estimate().map(|e| e.delay_ns), Some(10_000.0));
-        let backwards = Exchange { t0_ns: 10, t1_ns: 5, t2_ns: 6, t3_ns: 9 };
+        let backwards = Exchange {
+            t0_ns: 10,
+            t1_ns: 5,
+            t2_ns: 6,
+            t3_ns: 9,
+        };
         assert!(!sync.add(backwards));
         assert_eq!(sync.estimate().map(|e| e.samples), Some(2));
     }
