@@ -31,8 +31,8 @@ use std::os::unix::fs::{DirBuilderExt, OpenOptionsExt};
 use std::path::{Path, PathBuf};
 
 use rcgen::{
-    BasicConstraints, CertificateParams, DistinguishedName, DnType, ExtendedKeyUsagePurpose,
-    IsCa, Issuer, KeyPair, KeyUsagePurpose,
+    BasicConstraints, CertificateParams, DistinguishedName, DnType, ExtendedKeyUsagePurpose, IsCa,
+    Issuer, KeyPair, KeyUsagePurpose,
 };
 use rustls::pki_types::pem::PemObject;
 use rustls::pki_types::{CertificateDer, ServerName};
@@ -334,10 +334,7 @@ fn ensure_ca(layout: &Layout) -> Result<(Ca, Provenance), PkiError> {
 }
 
 fn create_ca(cert_path: &Path, key_path: &Path) -> Result<Ca, PkiError> {
-    let gen_err = |source| PkiError::Generate {
-        what: "CA",
-        source,
-    };
+    let gen_err = |source| PkiError::Generate { what: "CA", source };
     let key = KeyPair::generate().map_err(gen_err)?;
     let mut params = CertificateParams::default();
     // A CN unique to this CA (derived from its key), so a certificate from another scan3d CA
@@ -367,12 +364,11 @@ fn load_ca(cert_path: &Path, key_path: &Path) -> Result<Ca, PkiError> {
         path: key_path.to_path_buf(),
         reason: format!("not a private key: {e}"),
     })?;
-    let der = CertificateDer::from_pem_slice(cert_pem.as_bytes()).map_err(|e| {
-        PkiError::BadFile {
+    let der =
+        CertificateDer::from_pem_slice(cert_pem.as_bytes()).map_err(|e| PkiError::BadFile {
             path: cert_path.to_path_buf(),
             reason: format!("no PEM certificate: {e}"),
-        }
-    })?;
+        })?;
     let (_, x509) = x509_parser::parse_x509_certificate(&der).map_err(|e| PkiError::BadFile {
         path: cert_path.to_path_buf(),
         reason: format!("unparsable certificate: {e}"),
@@ -418,7 +414,12 @@ fn write_server_cert(layout: &Layout, ca: &Ca, names: &[String]) -> Result<(), P
         KEY_MODE,
         true,
     )?;
-    write_file(&layout.server_cert(), cert.pem().as_bytes(), CERT_MODE, true)
+    write_file(
+        &layout.server_cert(),
+        cert.pem().as_bytes(),
+        CERT_MODE,
+        true,
+    )
 }
 
 fn write_edge_bundle(layout: &Layout, ca: &Ca, name: &str) -> Result<(), PkiError> {
@@ -443,7 +444,12 @@ fn write_edge_bundle(layout: &Layout, ca: &Ca, name: &str) -> Result<(), PkiErro
         KEY_MODE,
         true,
     )?;
-    write_file(&layout.edge_cert(name), cert.pem().as_bytes(), CERT_MODE, true)?;
+    write_file(
+        &layout.edge_cert(name),
+        cert.pem().as_bytes(),
+        CERT_MODE,
+        true,
+    )?;
     write_file(
         &layout.edge_ca_cert(name),
         ca.cert_pem.as_bytes(),
@@ -544,4 +550,256 @@ fn write_file(path: &Path, contents: &[u8], mode: u32, replace: bool) -> Result<
     File::open(dir)
         .and_then(|d| d.sync_all())
         .map_err(io_err(dir))
+}
+
+#[cfg(test)]
+mod tests {
+    use std::os::unix::fs::PermissionsExt;
+
+    use super::*;
+
+    fn request(dir: &Path, edge: &str) -> PairRequest {
+        PairRequest {
+            dir: dir.to_path_buf(),
+            edge: edge.to_owned(),
+            server_names: vec![],
+            force: false,
+        }
+    }
+
+    fn mode(path: &Path) -> u32 {
+        fs::metadata(path).unwrap().permissions().mode() & 0o777
+    }
+
+    fn cert_der(path: &Path) -> CertificateDer<'static> {
+        CertificateDer::from_pem_file(path).unwrap()
+    }
+
+    fn common_name(der: &CertificateDer<'_>) -> String {
+        let (_, x509) = x509_parser::parse_x509_certificate(der).unwrap();
+        let cn = x509.subject().iter_common_name().next().unwrap();
+        cn.as_str().unwrap().to_owned()
+    }
+
+    #[test]
+    fn first_run_creates_ca_server_and_bundle() {
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path().join("pki");
+        let out = pair(&request(&dir, "pi-01")).unwrap();
+        let layout = Layout::new(&dir);
+        assert_eq!(out.ca, Provenance::Created);
+        assert_eq!(out.server, Provenance::Created);
+        assert_eq!(out.edge, Provenance::Created);
+        assert_eq!(out.server_names, ["localhost", "127.0.0.1"]);
+        assert_eq!(out.edge_dir, dir.join("edges").join("pi-01"));
+        for path in [
+            dir.join("ca.pem"),
+            dir.join("ca.key"),
+            dir.join("server/server.pem"),
+            dir.join("server/server.key"),
+            dir.join("edges/pi-01/edge.pem"),
+            dir.join("edges/pi-01/edge.key"),
+            dir.join("edges/pi-01/ca.pem"),
+        ] {
+            assert!(path.is_file(), "{} missing", path.display());
+        }
+        // The bundle's CA is a byte-for-byte copy of the CA.
+        assert_eq!(
+            fs::read(layout.ca_cert()).unwrap(),
+            fs::read(layout.edge_ca_cert("pi-01")).unwrap()
+        );
+        // No temporary files left behind.
+        let leftovers: Vec<_> = fs::read_dir(layout.edge_dir("pi-01"))
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .filter(|n| n.to_string_lossy().starts_with('.'))
+            .collect();
+        assert!(leftovers.is_empty(), "{leftovers:?}");
+    }
+
+    #[test]
+    fn certificates_carry_the_right_names_and_usages() {
+        let tmp = tempfile::tempdir().unwrap();
+        let mut req = request(tmp.path(), "lab_pi-02.b");
+        req.server_names = vec!["scan.example.org".into(), "192.168.1.20".into()];
+        let out = pair(&req).unwrap();
+        assert_eq!(out.server_names, ["scan.example.org", "192.168.1.20"]);
+        let layout = Layout::new(tmp.path());
+
+        let edge = cert_der(&layout.edge_cert("lab_pi-02.b"));
+        let (_, x509) = x509_parser::parse_x509_certificate(&edge).unwrap();
+        assert_eq!(common_name(&edge), "lab_pi-02.b");
+        let eku = x509.extended_key_usage().unwrap().unwrap().value;
+        assert!(eku.client_auth && !eku.server_auth);
+        assert_eq!(
+            read_san_names(&layout.edge_cert("lab_pi-02.b")).unwrap(),
+            ["lab_pi-02.b"]
+        );
+
+        let server = cert_der(&layout.server_cert());
+        let (_, x509) = x509_parser::parse_x509_certificate(&server).unwrap();
+        let eku = x509.extended_key_usage().unwrap().unwrap().value;
+        assert!(eku.server_auth && !eku.client_auth);
+        let san = x509.subject_alternative_name().unwrap().unwrap().value;
+        use x509_parser::extensions::GeneralName;
+        assert_eq!(
+            san.general_names,
+            [
+                GeneralName::DNSName("scan.example.org"),
+                GeneralName::IPAddress(&[192, 168, 1, 20]),
+            ]
+        );
+
+        let ca = cert_der(&layout.ca_cert());
+        let (_, x509) = x509_parser::parse_x509_certificate(&ca).unwrap();
+        assert!(x509.is_ca());
+    }
+
+    #[test]
+    fn second_edge_reuses_the_ca_and_keeps_the_server_certificate() {
+        let tmp = tempfile::tempdir().unwrap();
+        let layout = Layout::new(tmp.path());
+        let mut first = request(tmp.path(), "pi-01");
+        first.server_names = vec!["scanhost".into()];
+        pair(&first).unwrap();
+        let ca_pem = fs::read(layout.ca_cert()).unwrap();
+        let ca_key = fs::read(layout.ca_key()).unwrap();
+        let server_pem = fs::read(layout.server_cert()).unwrap();
+
+        let out = pair(&request(tmp.path(), "pi-02")).unwrap();
+        assert_eq!(out.ca, Provenance::Reused);
+        assert_eq!(out.server, Provenance::Reused);
+        assert_eq!(out.server_names, ["scanhost"]);
+        assert_eq!(fs::read(layout.ca_cert()).unwrap(), ca_pem);
+        assert_eq!(fs::read(layout.ca_key()).unwrap(), ca_key);
+        assert_eq!(fs::read(layout.server_cert()).unwrap(), server_pem);
+        assert_eq!(fs::read(layout.edge_ca_cert("pi-02")).unwrap(), ca_pem);
+
+        // Both edges are signed by the one CA: same issuer, verified signature.
+        let ca_der = cert_der(&layout.ca_cert());
+        let (_, ca) = x509_parser::parse_x509_certificate(&ca_der).unwrap();
+        for edge in ["pi-01", "pi-02"] {
+            let der = cert_der(&layout.edge_cert(edge));
+            let (_, leaf) = x509_parser::parse_x509_certificate(&der).unwrap();
+            assert_eq!(leaf.issuer(), ca.subject());
+            leaf.verify_signature(Some(ca.public_key())).unwrap();
+        }
+
+        // New server names re-issue the server certificate under the same CA.
+        let mut third = request(tmp.path(), "pi-03");
+        third.server_names = vec!["10.0.0.5".into()];
+        let out = pair(&third).unwrap();
+        assert_eq!(out.ca, Provenance::Reused);
+        assert_eq!(out.server, Provenance::Replaced);
+        assert_ne!(fs::read(layout.server_cert()).unwrap(), server_pem);
+        assert_eq!(read_san_names(&layout.server_cert()).unwrap(), ["10.0.0.5"]);
+    }
+
+    #[test]
+    fn keys_are_private_and_directories_closed() {
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path().join("pki");
+        pair(&request(&dir, "pi-01")).unwrap();
+        let layout = Layout::new(&dir);
+        for key in [
+            layout.ca_key(),
+            layout.server_key(),
+            layout.edge_key("pi-01"),
+        ] {
+            assert_eq!(mode(&key), 0o600, "{}", key.display());
+        }
+        for d in [
+            dir.clone(),
+            layout.server_dir(),
+            dir.join("edges"),
+            layout.edge_dir("pi-01"),
+        ] {
+            assert_eq!(mode(&d), 0o700, "{}", d.display());
+        }
+        // Still 0600 after a forced replacement.
+        let mut again = request(&dir, "pi-01");
+        again.force = true;
+        again.server_names = vec!["localhost".into()];
+        pair(&again).unwrap();
+        assert_eq!(mode(&layout.edge_key("pi-01")), 0o600);
+        assert_eq!(mode(&layout.server_key()), 0o600);
+    }
+
+    #[test]
+    fn an_existing_bundle_is_refused_without_force() {
+        let tmp = tempfile::tempdir().unwrap();
+        let layout = Layout::new(tmp.path());
+        pair(&request(tmp.path(), "pi-01")).unwrap();
+        let key = fs::read(layout.edge_key("pi-01")).unwrap();
+
+        let err = pair(&request(tmp.path(), "pi-01")).unwrap_err();
+        assert!(matches!(&err, PkiError::BundleExists { dir } if *dir == layout.edge_dir("pi-01")));
+        assert!(err.to_string().contains("--force"), "{err}");
+        assert_eq!(fs::read(layout.edge_key("pi-01")).unwrap(), key);
+
+        let mut forced = request(tmp.path(), "pi-01");
+        forced.force = true;
+        let out = pair(&forced).unwrap();
+        assert_eq!(out.edge, Provenance::Replaced);
+        assert_eq!(out.ca, Provenance::Reused);
+        assert_ne!(fs::read(layout.edge_key("pi-01")).unwrap(), key);
+    }
+
+    #[test]
+    fn bad_names_are_rejected_before_anything_is_written() {
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path().join("pki");
+        let long = "a".repeat(64);
+        for name in [
+            "",
+            ".hidden",
+            "..",
+            "a/b",
+            "pi 01",
+            "pi\u{e9}",
+            "x\0",
+            long.as_str(),
+        ] {
+            let err = pair(&request(&dir, name)).unwrap_err();
+            assert!(
+                matches!(&err, PkiError::InvalidEdgeName { name: n, .. } if n == name),
+                "{name:?}: {err}"
+            );
+        }
+        let mut bad_server = request(&dir, "pi-01");
+        bad_server.server_names = vec!["bad host".into()];
+        assert!(matches!(
+            pair(&bad_server),
+            Err(PkiError::InvalidServerName { .. })
+        ));
+        assert!(!dir.exists());
+        for name in ["a", "pi-01", "Lab_Pi.2", &"z".repeat(63)] {
+            assert!(validate_edge_name(name).is_ok(), "{name}");
+        }
+    }
+
+    #[test]
+    fn a_half_present_or_mismatched_ca_is_reported() {
+        let tmp = tempfile::tempdir().unwrap();
+        let layout = Layout::new(tmp.path());
+        pair(&request(tmp.path(), "pi-01")).unwrap();
+
+        // ca.key of another CA.
+        let other = tempfile::tempdir().unwrap();
+        pair(&request(other.path(), "pi-01")).unwrap();
+        let own_key = fs::read(layout.ca_key()).unwrap();
+        fs::copy(Layout::new(other.path()).ca_key(), layout.ca_key()).unwrap();
+        let err = pair(&request(tmp.path(), "pi-02")).unwrap_err();
+        assert!(matches!(err, PkiError::CaKeyMismatch { .. }), "{err}");
+
+        // ca.key missing: never silently replaced by a new CA.
+        fs::write(layout.ca_key(), own_key).unwrap();
+        fs::remove_file(layout.ca_key()).unwrap();
+        let err = pair(&request(tmp.path(), "pi-02")).unwrap_err();
+        assert!(
+            matches!(&err, PkiError::IncompleteCa { missing, .. } if *missing == layout.ca_key()),
+            "{err}"
+        );
+        assert!(err.to_string().contains("ca.key"));
+    }
 }

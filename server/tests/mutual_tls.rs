@@ -1,0 +1,242 @@
+//! Mutual TLS of the ingest endpoint over real quinn endpoints on loopback: a paired edge is
+//! accepted and identified; no certificate, a foreign CA's certificate, or a client that does
+//! not trust the server's CA are all refused before any stream data is accepted.
+
+use std::net::{Ipv4Addr, SocketAddr};
+use std::path::Path;
+use std::sync::Arc;
+use std::time::Duration;
+
+use quinn::ConnectionError;
+use rustls::pki_types::pem::PemObject;
+use rustls::pki_types::{CertificateDer, PrivateKeyDer};
+use scan3d_server::ingest::pki::{Layout, PairRequest, pair};
+use scan3d_server::ingest::tls::{edge_identity, server_config};
+
+const LIMIT: Duration = Duration::from_secs(10);
+
+/// QUIC transport error code of a TLS alert (RFC 9001 §4.8: 0x100 + alert).
+fn crypto_code(alert: u8) -> u64 {
+    0x100 + u64::from(alert)
+}
+const ALERT_UNKNOWN_CA: u8 = 48;
+const ALERT_CERTIFICATE_REQUIRED: u8 = 116;
+
+fn paired(dir: &Path, edge: &str) {
+    pair(&PairRequest {
+        dir: dir.to_path_buf(),
+        edge: edge.to_owned(),
+        server_names: vec![],
+        force: false,
+    })
+    .unwrap();
+}
+
+/// What the client presents: the bundle of `cert_from` (or nothing), trusting `roots_from`'s CA.
+/// A local stand-in for the edge crate's `client_config` (the server must not depend on it).
+fn client_config(roots_from: &Path, cert_from: Option<(&Path, &str)>) -> quinn::ClientConfig {
+    let provider = Arc::new(rustls::crypto::ring::default_provider());
+    let mut roots = rustls::RootCertStore::empty();
+    roots
+        .add(CertificateDer::from_pem_file(Layout::new(roots_from).ca_cert()).unwrap())
+        .unwrap();
+    let builder = rustls::ClientConfig::builder_with_provider(provider)
+        .with_protocol_versions(&[&rustls::version::TLS13])
+        .unwrap()
+        .with_root_certificates(roots);
+    let mut tls = match cert_from {
+        Some((dir, edge)) => {
+            let layout = Layout::new(dir);
+            let chain = vec![CertificateDer::from_pem_file(layout.edge_cert(edge)).unwrap()];
+            let key = PrivateKeyDer::from_pem_file(layout.edge_key(edge)).unwrap();
+            builder.with_client_auth_cert(chain, key).unwrap()
+        }
+        None => builder.with_no_client_auth(),
+    };
+    tls.alpn_protocols = vec![scan3d_protocol::ALPN.to_vec()];
+    quinn::ClientConfig::new(Arc::new(
+        quinn::crypto::rustls::QuicClientConfig::try_from(tls).unwrap(),
+    ))
+}
+
+/// What the server saw of one connection attempt.
+#[derive(Debug)]
+enum Seen {
+    /// Handshake done: the edge identity and the bytes of the first bidirectional stream.
+    Accepted(String, Vec<u8>),
+    /// The handshake failed on the server side.
+    Refused(ConnectionError),
+}
+
+/// A server on 127.0.0.1:0 from `pki_dir` that handles exactly one connection attempt.
+fn serve_once(pki_dir: &Path) -> (SocketAddr, tokio::task::JoinHandle<Seen>) {
+    let config = server_config(pki_dir).unwrap();
+    let endpoint =
+        quinn::Endpoint::server(config, SocketAddr::from((Ipv4Addr::LOCALHOST, 0))).unwrap();
+    let addr = endpoint.local_addr().unwrap();
+    let task = tokio::spawn(async move {
+        let incoming = endpoint.accept().await.unwrap();
+        let conn = match incoming.await {
+            Ok(conn) => conn,
+            Err(e) => return Seen::Refused(e),
+        };
+        let name = edge_identity(&conn).unwrap();
+        let (mut send, mut recv) = conn.accept_bi().await.unwrap();
+        let bytes = recv.read_to_end(64 * 1024).await.unwrap();
+        send.write_all(b"ok").await.unwrap();
+        send.finish().unwrap();
+        conn.closed().await;
+        Seen::Accepted(name, bytes)
+    });
+    (addr, task)
+}
+
+fn client(config: quinn::ClientConfig) -> quinn::Endpoint {
+    let mut endpoint = quinn::Endpoint::client(SocketAddr::from((Ipv4Addr::LOCALHOST, 0))).unwrap();
+    endpoint.set_default_client_config(config);
+    endpoint
+}
+
+/// Connects and tries to send a frame; returns how the connection ended for the client.
+/// With TLS 1.3 `connect()` may succeed even when the server refuses the client certificate:
+/// the refusal arrives as a close right after.
+async fn attempt_refused(config: quinn::ClientConfig, addr: SocketAddr) -> ConnectionError {
+    let endpoint = client(config);
+    let connecting = endpoint.connect(addr, "localhost").unwrap();
+    let conn = match tokio::time::timeout(LIMIT, connecting).await.unwrap() {
+        Ok(conn) => conn,
+        Err(e) => return e,
+    };
+    if let Ok((mut send, _recv)) = conn.open_bi().await {
+        let _ = send.write_all(b"should never be read").await;
+        let _ = send.finish();
+    }
+    tokio::time::timeout(LIMIT, conn.closed()).await.unwrap()
+}
+
+fn close_code(e: &ConnectionError) -> u64 {
+    match e {
+        ConnectionError::ConnectionClosed(close) => u64::from(close.error_code),
+        ConnectionError::TransportError(t) => u64::from(t.code),
+        other => panic!("expected a TLS failure, got {other:?}"),
+    }
+}
+
+async fn server_refusal(task: tokio::task::JoinHandle<Seen>) -> ConnectionError {
+    match tokio::time::timeout(LIMIT, task).await.unwrap().unwrap() {
+        Seen::Refused(e) => e,
+        Seen::Accepted(name, bytes) => {
+            panic!("server accepted {name:?} and read {} bytes", bytes.len())
+        }
+    }
+}
+
+#[tokio::test]
+async fn a_paired_edge_is_accepted_and_identified() {
+    let pki = tempfile::tempdir().unwrap();
+    paired(pki.path(), "lab_pi-01.a");
+    let (addr, server) = serve_once(pki.path());
+
+    let endpoint = client(client_config(pki.path(), Some((pki.path(), "lab_pi-01.a"))));
+    let conn = tokio::time::timeout(LIMIT, endpoint.connect(addr, "localhost").unwrap())
+        .await
+        .unwrap()
+        .unwrap();
+    let (mut send, mut recv) = conn.open_bi().await.unwrap();
+    send.write_all(&[0x01, 0x02, 0xfe, 0xff]).await.unwrap();
+    send.finish().unwrap();
+    let reply = tokio::time::timeout(LIMIT, recv.read_to_end(16))
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!(reply, b"ok");
+    conn.close(0u32.into(), b"bye");
+
+    match tokio::time::timeout(LIMIT, server).await.unwrap().unwrap() {
+        Seen::Accepted(name, bytes) => {
+            assert_eq!(name, "lab_pi-01.a");
+            assert_eq!(bytes, [0x01, 0x02, 0xfe, 0xff]);
+        }
+        Seen::Refused(e) => panic!("paired edge refused: {e}"),
+    }
+    endpoint.wait_idle().await;
+}
+
+#[tokio::test]
+async fn a_client_without_certificate_is_refused() {
+    let pki = tempfile::tempdir().unwrap();
+    paired(pki.path(), "pi-01");
+    let (addr, server) = serve_once(pki.path());
+
+    let client_end = attempt_refused(client_config(pki.path(), None), addr).await;
+    assert!(
+        matches!(client_end, ConnectionError::ConnectionClosed(_)),
+        "{client_end:?}"
+    );
+    assert_eq!(
+        close_code(&client_end),
+        crypto_code(ALERT_CERTIFICATE_REQUIRED),
+        "{client_end}"
+    );
+    let server_end = server_refusal(server).await;
+    assert_eq!(
+        close_code(&server_end),
+        crypto_code(ALERT_CERTIFICATE_REQUIRED),
+        "{server_end}"
+    );
+}
+
+#[tokio::test]
+async fn a_certificate_from_a_foreign_ca_is_refused() {
+    let pki = tempfile::tempdir().unwrap();
+    paired(pki.path(), "pi-01");
+    let foreign = tempfile::tempdir().unwrap();
+    paired(foreign.path(), "pi-01");
+    let (addr, server) = serve_once(pki.path());
+
+    // Trusts our server, presents a certificate our CA never signed (same CN).
+    let config = client_config(pki.path(), Some((foreign.path(), "pi-01")));
+    let client_end = attempt_refused(config, addr).await;
+    assert!(
+        matches!(client_end, ConnectionError::ConnectionClosed(_)),
+        "{client_end:?}"
+    );
+    assert_eq!(
+        close_code(&client_end),
+        crypto_code(ALERT_UNKNOWN_CA),
+        "{client_end}"
+    );
+    let server_end = server_refusal(server).await;
+    assert_eq!(
+        close_code(&server_end),
+        crypto_code(ALERT_UNKNOWN_CA),
+        "{server_end}"
+    );
+}
+
+#[tokio::test]
+async fn a_client_that_does_not_trust_the_server_fails_the_handshake() {
+    let pki = tempfile::tempdir().unwrap();
+    paired(pki.path(), "pi-01");
+    let foreign = tempfile::tempdir().unwrap();
+    paired(foreign.path(), "pi-01");
+    let (addr, server) = serve_once(pki.path());
+
+    // A valid edge certificate, but the roots are another CA's.
+    let endpoint = client(client_config(foreign.path(), Some((pki.path(), "pi-01"))));
+    let result = tokio::time::timeout(LIMIT, endpoint.connect(addr, "localhost").unwrap())
+        .await
+        .unwrap();
+    match result {
+        Err(e @ ConnectionError::TransportError(_)) => {
+            assert_eq!(close_code(&e), crypto_code(ALERT_UNKNOWN_CA), "{e}");
+        }
+        other => panic!("expected a local handshake failure, got {other:?}"),
+    }
+    let server_end = server_refusal(server).await;
+    assert!(
+        matches!(server_end, ConnectionError::ConnectionClosed(_)),
+        "{server_end:?}"
+    );
+    assert_eq!(close_code(&server_end), crypto_code(ALERT_UNKNOWN_CA));
+}
