@@ -59,9 +59,9 @@
 //! let mut spool = Spool::open(SpoolConfig::new(dir.path()))?;
 //! spool.push(7, 0, b"frame 0".to_vec())?;
 //! spool.push(7, 1, b"frame 1".to_vec())?;
-//! assert_eq!(spool.next_unsent()?.map(|f| f.seq), Some(0));
+//! assert_eq!(spool.next_unsent().map(|f| f.seq), Some(0));
 //! spool.rewind(); // reconnected: send everything unacknowledged again
-//! assert_eq!(spool.next_unsent()?.map(|f| f.seq), Some(0));
+//! assert_eq!(spool.next_unsent().map(|f| f.seq), Some(0));
 //! spool.ack(7, 0);
 //! assert_eq!(spool.len(), 1);
 //! # Ok::<(), Box<dyn std::error::Error>>(())
@@ -162,24 +162,16 @@ pub enum SpoolError {
         #[source]
         source: io::Error,
     },
-    /// A spilled frame could not be read back (its segment vanished or was damaged); it has
-    /// been removed from the spool. The next call continues with the following frame.
-    #[error("spooled frame (session {session_id:#x}, seq {seq}) lost: {reason}")]
-    FrameLost {
-        /// Session of the lost frame.
-        session_id: u64,
-        /// Sequence number of the lost frame.
-        seq: u64,
-        /// Why it could not be read.
-        reason: String,
-    },
 }
 
 /// Where a spooled frame's bytes are.
 #[derive(Debug)]
 enum Slot {
     Memory(Vec<u8>),
-    Disk { segment: u64, offset: u64 },
+    Disk {
+        segment: u64,
+        offset: u64,
+    },
     /// Acknowledged (or lost); kept only until everything before it is gone too.
     Released,
 }
@@ -233,6 +225,7 @@ pub struct Spool {
     reader: Option<(u64, File)>,
     paused: bool,
     recovery: Recovery,
+    lost_frames: u64,
 }
 
 impl Spool {
@@ -266,6 +259,7 @@ impl Spool {
             reader: None,
             paused: false,
             recovery: Recovery::default(),
+            lost_frames: 0,
         };
         for id in ids {
             spool.recover_segment(id)?;
@@ -289,7 +283,8 @@ impl Spool {
     pub fn push(&mut self, session_id: u64, seq: u64, bytes: Vec<u8>) -> Result<(), SpoolError> {
         let len = bytes.len();
         let memory_limit = self.config.memory_limit_bytes;
-        if len > MAX_FRAME_LEN || (len > memory_limit && record_len(len) > self.config.disk_limit_bytes)
+        if len > MAX_FRAME_LEN
+            || (len > memory_limit && record_len(len) > self.config.disk_limit_bytes)
         {
             return Err(SpoolError::TooLarge { len });
         }
@@ -332,13 +327,19 @@ impl Spool {
             self.bytes_in_memory += len;
             Slot::Memory(bytes)
         };
-        self.entries.push_back(Entry { session_id, seq, len, slot });
+        self.entries.push_back(Entry {
+            session_id,
+            seq,
+            len,
+            slot,
+        });
         self.index.insert((session_id, seq, id));
         Ok(())
     }
 
-    /// True after a push was refused with [`SpoolError::Full`], until usage falls below
-    /// [`SpoolConfig::resume_below`] of the total limit.
+    /// True after a push was refused with [`SpoolError::Full`], until acknowledgements bring
+    /// usage (memory + disk) below [`SpoolConfig::resume_below`] of the total limit. (A push that
+    /// fits is still taken meanwhile; the flag is the caller's signal to pause.)
     pub fn is_full(&self) -> bool {
         self.paused
     }
@@ -369,6 +370,11 @@ impl Spool {
         self.bytes_on_disk
     }
 
+    /// Spilled frames that could not be read back and were dropped (each logged as an error).
+    pub fn lost_frames(&self) -> u64 {
+        self.lost_frames
+    }
+
     /// What [`open`](Self::open) recovered from an earlier run.
     pub fn recovery(&self) -> &Recovery {
         &self.recovery
@@ -377,33 +383,43 @@ impl Spool {
     /// The oldest frame not handed out since the last [`rewind`](Self::rewind) (or since
     /// opening) and not acknowledged, reading it back from disk if it was spilled.
     ///
-    /// A spilled frame that cannot be read back is removed and reported as
-    /// [`SpoolError::FrameLost`]; call again to continue with the next one.
-    pub fn next_unsent(&mut self) -> Result<Option<SpooledFrame>, SpoolError> {
+    /// A spilled frame that cannot be read back (its segment vanished or was damaged) is
+    /// removed, logged as an error and counted in [`lost_frames`](Self::lost_frames), and the
+    /// next frame is returned instead.
+    pub fn next_unsent(&mut self) -> Option<SpooledFrame> {
         loop {
             let id = self.send_cursor;
-            let Some(entry) = self.entry(id) else {
-                return Ok(None);
+            let entry = self.entry(id)?;
+            let (session_id, seq, len) = (entry.session_id, entry.seq, entry.len);
+            let held = match &entry.slot {
+                Slot::Released => None,
+                Slot::Memory(bytes) => Some(Ok(bytes.clone())),
+                &Slot::Disk { segment, offset } => Some(Err((segment, offset))),
             };
             self.send_cursor += 1;
-            let (session_id, seq, len) = (entry.session_id, entry.seq, entry.len);
-            let read = match &entry.slot {
-                Slot::Released => continue,
-                Slot::Memory(bytes) => Ok(bytes.clone()),
-                &Slot::Disk { segment, offset } => {
+            let read = match held {
+                None => continue,
+                Some(Ok(bytes)) => Ok(bytes),
+                Some(Err((segment, offset))) => {
                     self.read_record(segment, offset, session_id, seq, len)
                 }
             };
-            return match read {
-                Ok(bytes) => Ok(Some(SpooledFrame { session_id, seq, bytes })),
+            match read {
+                Ok(bytes) => {
+                    return Some(SpooledFrame {
+                        session_id,
+                        seq,
+                        bytes,
+                    });
+                }
                 Err(reason) => {
-                    tracing::error!(session_id, seq, %reason, "spooled frame lost");
+                    tracing::error!(session_id, seq, %reason, "spooled frame lost: cannot read it back");
+                    self.lost_frames += 1;
                     self.index.remove(&(session_id, seq, id));
                     self.release(id);
                     self.after_release();
-                    Err(SpoolError::FrameLost { session_id, seq, reason })
                 }
-            };
+            }
         }
     }
 
@@ -441,10 +457,10 @@ impl Spool {
     /// [`shutdown_flush`](Self::shutdown_flush).
     pub fn sync(&mut self) -> Result<(), SpoolError> {
         if let Some(active) = &self.active {
-            active
-                .file
-                .sync_data()
-                .map_err(io_err("syncing", &segment_path(&self.config.dir, active.id)))?;
+            active.file.sync_data().map_err(io_err(
+                "syncing",
+                &segment_path(&self.config.dir, active.id),
+            ))?;
         }
         Ok(())
     }
@@ -485,14 +501,17 @@ impl Spool {
         while let Some(rest) = data.get(offset..).filter(|rest| !rest.is_empty()) {
             match parse_record(rest) {
                 Ok(record) => {
-                    let id = self.next_id();
+                    let entry_id = self.next_id();
                     self.entries.push_back(Entry {
                         session_id: record.session_id,
                         seq: record.seq,
                         len: record.frame.len(),
-                        slot: Slot::Disk { segment: id_of(&path, id), offset: offset as u64 },
+                        slot: Slot::Disk {
+                            segment: id,
+                            offset: offset as u64,
+                        },
                     });
-                    self.index.insert((record.session_id, record.seq, id));
+                    self.index.insert((record.session_id, record.seq, entry_id));
                     offset += RECORD_HEADER_LEN + record.frame.len();
                     frames += 1;
                 }
@@ -519,7 +538,13 @@ impl Spool {
         self.recovery.segments += 1;
         self.recovery.frames += frames;
         self.bytes_on_disk += data.len() as u64;
-        self.segments.insert(id, Segment { bytes: data.len() as u64, live: frames });
+        self.segments.insert(
+            id,
+            Segment {
+                bytes: data.len() as u64,
+                live: frames,
+            },
+        );
         Ok(())
     }
 
@@ -546,22 +571,24 @@ impl Spool {
     fn append_record(&mut self, record: &[u8]) -> Result<(u64, u64), SpoolError> {
         let record_bytes = record.len() as u64;
         if let Some(active) = &self.active {
-            let used = self.segments.get(&active.id).map_or(0, |segment| segment.bytes);
+            let used = self
+                .segments
+                .get(&active.id)
+                .map_or(0, |segment| segment.bytes);
             if used > 0 && used + record_bytes > self.config.segment_bytes {
                 self.close_active()?;
             }
         }
-        let active = match &mut self.active {
+        let mut active = match self.active.take() {
             Some(active) => active,
-            None => self.active.insert(self.create_segment()?),
+            None => self.create_segment()?,
         };
         let id = active.id;
-        let segment = self.segments.entry(id).or_insert(Segment { bytes: 0, live: 0 });
-        let offset = segment.bytes;
+        let offset = self.segments.get(&id).map_or(0, |segment| segment.bytes);
         if let Err(source) = active.file.write_all(record) {
-            // Cut off a partial record and start a fresh segment next time.
+            // Cut off a partial record; the next record starts a fresh segment.
             let _ = active.file.set_len(offset);
-            self.active = None;
+            drop(active);
             self.retire_if_dead(id);
             return Err(SpoolError::Io {
                 action: "writing",
@@ -569,6 +596,11 @@ impl Spool {
                 source,
             });
         }
+        self.active = Some(active);
+        let segment = self
+            .segments
+            .entry(id)
+            .or_insert(Segment { bytes: 0, live: 0 });
         segment.bytes += record_bytes;
         segment.live += 1;
         self.bytes_on_disk += record_bytes;
@@ -600,18 +632,29 @@ impl Spool {
         let synced = active.file.sync_data();
         drop(active.file);
         self.retire_if_dead(active.id);
-        synced.map_err(io_err("syncing", &segment_path(&self.config.dir, active.id)))
+        synced.map_err(io_err(
+            "syncing",
+            &segment_path(&self.config.dir, active.id),
+        ))
     }
 
     /// Deletes a segment once no unacknowledged frame is left in it.
     fn retire_if_dead(&mut self, id: u64) {
-        if self.segments.get(&id).is_none_or(|segment| segment.live > 0) {
+        if self
+            .segments
+            .get(&id)
+            .is_none_or(|segment| segment.live > 0)
+        {
             return;
         }
         if self.active.as_ref().is_some_and(|active| active.id == id) {
             self.active = None;
         }
-        if self.reader.as_ref().is_some_and(|(reader, _)| *reader == id) {
+        if self
+            .reader
+            .as_ref()
+            .is_some_and(|(reader, _)| *reader == id)
+        {
             self.reader = None;
         }
         if let Some(segment) = self.segments.remove(&id) {
@@ -643,15 +686,19 @@ impl Spool {
 
     /// Drops released entries from the front and lifts the pause once usage is low enough.
     fn after_release(&mut self) {
-        while self.entries.front().is_some_and(|entry| matches!(entry.slot, Slot::Released)) {
+        while self
+            .entries
+            .front()
+            .is_some_and(|entry| matches!(entry.slot, Slot::Released))
+        {
             self.entries.pop_front();
             self.front_id += 1;
         }
         self.send_cursor = self.send_cursor.max(self.front_id);
         self.spill_cursor = self.spill_cursor.max(self.front_id);
         if self.paused {
-            let capacity =
-                (self.config.memory_limit_bytes as u64).saturating_add(self.config.disk_limit_bytes);
+            let capacity = (self.config.memory_limit_bytes as u64)
+                .saturating_add(self.config.disk_limit_bytes);
             let resume_at = (capacity as f64 * self.config.resume_below) as u64;
             let usage = self.bytes_in_memory as u64 + self.bytes_on_disk;
             if usage < resume_at {
@@ -681,9 +728,8 @@ impl Spool {
         let mut buffer = vec![0; RECORD_HEADER_LEN + len];
         file.read_exact_at(&mut buffer, offset)
             .map_err(|error| format!("reading {} at {offset}: {error}", path.display()))?;
-        let record = parse_record(&buffer).map_err(|fault| {
-            format!("record in {} at {offset}: {fault}", path.display())
-        })?;
+        let record = parse_record(&buffer)
+            .map_err(|fault| format!("record in {} at {offset}: {fault}", path.display()))?;
         if (record.session_id, record.seq, record.frame.len()) != (session_id, seq, len) {
             return Err(format!(
                 "record in {} at {offset} holds another frame (session {:#x}, seq {})",
@@ -696,7 +742,779 @@ impl Spool {
     }
 }
 
-/// Used by recovery to keep the segment id of a recovered entry (the path was built from it).
-fn id_of(_path: &Path, _entry_id: u64) -> u64 {
-    unreachable!()
+/// Size of the record holding a frame of `len` bytes.
+fn record_len(len: usize) -> u64 {
+    (RECORD_HEADER_LEN + len) as u64
+}
+
+/// Builds a record (see the module documentation).
+fn encode_record(session_id: u64, seq: u64, frame: &[u8]) -> Vec<u8> {
+    let mut record = Vec::with_capacity(RECORD_HEADER_LEN + frame.len());
+    record.extend_from_slice(&RECORD_MAGIC);
+    // `push` refuses frames over MAX_FRAME_LEN, so the length fits in a u32.
+    record.extend_from_slice(&(frame.len() as u32).to_le_bytes());
+    record.extend_from_slice(&[0; 4]);
+    record.extend_from_slice(&session_id.to_le_bytes());
+    record.extend_from_slice(&seq.to_le_bytes());
+    record.extend_from_slice(frame);
+    let crc = record_crc(&record);
+    record[8..12].copy_from_slice(&crc.to_le_bytes());
+    record
+}
+
+/// CRC of a record: its `len` field, then everything after the CRC field.
+fn record_crc(record: &[u8]) -> u32 {
+    let crc = crc32_update(CRC_INIT, record.get(4..8).unwrap_or_default());
+    crc32_update(crc, record.get(12..).unwrap_or_default()) ^ CRC_INIT
+}
+
+/// A record that checked out.
+struct Record<'a> {
+    session_id: u64,
+    seq: u64,
+    frame: &'a [u8],
+}
+
+/// Why bytes are not an intact record.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+enum RecordFault {
+    #[error("record cut short")]
+    Truncated,
+    #[error("no record magic")]
+    BadMagic,
+    #[error("record length {0} over the frame size limit")]
+    TooLong(u32),
+    #[error("record CRC mismatch")]
+    BadCrc,
+}
+
+/// Parses the record at the start of `bytes` (trailing bytes are ignored).
+fn parse_record(bytes: &[u8]) -> Result<Record<'_>, RecordFault> {
+    let header = bytes
+        .get(..RECORD_HEADER_LEN)
+        .ok_or(RecordFault::Truncated)?;
+    let field = |at: usize| -> [u8; 8] {
+        let mut out = [0; 8];
+        if let Some(src) = header.get(at..at + 8) {
+            out.copy_from_slice(src);
+        }
+        out
+    };
+    let word = |at: usize| -> u32 {
+        let mut out = [0; 4];
+        if let Some(src) = header.get(at..at + 4) {
+            out.copy_from_slice(src);
+        }
+        u32::from_le_bytes(out)
+    };
+    if header.get(..4) != Some(&RECORD_MAGIC[..]) {
+        return Err(RecordFault::BadMagic);
+    }
+    let len = word(4);
+    let frame_len = usize::try_from(len).map_err(|_| RecordFault::TooLong(len))?;
+    if frame_len > MAX_FRAME_LEN {
+        return Err(RecordFault::TooLong(len));
+    }
+    let record = bytes
+        .get(..RECORD_HEADER_LEN + frame_len)
+        .ok_or(RecordFault::Truncated)?;
+    if record_crc(record) != word(8) {
+        return Err(RecordFault::BadCrc);
+    }
+    Ok(Record {
+        session_id: u64::from_le_bytes(field(12)),
+        seq: u64::from_le_bytes(field(20)),
+        frame: record.get(RECORD_HEADER_LEN..).unwrap_or_default(),
+    })
+}
+
+/// Offset of the next intact record at or after `from`, for resynchronising after damage.
+fn find_next_record(data: &[u8], from: usize) -> Option<usize> {
+    let mut at = from;
+    while let Some(rest) = data.get(at..) {
+        let found = rest
+            .windows(RECORD_MAGIC.len())
+            .position(|w| w == RECORD_MAGIC)?;
+        at += found;
+        if data
+            .get(at..)
+            .is_some_and(|candidate| parse_record(candidate).is_ok())
+        {
+            return Some(at);
+        }
+        at += 1;
+    }
+    None
+}
+
+fn segment_path(dir: &Path, id: u64) -> PathBuf {
+    dir.join(format!("segment-{id:020}.spool"))
+}
+
+/// The segment number in a segment file name, `None` for any other file.
+fn parse_segment_name(name: &str) -> Option<u64> {
+    let digits = name.strip_prefix("segment-")?.strip_suffix(".spool")?;
+    if digits.len() != 20 || !digits.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    digits.parse().ok()
+}
+
+fn io_err(action: &'static str, path: &Path) -> impl FnOnce(io::Error) -> SpoolError {
+    let path = path.to_path_buf();
+    move |source| SpoolError::Io {
+        action,
+        path,
+        source,
+    }
+}
+
+const CRC_INIT: u32 = 0xFFFF_FFFF;
+
+/// Lookup table of the reflected IEEE CRC-32 (polynomial 0xEDB88320).
+const CRC_TABLE: [u32; 256] = {
+    let mut table = [0u32; 256];
+    let mut n = 0;
+    while n < 256 {
+        let mut c = n as u32;
+        let mut bit = 0;
+        while bit < 8 {
+            c = if c & 1 != 0 {
+                0xEDB8_8320 ^ (c >> 1)
+            } else {
+                c >> 1
+            };
+            bit += 1;
+        }
+        table[n] = c;
+        n += 1;
+    }
+    table
+};
+
+/// Feeds `bytes` into a running CRC-32 (start with [`CRC_INIT`], finish by xor with it).
+fn crc32_update(mut crc: u32, bytes: &[u8]) -> u32 {
+    for &byte in bytes {
+        crc = CRC_TABLE[((crc ^ u32::from(byte)) & 0xFF) as usize] ^ (crc >> 8);
+    }
+    crc
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+    use scan3d_protocol::{Frame, Heartbeat, decode};
+
+    /// 30-byte frames spill as 58-byte records.
+    const REC30: u64 = 58;
+
+    fn config(dir: &Path, memory: usize, disk: u64, segment: u64) -> SpoolConfig {
+        SpoolConfig {
+            memory_limit_bytes: memory,
+            disk_limit_bytes: disk,
+            segment_bytes: segment,
+            ..SpoolConfig::new(dir)
+        }
+    }
+
+    /// Distinct, recognisable content per (session, seq).
+    fn payload(session_id: u64, seq: u64, len: usize) -> Vec<u8> {
+        (0..len)
+            .map(|i| (session_id as u8).wrapping_mul(101) ^ (seq as u8).wrapping_mul(7) ^ i as u8)
+            .collect()
+    }
+
+    fn push_n(spool: &mut Spool, session_id: u64, seqs: std::ops::Range<u64>, len: usize) {
+        for seq in seqs {
+            spool
+                .push(session_id, seq, payload(session_id, seq, len))
+                .unwrap();
+        }
+    }
+
+    /// Hands out everything left, checking each frame's bytes.
+    fn drain(spool: &mut Spool) -> Vec<(u64, u64)> {
+        let mut out = Vec::new();
+        while let Some(frame) = spool.next_unsent() {
+            assert_eq!(
+                frame.bytes,
+                payload(frame.session_id, frame.seq, frame.bytes.len())
+            );
+            out.push((frame.session_id, frame.seq));
+        }
+        out
+    }
+
+    fn seqs(session_id: u64, range: std::ops::Range<u64>) -> Vec<(u64, u64)> {
+        range.map(|seq| (session_id, seq)).collect()
+    }
+
+    fn segment_files(dir: &Path) -> Vec<(String, u64)> {
+        let mut files: Vec<(String, u64)> = fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap())
+            .filter(|e| e.file_name().to_string_lossy().ends_with(".spool"))
+            .map(|e| {
+                (
+                    e.file_name().to_string_lossy().into_owned(),
+                    e.metadata().unwrap().len(),
+                )
+            })
+            .collect();
+        files.sort();
+        files
+    }
+
+    #[test]
+    fn crc32_matches_the_standard_check_value() {
+        assert_eq!(crc32_update(CRC_INIT, b"123456789") ^ CRC_INIT, 0xCBF4_3926);
+        assert_eq!(crc32_update(CRC_INIT, b"") ^ CRC_INIT, 0);
+    }
+
+    #[test]
+    fn record_layout_matches_the_documented_format() {
+        // "S3SR", len 3, crc32(03000000 ‖ session ‖ seq ‖ frame) = 0xcac705be (zlib), session 1,
+        // seq 2, frame AA BB CC.
+        let expected = [
+            0x53, 0x33, 0x53, 0x52, 0x03, 0x00, 0x00, 0x00, 0xbe, 0x05, 0xc7, 0xca, //
+            0x01, 0, 0, 0, 0, 0, 0, 0, 0x02, 0, 0, 0, 0, 0, 0, 0, 0xaa, 0xbb, 0xcc,
+        ];
+        assert_eq!(encode_record(1, 2, &[0xaa, 0xbb, 0xcc]), expected);
+        let record = parse_record(&expected).unwrap();
+        assert_eq!(
+            (record.session_id, record.seq, record.frame),
+            (1, 2, &[0xaa, 0xbb, 0xcc][..])
+        );
+        assert_eq!(
+            parse_record(&expected[..30]).err(),
+            Some(RecordFault::Truncated)
+        );
+        let mut flipped = expected;
+        flipped[29] ^= 0x01;
+        assert_eq!(parse_record(&flipped).err(), Some(RecordFault::BadCrc));
+        let mut long = expected;
+        long[4..8].copy_from_slice(&0x0040_0001u32.to_le_bytes());
+        assert_eq!(
+            parse_record(&long).err(),
+            Some(RecordFault::TooLong(0x0040_0001))
+        );
+        assert_eq!(
+            parse_record(&expected[1..]).err(),
+            Some(RecordFault::BadMagic)
+        );
+    }
+
+    #[test]
+    fn defaults_and_config_validation() {
+        let dir = tempfile::tempdir().unwrap();
+        let config = SpoolConfig::new(dir.path());
+        assert_eq!(config.memory_limit_bytes, 8 * 1024 * 1024);
+        assert_eq!(config.disk_limit_bytes, 256 * 1024 * 1024);
+        assert_eq!(config.segment_bytes, 4 * 1024 * 1024);
+        assert_eq!(config.resume_below, 0.75);
+        for bad in [0.0, -0.5, 1.5, f64::NAN] {
+            let config = SpoolConfig {
+                resume_below: bad,
+                ..SpoolConfig::new(dir.path())
+            };
+            assert!(
+                matches!(Spool::open(config), Err(SpoolError::Config(_))),
+                "{bad}"
+            );
+        }
+    }
+
+    #[test]
+    fn sends_in_order_and_resends_unacked_after_rewind() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut spool = Spool::open(SpoolConfig::new(dir.path())).unwrap();
+        assert!(spool.is_empty());
+        push_n(&mut spool, 9, 0..5, 20);
+        assert_eq!(
+            (spool.len(), spool.bytes_in_memory(), spool.bytes_on_disk()),
+            (5, 100, 0)
+        );
+        let first: Vec<u64> = (0..3).map(|_| spool.next_unsent().unwrap().seq).collect();
+        assert_eq!(first, [0, 1, 2]);
+        assert_eq!(spool.ack(9, 1), 2);
+        assert_eq!(spool.ack(8, 10), 0, "another session's ack removes nothing");
+        assert_eq!((spool.len(), spool.bytes_in_memory()), (3, 60));
+        assert_eq!(drain(&mut spool), seqs(9, 3..5));
+        spool.rewind();
+        assert_eq!(drain(&mut spool), seqs(9, 2..5));
+        assert_eq!(spool.ack_range(9, 3, 3), 1);
+        assert_eq!(spool.ack_range(9, 4, 3), 0, "empty range");
+        spool.rewind();
+        assert_eq!(drain(&mut spool), [(9, 2), (9, 4)]);
+        push_n(&mut spool, 9, 5..6, 20);
+        assert_eq!(drain(&mut spool), [(9, 5)], "new frames without a rewind");
+        spool.ack(9, 5);
+        assert!(spool.is_empty());
+        assert_eq!(spool.bytes_in_memory(), 0);
+        spool.rewind();
+        assert_eq!(spool.next_unsent(), None);
+    }
+
+    #[test]
+    fn spills_the_oldest_frames_to_disk_and_returns_all_in_order() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut spool = Spool::open(config(dir.path(), 100, 10_000, 1_000)).unwrap();
+        push_n(&mut spool, 1, 0..10, 30);
+        // 3 frames fit in 100 bytes; the 7 oldest went to disk as 58-byte records.
+        assert_eq!(spool.bytes_in_memory(), 90);
+        assert_eq!(spool.bytes_on_disk(), 7 * REC30);
+        assert_eq!(
+            segment_files(dir.path()),
+            [("segment-00000000000000000000.spool".to_string(), 7 * REC30)]
+        );
+        assert_eq!(drain(&mut spool), seqs(1, 0..10));
+        spool.rewind();
+        assert_eq!(drain(&mut spool), seqs(1, 0..10));
+    }
+
+    #[test]
+    fn a_frame_over_the_memory_limit_goes_straight_to_disk() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut spool = Spool::open(config(dir.path(), 50, 10_000, 1_000)).unwrap();
+        push_n(&mut spool, 1, 0..1, 30);
+        push_n(&mut spool, 1, 1..2, 60);
+        // Both spilled: the older one first, then the big one.
+        assert_eq!(spool.bytes_in_memory(), 0);
+        assert_eq!(spool.bytes_on_disk(), REC30 + 88);
+        assert_eq!(drain(&mut spool), seqs(1, 0..2));
+    }
+
+    #[test]
+    fn refuses_frames_at_the_limit_and_resumes_with_hysteresis() {
+        let dir = tempfile::tempdir().unwrap();
+        // 3 frames in memory + 4 on disk, one record per segment.
+        let mut spool = Spool::open(config(dir.path(), 100, 4 * REC30, REC30)).unwrap();
+        push_n(&mut spool, 1, 0..7, 30);
+        assert!(spool.has_room());
+        assert!(matches!(
+            spool.push(1, 7, payload(1, 7, 30)),
+            Err(SpoolError::Full)
+        ));
+        assert!(spool.is_full() && !spool.has_room());
+        assert_eq!(
+            (spool.len(), spool.bytes_in_memory(), spool.bytes_on_disk()),
+            (7, 90, 4 * REC30)
+        );
+        // Capacity 100 + 232 = 332; resume below 249. Usage 90 + 174 = 264 after one ack.
+        spool.ack(1, 0);
+        assert_eq!(spool.bytes_on_disk(), 3 * REC30);
+        assert!(spool.is_full(), "still above the resume threshold");
+        spool.ack(1, 1); // 90 + 116 = 206
+        assert!(spool.has_room());
+        push_n(&mut spool, 1, 7..9, 30);
+        assert!(matches!(
+            spool.push(1, 9, payload(1, 9, 30)),
+            Err(SpoolError::Full)
+        ));
+        assert!(spool.is_full());
+        assert_eq!(
+            drain(&mut spool),
+            seqs(1, 2..9),
+            "the refused frames were not taken"
+        );
+    }
+
+    #[test]
+    fn frames_that_can_never_fit_are_too_large() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut spool = Spool::open(config(dir.path(), 100, 100, 1_000)).unwrap();
+        assert!(matches!(
+            spool.push(1, 0, vec![0; 101]),
+            Err(SpoolError::TooLarge { len: 101 })
+        ));
+        spool.push(1, 0, vec![0; 100]).unwrap();
+        assert!(spool.has_room(), "too large is not full");
+        let mut spool = Spool::open(SpoolConfig::new(dir.path().join("big"))).unwrap();
+        let len = MAX_FRAME_LEN + 1;
+        assert!(matches!(
+            spool.push(1, 0, vec![0; len]),
+            Err(SpoolError::TooLarge { .. })
+        ));
+        assert!(spool.is_empty());
+    }
+
+    #[test]
+    fn wire_frames_come_back_byte_exact_from_disk() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut spool = Spool::open(config(dir.path(), 0, 1_000, 1_000)).unwrap();
+        // Frame { session_id: 1, seq: 2, body: Heartbeat { sent_ns: 3 } } from the protocol notes.
+        let wire = vec![
+            0x53, 0x33, 0x44, 0x50, 0x01, 0x00, 0x04, 0, 0, 0, 0x01, 0x02, 0x07, 0x03,
+        ];
+        spool.push(1, 2, wire.clone()).unwrap();
+        assert_eq!(spool.bytes_on_disk(), 28 + 14);
+        let frame = spool.next_unsent().unwrap();
+        assert_eq!(
+            frame,
+            SpooledFrame {
+                session_id: 1,
+                seq: 2,
+                bytes: wire
+            }
+        );
+        assert_eq!(
+            decode(&frame.bytes).unwrap().0,
+            Frame::new(1, 2, Heartbeat { sent_ns: 3 })
+        );
+    }
+
+    #[test]
+    fn spilled_frames_survive_a_crash() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut spool = Spool::open(config(dir.path(), 100, 10_000, 200)).unwrap();
+        push_n(&mut spool, 1, 0..10, 30);
+        drop(spool); // no shutdown_flush: the 3 frames in memory are lost
+        let mut spool = Spool::open(config(dir.path(), 100, 10_000, 200)).unwrap();
+        assert_eq!(
+            spool.recovery(),
+            &Recovery {
+                segments: 3,
+                frames: 7,
+                damaged_bytes: 0
+            },
+            "7 records in segments of at most 3"
+        );
+        assert_eq!((spool.len(), spool.bytes_on_disk()), (7, 7 * REC30));
+        assert_eq!(drain(&mut spool), seqs(1, 0..7));
+    }
+
+    #[test]
+    fn a_torn_last_record_is_dropped_and_earlier_ones_recovered() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut spool = Spool::open(config(dir.path(), 100, 10_000, 1_000)).unwrap();
+        push_n(&mut spool, 1, 0..10, 30);
+        drop(spool);
+        let path = segment_path(dir.path(), 0);
+        let file = OpenOptions::new().write(true).open(&path).unwrap();
+        file.set_len(7 * REC30 - 10).unwrap(); // the 7th record loses its last 10 bytes
+        drop(file);
+        let mut spool = Spool::open(config(dir.path(), 100, 10_000, 1_000)).unwrap();
+        assert_eq!(
+            spool.recovery(),
+            &Recovery {
+                segments: 1,
+                frames: 6,
+                damaged_bytes: 48
+            }
+        );
+        assert_eq!(drain(&mut spool), seqs(1, 0..6));
+        // New frames follow the recovered ones, in a new segment.
+        push_n(&mut spool, 2, 0..4, 30);
+        spool.shutdown_flush().unwrap();
+        drop(spool);
+        let mut spool = Spool::open(config(dir.path(), 100, 10_000, 1_000)).unwrap();
+        let mut expected = seqs(1, 0..6);
+        expected.extend(seqs(2, 0..4));
+        assert_eq!(drain(&mut spool), expected);
+    }
+
+    #[test]
+    fn a_corrupt_record_mid_segment_costs_only_that_record() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut spool = Spool::open(config(dir.path(), 0, 10_000, 1_000)).unwrap();
+        push_n(&mut spool, 1, 0..5, 30);
+        drop(spool);
+        let path = segment_path(dir.path(), 0);
+        let mut data = fs::read(&path).unwrap();
+        data[2 * REC30 as usize + 40] ^= 0x10; // a payload byte of the third record
+        fs::write(&path, &data).unwrap();
+        let mut spool = Spool::open(config(dir.path(), 0, 10_000, 1_000)).unwrap();
+        assert_eq!(
+            spool.recovery(),
+            &Recovery {
+                segments: 1,
+                frames: 4,
+                damaged_bytes: REC30
+            }
+        );
+        assert_eq!(drain(&mut spool), [(1, 0), (1, 1), (1, 3), (1, 4)]);
+    }
+
+    #[test]
+    fn a_segment_without_intact_records_is_removed_and_strays_are_ignored() {
+        let dir = tempfile::tempdir().unwrap();
+        fs::write(segment_path(dir.path(), 3), b"S3SR garbage").unwrap();
+        fs::write(dir.path().join("segment-3.spool"), b"not ours").unwrap();
+        fs::write(dir.path().join("notes.txt"), b"not ours").unwrap();
+        let mut spool = Spool::open(config(dir.path(), 0, 10_000, 1_000)).unwrap();
+        assert_eq!(
+            spool.recovery(),
+            &Recovery {
+                segments: 0,
+                frames: 0,
+                damaged_bytes: 12
+            }
+        );
+        assert!(!segment_path(dir.path(), 3).exists());
+        assert!(dir.path().join("segment-3.spool").exists());
+        assert!(dir.path().join("notes.txt").exists());
+        push_n(&mut spool, 1, 0..1, 30);
+        assert!(
+            segment_path(dir.path(), 4).exists(),
+            "numbering continues after old segments"
+        );
+    }
+
+    #[test]
+    fn shutdown_flush_keeps_every_unacked_frame_for_the_next_run() {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = || config(dir.path(), 100, 10_000, 2 * REC30);
+        let mut spool = Spool::open(cfg()).unwrap();
+        push_n(&mut spool, 1, 0..10, 30);
+        // On disk: [0 1] [2 3] [4 5] [6]; in memory: 7 8 9.
+        assert_eq!(segment_files(dir.path()).len(), 4);
+        spool.ack(1, 3);
+        assert_eq!(
+            segment_files(dir.path()).len(),
+            2,
+            "fully acked segments deleted"
+        );
+        spool.shutdown_flush().unwrap();
+        assert_eq!(spool.bytes_in_memory(), 0);
+        assert_eq!(spool.bytes_on_disk(), 6 * REC30);
+        drop(spool);
+        let mut spool = Spool::open(cfg()).unwrap();
+        assert_eq!(spool.recovery().frames, 6);
+        assert_eq!(drain(&mut spool), seqs(1, 4..10));
+    }
+
+    #[test]
+    fn acked_frames_sharing_a_segment_with_unacked_ones_are_resent_after_restart() {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = || config(dir.path(), 0, 10_000, 1_000);
+        let mut spool = Spool::open(cfg()).unwrap();
+        push_n(&mut spool, 1, 0..4, 30);
+        spool.ack(1, 1);
+        assert_eq!(
+            spool.bytes_on_disk(),
+            4 * REC30,
+            "segment still holds 2 and 3"
+        );
+        spool.shutdown_flush().unwrap();
+        drop(spool);
+        let mut spool = Spool::open(cfg()).unwrap();
+        assert_eq!(
+            drain(&mut spool),
+            seqs(1, 0..4),
+            "at least once; the server drops duplicates"
+        );
+    }
+
+    #[test]
+    fn acked_segments_are_deleted_from_disk() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut spool = Spool::open(config(dir.path(), 0, 10_000, 2 * REC30)).unwrap();
+        push_n(&mut spool, 1, 0..5, 30);
+        assert_eq!(
+            segment_files(dir.path()),
+            [
+                ("segment-00000000000000000000.spool".to_string(), 2 * REC30),
+                ("segment-00000000000000000001.spool".to_string(), 2 * REC30),
+                ("segment-00000000000000000002.spool".to_string(), REC30),
+            ]
+        );
+        spool.ack(1, 0);
+        assert_eq!(
+            segment_files(dir.path()).len(),
+            3,
+            "segment 0 still holds seq 1"
+        );
+        spool.ack(1, 2);
+        assert_eq!(segment_files(dir.path()).len(), 2);
+        assert_eq!(spool.bytes_on_disk(), 3 * REC30);
+        spool.ack(1, 4); // includes the segment being appended to
+        assert!(segment_files(dir.path()).is_empty());
+        assert_eq!((spool.len(), spool.bytes_on_disk()), (0, 0));
+        push_n(&mut spool, 1, 5..6, 30);
+        assert_eq!(
+            segment_files(dir.path()),
+            [("segment-00000000000000000003.spool".to_string(), REC30)]
+        );
+        assert_eq!(drain(&mut spool), seqs(1, 5..6));
+    }
+
+    #[test]
+    fn frames_of_an_earlier_boot_are_resent_first_and_acked_per_session() {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = || config(dir.path(), 100, 10_000, 1_000);
+        let mut spool = Spool::open(cfg()).unwrap();
+        push_n(&mut spool, 0xa, 0..4, 30);
+        spool.shutdown_flush().unwrap();
+        drop(spool);
+        let mut spool = Spool::open(cfg()).unwrap();
+        push_n(&mut spool, 0xb, 0..3, 30);
+        let mut expected = seqs(0xa, 0..4);
+        expected.extend(seqs(0xb, 0..3));
+        assert_eq!(drain(&mut spool), expected);
+        assert_eq!(spool.ack(0xb, 2), 3);
+        assert_eq!(spool.ack(0xa, 1), 2);
+        spool.rewind();
+        assert_eq!(drain(&mut spool), seqs(0xa, 2..4));
+    }
+
+    #[test]
+    fn a_spilled_frame_that_vanished_is_counted_lost_and_skipped() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut spool = Spool::open(config(dir.path(), 0, 10_000, 2 * REC30)).unwrap();
+        push_n(&mut spool, 1, 0..3, 30);
+        fs::remove_file(segment_path(dir.path(), 0)).unwrap();
+        assert_eq!(spool.lost_frames(), 0);
+        // The two frames of the deleted segment are skipped (and logged), never handed out.
+        assert_eq!(drain(&mut spool), seqs(1, 2..3));
+        assert_eq!((spool.lost_frames(), spool.len()), (2, 1));
+        spool.rewind();
+        assert_eq!(drain(&mut spool), seqs(1, 2..3));
+    }
+
+    #[derive(Debug, Clone)]
+    enum Op {
+        Push { session: u64, len: usize },
+        Next,
+        Rewind,
+        Ack { session: u64, up_to: u64 },
+        AckRange { session: u64, first: u64, span: u64 },
+        Sync,
+    }
+
+    fn op() -> impl Strategy<Value = Op> {
+        prop_oneof![
+            4 => (0..3u64, 0..80usize).prop_map(|(session, len)| Op::Push { session, len }),
+            3 => Just(Op::Next),
+            1 => Just(Op::Rewind),
+            2 => (0..3u64, 0..40u64).prop_map(|(session, up_to)| Op::Ack { session, up_to }),
+            1 => (0..3u64, 0..40u64, 0..4u64)
+                .prop_map(|(session, first, span)| Op::AckRange { session, first, span }),
+            1 => Just(Op::Sync),
+        ]
+    }
+
+    /// The reference: unacked frames in push order, with "handed out" and "in memory" flags.
+    struct ModelFrame {
+        session: u64,
+        seq: u64,
+        len: usize,
+        sent: bool,
+        in_memory: bool,
+    }
+
+    proptest! {
+        #[test]
+        fn behaves_like_a_queue(
+            memory in 0..200usize,
+            disk in 0..600u64,
+            segment in 1..300u64,
+            ops in proptest::collection::vec(op(), 1..150),
+        ) {
+            let dir = tempfile::tempdir().unwrap();
+            let cfg = config(dir.path(), memory, disk, segment);
+            let mut spool = Spool::open(cfg.clone()).unwrap();
+            let mut model: VecDeque<ModelFrame> = VecDeque::new();
+            let mut next_seq = [0u64; 3];
+            let mut paused = false;
+            let resume_at = ((memory as u64 + disk) as f64 * 0.75) as u64;
+            for op in ops {
+                match op.clone() {
+                    Op::Push { session, len } => {
+                        let seq = next_seq[session as usize];
+                        let disk_before = spool.bytes_on_disk();
+                        let result = spool.push(session, seq, payload(session, seq, len));
+                        if len > memory && record_len(len) > disk {
+                            let too_large = matches!(result, Err(SpoolError::TooLarge { .. }));
+                            prop_assert!(too_large, "{:?}", result);
+                            continue;
+                        }
+                        // Predict the spill: oldest in-memory frames first, then the new one.
+                        let mut memory_after: usize =
+                            model.iter().filter(|f| f.in_memory).map(|f| f.len).sum::<usize>() + len;
+                        let mut spilled = 0;
+                        let mut needed = 0;
+                        for frame in model.iter().filter(|f| f.in_memory) {
+                            if memory_after <= memory {
+                                break;
+                            }
+                            memory_after -= frame.len;
+                            needed += record_len(frame.len);
+                            spilled += 1;
+                        }
+                        let spill_new = memory_after > memory;
+                        if spill_new {
+                            needed += record_len(len);
+                        }
+                        if disk_before + needed > disk {
+                            let full = matches!(result, Err(SpoolError::Full));
+                            prop_assert!(full, "{:?}", result);
+                            paused = true;
+                        } else {
+                            prop_assert!(result.is_ok(), "{result:?}");
+                            for frame in model.iter_mut().filter(|f| f.in_memory).take(spilled) {
+                                frame.in_memory = false;
+                            }
+                            model.push_back(ModelFrame {
+                                session, seq, len, sent: false, in_memory: !spill_new,
+                            });
+                            next_seq[session as usize] += 1;
+                        }
+                    }
+                    Op::Next => {
+                        let expected = model.iter_mut().find(|f| !f.sent).map(|f| {
+                            f.sent = true;
+                            SpooledFrame { session_id: f.session, seq: f.seq, bytes: payload(f.session, f.seq, f.len) }
+                        });
+                        prop_assert_eq!(spool.next_unsent(), expected);
+                    }
+                    Op::Rewind => {
+                        spool.rewind();
+                        model.iter_mut().for_each(|f| f.sent = false);
+                    }
+                    Op::Ack { session, up_to } => {
+                        let before = model.len();
+                        model.retain(|f| !(f.session == session && f.seq <= up_to));
+                        prop_assert_eq!(spool.ack(session, up_to), before - model.len());
+                    }
+                    Op::AckRange { session, first, span } => {
+                        let last = first + span;
+                        let before = model.len();
+                        model.retain(|f| !(f.session == session && (first..=last).contains(&f.seq)));
+                        prop_assert_eq!(spool.ack_range(session, first, last), before - model.len());
+                    }
+                    Op::Sync => spool.sync().unwrap(),
+                }
+                let in_memory: usize = model.iter().filter(|f| f.in_memory).map(|f| f.len).sum();
+                // The pause lifts only when an acknowledgement brings usage below the threshold.
+                let acked = matches!(op, Op::Ack { .. } | Op::AckRange { .. });
+                if acked && paused && (in_memory as u64 + spool.bytes_on_disk()) < resume_at {
+                    paused = false;
+                }
+                prop_assert_eq!(spool.len(), model.len());
+                prop_assert_eq!(spool.bytes_in_memory(), in_memory);
+                prop_assert!(spool.bytes_in_memory() <= memory);
+                prop_assert!(spool.bytes_on_disk() <= disk);
+                let on_disk: u64 = segment_files(dir.path()).iter().map(|(_, len)| len).sum();
+                prop_assert_eq!(spool.bytes_on_disk(), on_disk);
+                let live: u64 = model.iter().filter(|f| !f.in_memory).map(|f| record_len(f.len)).sum();
+                prop_assert!(on_disk >= live);
+                prop_assert_eq!(spool.is_full(), paused);
+            }
+            // Everything unacknowledged survives a clean restart, in order.
+            spool.shutdown_flush().unwrap();
+            drop(spool);
+            let mut spool = Spool::open(cfg).unwrap();
+            let mut recovered = Vec::new();
+            while let Some(frame) = spool.next_unsent() {
+                prop_assert_eq!(&frame.bytes, &payload(frame.session_id, frame.seq, frame.bytes.len()));
+                recovered.push((frame.session_id, frame.seq));
+            }
+            // Acked frames sharing a segment with unacked ones may come back too.
+            let mut remaining = recovered.iter();
+            for frame in &model {
+                prop_assert!(remaining.any(|&r| r == (frame.session, frame.seq)), "missing {:?}", (frame.session, frame.seq));
+            }
+        }
+    }
 }
