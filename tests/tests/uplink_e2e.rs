@@ -85,3 +85,147 @@ fn a_clean_run_records_every_sample_exactly_once() {
     assert_exactly_once(&deliveries);
     lidars.shutdown();
 }
+
+#[test]
+fn a_thirty_second_network_cut_loses_nothing() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let bundle = rig::pair_certificates(&dir.path().join("pki")).expect("pairing");
+    let server = ServerThread::start(rig::ingest_config(
+        &dir.path().join("pki"),
+        &dir.path().join("data"),
+        0,
+    ))
+    .expect("server");
+    let relay = scan3d_tests::relay::UdpRelay::start(server.addr()).expect("relay");
+    // Real time for the network (QUIC timers), scaled time for the sensors: 30 s of cut is
+    // 300 s of sensor data at x10, so run the sensors at real speed here.
+    let options = LidarOptions {
+        time_scale: 1.0,
+        sweep_settle_ms: 500,
+        ..Default::default()
+    };
+    let lidars = SimLidars::start(&dir.path().join("links"), &options).expect("lidars");
+    let config = lidars.edge_config(
+        &dir.path().join("edge-state"),
+        Some(rig::uplink_section(relay.local_addr(), &bundle)),
+    );
+    let session_id = rand::random::<u64>();
+    let clock: SharedClock = Arc::new(ScaledClock::new(1.0));
+    let edge = EdgeThread::start(config, clock, session_id).expect("edge");
+    std::thread::sleep(Duration::from_secs(3));
+    relay.cut();
+    std::thread::sleep(Duration::from_secs(30));
+    relay.restore();
+    // After the cut the edge reconnects (backoff ≤ 5 s) and resends everything unacknowledged.
+    std::thread::sleep(Duration::from_secs(8));
+    let report = edge.stop().expect("edge report");
+    let stats = server.stop();
+    let uplink = report.uplink.clone().expect("uplink stats");
+    assert!(
+        uplink.connections >= 2,
+        "the edge never reconnected: {uplink:?}"
+    );
+    assert_eq!(uplink.auth_failures, 0);
+    eprintln!("{uplink:?} {stats:?}");
+    let deliveries = account(
+        &session_dir(&dir.path().join("data"), rig::EDGE_NAME, session_id),
+        &lidars,
+        Some(&report),
+    )
+    .expect("recording readable");
+    assert_exactly_once(&deliveries);
+    relay.shutdown();
+    lidars.shutdown();
+}
+
+/// The server's body when this test binary is re-run as a child process (see
+/// `the_server_killed_mid_run_loses_nothing`): `scan3d serve --config $SCAN3D_CHILD_SERVER_CONFIG`.
+#[test]
+#[ignore = "runs only as the child process of the server crash test"]
+fn server_child_process() {
+    let Ok(config) = std::env::var("SCAN3D_CHILD_SERVER_CONFIG") else {
+        return;
+    };
+    use clap::Parser;
+    let cli = scan3d_server::cli::Cli::parse_from(["scan3d", "serve", "--config", &config]);
+    scan3d_server::cli::execute(cli, &mut std::io::sink()).expect("server ran");
+}
+
+fn spawn_server_process(config: &std::path::Path) -> std::process::Child {
+    std::process::Command::new(std::env::current_exe().expect("test binary"))
+        .args([
+            "server_child_process",
+            "--exact",
+            "--ignored",
+            "--nocapture",
+            "--test-threads=1",
+        ])
+        .env("SCAN3D_CHILD_SERVER_CONFIG", config)
+        .stdout(std::process::Stdio::null())
+        .spawn()
+        .expect("server child process")
+}
+
+fn free_udp_port() -> u16 {
+    let socket = std::net::UdpSocket::bind("127.0.0.1:0").expect("udp socket");
+    socket.local_addr().expect("local addr").port()
+}
+
+#[test]
+fn the_server_killed_mid_run_loses_nothing() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let pki = dir.path().join("pki");
+    let data = dir.path().join("data");
+    let bundle = rig::pair_certificates(&pki).expect("pairing");
+    let port = free_udp_port();
+    let config = dir.path().join("server.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "listen = \"127.0.0.1:{port}\"\npki_dir = {:?}\ndata_dir = {:?}\ncommit_interval_ms = 50\n",
+            pki.display().to_string(),
+            data.display().to_string()
+        ),
+    )
+    .expect("server.toml");
+    let mut server = spawn_server_process(&config);
+    let lidars = SimLidars::start(&dir.path().join("links"), &lidar_options()).expect("lidars");
+    let server_addr = std::net::SocketAddr::from(([127, 0, 0, 1], port));
+    let edge_config = lidars.edge_config(
+        &dir.path().join("edge-state"),
+        Some(rig::uplink_section(server_addr, &bundle)),
+    );
+    let session_id = rand::random::<u64>();
+    let edge = EdgeThread::start(edge_config, clock(), session_id).expect("edge");
+    let session = session_dir(&data, rig::EDGE_NAME, session_id);
+    wait_until(Duration::from_secs(20), "a first recording", || {
+        session.join("0000.mcap").exists()
+    });
+    std::thread::sleep(Duration::from_secs(2));
+    server.kill().expect("SIGKILL the server");
+    let _ = server.wait();
+    std::thread::sleep(Duration::from_secs(1));
+    let mut server = spawn_server_process(&config);
+    // The restarted server continues the session in a new file; the edge resends what was not
+    // acknowledged and the server drops what it already had on disk.
+    wait_until(Duration::from_secs(20), "a second recording file", || {
+        session.join("0001.mcap").exists()
+    });
+    std::thread::sleep(Duration::from_secs(2));
+    let report = edge.stop().expect("edge report");
+    nix::sys::signal::kill(
+        nix::unistd::Pid::from_raw(server.id() as i32),
+        nix::sys::signal::Signal::SIGTERM,
+    )
+    .expect("SIGTERM the server");
+    let status = server.wait().expect("server exit");
+    assert!(
+        status.success(),
+        "server did not exit cleanly after SIGTERM: {status}"
+    );
+    let uplink = report.uplink.clone().expect("uplink stats");
+    assert!(uplink.connections >= 2, "{uplink:?}");
+    let deliveries = account(&session, &lidars, Some(&report)).expect("recording readable");
+    assert_exactly_once(&deliveries);
+    lidars.shutdown();
+}
