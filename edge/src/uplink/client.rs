@@ -325,11 +325,11 @@ impl Uplink {
                 }
                 continue;
             }
-            if let Some(deadline) = drain_until {
-                if self.inner.spool().is_empty() || tokio::time::Instant::now() >= deadline {
-                    connection.close(0u32.into(), b"edge shutting down");
-                    break SessionEnd::Shutdown;
-                }
+            if let Some(deadline) = drain_until
+                && (self.inner.spool().is_empty() || tokio::time::Instant::now() >= deadline)
+            {
+                connection.close(0u32.into(), b"edge shutting down");
+                break SessionEnd::Shutdown;
             }
             let wait_drain = async {
                 match drain_until {

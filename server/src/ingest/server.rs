@@ -176,8 +176,7 @@ impl IngestServer {
         self.endpoint
             .close(close_code::DONE.into(), b"server shutting down");
         self.endpoint.wait_idle().await;
-        let stats = *shared.stats.lock().unwrap_or_else(|e| e.into_inner());
-        stats
+        *shared.stats.lock().unwrap_or_else(|e| e.into_inner())
     }
 }
 
@@ -388,15 +387,15 @@ impl EdgeConnection {
                 t3_ns: now,
             };
             let sync = self.time_sync.entry(session_id).or_default();
-            if sync.add(exchange) {
-                if let Some(estimate) = sync.estimate() {
-                    tracing::debug!(edge = %self.edge, offset_ms = estimate.offset_ns / 1e6, rtt_ms = estimate.delay_ns / 1e6, "time sync");
-                    self.shared.emit(IngestEvent::TimeSync {
-                        edge: self.edge.clone(),
-                        session_id,
-                        estimate,
-                    });
-                }
+            if sync.add(exchange)
+                && let Some(estimate) = sync.estimate()
+            {
+                tracing::debug!(edge = %self.edge, offset_ms = estimate.offset_ns / 1e6, rtt_ms = estimate.delay_ns / 1e6, "time sync");
+                self.shared.emit(IngestEvent::TimeSync {
+                    edge: self.edge.clone(),
+                    session_id,
+                    estimate,
+                });
             }
         }
         self.current_session = Some(session_id);
