@@ -52,10 +52,10 @@ impl Client {
             };
             reader.push(&chunk.bytes);
             while let Ok(Some(frame)) = reader.next_frame() {
-                if let Body::Ack(Ack::UpTo { seq: acked }) = frame.body {
-                    if acked >= seq {
-                        return true;
-                    }
+                if let Body::Ack(Ack::UpTo { seq: acked }) = frame.body
+                    && acked >= seq
+                {
+                    return true;
                 }
             }
         }
