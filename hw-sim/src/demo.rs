@@ -1,41 +1,34 @@
-//! `scan3d-sim demo`: both emulated lidars on real ptys, read by the edge's own acquisition
-//! code (drivers, serial shell, revolution timing) on a scaled clock; the 2D scans are written
-//! as PLY and a summary is printed.
+//! `scan3d-sim demo`: the whole backbone on one machine. Both emulated lidars run on real ptys,
+//! the edge daemon reads them, and a server on loopback receives them (real QUIC, mutual TLS,
+//! certificates paired in a temporary directory). The server records the session to
+//! `DIR/session/`, and the demo writes `DIR/scans/*.ply` from what the **server** received.
+//! It prints frames, samples and samples lost, which must be 0.
 
+use std::collections::BTreeMap;
 use std::fmt::Write as _;
-use std::fs::File;
-use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::sync::mpsc::Receiver;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use scan3d_edge::acquisition::{Acquisition, AcquisitionEvent, AcquisitionSummary};
 use scan3d_edge::clock::{ScaledClock, SharedClock};
-use scan3d_edge::drivers::rplidar::{Rplidar, RplidarConfig};
-use scan3d_edge::drivers::sweep::{Sweep, SweepConfig};
-use scan3d_edge::lidar::{DeviceInfo, LidarDriver, LidarEvent};
-use scan3d_edge::serial::SerialOptions;
-use scan3d_edge::timing::{Revolution, TimingConfig};
-use scan3d_server::cloud::CloudPoint;
-use scan3d_server::cloud::ply::write_ply;
+use scan3d_edge::daemon::DaemonReport;
+use scan3d_protocol::{Body, SensorId};
+use scan3d_server::cloud::scans::ScanCollector;
+use scan3d_server::ingest::recorder::{session_dir, topic};
+use scan3d_server::ingest::server::{IngestEvent, IngestStats};
+use scan3d_server::ingest::timesync::Estimate;
 
-use crate::device::Device;
-use crate::faults::FaultConfig;
-use crate::mounts;
-use crate::pty::{PtyDevice, PtyHandle, PtyOptions};
-use crate::rplidar::{RplidarEmulator, RplidarEmulatorConfig};
-use crate::sweep::{SweepEmulator, SweepEmulatorConfig};
-use crate::world::World;
+use crate::rig::{self, Delivery, EdgeThread, LidarOptions, ServerThread, SimLidars};
 
 /// Options of `scan3d-sim demo`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct DemoArgs {
-    /// Output directory (scans/*.ply are written below it).
+    /// Output directory: `session/` (the recording) and `scans/*.ply` go below it, replacing
+    /// those of an earlier run.
     #[arg(long, default_value = "demo-out")]
     pub out: PathBuf,
-    /// Seconds of sensor data to collect per lidar, counted from when it starts streaming.
+    /// Seconds of sensor data the server must receive per lidar.
     #[arg(long, default_value_t = 20.0)]
     pub seconds: f64,
     /// Simulated seconds per real second (devices and edge clock alike).
@@ -49,169 +42,58 @@ pub struct DemoArgs {
     pub seed: u64,
 }
 
-/// One simulated lidar and the edge acquisition reading it.
-struct Lane {
-    name: &'static str,
-    pty: PtyHandle,
-    acquisition: Acquisition,
-    events: Receiver<AcquisitionEvent>,
-    info: Option<DeviceInfo>,
-    revolutions: Vec<Revolution>,
-}
-
-/// What the demo measured for one lidar.
+/// What the demo measured.
 #[derive(Debug, Clone)]
-pub struct LaneReport {
-    /// `rplidar` or `sweep`.
-    pub name: &'static str,
-    /// The device's identity as the edge read it.
-    pub info: Option<DeviceInfo>,
-    /// Full revolutions decoded.
-    pub revolutions: usize,
-    /// Samples inside those revolutions.
-    pub samples: usize,
-    /// Samples the emulator put on the wire.
-    pub samples_sent: usize,
-    /// Frames the driver rejected (checksum / consistency).
-    pub frames_rejected: u64,
-    /// Bytes skipped while resynchronising.
-    pub bytes_discarded: u64,
-    /// Samples decoded but outside full revolutions (first partial turn, turn at stop).
-    pub samples_outside_revolutions: u64,
-    /// Seconds of sensor time covered by the revolutions.
-    pub sensor_seconds: f64,
-    /// CPU time of the edge thread reading this lidar.
-    pub cpu_time: Duration,
-    /// Where the scan was written.
-    pub ply: PathBuf,
+pub struct DemoReport {
+    /// The recorded session's directory.
+    pub session_dir: PathBuf,
+    /// Frames the server recorded, per MCAP topic.
+    pub frames_per_topic: BTreeMap<String, u64>,
+    /// Per lidar: emulator → edge → recording accounting.
+    pub deliveries: Vec<Delivery>,
+    /// The edge daemon's report (CPU time, uplink counters).
+    pub edge: DaemonReport,
+    /// The server's counters.
+    pub server: IngestStats,
+    /// The last time-sync estimate.
+    pub time_sync: Option<Estimate>,
+    /// Seconds of sensor time the server received, per lidar.
+    pub sensor_seconds: BTreeMap<SensorId, f64>,
+    /// PLY files written from the server's frames.
+    pub scans: Vec<PathBuf>,
+    /// Wall time of the run.
+    pub wall: Duration,
 }
 
-impl Lane {
-    fn start(
-        name: &'static str,
-        link: PathBuf,
-        device: Box<dyn Device>,
-        driver: Box<dyn LidarDriver + Send>,
-        baud: u32,
-        clock: &SharedClock,
-        options: PtyOptions,
-    ) -> anyhow::Result<Self> {
-        let pty = PtyDevice::spawn(link.clone(), device, options)
-            .with_context(|| format!("cannot start the emulated {name}"))?;
-        let (acquisition, events) = Acquisition::spawn(
-            driver,
-            SerialOptions::new(link, baud),
-            clock.clone(),
-            TimingConfig::default(),
-        );
-        Ok(Self {
-            name,
-            pty,
-            acquisition,
-            events,
-            info: None,
-            revolutions: Vec::new(),
-        })
-    }
-
-    fn drain(&mut self) {
-        while let Ok(event) = self.events.try_recv() {
-            match event {
-                AcquisitionEvent::Driver(LidarEvent::Info(info)) => self.info = Some(info),
-                AcquisitionEvent::Revolution(rev) => self.revolutions.push(rev),
-                AcquisitionEvent::Lost(reason) => {
-                    tracing::warn!(lidar = self.name, %reason, "lost the device");
-                }
-                AcquisitionEvent::Driver(LidarEvent::Warning(text)) => {
-                    tracing::info!(lidar = self.name, "{text}")
-                }
-                AcquisitionEvent::Driver(LidarEvent::Failed(error)) => {
-                    tracing::warn!(lidar = self.name, %error, "driver gave up; restarting")
-                }
-                AcquisitionEvent::Opened | AcquisitionEvent::Driver(_) => {}
-            }
-        }
-    }
-
-    /// Seconds of sensor time covered by the revolutions received so far.
-    fn sensor_seconds(&self) -> f64 {
-        self.revolutions
+impl DemoReport {
+    /// Samples that did not make it from the emulators' wire into the recording, over the
+    /// recorded span, plus any difference between what the edge sent and what was recorded.
+    pub fn samples_lost(&self) -> u64 {
+        self.deliveries
             .iter()
-            .map(|r| r.t1_ns.saturating_sub(r.t0_ns))
-            .sum::<u64>() as f64
-            / 1e9
-    }
-
-    fn has_enough(&self, seconds: f64) -> bool {
-        self.sensor_seconds() >= seconds
-    }
-
-    fn finish(
-        self,
-        scans: &Path,
-        to_plane: fn(f32, f32) -> [f32; 3],
-    ) -> anyhow::Result<LaneReport> {
-        let sensor_seconds = self.sensor_seconds();
-        let summary: AcquisitionSummary = self
-            .acquisition
-            .stop()
-            .with_context(|| format!("{} acquisition", self.name))?;
-        let samples_sent = self.pty.sent_log().len();
-        self.pty.shutdown();
-        let points: Vec<CloudPoint> = self
-            .revolutions
-            .iter()
-            .flat_map(|rev| &rev.samples)
-            .filter(|s| s.range_m > 0.0)
-            .map(|s| CloudPoint {
-                position: to_plane(s.angle_deg, s.range_m),
-                intensity: s.quality.into(),
+            .map(|d| {
+                d.missing_in_span + d.unexplained + d.edge_samples.abs_diff(d.recorded_samples)
             })
-            .collect();
-        let ply = scans.join(format!("{}.ply", self.name));
-        let file =
-            File::create(&ply).with_context(|| format!("cannot create {}", ply.display()))?;
-        write_ply(BufWriter::new(file), &points)
-            .with_context(|| format!("cannot write {}", ply.display()))?;
-        Ok(LaneReport {
-            name: self.name,
-            info: self.info,
-            revolutions: self.revolutions.len(),
-            samples: self.revolutions.iter().map(|r| r.samples.len()).sum(),
-            samples_sent,
-            frames_rejected: summary.driver.frames_rejected,
-            bytes_discarded: summary.driver.bytes_discarded,
-            samples_outside_revolutions: summary.samples_outside_revolutions,
-            sensor_seconds,
-            cpu_time: summary.cpu_time,
-            ply,
-        })
+            .sum()
     }
 }
 
-/// Pty options of one emulated lidar: the demo's time scale and faults, its own fault seed.
-fn pty_options(args: &DemoArgs, seed_offset: u64) -> PtyOptions {
-    PtyOptions {
-        time_scale: args.time_scale,
-        faults: FaultConfig::corrupt(args.corrupt),
-        seed: args.seed.wrapping_add(seed_offset),
-    }
-}
-
-/// RPLidar angles are clockwise seen from above: the sensor-plane point is at −θ.
-fn rplidar_plane_point(angle_deg: f32, range_m: f32) -> [f32; 3] {
-    let a = -angle_deg.to_radians();
-    [range_m * a.cos(), range_m * a.sin(), 0.0]
-}
-
-/// Sweep azimuths are counter-clockwise in the sensor plane.
-fn sweep_plane_point(angle_deg: f32, range_m: f32) -> [f32; 3] {
-    let a = angle_deg.to_radians();
-    [range_m * a.cos(), range_m * a.sin(), 0.0]
-}
-
-/// Runs the demo and prints its summary on stdout.
+/// Runs the demo, prints its summary and fails if any sample was lost.
 pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
+    let report = run_demo(args)?;
+    print!("{}", summary(&report));
+    // What the server reported recording, per topic: an independent MCAP reader can check
+    // the files against it (`tests/interop/mcap_check.py --expect`).
+    let topics = args.out.join("recorded-topics.json");
+    let json = serde_json::to_string_pretty(&report.frames_per_topic)?;
+    std::fs::write(&topics, json).with_context(|| format!("cannot write {}", topics.display()))?;
+    let lost = report.samples_lost();
+    anyhow::ensure!(lost == 0 || args.corrupt > 0.0, "{lost} samples lost");
+    Ok(())
+}
+
+/// Runs the demo and returns what it measured (for tests and the CLI).
+pub fn run_demo(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     anyhow::ensure!(args.seconds > 0.0, "--seconds must be positive");
     anyhow::ensure!(
         args.time_scale > 0.0 && args.time_scale.is_finite(),
@@ -221,143 +103,202 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         (0.0..=0.1).contains(&args.corrupt),
         "--corrupt must be within 0..=0.1"
     );
-    let scans = args.out.join("scans");
-    std::fs::create_dir_all(&scans)
-        .with_context(|| format!("cannot create {}", scans.display()))?;
-    let links = std::env::temp_dir().join(format!("scan3d-demo-{}", std::process::id()));
-    std::fs::create_dir_all(&links)
-        .with_context(|| format!("cannot create {}", links.display()))?;
-
-    let world = Arc::new(World::conference_room());
-    let clock: SharedClock = Arc::new(ScaledClock::new(args.time_scale));
     let started = Instant::now();
+    let data_dir = args.out.join("session");
+    let scans_dir = args.out.join("scans");
+    for dir in [&data_dir, &scans_dir] {
+        // Each run starts afresh: an old recording would mix two runs' sessions.
+        if dir.exists() {
+            std::fs::remove_dir_all(dir)
+                .with_context(|| format!("cannot clear {}", dir.display()))?;
+        }
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    }
+    let work = std::env::temp_dir().join(format!("scan3d-demo-{}", std::process::id()));
+    let result = run_in(args, &work, &data_dir, &scans_dir, started);
+    let _ = std::fs::remove_dir_all(&work);
+    result
+}
+
+fn run_in(
+    args: &DemoArgs,
+    work: &Path,
+    data_dir: &Path,
+    scans_dir: &Path,
+    started: Instant,
+) -> anyhow::Result<DemoReport> {
     println!(
-        "scan3d demo: conference room 8 x 6 x 3 m, RPLidar A1 (express) + Scanse Sweep on ptys, time x{}",
+        "scan3d demo: conference room 8 x 6 x 3 m; RPLidar A1 (express) + Scanse Sweep on ptys -> edge daemon -> QUIC (mutual TLS) -> server; time x{}",
         args.time_scale
     );
+    let pki = work.join("pki");
+    let bundle = rig::pair_certificates(&pki)?;
+    let mut server = ServerThread::start(rig::ingest_config(&pki, data_dir, 0))?;
+    let options = LidarOptions {
+        time_scale: args.time_scale,
+        corrupt: args.corrupt,
+        seed: args.seed,
+        sweep_settle_ms: 6000,
+    };
+    let lidars = SimLidars::start(&work.join("links"), &options)?;
+    let clock: SharedClock = Arc::new(ScaledClock::new(args.time_scale));
+    let config = lidars.edge_config(
+        &work.join("edge-state"),
+        Some(rig::uplink_section(server.addr(), &bundle)),
+    );
+    let session_id = rand::random::<u64>();
+    let edge = EdgeThread::start(config, clock.clone(), session_id)?;
 
-    let rplidar_cfg = RplidarEmulatorConfig::default();
-    let mut lanes = vec![
-        Lane::start(
-            "rplidar",
-            links.join("rplidar"),
-            Box::new(RplidarEmulator::new(
-                rplidar_cfg.clone(),
-                RplidarEmulator::default_scanner(world.clone(), mounts::rplidar()),
-                args.seed,
-            )),
-            Box::new(Rplidar::new(RplidarConfig {
-                baud: rplidar_cfg.baud,
-                ..RplidarConfig::default()
-            })),
-            rplidar_cfg.baud,
-            &clock,
-            pty_options(args, 100),
-        )?,
-        Lane::start(
-            "sweep",
-            links.join("sweep"),
-            Box::new(SweepEmulator::new(
-                SweepEmulatorConfig::default(),
-                SweepEmulator::default_scanner(world.clone(), mounts::sweep()),
-                args.seed.wrapping_add(1),
-            )),
-            Box::new(Sweep::new(SweepConfig::default())?),
-            115_200,
-            &clock,
-            pty_options(args, 101),
-        )?,
-    ];
-
-    // Generous deadline: handshakes, the Sweep's motor settling (6 s) and the data itself.
-    let deadline_ns = clock.now_ns() + ((args.seconds + 30.0) * 1e9) as u64;
-    loop {
-        for lane in &mut lanes {
-            lane.drain();
-        }
-        if lanes.iter().all(|lane| lane.has_enough(args.seconds)) {
-            break;
-        }
+    let mut received = Received::default();
+    let deadline_ns = clock.now_ns() + ((args.seconds + 40.0) * 1e9) as u64;
+    while !received.has_seconds(args.seconds) {
         if clock.now_ns() > deadline_ns {
-            let waiting: Vec<_> = lanes
-                .iter()
-                .filter(|l| !l.has_enough(args.seconds))
-                .map(|l| l.name)
-                .collect();
-            anyhow::bail!("timed out waiting for data from {}", waiting.join(" and "));
+            anyhow::bail!(
+                "timed out: the server received {:.1} s of rplidar and {:.1} s of sweep data",
+                received.seconds(SensorId::RPLIDAR),
+                received.seconds(SensorId::SWEEP)
+            );
         }
+        received.drain(&mut server);
         std::thread::sleep(Duration::from_millis(10));
     }
+    // The edge stops its lidars, then drains its spool until the server has acknowledged all.
+    // Frames are reported when recorded, before they are acknowledged: once the edge has
+    // stopped (everything acknowledged), every frame's event is already queued.
+    let edge_report = edge.stop()?;
+    received.drain(&mut server);
+    let server_stats = server.stop();
+    let session = session_dir(data_dir, rig::EDGE_NAME, session_id);
+    let deliveries = rig::account(&session, &lidars, Some(&edge_report))?;
+    lidars.shutdown();
+    let scans = received
+        .scans
+        .write_ply_files(scans_dir)
+        .context("cannot write the scans")?;
+    let sensor_seconds = [SensorId::RPLIDAR, SensorId::SWEEP]
+        .map(|s| (s, received.seconds(s)))
+        .into();
+    Ok(DemoReport {
+        sensor_seconds,
+        session_dir: session,
+        frames_per_topic: received.frames_per_topic,
+        deliveries,
+        edge: edge_report,
+        server: server_stats,
+        time_sync: received.time_sync,
+        scans,
+        wall: started.elapsed(),
+    })
+}
 
-    let mut reports = Vec::new();
-    let mut lanes = lanes.into_iter();
-    if let Some(lane) = lanes.next() {
-        reports.push(lane.finish(&scans, rplidar_plane_point)?);
+/// What the server reported while the demo ran.
+#[derive(Default)]
+struct Received {
+    scans: ScanCollector,
+    frames_per_topic: BTreeMap<String, u64>,
+    sensor_ns: BTreeMap<SensorId, u64>,
+    time_sync: Option<Estimate>,
+}
+
+impl Received {
+    fn drain(&mut self, server: &mut ServerThread) {
+        while let Ok(event) = server.events.try_recv() {
+            match event {
+                IngestEvent::Frame { frame, .. } => {
+                    *self.frames_per_topic.entry(topic(&frame.body)).or_default() += 1;
+                    if let Body::Revolution(rev) = &frame.body {
+                        *self.sensor_ns.entry(rev.sensor).or_default() +=
+                            rev.t1_ns.saturating_sub(rev.t0_ns);
+                    }
+                    self.scans.on_frame(&frame);
+                }
+                IngestEvent::TimeSync { estimate, .. } => self.time_sync = Some(estimate),
+                IngestEvent::Connected { .. } | IngestEvent::Disconnected { .. } => {}
+            }
+        }
     }
-    if let Some(lane) = lanes.next() {
-        reports.push(lane.finish(&scans, sweep_plane_point)?);
+
+    fn seconds(&self, sensor: SensorId) -> f64 {
+        self.sensor_ns.get(&sensor).copied().unwrap_or(0) as f64 / 1e9
     }
-    let _ = std::fs::remove_dir(&links);
-    print!("{}", summary(&reports, started.elapsed()));
-    Ok(())
+
+    fn has_seconds(&self, seconds: f64) -> bool {
+        [SensorId::RPLIDAR, SensorId::SWEEP]
+            .iter()
+            .all(|&s| self.seconds(s) >= seconds)
+    }
 }
 
 /// The human-readable summary printed at the end of the demo.
-fn summary(reports: &[LaneReport], wall: Duration) -> String {
+pub fn summary(report: &DemoReport) -> String {
     let mut s = String::new();
+    let frames: u64 = report.frames_per_topic.values().sum();
     let _ = writeln!(
         s,
-        "{:<8} {:<22} {:>6} {:>8} {:>8} {:>9} {:>9} {:>9}",
-        "lidar", "device", "revs", "samples", "sent", "rejected", "discard B", "edge CPU"
+        "server recorded {frames} frames ({} duplicates ignored) in {}",
+        report.server.duplicates,
+        report.session_dir.display()
     );
-    // Sum of each lidar's CPU share: the cost of both streaming at full rate at once.
-    let mut core_share = 0.0;
-    for r in reports {
-        let device = r
-            .info
-            .as_ref()
-            .map(|i| format!("{} fw {} hw {}", i.model, i.firmware, i.hardware))
-            .unwrap_or_else(|| "?".into());
-        let cpu_share = if r.sensor_seconds > 0.0 {
-            format!(
-                "{:.2}%",
-                r.cpu_time.as_secs_f64() * 100.0 / r.sensor_seconds
-            )
-        } else {
-            "-".into()
-        };
-        let _ = writeln!(
-            s,
-            "{:<8} {:<22} {:>6} {:>8} {:>8} {:>9} {:>9} {:>9}",
-            r.name,
-            device,
-            r.revolutions,
-            r.samples,
-            r.samples_sent,
-            r.frames_rejected,
-            r.bytes_discarded,
-            cpu_share
-        );
-        if r.sensor_seconds > 0.0 {
-            core_share += r.cpu_time.as_secs_f64() / r.sensor_seconds;
-        }
-    }
-    for r in reports {
-        let _ = writeln!(
-            s,
-            "{}: {:.1} s of scans, {} samples outside full revolutions (first partial turn, turn at stop); wrote {}",
-            r.name,
-            r.sensor_seconds,
-            r.samples_outside_revolutions,
-            r.ply.display()
-        );
+    for (topic, count) in &report.frames_per_topic {
+        let _ = writeln!(s, "  {topic:<24} {count:>6}");
     }
     let _ = writeln!(
         s,
-        "edge CPU for both lidars at full rate: {:.2} % of one core ({:.1} ms per second of sensor time); wall time {:.1} s",
+        "{:<8} {:>6} {:>14} {:>12} {:>12} {:>6} {:>9}",
+        "lidar", "revs", "sent (span)", "edge sent", "recorded", "lost", "edge CPU"
+    );
+    let mut core_share = 0.0;
+    for d in &report.deliveries {
+        let lidar = report
+            .edge
+            .lidars
+            .get(&d.sensor)
+            .copied()
+            .unwrap_or_default();
+        let seconds = report.sensor_seconds.get(&d.sensor).copied().unwrap_or(0.0);
+        let share = if seconds > 0.0 {
+            lidar.acquisition.cpu_time.as_secs_f64() / seconds
+        } else {
+            0.0
+        };
+        core_share += share;
+        let lost = d.missing_in_span + d.unexplained + d.edge_samples.abs_diff(d.recorded_samples);
+        let _ = writeln!(
+            s,
+            "{:<8} {:>6} {:>14} {:>12} {:>12} {:>6} {:>8.2}%",
+            d.sensor.to_string(),
+            d.revolutions,
+            d.sent_in_span,
+            d.edge_samples,
+            d.recorded_samples,
+            lost,
+            share * 100.0
+        );
+    }
+    let _ = writeln!(s, "samples lost: {} (must be 0)", report.samples_lost());
+    if let Some(sync) = &report.time_sync {
+        let _ = writeln!(
+            s,
+            "time sync: edge clock - server clock = {:.3} s, round trip {:.3} ms",
+            sync.offset_ns / 1e9,
+            sync.delay_ns / 1e6
+        );
+    }
+    if let Some(uplink) = &report.edge.uplink {
+        let _ = writeln!(
+            s,
+            "uplink: {} frames submitted, {} sent, {} acks, {} connection(s)",
+            uplink.submitted, uplink.frames_sent, uplink.acks, uplink.connections
+        );
+    }
+    for path in &report.scans {
+        let _ = writeln!(s, "wrote {}", path.display());
+    }
+    let _ = writeln!(
+        s,
+        "edge CPU for both lidars at full rate: {:.2} % of one core (acquisition threads); wall time {:.1} s",
         core_share * 100.0,
-        core_share * 1e3,
-        wall.as_secs_f64()
+        report.wall.as_secs_f64()
     );
     s
 }
