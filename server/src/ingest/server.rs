@@ -294,7 +294,13 @@ impl EdgeConnection {
                         }
                     }
                     Ok(None) => Some("the edge finished its stream".to_owned()),
-                    Err(e) => Some(format!("connection lost: {e}")),
+                    Err(e) => Some(match connection.close_reason() {
+                        Some(quinn::ConnectionError::ApplicationClosed(close)) => format!(
+                            "the edge closed the connection: {}",
+                            String::from_utf8_lossy(&close.reason)
+                        ),
+                        _ => format!("connection lost: {e}"),
+                    }),
                 },
                 _ = commit_tick.tick() => match self.commit(&mut outgoing) {
                     Ok(()) => None,
