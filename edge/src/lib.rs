@@ -16,6 +16,7 @@ pub mod config;
 pub mod daemon;
 pub mod drivers;
 pub mod lidar;
+pub mod madgwick;
 pub mod probe;
 pub mod serial;
 pub mod timing;

@@ -15,11 +15,13 @@
 pub mod demo;
 pub mod device;
 pub mod faults;
+pub mod imu;
 pub mod mounts;
 pub mod noise;
 pub mod pair;
 pub mod pty;
 pub mod rig;
 pub mod rplidar;
+pub mod stepper;
 pub mod sweep;
 pub mod world;

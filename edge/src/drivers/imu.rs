@@ -1,0 +1,1 @@
+//! MPU-9250 + AK8963 IMU driver (being written).

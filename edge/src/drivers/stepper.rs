@@ -1,0 +1,1 @@
+//! PCA9685 stepper HAT driver (being written).

@@ -1,0 +1,1 @@
+//! Madgwick orientation filter (being written).

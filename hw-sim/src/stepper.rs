@@ -1,0 +1,1 @@
+//! Register-level PCA9685 motor HAT emulator (being written).
