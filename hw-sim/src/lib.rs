@@ -4,6 +4,7 @@
 //! - [`noise`]: per-sensor range noise models.
 //! - [`device`]: the sans-I/O emulator contract (host bytes in, paced wire units out).
 //! - [`rplidar`], [`sweep`]: the two lidar emulators speaking the real wire protocols.
+//! - [`i2c`]: a simulated I2C bus dispatching to register-level chip emulators.
 //! - [`faults`]: stray bytes, bit flips and dropped bytes, with a log of what was really sent.
 //! - [`mounts`]: where the emulated sensors sit in the room.
 //! - [`pair`]: a driver wired straight to an emulator in memory (deterministic tests, benches).
@@ -15,6 +16,7 @@
 pub mod demo;
 pub mod device;
 pub mod faults;
+pub mod i2c;
 pub mod imu;
 pub mod mounts;
 pub mod noise;
