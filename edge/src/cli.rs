@@ -188,7 +188,7 @@ fn run_daemon(config_path: &std::path::Path) -> anyhow::Result<()> {
     runtime.block_on(async {
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
         tokio::spawn(async move {
-            wait_for_termination().await;
+            scan3d_service::daemon::wait_for_termination().await;
             let _ = stop_tx.send(true);
         });
         let clock: Arc<dyn Clock> = Arc::new(MonotonicClock::new());
@@ -203,24 +203,4 @@ fn run_daemon(config_path: &std::path::Path) -> anyhow::Result<()> {
         }
         Ok(())
     })
-}
-
-/// Resolves on SIGTERM (systemd stop) or SIGINT (Ctrl-C).
-pub async fn wait_for_termination() {
-    use tokio::signal::unix::{SignalKind, signal};
-    match (
-        signal(SignalKind::terminate()),
-        signal(SignalKind::interrupt()),
-    ) {
-        (Ok(mut term), Ok(mut int)) => {
-            tokio::select! {
-                _ = term.recv() => tracing::info!("SIGTERM: shutting down"),
-                _ = int.recv() => tracing::info!("SIGINT: shutting down"),
-            }
-        }
-        _ => {
-            tracing::error!("cannot install signal handlers; stop with SIGKILL only");
-            std::future::pending::<()>().await;
-        }
-    }
 }

@@ -20,6 +20,7 @@ use std::time::Duration;
 use scan3d_protocol::{
     Body, DeviceStatus, Hello, LidarRevolution, SensorId, SensorInfo, StatusEvent,
 };
+use scan3d_service::daemon::{self, NotifyState};
 use tokio::sync::watch;
 
 use crate::acquisition::{Acquisition, AcquisitionEvent, AcquisitionSummary};
@@ -163,8 +164,8 @@ pub async fn run(
             spawn_worker(SensorId::SWEEP, make, serial, context.clone())?,
         ));
     }
-    notify_systemd(&[sd_notify::NotifyState::Ready]);
-    let watchdog = tokio::spawn(watchdog_pings());
+    daemon::notify(&[NotifyState::Ready]);
+    let watchdog = tokio::spawn(daemon::watchdog());
 
     while !*shutdown.borrow() {
         if shutdown.changed().await.is_err() {
@@ -172,7 +173,7 @@ pub async fn run(
         }
     }
     tracing::info!("stopping: lidars first, then the uplink drains");
-    notify_systemd(&[sd_notify::NotifyState::Stopping]);
+    daemon::notify(&[NotifyState::Stopping]);
     context.stop.store(true, Ordering::Relaxed);
     let mut report = DaemonReport {
         session_id,
@@ -359,22 +360,4 @@ pub fn revolution_frame(sensor: SensorId, rev: &Revolution) -> LidarRevolution {
         }
     }
     frame
-}
-
-fn notify_systemd(state: &[sd_notify::NotifyState]) {
-    if let Err(e) = sd_notify::notify(state) {
-        tracing::debug!(error = %e, "sd_notify failed (not under systemd?)");
-    }
-}
-
-/// Pets systemd's watchdog at half its period while the runtime is alive.
-async fn watchdog_pings() {
-    let Some(period) = sd_notify::watchdog_enabled() else {
-        return;
-    };
-    let mut tick = tokio::time::interval(period / 2);
-    loop {
-        tick.tick().await;
-        notify_systemd(&[sd_notify::NotifyState::Watchdog]);
-    }
 }

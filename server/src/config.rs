@@ -69,53 +69,17 @@ fn positive_usize<'de, D: Deserializer<'de>>(deserializer: D) -> Result<usize, D
     Ok(value)
 }
 
-/// Why a configuration could not be used.
-#[derive(Debug, thiserror::Error)]
-pub enum ConfigError {
-    /// The file could not be read.
-    #[error("cannot read {path}: {source}")]
-    Read {
-        /// The file.
-        path: PathBuf,
-        /// The I/O error.
-        source: std::io::Error,
-    },
-    /// The TOML is malformed or has unknown / mistyped / out-of-range keys.
-    #[error("{path}: {message}")]
-    Parse {
-        /// The file.
-        path: PathBuf,
-        /// The parser's message, with line.
-        message: String,
-    },
-}
+pub use scan3d_service::config::ConfigError;
 
 impl ServerConfig {
     /// Parses a configuration from TOML text; `origin` names it in errors.
     pub fn from_toml_str(text: &str, origin: &Path) -> Result<Self, ConfigError> {
-        toml::from_str(text).map_err(|e| {
-            let message = match e.span() {
-                Some(span) => {
-                    let before = text.get(..span.start).unwrap_or_default();
-                    let line = before.bytes().filter(|&b| b == b'\n').count() + 1;
-                    format!("line {line}: {}", e.message())
-                }
-                None => e.message().to_string(),
-            };
-            ConfigError::Parse {
-                path: origin.to_path_buf(),
-                message,
-            }
-        })
+        scan3d_service::config::parse_toml(text, origin)
     }
 
     /// Reads and parses the configuration file at `path`.
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-            path: path.to_path_buf(),
-            source,
-        })?;
-        Self::from_toml_str(&text, path)
+        scan3d_service::config::load_toml(path)
     }
 
     /// [`commit_interval_ms`](Self::commit_interval_ms) as a [`Duration`].

@@ -6,13 +6,7 @@ use clap::Parser;
 use scan3d_server::cli::{Cli, execute};
 
 fn main() -> ExitCode {
-    tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
-        .init();
+    scan3d_service::daemon::init_logging("info");
     let cli = Cli::parse();
     let mut stdout = std::io::stdout().lock();
     match execute(cli, &mut stdout) {

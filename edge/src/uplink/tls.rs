@@ -10,12 +10,10 @@
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::time::Duration;
 
 use quinn::crypto::rustls::{NoInitialCipherSuite, QuicClientConfig};
 use rustls::RootCertStore;
-use rustls::pki_types::pem::PemObject;
-use rustls::pki_types::{CertificateDer, PrivateKeyDer};
+use scan3d_service::link::{PemError, read_certs, read_key, transport_config};
 
 /// The edge certificate in a bundle.
 pub const BUNDLE_CERT: &str = "edge.pem";
@@ -24,31 +22,16 @@ pub const BUNDLE_KEY: &str = "edge.key";
 /// The pairing CA certificate in a bundle.
 pub const BUNDLE_CA: &str = "ca.pem";
 
-/// How often an idle connection sends a keep-alive (well below [`IDLE_TIMEOUT`]).
-pub const KEEP_ALIVE_INTERVAL: Duration = Duration::from_secs(2);
-/// A connection silent for this long is considered dead, and the uplink reconnects.
-pub const IDLE_TIMEOUT: Duration = Duration::from_millis(IDLE_TIMEOUT_MS as u64);
-const IDLE_TIMEOUT_MS: u32 = 10_000;
+pub use scan3d_service::link::{IDLE_TIMEOUT, KEEP_ALIVE_INTERVAL};
 
 const PAIR_HINT: &str = "run `scan3d pair --dir DIR --edge NAME` on the server machine and copy DIR/edges/NAME to the Pi";
 
 /// Why the edge bundle could not be turned into a client configuration.
 #[derive(Debug, thiserror::Error)]
 pub enum TlsError {
-    /// A bundle file is missing or not PEM.
-    #[error("{}: {source}; {PAIR_HINT}", path.display())]
-    Pem {
-        /// The file.
-        path: PathBuf,
-        /// The PEM/IO error.
-        source: rustls::pki_types::pem::Error,
-    },
-    /// A certificate file holds no certificate.
-    #[error("{}: no certificate in the file; {PAIR_HINT}", path.display())]
-    NoCertificate {
-        /// The file.
-        path: PathBuf,
-    },
+    /// A bundle file is missing, unreadable, not PEM, or holds no certificate.
+    #[error("{0}; {PAIR_HINT}")]
+    Pem(#[from] PemError),
     /// The CA certificate is not acceptable as a trust anchor.
     #[error("{}: not usable as the server CA: {source}; {PAIR_HINT}", path.display())]
     BadCa {
@@ -94,10 +77,7 @@ pub fn client_config(bundle_dir: &Path) -> Result<quinn::ClientConfig, TlsError>
         })?;
     }
     let chain = read_certs(&cert_path)?;
-    let key = PrivateKeyDer::from_pem_file(&key_path).map_err(|source| TlsError::Pem {
-        path: key_path.clone(),
-        source,
-    })?;
+    let key = read_key(&key_path)?;
     let provider = Arc::new(rustls::crypto::ring::default_provider());
     let mut tls = rustls::ClientConfig::builder_with_provider(provider)
         .with_protocol_versions(&[&rustls::version::TLS13])
@@ -111,31 +91,8 @@ pub fn client_config(bundle_dir: &Path) -> Result<quinn::ClientConfig, TlsError>
         })?;
     tls.alpn_protocols = vec![scan3d_protocol::ALPN.to_vec()];
     let mut config = quinn::ClientConfig::new(Arc::new(QuicClientConfig::try_from(tls)?));
-    let mut transport = quinn::TransportConfig::default();
-    transport
-        .keep_alive_interval(Some(KEEP_ALIVE_INTERVAL))
-        .max_idle_timeout(Some(quinn::IdleTimeout::from(quinn::VarInt::from_u32(
-            IDLE_TIMEOUT_MS,
-        ))));
-    config.transport_config(Arc::new(transport));
+    config.transport_config(Arc::new(transport_config()));
     Ok(config)
-}
-
-fn read_certs(path: &Path) -> Result<Vec<CertificateDer<'static>>, TlsError> {
-    let pem_err = |source| TlsError::Pem {
-        path: path.to_path_buf(),
-        source,
-    };
-    let certs = CertificateDer::pem_file_iter(path)
-        .map_err(pem_err)?
-        .collect::<Result<Vec<_>, _>>()
-        .map_err(pem_err)?;
-    if certs.is_empty() {
-        return Err(TlsError::NoCertificate {
-            path: path.to_path_buf(),
-        });
-    }
-    Ok(certs)
 }
 
 #[cfg(test)]
@@ -147,7 +104,8 @@ mod tests {
         BasicConstraints, CertificateParams, DnType, ExtendedKeyUsagePurpose, IsCa, Issuer,
         KeyPair, KeyUsagePurpose,
     };
-    use rustls::pki_types::PrivatePkcs8KeyDer;
+    use rustls::pki_types::pem::PemObject;
+    use rustls::pki_types::{CertificateDer, PrivateKeyDer, PrivatePkcs8KeyDer};
 
     use super::*;
 
@@ -325,7 +283,7 @@ mod tests {
             std::fs::remove_file(&path).unwrap();
             let err = client_config(bundle.path()).unwrap_err();
             assert!(
-                matches!(&err, TlsError::Pem { path: p, .. } if *p == path),
+                matches!(&err, TlsError::Pem(e) if e.path() == path),
                 "{err}"
             );
             let msg = err.to_string();
@@ -354,6 +312,9 @@ mod tests {
         let bundle = write_bundle(&pki);
         std::fs::write(bundle.path().join(BUNDLE_CA), "").unwrap();
         let err = client_config(bundle.path()).unwrap_err();
-        assert!(matches!(err, TlsError::NoCertificate { .. }), "{err}");
+        assert!(
+            matches!(err, TlsError::Pem(PemError::NoCertificate { .. })),
+            "{err}"
+        );
     }
 }

@@ -3,6 +3,8 @@
 
 use std::path::{Path, PathBuf};
 
+use scan3d_service::daemon::{self, NotifyState};
+
 use crate::config::ServerConfig;
 use crate::ingest::server::{IngestConfig, IngestServer};
 
@@ -40,12 +42,12 @@ fn serve(config_path: &Path) -> anyhow::Result<()> {
     runtime.block_on(async {
         let server = IngestServer::bind(IngestConfig::from(&config))?;
         tracing::info!(listen = %server.local_addr()?, data_dir = %config.data_dir.display(), "scan3d server ready");
-        notify_systemd(&[sd_notify::NotifyState::Ready]);
-        let watchdog = tokio::spawn(watchdog_pings());
+        daemon::notify(&[NotifyState::Ready]);
+        let watchdog = tokio::spawn(daemon::watchdog());
         let stats = server
             .run(None, async {
-                wait_for_termination().await;
-                notify_systemd(&[sd_notify::NotifyState::Stopping]);
+                daemon::wait_for_termination().await;
+                daemon::notify(&[NotifyState::Stopping]);
             })
             .await;
         watchdog.abort();
@@ -59,42 +61,4 @@ fn serve(config_path: &Path) -> anyhow::Result<()> {
         );
         Ok(())
     })
-}
-
-/// Resolves on SIGTERM (systemd stop) or SIGINT (Ctrl-C).
-async fn wait_for_termination() {
-    use tokio::signal::unix::{SignalKind, signal};
-    match (
-        signal(SignalKind::terminate()),
-        signal(SignalKind::interrupt()),
-    ) {
-        (Ok(mut term), Ok(mut int)) => {
-            tokio::select! {
-                _ = term.recv() => tracing::info!("SIGTERM: shutting down"),
-                _ = int.recv() => tracing::info!("SIGINT: shutting down"),
-            }
-        }
-        _ => {
-            tracing::error!("cannot install signal handlers; stop with SIGKILL only");
-            std::future::pending::<()>().await;
-        }
-    }
-}
-
-fn notify_systemd(state: &[sd_notify::NotifyState]) {
-    if let Err(e) = sd_notify::notify(state) {
-        tracing::debug!(error = %e, "sd_notify failed (not under systemd?)");
-    }
-}
-
-/// Pets systemd's watchdog at half its period while the runtime is alive.
-async fn watchdog_pings() {
-    let Some(period) = sd_notify::watchdog_enabled() else {
-        return;
-    };
-    let mut tick = tokio::time::interval(period / 2);
-    loop {
-        tick.tick().await;
-        notify_systemd(&[sd_notify::NotifyState::Watchdog]);
-    }
 }

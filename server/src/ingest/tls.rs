@@ -7,46 +7,27 @@
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::time::Duration;
 
 use quinn::crypto::rustls::{NoInitialCipherSuite, QuicServerConfig};
 use rustls::RootCertStore;
 use rustls::crypto::CryptoProvider;
-use rustls::pki_types::pem::PemObject;
-use rustls::pki_types::{CertificateDer, PrivateKeyDer};
+use rustls::pki_types::CertificateDer;
 use rustls::server::WebPkiClientVerifier;
 use rustls::server::danger::ClientCertVerifier;
+use scan3d_service::link::{PemError, read_certs, read_key};
 
 use super::pki::{self, Layout};
 
-/// How often an idle connection sends a keep-alive (well below [`IDLE_TIMEOUT`]).
-pub const KEEP_ALIVE_INTERVAL: Duration = Duration::from_secs(2);
-/// A connection silent for this long is considered dead (the edge then reconnects).
-pub const IDLE_TIMEOUT: Duration = Duration::from_millis(IDLE_TIMEOUT_MS as u64);
-const IDLE_TIMEOUT_MS: u32 = 10_000;
-/// Per-stream receive window: 2 MiB, two seconds of a ~1 MB/s edge, so a stream is not
-/// throttled by flow control even at a few hundred ms of round trip.
-pub const STREAM_RECEIVE_WINDOW: u32 = 2 * 1024 * 1024;
-/// Connection-wide receive window: 8 MiB, room for several busy streams.
-pub const RECEIVE_WINDOW: u32 = 8 * 1024 * 1024;
+pub use scan3d_service::link::{
+    IDLE_TIMEOUT, KEEP_ALIVE_INTERVAL, RECEIVE_WINDOW, STREAM_RECEIVE_WINDOW, transport_config,
+};
 
 /// Why the TLS configuration could not be built, or a peer could not be identified.
 #[derive(Debug, thiserror::Error)]
 pub enum TlsError {
-    /// A PEM file is missing or unreadable.
-    #[error("{}: {source}; create the PKI with `scan3d pair --dir DIR --edge NAME`", path.display())]
-    Pem {
-        /// The file.
-        path: PathBuf,
-        /// The PEM/IO error.
-        source: rustls::pki_types::pem::Error,
-    },
-    /// A certificate file holds no certificate.
-    #[error("{}: no certificate in the file", path.display())]
-    NoCertificate {
-        /// The file.
-        path: PathBuf,
-    },
+    /// A PEM file is missing, unreadable, not PEM, or holds no certificate.
+    #[error("{0}; create the PKI with `scan3d pair --dir DIR --edge NAME`")]
+    Pem(#[from] PemError),
     /// The CA certificate is not acceptable as a trust anchor.
     #[error("{}: not usable as the client CA: {source}", path.display())]
     BadCa {
@@ -117,20 +98,6 @@ pub fn server_config(pki_dir: &Path) -> Result<quinn::ServerConfig, TlsError> {
     Ok(config)
 }
 
-/// Transport parameters of the uplink: keep-alive [`KEEP_ALIVE_INTERVAL`], idle timeout
-/// [`IDLE_TIMEOUT`], receive windows sized for ~1 MB/s per edge.
-pub fn transport_config() -> quinn::TransportConfig {
-    let mut transport = quinn::TransportConfig::default();
-    transport
-        .keep_alive_interval(Some(KEEP_ALIVE_INTERVAL))
-        .max_idle_timeout(Some(quinn::IdleTimeout::from(quinn::VarInt::from_u32(
-            IDLE_TIMEOUT_MS,
-        ))))
-        .stream_receive_window(quinn::VarInt::from_u32(STREAM_RECEIVE_WINDOW))
-        .receive_window(quinn::VarInt::from_u32(RECEIVE_WINDOW));
-    transport
-}
-
 /// The identity of the edge at the other end: the CN of its client certificate, which the
 /// handshake has verified against the pairing CA. The CN must also be a valid edge name
 /// ([`pki::validate_edge_name`]) since it names directories on the server.
@@ -177,32 +144,10 @@ fn client_verifier(
         })
 }
 
-fn read_certs(path: &Path) -> Result<Vec<CertificateDer<'static>>, TlsError> {
-    let pem_err = |source| TlsError::Pem {
-        path: path.to_path_buf(),
-        source,
-    };
-    let certs = CertificateDer::pem_file_iter(path)
-        .map_err(pem_err)?
-        .collect::<Result<Vec<_>, _>>()
-        .map_err(pem_err)?;
-    if certs.is_empty() {
-        return Err(TlsError::NoCertificate {
-            path: path.to_path_buf(),
-        });
-    }
-    Ok(certs)
-}
-
-fn read_key(path: &Path) -> Result<PrivateKeyDer<'static>, TlsError> {
-    PrivateKeyDer::from_pem_file(path).map_err(|source| TlsError::Pem {
-        path: path.to_path_buf(),
-        source,
-    })
-}
-
 #[cfg(test)]
 mod tests {
+    use rustls::pki_types::pem::PemObject;
+
     use super::*;
     use crate::ingest::pki::{PairRequest, pair};
 
