@@ -1,1 +1,0 @@
-//! PCA9685 stepper HAT driver (being written).
