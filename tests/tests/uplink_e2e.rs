@@ -1,10 +1,13 @@
 //! Edge → QUIC → server end to end: emulated lidars on ptys, the edge daemon, the ingest server,
 //! and the MCAP recording, checked sample by sample against what the emulators sent.
 
+use std::net::SocketAddr;
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use scan3d_edge::clock::{ScaledClock, SharedClock};
+use scan3d_edge::config::UplinkSection;
 use scan3d_hw_sim::rig::{
     self, Delivery, EdgeThread, LidarOptions, ServerThread, SimLidars, account,
 };
@@ -55,47 +58,82 @@ fn assert_exactly_once(deliveries: &[Delivery]) {
     }
 }
 
+/// A temporary installation: a directory with paired certificates, recordings and edge state.
+struct Site {
+    dir: tempfile::TempDir,
+    bundle: PathBuf,
+}
+
+impl Site {
+    fn new() -> Self {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let bundle = rig::pair_certificates(&dir.path().join("pki")).expect("pairing");
+        Self { dir, bundle }
+    }
+
+    fn path(&self, name: &str) -> PathBuf {
+        self.dir.path().join(name)
+    }
+
+    /// The in-process server on loopback `port` (0 = any).
+    fn server(&self, port: u16) -> ServerThread {
+        ServerThread::start(rig::ingest_config(
+            &self.path("pki"),
+            &self.path("data"),
+            port,
+        ))
+        .expect("server")
+    }
+
+    fn lidars(&self, options: &LidarOptions) -> SimLidars {
+        SimLidars::start(&self.path("links"), options).expect("lidars")
+    }
+
+    /// Starts the edge daemon streaming to `server`; returns it and its session id.
+    fn edge(
+        &self,
+        lidars: &SimLidars,
+        server: SocketAddr,
+        clock: SharedClock,
+        tune: impl FnOnce(&mut UplinkSection),
+    ) -> (EdgeThread, u64) {
+        let mut uplink = rig::uplink_section(server, &self.bundle);
+        tune(&mut uplink);
+        let config = lidars.edge_config(&self.path("edge-state"), Some(uplink));
+        let session_id = rand::random::<u64>();
+        (
+            EdgeThread::start(config, clock, session_id).expect("edge"),
+            session_id,
+        )
+    }
+
+    fn session(&self, session_id: u64) -> PathBuf {
+        session_dir(&self.path("data"), rig::EDGE_NAME, session_id)
+    }
+}
+
 #[test]
 fn a_clean_run_records_every_sample_exactly_once() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let bundle = rig::pair_certificates(&dir.path().join("pki")).expect("pairing");
-    let server = ServerThread::start(rig::ingest_config(
-        &dir.path().join("pki"),
-        &dir.path().join("data"),
-        0,
-    ))
-    .expect("server");
-    let lidars = SimLidars::start(&dir.path().join("links"), &lidar_options()).expect("lidars");
-    let uplink = rig::uplink_section(server.addr(), &bundle);
-    let config = lidars.edge_config(&dir.path().join("edge-state"), Some(uplink));
-    let session_id = rand::random::<u64>();
-    let edge = EdgeThread::start(config, clock(), session_id).expect("edge");
+    let site = Site::new();
+    let server = site.server(0);
+    let lidars = site.lidars(&lidar_options());
+    let (edge, session_id) = site.edge(&lidars, server.addr(), clock(), |_| {});
     std::thread::sleep(Duration::from_secs(2));
     let report = edge.stop().expect("edge report");
     let stats = server.stop();
     let uplink = report.uplink.clone().expect("uplink stats");
     assert_eq!(uplink.auth_failures, 0);
     assert_eq!(stats.duplicates, 0, "{stats:?}");
-    let deliveries = account(
-        &session_dir(&dir.path().join("data"), rig::EDGE_NAME, session_id),
-        &lidars,
-        Some(&report),
-    )
-    .expect("recording readable");
+    let deliveries =
+        account(&site.session(session_id), &lidars, Some(&report)).expect("recording readable");
     assert_exactly_once(&deliveries);
     lidars.shutdown();
 }
 
 #[test]
 fn a_thirty_second_network_cut_loses_nothing() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let bundle = rig::pair_certificates(&dir.path().join("pki")).expect("pairing");
-    let server = ServerThread::start(rig::ingest_config(
-        &dir.path().join("pki"),
-        &dir.path().join("data"),
-        0,
-    ))
-    .expect("server");
+    let site = Site::new();
+    let server = site.server(0);
     let relay = scan3d_tests::relay::UdpRelay::start(server.addr()).expect("relay");
     // Real time for the network (QUIC timers), scaled time for the sensors: 30 s of cut is
     // 300 s of sensor data at x10, so run the sensors at real speed here.
@@ -104,14 +142,9 @@ fn a_thirty_second_network_cut_loses_nothing() {
         sweep_settle_ms: 500,
         ..Default::default()
     };
-    let lidars = SimLidars::start(&dir.path().join("links"), &options).expect("lidars");
-    let config = lidars.edge_config(
-        &dir.path().join("edge-state"),
-        Some(rig::uplink_section(relay.local_addr(), &bundle)),
-    );
-    let session_id = rand::random::<u64>();
-    let clock: SharedClock = Arc::new(ScaledClock::new(1.0));
-    let edge = EdgeThread::start(config, clock, session_id).expect("edge");
+    let lidars = site.lidars(&options);
+    let real_time: SharedClock = Arc::new(ScaledClock::new(1.0));
+    let (edge, session_id) = site.edge(&lidars, relay.local_addr(), real_time, |_| {});
     std::thread::sleep(Duration::from_secs(3));
     relay.cut();
     std::thread::sleep(Duration::from_secs(30));
@@ -127,12 +160,8 @@ fn a_thirty_second_network_cut_loses_nothing() {
     );
     assert_eq!(uplink.auth_failures, 0);
     eprintln!("{uplink:?} {stats:?}");
-    let deliveries = account(
-        &session_dir(&dir.path().join("data"), rig::EDGE_NAME, session_id),
-        &lidars,
-        Some(&report),
-    )
-    .expect("recording readable");
+    let deliveries =
+        account(&site.session(session_id), &lidars, Some(&report)).expect("recording readable");
     assert_exactly_once(&deliveries);
     relay.shutdown();
     lidars.shutdown();
@@ -173,31 +202,23 @@ fn free_udp_port() -> u16 {
 
 #[test]
 fn the_server_killed_mid_run_loses_nothing() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let pki = dir.path().join("pki");
-    let data = dir.path().join("data");
-    let bundle = rig::pair_certificates(&pki).expect("pairing");
+    let site = Site::new();
     let port = free_udp_port();
-    let config = dir.path().join("server.toml");
+    let config = site.path("server.toml");
     std::fs::write(
         &config,
         format!(
             "listen = \"127.0.0.1:{port}\"\npki_dir = {:?}\ndata_dir = {:?}\ncommit_interval_ms = 50\n",
-            pki.display().to_string(),
-            data.display().to_string()
+            site.path("pki").display().to_string(),
+            site.path("data").display().to_string()
         ),
     )
     .expect("server.toml");
     let mut server = spawn_server_process(&config);
-    let lidars = SimLidars::start(&dir.path().join("links"), &lidar_options()).expect("lidars");
-    let server_addr = std::net::SocketAddr::from(([127, 0, 0, 1], port));
-    let edge_config = lidars.edge_config(
-        &dir.path().join("edge-state"),
-        Some(rig::uplink_section(server_addr, &bundle)),
-    );
-    let session_id = rand::random::<u64>();
-    let edge = EdgeThread::start(edge_config, clock(), session_id).expect("edge");
-    let session = session_dir(&data, rig::EDGE_NAME, session_id);
+    let lidars = site.lidars(&lidar_options());
+    let server_addr = SocketAddr::from(([127, 0, 0, 1], port));
+    let (edge, session_id) = site.edge(&lidars, server_addr, clock(), |_| {});
+    let session = site.session(session_id);
     wait_until(Duration::from_secs(20), "a first recording", || {
         session.join("0000.mcap").exists()
     });
@@ -233,23 +254,21 @@ fn the_server_killed_mid_run_loses_nothing() {
 #[test]
 fn with_the_server_down_frames_spill_to_disk_pause_acquisition_and_all_arrive_later() {
     use scan3d_protocol::{Body, StatusEvent};
-    let dir = tempfile::tempdir().expect("temp dir");
-    let pki = dir.path().join("pki");
-    let data = dir.path().join("data");
-    let bundle = rig::pair_certificates(&pki).expect("pairing");
+    let site = Site::new();
     let port = free_udp_port();
-    let lidars = SimLidars::start(&dir.path().join("links"), &lidar_options()).expect("lidars");
-    let server_addr = std::net::SocketAddr::from(([127, 0, 0, 1], port));
-    let mut uplink = rig::uplink_section(server_addr, &bundle);
+    let lidars = site.lidars(&lidar_options());
     // About 0.6 MB of frames per real second at x10: memory spills after ~2 s, the spool is
     // full after ~5 s.
-    uplink.spool_memory_mb = 1;
-    uplink.spool_disk_mb = 2;
-    let state = dir.path().join("edge-state");
-    let config = lidars.edge_config(&state, Some(uplink));
-    let session_id = rand::random::<u64>();
-    let edge = EdgeThread::start(config, clock(), session_id).expect("edge");
-    let spool_dir = state.join("spool");
+    let (edge, session_id) = site.edge(
+        &lidars,
+        SocketAddr::from(([127, 0, 0, 1], port)),
+        clock(),
+        |uplink| {
+            uplink.spool_memory_mb = 1;
+            uplink.spool_disk_mb = 2;
+        },
+    );
+    let spool_dir = site.path("edge-state").join("spool");
     let spilled = || {
         std::fs::read_dir(&spool_dir)
             .map(|entries| {
@@ -261,7 +280,7 @@ fn with_the_server_down_frames_spill_to_disk_pause_acquisition_and_all_arrive_la
     };
     wait_until(Duration::from_secs(20), "frames spilled to disk", spilled);
     std::thread::sleep(Duration::from_secs(6));
-    let server = ServerThread::start(rig::ingest_config(&pki, &data, port)).expect("server");
+    let server = site.server(port);
     std::thread::sleep(Duration::from_secs(6));
     let report = edge.stop().expect("edge report");
     server.stop();
@@ -271,7 +290,7 @@ fn with_the_server_down_frames_spill_to_disk_pause_acquisition_and_all_arrive_la
             "{sensor}: acquisition never paused: {lidar:?}"
         );
     }
-    let session = session_dir(&data, rig::EDGE_NAME, session_id);
+    let session = site.session(session_id);
     let frames = scan3d_server::ingest::recorder::read_session(&session).expect("recording");
     let events: Vec<StatusEvent> = frames
         .iter()
