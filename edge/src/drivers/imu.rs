@@ -1,1 +1,0 @@
-//! MPU-9250 + AK8963 IMU driver (being written).

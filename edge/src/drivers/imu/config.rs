@@ -1,0 +1,341 @@
+//! IMU configuration (`[imu]` in `edge.toml`): address, rates, ranges, filters, calibration.
+
+use serde::Deserialize;
+
+/// Gyroscope full-scale range (GYRO_CONFIG.GYRO_FS_SEL).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+pub enum GyroRange {
+    /// ±250 °/s, 131 LSB per °/s.
+    #[serde(rename = "250dps")]
+    Dps250,
+    /// ±500 °/s, 65.5 LSB per °/s.
+    #[serde(rename = "500dps")]
+    Dps500,
+    /// ±1000 °/s, 32.8 LSB per °/s.
+    #[serde(rename = "1000dps")]
+    Dps1000,
+    /// ±2000 °/s, 16.4 LSB per °/s.
+    #[serde(rename = "2000dps")]
+    Dps2000,
+}
+
+impl GyroRange {
+    /// The FS_SEL field value (0..=3).
+    pub fn fs_sel(self) -> u8 {
+        match self {
+            Self::Dps250 => 0,
+            Self::Dps500 => 1,
+            Self::Dps1000 => 2,
+            Self::Dps2000 => 3,
+        }
+    }
+
+    /// Sensitivity in LSB per °/s.
+    pub fn lsb_per_dps(self) -> f32 {
+        match self {
+            Self::Dps250 => 131.0,
+            Self::Dps500 => 65.5,
+            Self::Dps1000 => 32.8,
+            Self::Dps2000 => 16.4,
+        }
+    }
+}
+
+/// Accelerometer full-scale range (ACCEL_CONFIG.ACCEL_FS_SEL).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+pub enum AccelRange {
+    /// ±2 g, 16384 LSB per g.
+    #[serde(rename = "2g")]
+    G2,
+    /// ±4 g, 8192 LSB per g.
+    #[serde(rename = "4g")]
+    G4,
+    /// ±8 g, 4096 LSB per g.
+    #[serde(rename = "8g")]
+    G8,
+    /// ±16 g, 2048 LSB per g.
+    #[serde(rename = "16g")]
+    G16,
+}
+
+impl AccelRange {
+    /// The FS_SEL field value (0..=3).
+    pub fn fs_sel(self) -> u8 {
+        match self {
+            Self::G2 => 0,
+            Self::G4 => 1,
+            Self::G8 => 2,
+            Self::G16 => 3,
+        }
+    }
+
+    /// Sensitivity in LSB per g.
+    pub fn lsb_per_g(self) -> f32 {
+        match self {
+            Self::G2 => 16384.0,
+            Self::G4 => 8192.0,
+            Self::G8 => 4096.0,
+            Self::G16 => 2048.0,
+        }
+    }
+}
+
+/// Gyro/temperature low-pass filter (CONFIG.DLPF_CFG 1..=6, all with a 1 kHz internal rate so
+/// SMPLRT_DIV applies). The name is the bandwidth.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+pub enum GyroDlpf {
+    /// 184 Hz, 2.9 ms delay.
+    #[serde(rename = "184hz")]
+    Hz184,
+    /// 92 Hz, 3.9 ms delay.
+    #[serde(rename = "92hz")]
+    Hz92,
+    /// 41 Hz, 5.9 ms delay.
+    #[serde(rename = "41hz")]
+    Hz41,
+    /// 20 Hz, 9.9 ms delay.
+    #[serde(rename = "20hz")]
+    Hz20,
+    /// 10 Hz, 17.85 ms delay.
+    #[serde(rename = "10hz")]
+    Hz10,
+    /// 5 Hz, 33.48 ms delay.
+    #[serde(rename = "5hz")]
+    Hz5,
+}
+
+impl GyroDlpf {
+    /// The DLPF_CFG value written to CONFIG.
+    pub fn dlpf_cfg(self) -> u8 {
+        match self {
+            Self::Hz184 => 1,
+            Self::Hz92 => 2,
+            Self::Hz41 => 3,
+            Self::Hz20 => 4,
+            Self::Hz10 => 5,
+            Self::Hz5 => 6,
+        }
+    }
+}
+
+/// Accelerometer low-pass filter (ACCEL_CONFIG2.A_DLPF_CFG 1..=6, ACCEL_FCHOICE_B = 0).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+pub enum AccelDlpf {
+    /// 218.1 Hz, 1.88 ms delay.
+    #[serde(rename = "218hz")]
+    Hz218,
+    /// 99 Hz, 2.88 ms delay.
+    #[serde(rename = "99hz")]
+    Hz99,
+    /// 44.8 Hz, 4.88 ms delay.
+    #[serde(rename = "45hz")]
+    Hz45,
+    /// 21.2 Hz, 8.87 ms delay.
+    #[serde(rename = "21hz")]
+    Hz21,
+    /// 10.2 Hz, 16.83 ms delay.
+    #[serde(rename = "10hz")]
+    Hz10,
+    /// 5.05 Hz, 32.48 ms delay.
+    #[serde(rename = "5hz")]
+    Hz5,
+}
+
+impl AccelDlpf {
+    /// The A_DLPF_CFG value written to ACCEL_CONFIG2.
+    pub fn a_dlpf_cfg(self) -> u8 {
+        match self {
+            Self::Hz218 => 1,
+            Self::Hz99 => 2,
+            Self::Hz45 => 3,
+            Self::Hz21 => 4,
+            Self::Hz10 => 5,
+            Self::Hz5 => 6,
+        }
+    }
+}
+
+/// AK8963 measurement mode (always with 16-bit output, 0.15 µT/LSB).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+pub enum MagMode {
+    /// Continuous measurement mode 2: 100 Hz (the default).
+    #[serde(rename = "100hz")]
+    Continuous100Hz,
+    /// Continuous measurement mode 1: 8 Hz.
+    #[serde(rename = "8hz")]
+    Continuous8Hz,
+    /// Magnetometer not used: no AK8963 access at all, readings carry no field (IMU-only
+    /// fusion). This also accepts an MPU-6500 (WHO_AM_I 0x70), which has no magnetometer.
+    #[serde(rename = "off")]
+    Off,
+}
+
+/// Everything the driver needs to set up and calibrate an MPU-9250 + AK8963.
+///
+/// Every field has a default, so an empty `[imu]` table is a working configuration.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ImuConfig {
+    /// MPU-9250 7-bit address: 0x68 (AD0 low, default) or 0x69.
+    pub address: u8,
+    /// Accel/gyro output rate in Hz (4..=1000). SMPLRT_DIV = round(1000 / rate) − 1, so the
+    /// rate actually used is [`ImuConfig::effective_sample_rate_hz`]. Default 200.
+    pub sample_rate_hz: u16,
+    /// Gyro full scale. Default ±500 °/s.
+    pub gyro_range: GyroRange,
+    /// Accel full scale. Default ±4 g.
+    pub accel_range: AccelRange,
+    /// Gyro low-pass filter. Default 41 Hz.
+    pub gyro_dlpf: GyroDlpf,
+    /// Accel low-pass filter. Default 44.8 Hz.
+    pub accel_dlpf: AccelDlpf,
+    /// Magnetometer mode. Default continuous 100 Hz.
+    pub mag_mode: MagMode,
+    /// Samples averaged at start-up (device at rest) to estimate the gyro bias; 0 disables the
+    /// estimate. Default 200 (1 s at 200 Hz).
+    pub gyro_bias_samples: u16,
+    /// Magnetometer hard-iron offset in µT, in the accel/gyro frame; subtracted first.
+    pub mag_hard_iron_ut: [f32; 3],
+    /// Magnetometer soft-iron matrix (row-major), applied after the hard-iron offset:
+    /// m = S · (m_raw − hard_iron). Default identity.
+    pub mag_soft_iron: [[f32; 3]; 3],
+    /// Extra attempts for a failed I2C transaction (NACK, bus error) before giving up.
+    /// Default 3.
+    pub retries: u8,
+}
+
+impl Default for ImuConfig {
+    fn default() -> Self {
+        Self {
+            address: 0x68,
+            sample_rate_hz: 200,
+            gyro_range: GyroRange::Dps500,
+            accel_range: AccelRange::G4,
+            gyro_dlpf: GyroDlpf::Hz41,
+            accel_dlpf: AccelDlpf::Hz45,
+            mag_mode: MagMode::Continuous100Hz,
+            gyro_bias_samples: 200,
+            mag_hard_iron_ut: [0.0; 3],
+            mag_soft_iron: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            retries: 3,
+        }
+    }
+}
+
+/// A configuration value the driver cannot use.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ConfigError {
+    /// The MPU-9250 only answers at 0x68 or 0x69.
+    #[error("IMU address {0:#04x} is not an MPU-9250 address (0x68 or 0x69)")]
+    Address(u8),
+    /// The sample rate is outside what SMPLRT_DIV can produce from 1 kHz.
+    #[error("IMU sample rate {0} Hz is outside 4..=1000 Hz")]
+    SampleRate(u16),
+    /// A calibration value is NaN or infinite.
+    #[error("IMU magnetometer calibration contains a non-finite value")]
+    NonFiniteCalibration,
+}
+
+impl ImuConfig {
+    /// Checks the values the hardware cannot accept.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        if !matches!(self.address, 0x68 | 0x69) {
+            return Err(ConfigError::Address(self.address));
+        }
+        if !(4..=1000).contains(&self.sample_rate_hz) {
+            return Err(ConfigError::SampleRate(self.sample_rate_hz));
+        }
+        let finite = self.mag_hard_iron_ut.iter().all(|v| v.is_finite())
+            && self.mag_soft_iron.iter().flatten().all(|v| v.is_finite());
+        if !finite {
+            return Err(ConfigError::NonFiniteCalibration);
+        }
+        Ok(())
+    }
+
+    /// The SMPLRT_DIV value for [`ImuConfig::sample_rate_hz`] (1 kHz internal rate).
+    pub fn smplrt_div(&self) -> u8 {
+        let rate = u32::from(self.sample_rate_hz.clamp(4, 1000));
+        // round(1000 / rate) − 1, in integers; ≤ 249 for rate ≥ 4.
+        let div = (2000 + rate) / (2 * rate) - 1;
+        u8::try_from(div).unwrap_or(u8::MAX)
+    }
+
+    /// The accel/gyro output rate really produced: 1000 / (1 + SMPLRT_DIV) Hz.
+    pub fn effective_sample_rate_hz(&self) -> f32 {
+        1000.0 / (1.0 + f32::from(self.smplrt_div()))
+    }
+
+    /// Nanoseconds between two accel/gyro samples at the effective rate.
+    pub fn sample_period_ns(&self) -> u32 {
+        (1 + u32::from(self.smplrt_div())) * 1_000_000
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn smplrt_div_for_common_rates() {
+        let with_rate = |sample_rate_hz| ImuConfig {
+            sample_rate_hz,
+            ..ImuConfig::default()
+        };
+        assert_eq!(with_rate(1000).smplrt_div(), 0);
+        assert_eq!(with_rate(500).smplrt_div(), 1);
+        assert_eq!(with_rate(200).smplrt_div(), 4);
+        assert_eq!(with_rate(100).smplrt_div(), 9);
+        assert_eq!(with_rate(4).smplrt_div(), 249);
+        // 300 Hz is not reachable: 1000/3 ≈ 333 Hz is the nearest.
+        assert_eq!(with_rate(300).smplrt_div(), 2);
+        assert_eq!(with_rate(200).sample_period_ns(), 5_000_000);
+    }
+
+    #[test]
+    fn empty_table_gives_defaults_and_names_parse() {
+        let config: ImuConfig = toml::from_str("").unwrap();
+        assert_eq!(config, ImuConfig::default());
+        let config: ImuConfig = toml::from_str(
+            "address = 0x69\nsample_rate_hz = 500\ngyro_range = \"2000dps\"\n\
+             accel_range = \"16g\"\ngyro_dlpf = \"184hz\"\naccel_dlpf = \"99hz\"\n\
+             mag_mode = \"8hz\"\nmag_hard_iron_ut = [1.0, -2.0, 3.5]\n",
+        )
+        .unwrap();
+        assert_eq!(config.address, 0x69);
+        assert_eq!(config.gyro_range, GyroRange::Dps2000);
+        assert_eq!(config.accel_range, AccelRange::G16);
+        assert_eq!(config.gyro_dlpf, GyroDlpf::Hz184);
+        assert_eq!(config.accel_dlpf, AccelDlpf::Hz99);
+        assert_eq!(config.mag_mode, MagMode::Continuous8Hz);
+        assert_eq!(config.mag_hard_iron_ut, [1.0, -2.0, 3.5]);
+        assert!(toml::from_str::<ImuConfig>("adress = 0x68").is_err());
+    }
+
+    #[test]
+    fn validate_rejects_bad_values() {
+        let bad = |c: ImuConfig| c.validate().unwrap_err();
+        assert_eq!(
+            bad(ImuConfig {
+                address: 0x0C,
+                ..ImuConfig::default()
+            }),
+            ConfigError::Address(0x0C)
+        );
+        assert_eq!(
+            bad(ImuConfig {
+                sample_rate_hz: 2000,
+                ..ImuConfig::default()
+            }),
+            ConfigError::SampleRate(2000)
+        );
+        assert_eq!(
+            bad(ImuConfig {
+                mag_hard_iron_ut: [0.0, f32::NAN, 0.0],
+                ..ImuConfig::default()
+            }),
+            ConfigError::NonFiniteCalibration
+        );
+        assert!(ImuConfig::default().validate().is_ok());
+    }
+}

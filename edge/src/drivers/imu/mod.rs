@@ -1,0 +1,410 @@
+//! MPU-9250 + AK8963 9-axis IMU driver, generic over [`embedded_hal::i2c::I2c`].
+//!
+//! The MPU-9250 (accel, gyro, temperature) sits at 0x68 or 0x69; its AK8963 magnetometer is put
+//! on the host bus at 0x0C by the MPU's bypass mode, so the driver talks to two plain I2C
+//! devices (research/hardware.md §1). The driver owns the bus (give it a shared-bus handle from
+//! `embedded-hal-bus` to share it with the stepper HAT) and returns it from
+//! [`Mpu9250::destroy`]. It does no timing of its own: waits in the init sequence go through
+//! the [`DelayNs`] passed in, and the caller polls [`Mpu9250::read`] at the sample rate.
+//!
+//! - [`Mpu9250::init`]: reset and init sequence (§1.4), AK8963 fuse-ROM sensitivity adjustment,
+//!   continuous mode, then the gyro bias estimated at rest.
+//! - [`Mpu9250::read`]: one 14-byte burst (accel, temperature, gyro) and one 8-byte AK8963 read
+//!   (ST1, data, ST2), converted to SI units in the accel/gyro frame, calibrated.
+//! - Every bus transaction is retried [`ImuConfig::retries`] times before an [`Error`] that
+//!   names the chip and the address.
+
+mod config;
+mod error;
+mod registers;
+
+use embedded_hal::delay::DelayNs;
+use embedded_hal::i2c::I2c;
+
+pub use config::{AccelDlpf, AccelRange, ConfigError, GyroDlpf, GyroRange, ImuConfig, MagMode};
+pub use error::{Chip, Error};
+use registers::{ak, mpu};
+
+/// AK8963 bus address (visible only in bypass mode).
+pub const AK8963_ADDRESS: u8 = 0x0C;
+/// Standard gravity, for converting g to m/s².
+pub const STANDARD_GRAVITY: f32 = 9.80665;
+/// AK8963 sensitivity in 16-bit output mode, µT per LSB.
+pub const MAG_UT_PER_LSB: f32 = 0.15;
+
+/// Waits of the init sequence (research/hardware.md §1.4).
+const RESET_WAIT_MS: u32 = 100;
+const SETTLE_WAIT_MS: u32 = 10;
+const AK_SOFT_RESET_WAIT_MS: u32 = 1;
+
+/// One converted IMU sample in the accel/gyro frame (z out of the chip top).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ImuReading {
+    /// Specific force, m/s²; +9.81 on the upward axis at rest.
+    pub accel_m_s2: [f32; 3],
+    /// Angular rate, rad/s, with the start-up bias removed.
+    pub gyro_rad_s: [f32; 3],
+    /// Magnetic field, µT, aligned to the accel/gyro frame and calibrated; `None` when the
+    /// AK8963 had no new sample, overflowed (sample dropped) or is not used.
+    pub mag_ut: Option<[f32; 3]>,
+    /// Die temperature, °C.
+    pub temp_c: f32,
+}
+
+/// What the init sequence found.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ChipIds {
+    /// MPU WHO_AM_I (0x71 or 0x73; 0x70 when the magnetometer is off).
+    pub who_am_i: u8,
+    /// AK8963 WIA (0x48), `None` when the magnetometer is off.
+    pub wia: Option<u8>,
+    /// AK8963 fuse-ROM sensitivity adjustment ASAX/Y/Z, `None` when the magnetometer is off.
+    pub asa: Option<[u8; 3]>,
+}
+
+/// Counters kept by the driver.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ImuStats {
+    /// I2C transactions attempted (including retries): divide by time for the bus load.
+    pub transactions: u64,
+    /// Transactions that failed and were tried again.
+    pub retries: u64,
+    /// Accel/gyro samples returned by [`Mpu9250::read`].
+    pub samples: u64,
+    /// Magnetometer samples returned.
+    pub mag_samples: u64,
+    /// Magnetometer samples dropped because ST2.HOFL (overflow) was set.
+    pub mag_overflows: u64,
+    /// Reads where ST1.DOR said the AK8963 skipped at least one sample (polled too slowly).
+    pub mag_overruns: u64,
+}
+
+/// MPU-9250 + AK8963 driver owning the bus `I2C`.
+#[derive(Debug)]
+pub struct Mpu9250<I2C> {
+    i2c: I2C,
+    config: ImuConfig,
+    /// Per-chip-axis ASA factor (ASA − 128)/256 + 1, set by `init`.
+    asa_factor: [f32; 3],
+    gyro_bias_rad_s: [f32; 3],
+    stats: ImuStats,
+}
+
+impl<I2C: I2c> Mpu9250<I2C> {
+    /// Wraps the bus; no bus access until [`Mpu9250::init`].
+    pub fn new(i2c: I2C, config: ImuConfig) -> Self {
+        Self {
+            i2c,
+            config,
+            asa_factor: [1.0; 3],
+            gyro_bias_rad_s: [0.0; 3],
+            stats: ImuStats::default(),
+        }
+    }
+
+    /// Gives the bus back.
+    pub fn destroy(self) -> I2C {
+        self.i2c
+    }
+
+    /// The configuration in use.
+    pub fn config(&self) -> &ImuConfig {
+        &self.config
+    }
+
+    /// The driver's counters.
+    pub fn stats(&self) -> ImuStats {
+        self.stats
+    }
+
+    /// The gyro bias subtracted from every reading, rad/s.
+    pub fn gyro_bias(&self) -> [f32; 3] {
+        self.gyro_bias_rad_s
+    }
+
+    /// Replaces the gyro bias (e.g. one saved from an earlier calibration).
+    pub fn set_gyro_bias(&mut self, bias_rad_s: [f32; 3]) {
+        self.gyro_bias_rad_s = bias_rad_s;
+    }
+
+    /// Runs the reset and init sequence of research/hardware.md §1.4, then (if
+    /// [`ImuConfig::gyro_bias_samples`] > 0) estimates the gyro bias; the device must be at rest.
+    pub fn init<D: DelayNs>(&mut self, delay: &mut D) -> Result<ChipIds, Error<I2C::Error>> {
+        self.config.validate().map_err(Error::Config)?;
+        let mag_on = self.config.mag_mode != MagMode::Off;
+
+        // 1. Identity.
+        let who_am_i = self.read_reg(Chip::Mpu9250, mpu::WHO_AM_I)?;
+        let accepted = matches!(who_am_i, mpu::ID_MPU9250 | mpu::ID_MPU9255)
+            || (!mag_on && who_am_i == mpu::ID_MPU6500);
+        if !accepted {
+            return Err(Error::WrongChip {
+                chip: Chip::Mpu9250,
+                address: self.config.address,
+                found: who_am_i,
+            });
+        }
+        // 2-3. Reset, wake with the auto-selected PLL clock, all axes on.
+        self.write_reg(Chip::Mpu9250, mpu::PWR_MGMT_1, mpu::H_RESET)?;
+        delay.delay_ms(RESET_WAIT_MS);
+        self.write_reg(Chip::Mpu9250, mpu::PWR_MGMT_1, mpu::CLKSEL_AUTO)?;
+        delay.delay_ms(SETTLE_WAIT_MS);
+        self.write_reg(Chip::Mpu9250, mpu::PWR_MGMT_2, 0x00)?;
+        // 4. Filters, rate, full scales.
+        let c = &self.config;
+        let writes = [
+            (mpu::CONFIG, c.gyro_dlpf.dlpf_cfg()),
+            (mpu::SMPLRT_DIV, c.smplrt_div()),
+            (mpu::GYRO_CONFIG, c.gyro_range.fs_sel() << 3),
+            (mpu::ACCEL_CONFIG, c.accel_range.fs_sel() << 3),
+            (mpu::ACCEL_CONFIG2, c.accel_dlpf.a_dlpf_cfg()),
+            // 5. I2C master off and bypass on, so the AK8963 appears at 0x0C.
+            (mpu::USER_CTRL, 0x00),
+            (mpu::INT_PIN_CFG, mpu::BYPASS_EN),
+            (mpu::INT_ENABLE, mpu::RAW_RDY_EN),
+        ];
+        for (reg, value) in writes {
+            self.write_reg(Chip::Mpu9250, reg, value)?;
+        }
+        delay.delay_ms(SETTLE_WAIT_MS);
+
+        let (wia, asa) = if mag_on {
+            let (wia, asa) = self.init_ak8963(delay)?;
+            (Some(wia), Some(asa))
+        } else {
+            (None, None)
+        };
+
+        if self.config.gyro_bias_samples > 0 {
+            self.estimate_gyro_bias(delay, self.config.gyro_bias_samples)?;
+        }
+        Ok(ChipIds { who_am_i, wia, asa })
+    }
+
+    /// Steps 6-10: identity, soft reset, fuse-ROM ASA, continuous 16-bit mode.
+    fn init_ak8963<D: DelayNs>(
+        &mut self,
+        delay: &mut D,
+    ) -> Result<(u8, [u8; 3]), Error<I2C::Error>> {
+        let wia = self.read_reg(Chip::Ak8963, ak::WIA)?;
+        if wia != ak::ID {
+            return Err(Error::WrongChip {
+                chip: Chip::Ak8963,
+                address: AK8963_ADDRESS,
+                found: wia,
+            });
+        }
+        self.write_reg(Chip::Ak8963, ak::CNTL2, ak::SRST)?;
+        delay.delay_ms(AK_SOFT_RESET_WAIT_MS);
+        self.write_reg(Chip::Ak8963, ak::CNTL1, ak::MODE_POWER_DOWN)?;
+        delay.delay_ms(SETTLE_WAIT_MS);
+        self.write_reg(Chip::Ak8963, ak::CNTL1, ak::MODE_FUSE_ROM)?;
+        let mut asa = [0u8; 3];
+        self.read_regs(Chip::Ak8963, ak::ASAX, &mut asa)?;
+        self.write_reg(Chip::Ak8963, ak::CNTL1, ak::MODE_POWER_DOWN)?;
+        delay.delay_ms(SETTLE_WAIT_MS);
+        if asa.iter().any(|&a| a == 0x00 || a == 0xFF) {
+            return Err(Error::InvalidAsa {
+                address: AK8963_ADDRESS,
+                asa,
+            });
+        }
+        self.asa_factor = asa.map(|a| (f32::from(a) - 128.0) / 256.0 + 1.0);
+        let mode = match self.config.mag_mode {
+            MagMode::Continuous8Hz => ak::MODE_CONTINUOUS_1,
+            _ => ak::MODE_CONTINUOUS_2,
+        };
+        self.write_reg(Chip::Ak8963, ak::CNTL1, ak::BIT_16 | mode)?;
+        Ok((wia, asa))
+    }
+
+    /// Averages `samples` gyro readings taken one sample period apart (device at rest) and
+    /// makes the mean the bias subtracted from every later reading. Returns it, rad/s.
+    pub fn estimate_gyro_bias<D: DelayNs>(
+        &mut self,
+        delay: &mut D,
+        samples: u16,
+    ) -> Result<[f32; 3], Error<I2C::Error>> {
+        let mut sum = [0.0f64; 3];
+        let scale = self.gyro_scale();
+        for _ in 0..samples {
+            delay.delay_ns(self.config.sample_period_ns());
+            let raw = self.read_mpu_raw()?;
+            for (s, r) in sum.iter_mut().zip(raw.gyro) {
+                *s += f64::from(r);
+            }
+        }
+        if samples > 0 {
+            let n = f64::from(samples);
+            self.gyro_bias_rad_s = sum.map(|s| (s / n) as f32 * scale);
+        }
+        Ok(self.gyro_bias_rad_s)
+    }
+
+    /// Reads one sample: accel, temperature and gyro always; the magnetic field when the
+    /// AK8963 has a new one (call at the accel/gyro rate; the field comes at 100 Hz).
+    pub fn read(&mut self) -> Result<ImuReading, Error<I2C::Error>> {
+        let raw = self.read_mpu_raw()?;
+        let mag_ut = if self.config.mag_mode == MagMode::Off {
+            None
+        } else {
+            self.read_mag()?
+        };
+        self.stats.samples += 1;
+        let accel_scale = STANDARD_GRAVITY / self.config.accel_range.lsb_per_g();
+        let gyro_scale = self.gyro_scale();
+        let mut gyro_rad_s = raw.gyro.map(|g| f32::from(g) * gyro_scale);
+        for (g, b) in gyro_rad_s.iter_mut().zip(self.gyro_bias_rad_s) {
+            *g -= b;
+        }
+        Ok(ImuReading {
+            accel_m_s2: raw.accel.map(|a| f32::from(a) * accel_scale),
+            gyro_rad_s,
+            mag_ut,
+            temp_c: f32::from(raw.temp) / 333.87 + 21.0,
+        })
+    }
+
+    /// rad/s per gyro LSB at the configured full scale.
+    fn gyro_scale(&self) -> f32 {
+        (core::f32::consts::PI / 180.0) / self.config.gyro_range.lsb_per_dps()
+    }
+
+    /// One 14-byte burst from ACCEL_XOUT_H: accel xyz, temperature, gyro xyz, big-endian.
+    fn read_mpu_raw(&mut self) -> Result<RawMpu, Error<I2C::Error>> {
+        let mut b = [0u8; 14];
+        self.read_regs(Chip::Mpu9250, mpu::ACCEL_XOUT_H, &mut b)?;
+        let [
+            ax0,
+            ax1,
+            ay0,
+            ay1,
+            az0,
+            az1,
+            t0,
+            t1,
+            gx0,
+            gx1,
+            gy0,
+            gy1,
+            gz0,
+            gz1,
+        ] = b;
+        Ok(RawMpu {
+            accel: [
+                i16::from_be_bytes([ax0, ax1]),
+                i16::from_be_bytes([ay0, ay1]),
+                i16::from_be_bytes([az0, az1]),
+            ],
+            temp: i16::from_be_bytes([t0, t1]),
+            gyro: [
+                i16::from_be_bytes([gx0, gx1]),
+                i16::from_be_bytes([gy0, gy1]),
+                i16::from_be_bytes([gz0, gz1]),
+            ],
+        })
+    }
+
+    /// One 8-byte read from ST1 (ST1, HXL..HZH little-endian, ST2). Reading ST2 releases the
+    /// AK8963's data protection, so this is also the "end of read" the chip waits for.
+    fn read_mag(&mut self) -> Result<Option<[f32; 3]>, Error<I2C::Error>> {
+        let mut b = [0u8; 8];
+        self.read_regs(Chip::Ak8963, ak::ST1, &mut b)?;
+        let [st1, xl, xh, yl, yh, zl, zh, st2] = b;
+        if st1 & ak::ST1_DRDY == 0 {
+            return Ok(None);
+        }
+        if st1 & ak::ST1_DOR != 0 {
+            self.stats.mag_overruns += 1;
+        }
+        if st2 & ak::ST2_HOFL != 0 {
+            self.stats.mag_overflows += 1;
+            return Ok(None);
+        }
+        self.stats.mag_samples += 1;
+        let chip = [
+            i16::from_le_bytes([xl, xh]),
+            i16::from_le_bytes([yl, yh]),
+            i16::from_le_bytes([zl, zh]),
+        ];
+        // Sensitivity adjustment per chip axis, before the remap (§1.5).
+        let mut h = [0.0f32; 3];
+        for ((h, raw), asa) in h.iter_mut().zip(chip).zip(self.asa_factor) {
+            *h = f32::from(raw) * asa * MAG_UT_PER_LSB;
+        }
+        let [hx, hy, hz] = h;
+        // Chip axes to the accel/gyro frame: x ← Hy, y ← Hx, z ← −Hz (§1.7).
+        let aligned = [hy, hx, -hz];
+        Ok(Some(self.calibrate_mag(aligned)))
+    }
+
+    /// m = S · (m_raw − hard_iron).
+    fn calibrate_mag(&self, m: [f32; 3]) -> [f32; 3] {
+        let mut d = m;
+        for (d, h) in d.iter_mut().zip(self.config.mag_hard_iron_ut) {
+            *d -= h;
+        }
+        self.config
+            .mag_soft_iron
+            .map(|row| row.iter().zip(d).map(|(s, v)| s * v).sum())
+    }
+
+    fn address(&self, chip: Chip) -> u8 {
+        match chip {
+            Chip::Mpu9250 => self.config.address,
+            Chip::Ak8963 => AK8963_ADDRESS,
+        }
+    }
+
+    fn read_reg(&mut self, chip: Chip, reg: u8) -> Result<u8, Error<I2C::Error>> {
+        let mut b = [0u8; 1];
+        self.read_regs(chip, reg, &mut b)?;
+        Ok(b[0])
+    }
+
+    fn read_regs(&mut self, chip: Chip, reg: u8, buf: &mut [u8]) -> Result<(), Error<I2C::Error>> {
+        let address = self.address(chip);
+        self.retrying(chip, |i2c| i2c.write_read(address, &[reg], buf))
+    }
+
+    fn write_reg(&mut self, chip: Chip, reg: u8, value: u8) -> Result<(), Error<I2C::Error>> {
+        let address = self.address(chip);
+        self.retrying(chip, |i2c| i2c.write(address, &[reg, value]))
+    }
+
+    /// Runs one transaction, retrying it up to `config.retries` times.
+    fn retrying(
+        &mut self,
+        chip: Chip,
+        mut transaction: impl FnMut(&mut I2C) -> Result<(), I2C::Error>,
+    ) -> Result<(), Error<I2C::Error>> {
+        let attempts = self.config.retries.saturating_add(1);
+        let mut attempt = 0u8;
+        loop {
+            attempt += 1;
+            self.stats.transactions += 1;
+            match transaction(&mut self.i2c) {
+                Ok(()) => return Ok(()),
+                Err(source) if attempt >= attempts => {
+                    return Err(Error::I2c {
+                        chip,
+                        address: self.address(chip),
+                        attempts: attempt,
+                        source,
+                    });
+                }
+                Err(_) => self.stats.retries += 1,
+            }
+        }
+    }
+}
+
+/// The 14-byte burst decoded, still in LSB.
+struct RawMpu {
+    accel: [i16; 3],
+    temp: i16,
+    gyro: [i16; 3],
+}
+
+#[cfg(test)]
+mod tests;

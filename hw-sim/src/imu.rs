@@ -1,1 +1,0 @@
-//! Register-level MPU-9250 + AK8963 emulator (being written).
