@@ -1,5 +1,6 @@
-//! Point clouds: 3D assembly (later issues), filters (later issues) and export.
+//! Point clouds: static-scan assembly (eq. 1), per-sensor 2D scans, and PLY / PCD / .scans export.
 
+pub mod assembly;
 pub mod ply;
 pub mod scans;
 
