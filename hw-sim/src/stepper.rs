@@ -1,1 +1,0 @@
-//! Register-level PCA9685 motor HAT emulator (being written).
