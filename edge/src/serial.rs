@@ -25,6 +25,11 @@ pub struct SerialOptions {
     pub baud: u32,
     /// Longest single blocking read, real time. Bounds how late shutdown is noticed.
     pub max_read_wait: Duration,
+    /// After a read that returned only a little data, wait this long before reading again so
+    /// bytes arrive in batches, as a USB adapter's latency timer delivers them. Halves the
+    /// edge's system-call load at full sensor rate; the added delay is the same for every read,
+    /// so [`crate::timing`]'s lower-envelope fit absorbs it.
+    pub read_coalesce: Duration,
     /// Reopen the port after it disappears (daemon). When `false`, the first failure to open or
     /// a lost device ends [`run`] with an error (one-shot tools such as `probe`).
     pub reconnect: bool,
@@ -41,6 +46,7 @@ impl SerialOptions {
             path: path.into(),
             baud,
             max_read_wait: Duration::from_millis(50),
+            read_coalesce: Duration::from_millis(2),
             reconnect: true,
             initial_backoff: Duration::from_millis(100),
             max_backoff: Duration::from_secs(2),
@@ -174,7 +180,12 @@ fn session<D: LidarDriver + ?Sized>(
         match port.read(&mut buf) {
             // A pty whose master closed, or a USB adapter that vanished, reads as EOF.
             Ok(0) => return Err("end of file (device disconnected)".into()),
-            Ok(n) => driver.handle_input(clock.now_ns(), &buf[..n]),
+            Ok(n) => {
+                driver.handle_input(clock.now_ns(), &buf[..n]);
+                if n < buf.len() / 4 && !options.read_coalesce.is_zero() {
+                    std::thread::sleep(options.read_coalesce);
+                }
+            }
             Err(e) if matches!(e.kind(), ErrorKind::TimedOut | ErrorKind::WouldBlock) => {}
             Err(e) if e.kind() == ErrorKind::Interrupted => {}
             Err(e) => return Err(e.to_string()),
