@@ -25,10 +25,10 @@ pub struct SerialOptions {
     pub baud: u32,
     /// Longest single blocking read, real time. Bounds how late shutdown is noticed.
     pub max_read_wait: Duration,
-    /// After a read that returned only a little data, wait this long before reading again so
-    /// bytes arrive in batches, as a USB adapter's latency timer delivers them. Halves the
-    /// edge's system-call load at full sensor rate; the added delay is the same for every read,
-    /// so [`crate::timing`]'s lower-envelope fit absorbs it.
+    /// After a read that returned only a little data, wait this long (edge-clock time) before
+    /// reading again, so bytes arrive in batches as a USB adapter's latency timer delivers them.
+    /// This roughly halves the edge's system calls at full sensor rate; the added delay is the
+    /// same for every read, so [`crate::timing`]'s lower-envelope fit absorbs it.
     pub read_coalesce: Duration,
     /// Reopen the port after it disappears (daemon). When `false`, the first failure to open or
     /// a lost device ends [`run`] with an error (one-shot tools such as `probe`).
@@ -183,7 +183,9 @@ fn session<D: LidarDriver + ?Sized>(
             Ok(n) => {
                 driver.handle_input(clock.now_ns(), &buf[..n]);
                 if n < buf.len() / 4 && !options.read_coalesce.is_zero() {
-                    std::thread::sleep(options.read_coalesce);
+                    let coalesce_ns =
+                        u64::try_from(options.read_coalesce.as_nanos()).unwrap_or(u64::MAX);
+                    std::thread::sleep(clock.real_duration(coalesce_ns));
                 }
             }
             Err(e) if matches!(e.kind(), ErrorKind::TimedOut | ErrorKind::WouldBlock) => {}
