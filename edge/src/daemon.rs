@@ -140,7 +140,11 @@ pub async fn run(
         inventory: Mutex::new(BTreeMap::new()),
         stop: AtomicBool::new(false),
     });
-    context.submit(context.hello())?;
+    // A spool left full by an earlier run refuses this too; the lidars' Info events send the
+    // hello again once there is room.
+    if let Err(e) = context.submit(context.hello()) {
+        tracing::warn!(error = %e, "hello not queued");
+    }
 
     let mut workers: Vec<(SensorId, JoinHandle<LidarReport>)> = Vec::new();
     if let Some(section) = &config.rplidar {
