@@ -34,7 +34,7 @@ use scan3d_edge::lidar::RawSample;
 
 use crate::device::{Device, WireUnit};
 use crate::noise::RangeNoise;
-use crate::world::{Scanner, World};
+use crate::world::{PoseSource, Scanner, World};
 
 /// Longest command line (without terminator) the emulator buffers.
 pub const MAX_LINE: usize = 16;
@@ -153,6 +153,8 @@ struct Stream {
 pub struct SweepEmulator {
     config: SweepEmulatorConfig,
     scanner: Scanner,
+    /// Where the sensor is at each block's sample time; `None`: fixed at `scanner.pose`.
+    pose_source: Option<Arc<dyn PoseSource>>,
     rng: ChaCha8Rng,
     motor_hz: u8,
     rate_code: u8,
@@ -179,6 +181,7 @@ impl SweepEmulator {
         Self {
             config,
             scanner,
+            pose_source: None,
             rng: ChaCha8Rng::seed_from_u64(seed),
             motor_hz,
             rate_code,
@@ -191,6 +194,15 @@ impl SweepEmulator {
             pending: Vec::new(),
             last_ns: 0,
         }
+    }
+
+    /// The same Sweep, but measuring from `source.pose_at(t)` for a block sampled at simulated
+    /// time `t` (e.g. mounted on the turntable: [`crate::turntable::TurntableMount`]);
+    /// `scanner.pose` is then unused. `source` must run on this emulator's time base (ns since
+    /// power-on).
+    pub fn with_pose_source(mut self, source: impl PoseSource + 'static) -> Self {
+        self.pose_source = Some(Arc::new(source));
+        self
     }
 
     /// A scanner with the Sweep's defaults: σ = [`RangeNoise::SWEEP`], 0.1–40 m.
@@ -244,9 +256,13 @@ impl SweepEmulator {
             stream.prev_revolution = Some(revolution);
 
             let azimuth_rad = (f64::from(raw) / 16.0).to_radians();
+            let pose = match &self.pose_source {
+                Some(source) => source.pose_at(u64::try_from(t).unwrap_or(u64::MAX)),
+                None => self.scanner.pose,
+            };
             let range = self
                 .scanner
-                .measure(azimuth_rad, &mut self.rng)
+                .measure_from(&pose, azimuth_rad, &mut self.rng)
                 .filter(|&r| {
                     let p = self.config.return_probability(r);
                     p >= 1.0 || self.rng.random::<f64>() < p

@@ -596,6 +596,21 @@ struct RectSpec {
     material: Material,
 }
 
+/// Where a sensor is (sensor frame → world frame) at simulated time `t_ns`: a fixed pose
+/// ([`Isometry3`] itself) or one that follows a mechanism such as
+/// [`crate::turntable::TurntableMount`].
+pub trait PoseSource: std::fmt::Debug + Send + Sync {
+    /// The sensor pose at simulated time `t_ns`.
+    fn pose_at(&self, t_ns: u64) -> Isometry3<f64>;
+}
+
+/// A sensor that never moves.
+impl PoseSource for Isometry3<f64> {
+    fn pose_at(&self, _t_ns: u64) -> Isometry3<f64> {
+        *self
+    }
+}
+
 /// A 2D lidar placed in the world: what one beam at a given azimuth measures.
 #[derive(Debug, Clone)]
 pub struct Scanner {
@@ -616,10 +631,21 @@ impl Scanner {
     /// Noisy range measured at azimuth `azimuth_rad` (sensor frame, counter-clockwise),
     /// or `None` for no return.
     pub fn measure<R: Rng + ?Sized>(&self, azimuth_rad: f64, rng: &mut R) -> Option<f64> {
+        self.measure_from(&self.pose, azimuth_rad, rng)
+    }
+
+    /// Like [`Scanner::measure`], but from `pose` instead of [`Scanner::pose`]: for a sensor
+    /// that moves (a Sweep on a turntable, see [`PoseSource`]).
+    pub fn measure_from<R: Rng + ?Sized>(
+        &self,
+        pose: &Isometry3<f64>,
+        azimuth_rad: f64,
+        rng: &mut R,
+    ) -> Option<f64> {
         let dir = Unit::new_normalize(
-            self.pose.rotation * Vector3::new(azimuth_rad.cos(), azimuth_rad.sin(), 0.0),
+            pose.rotation * Vector3::new(azimuth_rad.cos(), azimuth_rad.sin(), 0.0),
         );
-        let origin = Point3::from(self.pose.translation.vector);
+        let origin = Point3::from(pose.translation.vector);
         let range = self.world.cast(&origin, &dir, self.max_range_m, rng)?;
         let noisy = self.noise.apply(range, rng);
         (noisy >= self.min_range_m && noisy <= self.max_range_m).then_some(noisy)
