@@ -7,6 +7,7 @@
 //! - [`serial`]: the thin I/O shell that runs a driver on a serial port, surviving unplug/replug.
 //! - [`probe`]: the `scan3d-edge probe` wiring check.
 //! - [`config`]: the daemon's TOML configuration (`edge.toml`).
+//! - [`static_scan`]: the static-scan controller (one step per revolution in the blind sector, φ tags).
 #![warn(missing_docs)]
 
 pub mod acquisition;
@@ -19,5 +20,6 @@ pub mod lidar;
 pub mod madgwick;
 pub mod probe;
 pub mod serial;
+pub mod static_scan;
 pub mod timing;
 pub mod uplink;

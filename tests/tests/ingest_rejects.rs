@@ -131,3 +131,35 @@ fn bad_frames_close_the_connection_cleanly_and_the_server_keeps_serving() {
     assert_eq!(stats.rejected, 3, "{stats:?}");
     assert_eq!(stats.frames, 1, "{stats:?}");
 }
+
+#[test]
+fn a_reconnecting_edge_replaces_its_old_connection() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let pki = dir.path().join("pki");
+    let data = dir.path().join("data");
+    let bundle = rig::pair_certificates(&pki).expect("pairing");
+    let server = ServerThread::start(rig::ingest_config(&pki, &data, 0)).expect("server");
+    let addr = server.addr();
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .expect("runtime");
+    runtime.block_on(async {
+        let mut old = connect(addr, &bundle).await;
+        assert!(old.heartbeat_is_acknowledged(7, 0).await);
+        // The edge comes back on a new connection before the server noticed the old one die.
+        let mut new = connect(addr, &bundle).await;
+        assert!(new.heartbeat_is_acknowledged(7, 1).await);
+        let (code, reason) = old.closed_by_server().await;
+        assert_eq!(code, u64::from(close_code::DONE));
+        assert!(reason.contains("replaced"), "{reason}");
+    });
+    let stats = server.stop();
+    assert_eq!((stats.frames, stats.duplicates), (2, 0), "{stats:?}");
+    let session = scan3d_server::ingest::recorder::session_dir(&data, rig::EDGE_NAME, 7);
+    let frames = scan3d_server::ingest::recorder::read_session(&session).expect("recording");
+    assert_eq!(
+        frames.iter().map(|f| f.frame.seq).collect::<Vec<_>>(),
+        vec![0, 1]
+    );
+}

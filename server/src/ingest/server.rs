@@ -144,6 +144,8 @@ impl IngestServer {
             config: self.config,
             events,
             stats: Mutex::new(IngestStats::default()),
+            edges: Mutex::new(HashMap::new()),
+            next_connection_id: std::sync::atomic::AtomicU64::new(0),
         });
         let (stop_tx, stop_rx) = watch::channel(false);
         let slots = Arc::new(Semaphore::new(shared.config.max_connections.max(1)));
@@ -176,7 +178,7 @@ impl IngestServer {
         self.endpoint
             .close(close_code::DONE.into(), b"server shutting down");
         self.endpoint.wait_idle().await;
-        *shared.stats.lock().unwrap_or_else(|e| e.into_inner())
+        *lock(&shared.stats)
     }
 }
 
@@ -184,11 +186,23 @@ struct Shared {
     config: IngestConfig,
     events: Option<mpsc::UnboundedSender<IngestEvent>>,
     stats: Mutex<IngestStats>,
+    /// The live connection of each edge. An edge that reconnects before the server noticed
+    /// its old connection die (a short outage) replaces it: the old task closes its
+    /// recordings first, so one session is never written by two tasks at once.
+    edges: Mutex<HashMap<String, EdgeSlot>>,
+    next_connection_id: std::sync::atomic::AtomicU64,
+}
+
+/// An edge's current connection and a way to wait until its task has closed its recordings.
+struct EdgeSlot {
+    id: u64,
+    connection: quinn::Connection,
+    finished: watch::Receiver<bool>,
 }
 
 impl Shared {
     fn count(&self, update: impl FnOnce(&mut IngestStats)) {
-        update(&mut self.stats.lock().unwrap_or_else(|e| e.into_inner()));
+        update(&mut lock(&self.stats));
     }
 
     fn emit(&self, event: IngestEvent) {
@@ -227,11 +241,40 @@ async fn handle_incoming(
         edge: edge.clone(),
         remote,
     });
+    let id = shared
+        .next_connection_id
+        .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let (finished_tx, finished) = watch::channel(false);
+    let slot = EdgeSlot {
+        id,
+        connection: connection.clone(),
+        finished,
+    };
+    let previous = lock(&shared.edges).insert(edge.clone(), slot);
+    if let Some(mut previous) = previous {
+        tracing::info!(%edge, "replacing the edge's previous connection");
+        previous.connection.close(
+            close_code::DONE.into(),
+            b"replaced by a newer connection of this edge",
+        );
+        let _ = previous.finished.wait_for(|done| *done).await;
+    }
     let mut session = EdgeConnection::new(edge.clone(), shared.clone());
     let reason = session.serve(&connection, stop).await;
     session.close_all();
+    let _ = finished_tx.send(true);
+    {
+        let mut edges = lock(&shared.edges);
+        if edges.get(&edge).is_some_and(|slot| slot.id == id) {
+            edges.remove(&edge);
+        }
+    }
     tracing::info!(%edge, %reason, "edge disconnected");
     shared.emit(IngestEvent::Disconnected { edge, reason });
+}
+
+fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    mutex.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 /// What one edge connection keeps.
