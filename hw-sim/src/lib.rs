@@ -7,6 +7,7 @@
 //! - [`i2c`]: a simulated I2C bus dispatching to register-level chip emulators.
 //! - [`faults`]: stray bytes, bit flips and dropped bytes, with a log of what was really sent.
 //! - [`mounts`]: where the emulated sensors sit in the room.
+//! - [`truth`]: ground truth for scoring clouds: surface samples, exact distances, the world file.
 //! - [`turntable`]: the Sweep on the stepper's turntable, its scan plane following the rotor.
 //! - [`pair`]: a driver wired straight to an emulator in memory (deterministic tests, benches).
 //! - [`pty`]: runs an emulator on a Linux pty behind a symlink, paced at the wire rate.
@@ -27,5 +28,6 @@ pub mod rig;
 pub mod rplidar;
 pub mod stepper;
 pub mod sweep;
+pub mod truth;
 pub mod turntable;
 pub mod world;
