@@ -7,7 +7,7 @@
 //! - [`serial`]: the thin I/O shell that runs a driver on a serial port, surviving unplug/replug.
 //! - [`probe`]: the `scan3d-edge probe` wiring check.
 //! - [`config`]: the daemon's TOML configuration (`edge.toml`).
-//! - [`static_scan`]: the static-scan controller (one step per revolution in the blind sector, φ tags).
+//! - [`static_scan`]: static-scan controller: a step per revolution while blocked, φ per sample.
 #![warn(missing_docs)]
 
 pub mod acquisition;
