@@ -3,7 +3,7 @@
 //! payload is skipped and the connection stays usable; the server keeps serving throughout.
 
 use std::net::SocketAddr;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use scan3d_edge::uplink::tls::client_config;
@@ -85,18 +85,29 @@ fn header(version: u16, payload_len: u32) -> Vec<u8> {
     bytes
 }
 
-#[test]
-fn bad_frames_close_the_connection_cleanly_and_the_server_keeps_serving() {
+/// A paired temporary installation with the server running, and a runtime for test clients.
+fn start_server() -> (
+    tempfile::TempDir,
+    PathBuf,
+    ServerThread,
+    tokio::runtime::Runtime,
+) {
     let dir = tempfile::tempdir().expect("temp dir");
     let pki = dir.path().join("pki");
     let bundle = rig::pair_certificates(&pki).expect("pairing");
     let server =
         ServerThread::start(rig::ingest_config(&pki, &dir.path().join("data"), 0)).expect("server");
-    let addr = server.addr();
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
         .expect("runtime");
+    (dir, bundle, server, runtime)
+}
+
+#[test]
+fn bad_frames_close_the_connection_cleanly_and_the_server_keeps_serving() {
+    let (_dir, bundle, server, runtime) = start_server();
+    let addr = server.addr();
     runtime.block_on(async {
         // Another protocol version: refused by the header alone.
         let mut client = connect(addr, &bundle).await;
@@ -134,16 +145,8 @@ fn bad_frames_close_the_connection_cleanly_and_the_server_keeps_serving() {
 
 #[test]
 fn a_reconnecting_edge_replaces_its_old_connection() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let pki = dir.path().join("pki");
-    let data = dir.path().join("data");
-    let bundle = rig::pair_certificates(&pki).expect("pairing");
-    let server = ServerThread::start(rig::ingest_config(&pki, &data, 0)).expect("server");
+    let (dir, bundle, server, runtime) = start_server();
     let addr = server.addr();
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-        .expect("runtime");
     runtime.block_on(async {
         let mut old = connect(addr, &bundle).await;
         assert!(old.heartbeat_is_acknowledged(7, 0).await);
@@ -156,6 +159,7 @@ fn a_reconnecting_edge_replaces_its_old_connection() {
     });
     let stats = server.stop();
     assert_eq!((stats.frames, stats.duplicates), (2, 0), "{stats:?}");
+    let data = dir.path().join("data");
     let session = scan3d_server::ingest::recorder::session_dir(&data, rig::EDGE_NAME, 7);
     let frames = scan3d_server::ingest::recorder::read_session(&session).expect("recording");
     assert_eq!(
