@@ -330,16 +330,10 @@ pub fn account(
                 && (r.1 - s.sample.range_m).abs() < 0.0005
                 && r.2 == s.sample.quality
         };
-        let mut cursor = 0;
-        let mut matched = Vec::with_capacity(recorded.len());
-        for r in &recorded {
-            match sent[cursor..].iter().position(|s| same(r, s)) {
-                Some(offset) => {
-                    matched.push(cursor + offset);
-                    cursor += offset + 1;
-                }
-                None => delivery.unexplained += 1,
-            }
+        let (matched, unexplained) = match_in_order(&recorded, &sent, same);
+        delivery.unexplained = unexplained.len() as u64;
+        for &i in unexplained.iter().take(3) {
+            tracing::warn!(%sensor, sample = ?recorded[i], "recorded sample matches nothing sent");
         }
         if let (Some(&first), Some(&last)) = (matched.first(), matched.last()) {
             delivery.sent_in_span = (last - first + 1) as u64;
@@ -349,3 +343,56 @@ pub fn account(
     }
     Ok(out)
 }
+
+/// Matches `decoded` samples, in order, to entries of a device's sent log.
+///
+/// Returns the log index of every matched sample and the indices (into `decoded`) of those that
+/// match nothing. Each sample is looked for within [`MATCH_WINDOW`] entries after the previous
+/// match; only the first sample, or one confirmed by the [`MATCH_CONFIRM`] samples after it, may
+/// match farther ahead. Noisy ranges repeat by chance a revolution later, so an unbounded greedy
+/// search would jump there on one unmatched sample and misalign everything after it.
+pub fn match_in_order<R>(
+    decoded: &[R],
+    sent: &[SentSample],
+    same: impl Fn(&R, &SentSample) -> bool,
+) -> (Vec<usize>, Vec<usize>) {
+    let mut matched = Vec::with_capacity(decoded.len());
+    let mut unexplained = Vec::new();
+    let mut cursor = 0;
+    for (i, sample) in decoded.iter().enumerate() {
+        let window_end = if matched.is_empty() {
+            sent.len()
+        } else {
+            (cursor + MATCH_WINDOW).min(sent.len())
+        };
+        let near = sent[cursor..window_end]
+            .iter()
+            .position(|s| same(sample, s))
+            .map(|o| cursor + o);
+        let found = near.or_else(|| {
+            // Farther ahead only with confirmation: the next samples must follow in order.
+            (window_end..sent.len()).find(|&k| {
+                same(sample, &sent[k])
+                    && (1..=MATCH_CONFIRM).all(|d| match (decoded.get(i + d), sent.get(k + d)) {
+                        (Some(next), Some(entry)) => same(next, entry),
+                        (None, _) => true,
+                        (Some(_), None) => false,
+                    })
+            })
+        });
+        match found {
+            Some(k) => {
+                matched.push(k);
+                cursor = k + 1;
+            }
+            None => unexplained.push(i),
+        }
+    }
+    (matched, unexplained)
+}
+
+/// How far after the previous match a sample is looked for without confirmation (well under
+/// one revolution of either lidar).
+pub const MATCH_WINDOW: usize = 64;
+/// Consecutive samples that must confirm a match farther than [`MATCH_WINDOW`] ahead.
+pub const MATCH_CONFIRM: usize = 3;

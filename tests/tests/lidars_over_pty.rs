@@ -20,6 +20,7 @@ use scan3d_hw_sim::device::Device;
 use scan3d_hw_sim::faults::{FaultConfig, SentSample};
 use scan3d_hw_sim::mounts;
 use scan3d_hw_sim::pty::{PtyDevice, PtyHandle, PtyOptions};
+use scan3d_hw_sim::rig;
 use scan3d_hw_sim::rplidar::{RplidarEmulator, RplidarEmulatorConfig, RplidarModel};
 use scan3d_hw_sim::sweep::{SweepEmulator, SweepEmulatorConfig};
 use scan3d_hw_sim::world::World;
@@ -186,18 +187,13 @@ fn match_against_log(
             s.touched && integrity == Integrity::UnprotectedFields && angle_error < 10.0;
         exact || undetectable_flip
     };
-    let mut cursor = 0;
-    let mut matched = Vec::with_capacity(decoded.len());
-    for (i, d) in decoded.iter().enumerate() {
-        let Some(offset) = sent[cursor..].iter().position(|s| same(d, s)) else {
-            panic!(
-                "decoded sample #{i} {d:?} was never sent (searching from log entry {cursor} of {})",
-                sent.len()
-            );
-        };
-        cursor += offset;
-        matched.push(cursor);
-        cursor += 1;
+    let (matched, unexplained) = rig::match_in_order(&decoded, sent, |d, s| same(d, s));
+    if let Some(&i) = unexplained.first() {
+        panic!(
+            "{} decoded samples were never sent, the first #{i}: {:?}",
+            unexplained.len(),
+            decoded[i]
+        );
     }
     let (first, last) = (matched[0], *matched.last().unwrap_or(&0));
     let untouched_sent = sent[first..=last].iter().filter(|s| !s.touched).count();
