@@ -9,8 +9,11 @@ use clap::{Args, Parser, Subcommand, ValueEnum};
 use crate::clock::{Clock, MonotonicClock, ScaledClock};
 use crate::config::EdgeConfig;
 use crate::daemon;
+use crate::drivers::imu::ImuConfig;
 use crate::drivers::rplidar::{Rplidar, RplidarConfig, ScanMode};
+use crate::drivers::stepper::StepperConfig;
 use crate::drivers::sweep::{Sweep, SweepConfig};
+use crate::i2c_probe::{ThreadDelay, probe_imu, probe_stepper};
 use crate::lidar::LidarDriver;
 use crate::probe::{self, ProbeLine, ProbeOptions};
 
@@ -57,6 +60,30 @@ pub enum ProbeCommand {
         /// Revolutions, timeout, time scale.
         #[command(flatten)]
         common: ProbeArgs,
+    },
+    /// Probe the IMU (MPU-9250 + AK8963) on an I2C bus: chip ids, a few samples, the orientation.
+    Imu {
+        /// I2C bus number (/dev/i2c-N; the Pi's header is bus 1).
+        #[arg(long, default_value_t = 1)]
+        bus: u8,
+        /// MPU-9250 address: 0x68 (AD0 low) or 0x69.
+        #[arg(long, default_value = "0x68", value_parser = parse_i2c_address)]
+        address: u8,
+        /// Samples to print.
+        #[arg(long, default_value_t = 20)]
+        samples: usize,
+    },
+    /// Turn the stepper on the motor HAT forward, then back home, and release it.
+    Stepper {
+        /// I2C bus number (/dev/i2c-N; the Pi's header is bus 1).
+        #[arg(long, default_value_t = 1)]
+        bus: u8,
+        /// Motor HAT address.
+        #[arg(long, default_value = "0x60", value_parser = parse_i2c_address)]
+        address: u8,
+        /// Steps forward before coming back.
+        #[arg(long, default_value_t = 50)]
+        steps: u64,
     },
     /// Probe a Scanse Sweep.
     Sweep {
@@ -114,6 +141,42 @@ pub fn execute(cli: Cli, out: &mut dyn Write) -> anyhow::Result<()> {
             };
             run_probe(&mut Rplidar::new(config), path, baud, &common, out)
         }
+        Command::Probe(ProbeCommand::Imu {
+            bus,
+            address,
+            samples,
+        }) => {
+            let config = ImuConfig {
+                address,
+                ..ImuConfig::default()
+            };
+            let period_ms = 1000 / u32::from(config.sample_rate_hz.max(1));
+            let mut emit = json_lines(out);
+            probe_imu(
+                open_i2c(bus)?,
+                &mut ThreadDelay,
+                config,
+                samples,
+                period_ms.max(1),
+                |l| emit.write(l),
+            )?;
+            emit.finish()
+        }
+        Command::Probe(ProbeCommand::Stepper {
+            bus,
+            address,
+            steps,
+        }) => {
+            let config = StepperConfig {
+                address,
+                ..StepperConfig::default()
+            };
+            let mut emit = json_lines(out);
+            probe_stepper(open_i2c(bus)?, &mut ThreadDelay, &config, steps, |l| {
+                emit.write(l)
+            })?;
+            emit.finish()
+        }
         Command::Probe(ProbeCommand::Sweep { path, common }) => {
             let mut driver = Sweep::new(SweepConfig::default())?;
             run_probe(&mut driver, path, 115_200, &common, out)
@@ -162,20 +225,9 @@ fn run_probe(
         revolutions: common.revolutions,
         deadline_ns: common.timeout.saturating_mul(1_000_000_000),
     };
-    let mut write_error = None;
-    probe::run(driver, &options, clock, |line: &ProbeLine| {
-        if write_error.is_none() {
-            let result = serde_json::to_string(line)
-                .map_err(std::io::Error::other)
-                .and_then(|json| writeln!(out, "{json}"))
-                .and_then(|()| out.flush());
-            write_error = result.err();
-        }
-    })?;
-    match write_error {
-        Some(e) => Err(e.into()),
-        None => Ok(()),
-    }
+    let mut emit = json_lines(out);
+    probe::run(driver, &options, clock, |line: &ProbeLine| emit.write(line))?;
+    emit.finish()
 }
 
 /// `scan3d-edge --config edge.toml`: runs the daemon until SIGTERM or SIGINT.
@@ -203,4 +255,56 @@ fn run_daemon(config_path: &std::path::Path) -> anyhow::Result<()> {
         }
         Ok(())
     })
+}
+
+/// Opens `/dev/i2c-N` through rppal, with a hint when it is not there.
+fn open_i2c(bus: u8) -> anyhow::Result<rppal::i2c::I2c> {
+    rppal::i2c::I2c::with_bus(bus).map_err(|e| {
+        anyhow::anyhow!(
+            "cannot open I2C bus {bus} (/dev/i2c-{bus}): {e} (enable I2C with `raspi-config nonint do_i2c 0` and add the user to the i2c group)"
+        )
+    })
+}
+
+fn parse_i2c_address(text: &str) -> Result<u8, String> {
+    let digits = text.strip_prefix("0x").or_else(|| text.strip_prefix("0X"));
+    let value = match digits {
+        Some(hex) => u8::from_str_radix(hex, 16),
+        None => text.parse::<u8>(),
+    };
+    match value {
+        Ok(address) if address <= 0x7f => Ok(address),
+        _ => Err(format!(
+            "expected a 7-bit I2C address such as 0x68, got {text:?}"
+        )),
+    }
+}
+
+/// Writes serialisable lines as JSON, one per line, remembering the first write error.
+struct JsonLines<'a> {
+    out: &'a mut dyn Write,
+    error: Option<std::io::Error>,
+}
+
+fn json_lines(out: &mut dyn Write) -> JsonLines<'_> {
+    JsonLines { out, error: None }
+}
+
+impl JsonLines<'_> {
+    fn write(&mut self, line: &impl serde::Serialize) {
+        if self.error.is_none() {
+            let result = serde_json::to_string(line)
+                .map_err(std::io::Error::other)
+                .and_then(|json| writeln!(self.out, "{json}"))
+                .and_then(|()| self.out.flush());
+            self.error = result.err();
+        }
+    }
+
+    fn finish(self) -> anyhow::Result<()> {
+        match self.error {
+            Some(e) => Err(e.into()),
+            None => Ok(()),
+        }
+    }
 }

@@ -5,7 +5,7 @@
 //! - [`drivers`]: RPLidar A1/A2 and Scanse Sweep protocol state machines (bytes in, events out).
 //! - [`timing`]: per-sample timestamps from serial arrival times, and revolution assembly.
 //! - [`serial`]: the thin I/O shell that runs a driver on a serial port, surviving unplug/replug.
-//! - [`probe`]: the `scan3d-edge probe` wiring check.
+//! - [`probe`], [`i2c_probe`]: the `scan3d-edge probe` wiring checks (lidars; IMU and stepper).
 //! - [`config`]: the daemon's TOML configuration (`edge.toml`).
 //! - [`static_scan`]: static-scan controller: a step per revolution while blocked, φ per sample.
 #![warn(missing_docs)]
@@ -16,6 +16,7 @@ pub mod clock;
 pub mod config;
 pub mod daemon;
 pub mod drivers;
+pub mod i2c_probe;
 pub mod lidar;
 pub mod madgwick;
 pub mod probe;
