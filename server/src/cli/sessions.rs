@@ -11,9 +11,13 @@ use crate::ingest::recorder::{SessionSummary, list_sessions};
 /// Options of `scan3d sessions`.
 #[derive(Debug, clap::Args)]
 pub struct SessionsArgs {
-    /// The server's data directory (`data_dir` in server.toml); sessions are under `DIR/sessions`.
+    /// The server's data directory; sessions are under `DIR/sessions`. Without it, the
+    /// `data_dir` of `--config` is used.
     #[arg(long, value_name = "DIR")]
-    pub data_dir: PathBuf,
+    pub data_dir: Option<PathBuf>,
+    /// The server configuration whose `data_dir` to list when `--data-dir` is not given.
+    #[arg(long, default_value = "/etc/scan3d/server.toml")]
+    pub config: PathBuf,
     /// Print one JSON object per session instead of a table.
     #[arg(long)]
     pub json: bool,
@@ -56,8 +60,12 @@ fn json_line(summary: &SessionSummary) -> serde_json::Value {
 
 /// Runs `scan3d sessions`.
 pub fn run(args: &SessionsArgs, out: &mut dyn Write) -> anyhow::Result<()> {
-    let sessions = list_sessions(&args.data_dir)
-        .with_context(|| format!("cannot list sessions under {}", args.data_dir.display()))?;
+    let data_dir = match &args.data_dir {
+        Some(dir) => dir.clone(),
+        None => crate::config::ServerConfig::load(&args.config)?.data_dir,
+    };
+    let sessions = list_sessions(&data_dir)
+        .with_context(|| format!("cannot list sessions under {}", data_dir.display()))?;
     if args.json {
         for summary in &sessions {
             writeln!(out, "{}", json_line(summary))?;
@@ -68,7 +76,7 @@ pub fn run(args: &SessionsArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         writeln!(
             out,
             "no sessions under {}",
-            args.data_dir.join("sessions").display()
+            data_dir.join("sessions").display()
         )?;
         return Ok(());
     }
@@ -158,7 +166,8 @@ mod tests {
         record(tmp.path());
         let mut out = Vec::new();
         let args = SessionsArgs {
-            data_dir: tmp.path().to_path_buf(),
+            data_dir: Some(tmp.path().to_path_buf()),
+            config: PathBuf::from("/nonexistent/server.toml"),
             json: false,
         };
         run(&args, &mut out).expect("run");
@@ -181,7 +190,8 @@ mod tests {
         record(tmp.path());
         let mut out = Vec::new();
         let args = SessionsArgs {
-            data_dir: tmp.path().to_path_buf(),
+            data_dir: Some(tmp.path().to_path_buf()),
+            config: PathBuf::from("/nonexistent/server.toml"),
             json: true,
         };
         run(&args, &mut out).expect("run");
@@ -202,7 +212,8 @@ mod tests {
         let tmp = tempfile::tempdir().expect("tempdir");
         let mut out = Vec::new();
         let args = SessionsArgs {
-            data_dir: tmp.path().to_path_buf(),
+            data_dir: Some(tmp.path().to_path_buf()),
+            config: PathBuf::from("/nonexistent/server.toml"),
             json: false,
         };
         run(&args, &mut out).expect("run");
