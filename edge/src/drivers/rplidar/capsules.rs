@@ -32,9 +32,11 @@
 //! restarted its angle sequence) drops the held capsule without decoding it, like the SDK.
 //! Unlike the SDK, a held capsule survives a framing error: when the next good capsule arrives,
 //! the start-angle gap decides. A gap within ±25 % of the last used `diff` means nothing was
-//! lost (e.g. a stray byte between capsules) and the capsule is decoded normally; a gap within
-//! ±25 % of twice that `diff` means exactly one capsule was lost, and the held capsule is decoded
-//! with half the gap as its `diff`; anything else drops it.
+//! lost (e.g. a stray byte between capsules) and the capsule is decoded normally; after damaged
+//! bytes, a gap within ±25 % of twice that `diff` means exactly one capsule was lost, and the
+//! held capsule is decoded with half the gap as its `diff`; anything else drops it. The same
+//! check applies without damaged bytes: a clean stream whose angle jumps lost whole capsules
+//! upstream (an overrun), and decoding across the jump would misplace every sample.
 
 use crate::lidar::{DriverStats, RawSample};
 
@@ -43,6 +45,9 @@ pub const CAPSULE_LEN: usize = 84;
 /// Samples per capsule (16 cabins × 2).
 pub const SAMPLES_PER_CAPSULE: usize = 32;
 const FULL_TURN_Q6: u32 = 360 * 64;
+/// Largest plausible start-angle step between consecutive capsules: 32 samples at the fastest
+/// rotation and slowest sample rate an A1/A2 reaches (about 0.9° per sample), with margin.
+const MAX_DIFF_Q6: u32 = 45 * 64;
 /// Express samples have no quality; the SDK reports 47 << 2 (we keep the 6-bit scale).
 const EXPRESS_QUALITY: u8 = 47;
 
@@ -146,14 +151,15 @@ impl CapsuleParser {
             return;
         }
         let gap = (next.start_q6 + FULL_TURN_Q6 - held.start_q6) % FULL_TURN_Q6;
-        let diff = if !damaged {
-            Some(gap)
-        } else {
-            match self.last_diff_q6 {
-                Some(d) if 4 * gap.abs_diff(d) <= d => Some(gap),
-                Some(d) if 4 * gap.abs_diff(2 * d) <= 2 * d => Some(gap / 2),
-                _ => None,
-            }
+        let diff = match self.last_diff_q6 {
+            Some(d) if 4 * gap.abs_diff(d) <= d => Some(gap),
+            // Damaged bytes in between: one corrupted capsule, decode across it.
+            Some(d) if damaged && 4 * gap.abs_diff(2 * d) <= 2 * d => Some(gap / 2),
+            // A clean stream whose angle jumps: whole capsules vanished (an overrun upstream of
+            // the serial port), and capsules carry no sequence number to tell how many.
+            Some(_) => None,
+            None if !damaged && gap <= MAX_DIFF_Q6 => Some(gap),
+            None => None,
         };
         if let Some(diff) = diff {
             self.decode(&held, diff, &mut emit);
@@ -324,6 +330,22 @@ pub(super) mod tests {
         assert_eq!(out[3].0.angle_deg, 342.4375);
         // k = 23: base 1.5625, dθ 2.875 → 358.6875.
         assert_eq!(out[23].0.angle_deg, 358.6875);
+    }
+
+    #[test]
+    fn capsules_that_vanished_without_a_trace_drop_the_held_one() {
+        // An overrun upstream removed capsules 2..=5 whole: capsule 1 is followed directly by
+        // capsule 6. Decoding 1 with the 150° gap would misplace all its samples.
+        let (out, stats) = run(&stream(&[0, 1, 6, 7, 8]));
+        let got: Vec<RawSample> = out.iter().map(|(s, _)| *s).collect();
+        let mut want: Vec<RawSample> = (0..32).map(|k| expected(0, k, 0.0, 30.0)).collect();
+        want.extend((0..32).map(|k| expected(6, k, 180.0, 30.0)));
+        want.extend((0..32).map(|k| expected(7, k, 210.0, 30.0)));
+        assert_eq!(got, want);
+        assert_eq!(
+            stats.frames_rejected, 0,
+            "nothing was corrupt, only missing"
+        );
     }
 
     #[test]
