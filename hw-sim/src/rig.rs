@@ -110,13 +110,18 @@ impl SimLidars {
         }
     }
 
+    /// The pty of a lidar.
+    pub fn pty(&self, sensor: SensorId) -> &PtyHandle {
+        if sensor == SensorId::RPLIDAR {
+            &self.rplidar
+        } else {
+            &self.sweep
+        }
+    }
+
     /// Everything a device put on the wire so far.
     pub fn sent(&self, sensor: SensorId) -> Vec<SentSample> {
-        if sensor == SensorId::RPLIDAR {
-            self.rplidar.sent_log().snapshot()
-        } else {
-            self.sweep.sent_log().snapshot()
-        }
+        self.pty(sensor).sent_log().snapshot()
     }
 
     /// Stops both devices and removes their links.
@@ -282,6 +287,9 @@ pub struct Delivery {
     pub missing_in_span: u64,
     /// Recorded samples that match nothing the emulator sent (must be 0).
     pub unexplained: u64,
+    /// Bytes the emulator's pty dropped because the reader fell behind (a UART overrun): their
+    /// samples were never sent, so they are not counted as missing.
+    pub overrun_bytes: u64,
 }
 
 /// Compares a session recording with what the emulators sent and the edge submitted.
@@ -324,6 +332,7 @@ pub fn account(
             sent_in_span: 0,
             missing_in_span: 0,
             unexplained: 0,
+            overrun_bytes: lidars.pty(sensor).stats().bytes_dropped_overrun,
         };
         let same = |r: &(f32, f32, u8), s: &SentSample| {
             (r.0 - s.sample.angle_deg).abs() < 0.05
