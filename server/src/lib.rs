@@ -2,7 +2,8 @@
 //!
 //! Stages follow the data flow, one module each (see `ARCHITECTURE.md`); today:
 //! - [`ingest`]: QUIC server with mutual TLS, durable MCAP session recordings, time sync.
-//! - [`cloud`]: point-cloud types and PLY export.
+//! - [`cloud`]: 3D assembly, point-cloud filters and PLY / PCD / `.scans` I/O.
+//! - [`octree`]: the OctoMap-compatible occupancy octree.
 //! - [`config`]: the daemon's `server.toml`.
 //! - [`cli`]: the `scan3d` subcommands.
 #![warn(missing_docs)]
@@ -11,3 +12,4 @@ pub mod cli;
 pub mod cloud;
 pub mod config;
 pub mod ingest;
+pub mod octree;

@@ -25,6 +25,8 @@ use std::io::{self, Write};
 
 use serde::{Deserialize, Serialize};
 
+pub use super::OriginScan;
+
 /// How the Sweep sits on the turntable.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -100,16 +102,6 @@ pub fn static_point(
         oy + l * theta.sin() * phi.cos(),
         oz + l * theta.cos(),
     ])
-}
-
-/// Points of one revolution with the sensor origin they were seen from, as OctoMap's ray
-/// casting needs them.
-#[derive(Debug, Clone, PartialEq)]
-pub struct OriginScan {
-    /// The sensor origin, world frame.
-    pub origin: [f64; 3],
-    /// The points, world frame.
-    pub points: Vec<[f32; 3]>,
 }
 
 /// Writes `.scans` (`research/octomap.md` §6.5): for each scan `u32 n; f64 ox, oy, oz;

@@ -12,3 +12,13 @@ pub struct CloudPoint {
     /// Sensor quality / signal strength, as reported.
     pub intensity: f32,
 }
+
+/// Points of one revolution with the sensor origin they were seen from, as OctoMap's ray
+/// casting needs them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct OriginScan {
+    /// The sensor origin, world frame.
+    pub origin: [f64; 3],
+    /// The points, world frame.
+    pub points: Vec<[f32; 3]>,
+}
