@@ -3,8 +3,8 @@
 use serde::{Deserialize, Serialize};
 
 use crate::types::{
-    Ack, Command, DeviceStatus, Heartbeat, Hello, ImuSample, LidarRevolution, StepperState,
-    TimePing, TimePong,
+    Ack, Command, DeviceStatus, Heartbeat, Hello, ImuSample, LidarRevolution, StaticScan,
+    StepperState, TimePing, TimePong,
 };
 
 /// One message with its session and sequence number.
@@ -63,6 +63,7 @@ pub enum Direction {
 /// | 7 | [`Body::Heartbeat`] | both |
 /// | 8 | [`Body::Status`] | edge → server |
 /// | 9 | [`Body::Command`] | server → edge |
+/// | 10 | [`Body::StaticScan`] | edge → server |
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub enum Body {
     /// Edge identity and sensor inventory; first frame of a connection.
@@ -85,6 +86,8 @@ pub enum Body {
     Status(DeviceStatus),
     /// Order from the server.
     Command(Command),
+    /// Static 3D scan: start, yaw-tagged samples, warnings, end.
+    StaticScan(StaticScan),
 }
 
 impl Body {
@@ -96,7 +99,8 @@ impl Body {
             | Body::Imu(_)
             | Body::Stepper(_)
             | Body::TimePong(_)
-            | Body::Status(_) => Direction::EdgeToServer,
+            | Body::Status(_)
+            | Body::StaticScan(_) => Direction::EdgeToServer,
             Body::TimePing(_) | Body::Command(_) => Direction::ServerToEdge,
             Body::Ack(_) | Body::Heartbeat(_) => Direction::Both,
         }
@@ -126,4 +130,5 @@ body_from! {
     Heartbeat => Heartbeat,
     DeviceStatus => Status,
     Command => Command,
+    StaticScan => StaticScan,
 }

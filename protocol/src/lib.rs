@@ -47,6 +47,7 @@
 //! | 7 | [`Heartbeat`] | both | sender's clock |
 //! | 8 | [`DeviceStatus`] | edge → server | sensor lost / back, acquisition paused / resumed, with a reason |
 //! | 9 | [`Command`] | server → edge | start static scan at a named position, stop it, set a motor speed |
+//! | 10 | [`StaticScan`] | edge → server | static 3D scan: start (position, step, mount), yaw-tagged Sweep samples per revolution, warnings, end |
 //!
 //! Sensors are named by [`SensorId`] (0 rplidar, 1 sweep, 2 imu, 3 stepper). All edge times are
 //! nanoseconds on the edge's monotonic clock.
@@ -84,8 +85,10 @@ pub use codec::{
 };
 pub use frame::{Body, Direction, Frame};
 pub use types::{
-    Ack, Command, DeviceStatus, Heartbeat, Hello, ImuSample, LidarRevolution, RevolutionSample,
-    SampleTimeError, SensorId, SensorInfo, StatusEvent, StepperState, TimePing, TimePong,
+    Ack, Command, DeviceStatus, Heartbeat, Hello, ImuSample, LidarRevolution, MountInfo,
+    RevolutionSample, SampleTimeError, SensorId, SensorInfo, StaticScan, StaticScanEnd,
+    StaticScanOutcome, StaticScanProblem, StaticScanSamples, StaticScanStart, StaticScanWarning,
+    StatusEvent, StepperState, TaggedSweepSample, TimePing, TimePong,
 };
 pub use version::{IncompatibleVersion, PROTOCOL_VERSION, check_compatible};
 

@@ -335,3 +335,153 @@ pub enum Command {
         hz: f32,
     },
 }
+
+/// A static 3D scan's messages (the paper's §III-A): the edge turns the Sweep on the stepper,
+/// one step per revolution while the beam is blocked, and tags every sample with the turntable
+/// yaw φ it was taken at, so the server can apply eq. (1) without any other stream.
+///
+/// Variant order is part of the wire: `Started` = 0, `Samples` = 1, `Warning` = 2,
+/// `Finished` = 3.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum StaticScan {
+    /// A scan began at a known position (answers [`Command::StartStaticScan`]).
+    Started(StaticScanStart),
+    /// Tagged samples of one revolution (both halves).
+    Samples(StaticScanSamples),
+    /// Something went wrong for part of the scan; the affected samples were not tagged.
+    Warning(StaticScanWarning),
+    /// The scan ended (complete, aborted or stopped) and the turntable went home.
+    Finished(StaticScanEnd),
+}
+
+/// Where the Sweep sits on the turntable, as configured on the edge (`[static_scan.mount]`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct MountInfo {
+    /// Distance of the optical centre from the turntable axis along the scan plane's normal, m.
+    pub axis_offset_m: f64,
+    /// Height of the optical centre above the floor, m.
+    pub height_m: f64,
+    /// The device azimuth that points straight up (θ = 0 of eq. (1)), degrees.
+    pub azimuth_zero_deg: f64,
+}
+
+/// The start of a static scan: position, step and mount, everything eq. (1) needs.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StaticScanStart {
+    /// Number of the scan within the edge session (0, 1, …).
+    pub scan_id: u32,
+    /// Edge monotonic clock (ns) when the scan started.
+    pub t_ns: u64,
+    /// The operator's name for the position.
+    pub position: String,
+    /// Position x in the map frame, metres.
+    pub x_m: f64,
+    /// Position y in the map frame, metres.
+    pub y_m: f64,
+    /// φ0: turntable yaw 0 in the map frame, degrees (0 when the operator gave none).
+    pub heading_deg: f64,
+    /// δφ per revolution, degrees.
+    pub step_deg: f64,
+    /// Total turn planned, degrees.
+    pub total_deg: f64,
+    /// Width of the blind sector centred on θ = 180°, degrees.
+    pub blocked_sector_deg: f64,
+    /// The mount geometry.
+    pub mount: MountInfo,
+}
+
+/// One Sweep sample with the turntable yaw it was taken at.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct TaggedSweepSample {
+    /// Device azimuth, degrees, as the Sweep reports it.
+    pub azimuth_deg: f32,
+    /// Range, metres (`0.0` = no return).
+    pub range_m: f32,
+    /// Signal strength (0–255).
+    pub quality: u8,
+    /// Turntable yaw φ from home, degrees.
+    pub yaw_deg: f32,
+}
+
+/// Tagged samples of one revolution of a static scan.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StaticScanSamples {
+    /// The scan.
+    pub scan_id: u32,
+    /// Revolution index within the scan.
+    pub revolution: u32,
+    /// Edge monotonic clock (ns) of the first sample.
+    pub t_ns: u64,
+    /// The samples in the order the device produced them.
+    pub samples: Vec<TaggedSweepSample>,
+}
+
+/// What went wrong during a static scan.
+///
+/// Variant order is part of the wire: `LateStep` = 0, `StepFailed` = 1, `SectorMissed` = 2,
+/// `PredictedLate` = 3.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum StaticScanProblem {
+    /// A step did not finish before the beam left the blocked sector: the second half of the
+    /// revolution was dropped, not mis-tagged.
+    LateStep,
+    /// The stepper reported an error during a step.
+    StepFailed,
+    /// No sample fell into the blocked sector, so no step was made that revolution.
+    SectorMissed,
+    /// δφ at the motor's maximum rate cannot fit in the blocked sector at this rotation rate.
+    PredictedLate,
+}
+
+/// A problem during a static scan, for the session log.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StaticScanWarning {
+    /// The scan.
+    pub scan_id: u32,
+    /// Edge monotonic clock (ns).
+    pub t_ns: u64,
+    /// Revolution concerned.
+    pub revolution: u32,
+    /// What happened.
+    pub problem: StaticScanProblem,
+    /// Details for a human.
+    pub detail: String,
+}
+
+/// How a static scan ended.
+///
+/// Variant order is part of the wire: `Completed` = 0, `Aborted` = 1, `Stopped` = 2.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum StaticScanOutcome {
+    /// The turntable turned the whole planned angle.
+    Completed,
+    /// Too many failed steps.
+    Aborted,
+    /// Stopped by a command, a lost Sweep or the daemon shutting down.
+    Stopped,
+}
+
+/// The end of a static scan with its counters.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StaticScanEnd {
+    /// The scan.
+    pub scan_id: u32,
+    /// Edge monotonic clock (ns).
+    pub t_ns: u64,
+    /// How it ended.
+    pub outcome: StaticScanOutcome,
+    /// Final yaw before returning home, degrees.
+    pub yaw_deg: f64,
+    /// Full revolutions.
+    pub revolutions: u32,
+    /// Samples tagged with a yaw.
+    pub tagged: u64,
+    /// Samples in the blocked sector.
+    pub blocked: u64,
+    /// Samples not trusted (late or failed steps).
+    pub untrusted: u64,
+    /// Late steps.
+    pub late_steps: u64,
+    /// Failed steps.
+    pub failed_steps: u64,
+}

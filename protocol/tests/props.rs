@@ -5,8 +5,10 @@
 use proptest::prelude::*;
 use scan3d_protocol::{
     Ack, Body, Command, DecodeError, DeviceStatus, Frame, FrameReader, HEADER_LEN, Heartbeat,
-    Hello, ImuSample, LidarRevolution, RevolutionSample, SensorId, SensorInfo, StatusEvent,
-    StepperState, TimePing, TimePong, decode, encode,
+    Hello, ImuSample, LidarRevolution, MountInfo, RevolutionSample, SensorId, SensorInfo,
+    StaticScan, StaticScanEnd, StaticScanOutcome, StaticScanProblem, StaticScanSamples,
+    StaticScanStart, StaticScanWarning, StatusEvent, StepperState, TaggedSweepSample, TimePing,
+    TimePong, decode, encode,
 };
 
 /// `S3DP` + version 1 LE: the only start a decodable frame can have.
@@ -151,6 +153,110 @@ fn command() -> impl Strategy<Value = Command> {
     ]
 }
 
+fn static_scan() -> impl Strategy<Value = StaticScan> {
+    let mount = (f64s(), f64s(), f64s()).prop_map(|(axis_offset_m, height_m, azimuth_zero_deg)| {
+        MountInfo {
+            axis_offset_m,
+            height_m,
+            azimuth_zero_deg,
+        }
+    });
+    let start = (
+        (any::<u32>(), any::<u64>(), text(), f64s(), f64s()),
+        (f64s(), f64s(), f64s(), f64s(), mount),
+    )
+        .prop_map(
+            |(
+                (scan_id, t_ns, position, x_m, y_m),
+                (heading_deg, step_deg, total_deg, blocked_sector_deg, mount),
+            )| StaticScanStart {
+                scan_id,
+                t_ns,
+                position,
+                x_m,
+                y_m,
+                heading_deg,
+                step_deg,
+                total_deg,
+                blocked_sector_deg,
+                mount,
+            },
+        );
+    let sample = (f32s(), f32s(), any::<u8>(), f32s()).prop_map(
+        |(azimuth_deg, range_m, quality, yaw_deg)| TaggedSweepSample {
+            azimuth_deg,
+            range_m,
+            quality,
+            yaw_deg,
+        },
+    );
+    let samples = (
+        any::<u32>(),
+        any::<u32>(),
+        any::<u64>(),
+        prop::collection::vec(sample, 0..40),
+    )
+        .prop_map(|(scan_id, revolution, t_ns, samples)| StaticScanSamples {
+            scan_id,
+            revolution,
+            t_ns,
+            samples,
+        });
+    let problem = prop_oneof![
+        Just(StaticScanProblem::LateStep),
+        Just(StaticScanProblem::StepFailed),
+        Just(StaticScanProblem::SectorMissed),
+        Just(StaticScanProblem::PredictedLate),
+    ];
+    let warning = (any::<u32>(), any::<u64>(), any::<u32>(), problem, text()).prop_map(
+        |(scan_id, t_ns, revolution, problem, detail)| StaticScanWarning {
+            scan_id,
+            t_ns,
+            revolution,
+            problem,
+            detail,
+        },
+    );
+    let outcome = prop_oneof![
+        Just(StaticScanOutcome::Completed),
+        Just(StaticScanOutcome::Aborted),
+        Just(StaticScanOutcome::Stopped),
+    ];
+    let end = (
+        (any::<u32>(), any::<u64>(), outcome, f64s(), any::<u32>()),
+        (
+            any::<u64>(),
+            any::<u64>(),
+            any::<u64>(),
+            any::<u64>(),
+            any::<u64>(),
+        ),
+    )
+        .prop_map(
+            |(
+                (scan_id, t_ns, outcome, yaw_deg, revolutions),
+                (tagged, blocked, untrusted, late_steps, failed_steps),
+            )| StaticScanEnd {
+                scan_id,
+                t_ns,
+                outcome,
+                yaw_deg,
+                revolutions,
+                tagged,
+                blocked,
+                untrusted,
+                late_steps,
+                failed_steps,
+            },
+        );
+    prop_oneof![
+        start.prop_map(StaticScan::Started),
+        samples.prop_map(StaticScan::Samples),
+        warning.prop_map(StaticScan::Warning),
+        end.prop_map(StaticScan::Finished),
+    ]
+}
+
 fn body() -> impl Strategy<Value = Body> {
     prop_oneof![
         hello().prop_map(Body::Hello),
@@ -169,6 +275,7 @@ fn body() -> impl Strategy<Value = Body> {
         any::<u64>().prop_map(|sent_ns| Body::Heartbeat(Heartbeat { sent_ns })),
         status().prop_map(Body::Status),
         command().prop_map(Body::Command),
+        static_scan().prop_map(Body::StaticScan),
     ]
 }
 

@@ -4,7 +4,8 @@
 use scan3d_protocol::{
     Ack, Body, Command, DecodeError, DeviceStatus, EncodeError, Frame, FrameHeader, FrameReader,
     HEADER_LEN, Heartbeat, Hello, ImuSample, LidarRevolution, MAX_FRAME_LEN, PROTOCOL_VERSION,
-    RevolutionSample, SensorId, SensorInfo, StatusEvent, StepperState, TimePing, TimePong, decode,
+    RevolutionSample, SensorId, SensorInfo, StaticScan, StaticScanProblem, StaticScanSamples,
+    StaticScanWarning, StatusEvent, StepperState, TaggedSweepSample, TimePing, TimePong, decode,
     decode_header, encode,
 };
 
@@ -279,6 +280,50 @@ fn command_exact_bytes() {
             },
         ),
         &[0x01, 0x00, 0x09, 0x02, 0x01, 0x00, 0x00, 0xA0, 0x40],
+    );
+}
+
+#[test]
+fn static_scan_samples_exact_bytes() {
+    assert_wire(
+        Frame::new(
+            1,
+            0,
+            StaticScan::Samples(StaticScanSamples {
+                scan_id: 2,
+                revolution: 3,
+                t_ns: 4,
+                samples: vec![TaggedSweepSample {
+                    azimuth_deg: 90.0,
+                    range_m: 2.0,
+                    quality: 200,
+                    yaw_deg: 1.8,
+                }],
+            }),
+        ),
+        &[
+            0x01, 0x00, 0x0A, 0x01, // session, seq, tag 10 = StaticScan, 1 = Samples
+            0x02, 0x03, 0x04, // scan_id, revolution, t_ns
+            0x01, // one sample
+            0x00, 0x00, 0xB4, 0x42, // 90.0f32
+            0x00, 0x00, 0x00, 0x40, // 2.0f32
+            0xC8, // quality 200
+            0x66, 0x66, 0xE6, 0x3F, // 1.8f32
+        ],
+    );
+    assert_wire(
+        Frame::new(
+            1,
+            0,
+            StaticScan::Warning(StaticScanWarning {
+                scan_id: 0,
+                t_ns: 5,
+                revolution: 6,
+                problem: StaticScanProblem::LateStep,
+                detail: String::new(),
+            }),
+        ),
+        &[0x01, 0x00, 0x0A, 0x02, 0x00, 0x05, 0x06, 0x00, 0x00],
     );
 }
 

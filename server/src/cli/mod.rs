@@ -1,11 +1,13 @@
 //! The `scan3d` command line, as a library so tests can run it in-process.
 
 use std::io::Write;
+use std::path::PathBuf;
 
 use clap::{Parser, Subcommand};
 
 pub mod pair;
 pub mod replay;
+pub mod scan;
 pub mod serve;
 pub mod sessions;
 
@@ -29,6 +31,30 @@ pub enum Command {
     Sessions(sessions::SessionsArgs),
     /// Feed a recorded session back through the server pipeline as if live.
     Replay(replay::ReplayArgs),
+    /// Tell a connected edge to make a static 3D scan at a known position (or to stop one).
+    Scan(scan::ScanArgs),
+}
+
+/// Where a server keeps its recordings: `--data-dir`, or the `data_dir` of `--config`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct DataDirArgs {
+    /// The server's data directory (sessions under `DIR/sessions`, control socket
+    /// `DIR/control.sock`). Without it, the `data_dir` of `--config` is used.
+    #[arg(long, value_name = "DIR")]
+    pub data_dir: Option<PathBuf>,
+    /// The server configuration to take `data_dir` from when `--data-dir` is not given.
+    #[arg(long, default_value = "/etc/scan3d/server.toml")]
+    pub config: PathBuf,
+}
+
+impl DataDirArgs {
+    /// The data directory these options name.
+    pub fn resolve(&self) -> anyhow::Result<PathBuf> {
+        match &self.data_dir {
+            Some(dir) => Ok(dir.clone()),
+            None => Ok(crate::config::ServerConfig::load(&self.config)?.data_dir),
+        }
+    }
 }
 
 /// Runs a parsed command line, writing its output to `out`.
@@ -38,5 +64,6 @@ pub fn execute(cli: Cli, out: &mut dyn Write) -> anyhow::Result<()> {
         Command::Serve(args) => serve::run(&args),
         Command::Sessions(args) => sessions::run(&args, out),
         Command::Replay(args) => replay::run(&args, out),
+        Command::Scan(args) => scan::run(&args, out),
     }
 }

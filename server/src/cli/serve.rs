@@ -1,11 +1,13 @@
 //! `scan3d serve --config server.toml`: the server daemon. Records every edge's frames and
-//! acknowledges them once durable; SIGTERM commits, closes every recording and exits 0.
+//! acknowledges them once durable; takes operator commands on `data_dir/control.sock`
+//! (`scan3d scan`); SIGTERM commits, closes every recording and exits 0.
 
 use std::path::{Path, PathBuf};
 
 use scan3d_service::daemon::{self, NotifyState};
 
 use crate::config::ServerConfig;
+use crate::ingest::control::{serve_socket, socket_path};
 use crate::ingest::server::{IngestConfig, IngestServer};
 
 /// Options of `scan3d serve`.
@@ -41,6 +43,11 @@ fn serve(config_path: &Path) -> anyhow::Result<()> {
         .build()?;
     runtime.block_on(async {
         let server = IngestServer::bind(IngestConfig::from(&config))?;
+        std::fs::create_dir_all(&config.data_dir)?;
+        let control = tokio::spawn(serve_socket(
+            socket_path(&config.data_dir),
+            server.control(),
+        ));
         tracing::info!(listen = %server.local_addr()?, data_dir = %config.data_dir.display(), "scan3d server ready");
         daemon::notify(&[NotifyState::Ready]);
         let watchdog = tokio::spawn(daemon::watchdog());
@@ -51,6 +58,8 @@ fn serve(config_path: &Path) -> anyhow::Result<()> {
             })
             .await;
         watchdog.abort();
+        control.abort();
+        let _ = std::fs::remove_file(socket_path(&config.data_dir));
         tracing::info!(
             connections = stats.connections,
             refused = stats.refused,

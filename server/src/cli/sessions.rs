@@ -2,22 +2,18 @@
 //! lines (one object per session).
 
 use std::io::Write;
-use std::path::PathBuf;
 
 use anyhow::Context;
 
+use super::DataDirArgs;
 use crate::ingest::recorder::{SessionSummary, list_sessions};
 
 /// Options of `scan3d sessions`.
 #[derive(Debug, clap::Args)]
 pub struct SessionsArgs {
-    /// The server's data directory; sessions are under `DIR/sessions`. Without it, the
-    /// `data_dir` of `--config` is used.
-    #[arg(long, value_name = "DIR")]
-    pub data_dir: Option<PathBuf>,
-    /// The server configuration whose `data_dir` to list when `--data-dir` is not given.
-    #[arg(long, default_value = "/etc/scan3d/server.toml")]
-    pub config: PathBuf,
+    /// Where the sessions are.
+    #[command(flatten)]
+    pub data: DataDirArgs,
     /// Print one JSON object per session instead of a table.
     #[arg(long)]
     pub json: bool,
@@ -60,10 +56,7 @@ fn json_line(summary: &SessionSummary) -> serde_json::Value {
 
 /// Runs `scan3d sessions`.
 pub fn run(args: &SessionsArgs, out: &mut dyn Write) -> anyhow::Result<()> {
-    let data_dir = match &args.data_dir {
-        Some(dir) => dir.clone(),
-        None => crate::config::ServerConfig::load(&args.config)?.data_dir,
-    };
+    let data_dir = args.data.resolve()?;
     let sessions = list_sessions(&data_dir)
         .with_context(|| format!("cannot list sessions under {}", data_dir.display()))?;
     if args.json {
@@ -139,6 +132,8 @@ pub fn run(args: &SessionsArgs, out: &mut dyn Write) -> anyhow::Result<()> {
 
 #[cfg(test)]
 mod tests {
+    use std::path::PathBuf;
+
     use super::*;
     use crate::ingest::recorder::SessionRecorder;
     use scan3d_protocol::{Frame, Hello, LidarRevolution, SensorId, encode};
@@ -166,8 +161,10 @@ mod tests {
         record(tmp.path());
         let mut out = Vec::new();
         let args = SessionsArgs {
-            data_dir: Some(tmp.path().to_path_buf()),
-            config: PathBuf::from("/nonexistent/server.toml"),
+            data: DataDirArgs {
+                data_dir: Some(tmp.path().to_path_buf()),
+                config: PathBuf::from("/nonexistent/server.toml"),
+            },
             json: false,
         };
         run(&args, &mut out).expect("run");
@@ -190,8 +187,10 @@ mod tests {
         record(tmp.path());
         let mut out = Vec::new();
         let args = SessionsArgs {
-            data_dir: Some(tmp.path().to_path_buf()),
-            config: PathBuf::from("/nonexistent/server.toml"),
+            data: DataDirArgs {
+                data_dir: Some(tmp.path().to_path_buf()),
+                config: PathBuf::from("/nonexistent/server.toml"),
+            },
             json: true,
         };
         run(&args, &mut out).expect("run");
@@ -212,8 +211,10 @@ mod tests {
         let tmp = tempfile::tempdir().expect("tempdir");
         let mut out = Vec::new();
         let args = SessionsArgs {
-            data_dir: Some(tmp.path().to_path_buf()),
-            config: PathBuf::from("/nonexistent/server.toml"),
+            data: DataDirArgs {
+                data_dir: Some(tmp.path().to_path_buf()),
+                config: PathBuf::from("/nonexistent/server.toml"),
+            },
             json: false,
         };
         run(&args, &mut out).expect("run");

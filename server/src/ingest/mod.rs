@@ -5,7 +5,9 @@
 //! - [`recorder`]: MCAP session recordings, acknowledged only once durable.
 //! - [`timesync`]: NTP-style offset / round-trip estimates per edge.
 //! - [`server`]: the endpoint, one task per edge connection.
+//! - [`control`]: operator commands to connected edges, and the local control socket.
 
+pub mod control;
 pub mod pki;
 pub mod recorder;
 pub mod server;

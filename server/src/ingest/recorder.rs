@@ -48,6 +48,7 @@
 //! | `/scan3d/heartbeat` | [`Body::Heartbeat`] from the edge | `sent_ns` |
 //! | `/scan3d/ack` | [`Body::Ack`] from the edge (it takes an edge sequence number too) | log time |
 //! | `/scan3d/command` | [`Body::Command`] the server sent ([`SessionRecorder::append_command`]) | log time |
+//! | `/scan3d/static_scan` | [`Body::StaticScan`]: start (position, step, mount), tagged samples, warnings, end | `t_ns` |
 //!
 //! # Sequence numbers
 //!
@@ -64,7 +65,7 @@ use std::path::{Path, PathBuf};
 use mcap::records::{MessageHeader, Metadata};
 use mcap::sans_io::LinearReaderOptions;
 use mcap::{Compression, McapError, WriteOptions, Writer};
-use scan3d_protocol::{Body, Direction, Frame, decode};
+use scan3d_protocol::{Body, Direction, Frame, StaticScan, decode};
 use serde::Serialize;
 
 /// The MCAP message encoding of every channel: S3DP header + postcard [`Frame`].
@@ -161,6 +162,7 @@ pub fn body_name(body: &Body) -> &'static str {
         Body::Heartbeat(_) => "Heartbeat",
         Body::Status(_) => "Status",
         Body::Command(_) => "Command",
+        Body::StaticScan(_) => "StaticScan",
     }
 }
 
@@ -181,6 +183,7 @@ pub fn topic(body: &Body) -> String {
         Body::Heartbeat(_) => "/scan3d/heartbeat".into(),
         Body::Status(_) => "/scan3d/status".into(),
         Body::Command(_) => "/scan3d/command".into(),
+        Body::StaticScan(_) => "/scan3d/static_scan".into(),
     }
 }
 
@@ -193,6 +196,12 @@ fn edge_time_ns(body: &Body) -> Option<u64> {
         Body::TimePong(pong) => Some(pong.t2_ns),
         Body::Status(status) => Some(status.t_ns),
         Body::Heartbeat(hb) => Some(hb.sent_ns),
+        Body::StaticScan(scan) => Some(match scan {
+            StaticScan::Started(start) => start.t_ns,
+            StaticScan::Samples(samples) => samples.t_ns,
+            StaticScan::Warning(warning) => warning.t_ns,
+            StaticScan::Finished(end) => end.t_ns,
+        }),
         Body::Hello(_) | Body::TimePing(_) | Body::Ack(_) | Body::Command(_) => None,
     }
 }

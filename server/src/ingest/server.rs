@@ -24,11 +24,13 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use scan3d_protocol::{
-    Ack, Body, DecodeError, Direction, Frame, HEADER_LEN, TimePing, decode, decode_header, encode,
+    Ack, Body, Command, DecodeError, Direction, Frame, HEADER_LEN, TimePing, decode, decode_header,
+    encode,
 };
 use tokio::sync::{Semaphore, mpsc, watch};
 use tokio::task::JoinSet;
 
+use super::control::EdgeControl;
 use super::recorder::{Appended, SessionRecorder};
 use super::timesync::{Estimate, Exchange, TimeSync};
 use super::tls;
@@ -118,6 +120,7 @@ pub struct IngestStats {
 pub struct IngestServer {
     endpoint: quinn::Endpoint,
     config: IngestConfig,
+    control: EdgeControl,
 }
 
 impl IngestServer {
@@ -126,7 +129,16 @@ impl IngestServer {
         let server_config = tls::server_config(&config.pki_dir)?;
         let endpoint = quinn::Endpoint::server(server_config, config.listen)
             .map_err(|e| anyhow::anyhow!("cannot listen on {}: {e}", config.listen))?;
-        Ok(Self { endpoint, config })
+        Ok(Self {
+            endpoint,
+            config,
+            control: EdgeControl::default(),
+        })
+    }
+
+    /// A handle that sends commands to the connected edges (e.g. to start a static scan).
+    pub fn control(&self) -> EdgeControl {
+        self.control.clone()
     }
 
     /// The bound address (useful with port 0).
@@ -145,6 +157,7 @@ impl IngestServer {
             events,
             stats: Mutex::new(IngestStats::default()),
             edges: Mutex::new(HashMap::new()),
+            control: self.control,
             next_connection_id: std::sync::atomic::AtomicU64::new(0),
         });
         let (stop_tx, stop_rx) = watch::channel(false);
@@ -190,6 +203,8 @@ struct Shared {
     /// its old connection die (a short outage) replaces it: the old task closes its
     /// recordings first, so one session is never written by two tasks at once.
     edges: Mutex<HashMap<String, EdgeSlot>>,
+    /// Commands for the edges, routed to their live connection's task.
+    control: EdgeControl,
     next_connection_id: std::sync::atomic::AtomicU64,
 }
 
@@ -259,8 +274,9 @@ async fn handle_incoming(
         );
         let _ = previous.finished.wait_for(|done| *done).await;
     }
+    let commands = shared.control.register(&edge);
     let mut session = EdgeConnection::new(edge.clone(), shared.clone());
-    let reason = session.serve(&connection, stop).await;
+    let reason = session.serve(&connection, stop, commands).await;
     session.close_all();
     let _ = finished_tx.send(true);
     {
@@ -269,6 +285,7 @@ async fn handle_incoming(
             edges.remove(&edge);
         }
     }
+    shared.control.unregister(&edge);
     tracing::info!(%edge, %reason, "edge disconnected");
     shared.emit(IngestEvent::Disconnected { edge, reason });
 }
@@ -311,6 +328,7 @@ impl EdgeConnection {
         &mut self,
         connection: &quinn::Connection,
         mut stop: watch::Receiver<bool>,
+        mut commands: mpsc::UnboundedReceiver<Command>,
     ) -> EndReason {
         let (mut send, mut recv) = tokio::select! {
             streams = connection.accept_bi() => match streams {
@@ -355,6 +373,16 @@ impl EdgeConnection {
                 _ = ping_tick.tick() => {
                     self.ping(&mut outgoing);
                     None
+                }
+                // Commands wait until the edge has said which session it runs.
+                Some(command) = commands.recv(), if self.current_session.is_some() => {
+                    match self.command(command, &mut outgoing) {
+                        Ok(()) => None,
+                        Err(reason) => {
+                            connection.close(close_code::STORAGE_ERROR.into(), reason.as_bytes());
+                            Some(reason)
+                        }
+                    }
                 }
                 _ = stop.changed() => {
                     let _ = self.commit(&mut outgoing);
@@ -489,6 +517,24 @@ impl EdgeConnection {
             let seq = next_seq(&mut self.sent_seq, session_id);
             outgoing.push(Frame::new(session_id, seq, Ack::UpTo { seq: up_to }));
         }
+        Ok(())
+    }
+
+    /// Records a command in the edge's current session and queues it for sending.
+    fn command(&mut self, command: Command, outgoing: &mut Vec<Frame>) -> Result<(), String> {
+        let Some(session_id) = self.current_session else {
+            return Ok(());
+        };
+        let seq = next_seq(&mut self.sent_seq, session_id);
+        let frame = Frame::new(session_id, seq, command);
+        let raw = encode(&frame).map_err(|e| format!("cannot encode a command: {e}"))?;
+        if let Some(recorder) = self.recorders.get_mut(&session_id) {
+            recorder
+                .append_command(&raw, &frame, unix_now_ns())
+                .map_err(|e| format!("cannot record a command: {e}"))?;
+        }
+        tracing::info!(edge = %self.edge, command = ?frame.body, "command sent");
+        outgoing.push(frame);
         Ok(())
     }
 

@@ -1,0 +1,145 @@
+//! `scan3d scan --edge NAME --at X,Y[,HEADING] [--name POS]`: starts a static 3D scan on a
+//! connected edge through the running server's control socket; `--stop` ends one early.
+//!
+//! The edge answers in its session: a `StaticScan::Started` frame with the position and mount,
+//! the yaw-tagged samples, then `StaticScan::Finished`; `scan3d assemble SESSION_DIR` turns
+//! them into a cloud.
+
+use std::io::Write;
+use std::str::FromStr;
+
+use scan3d_protocol::Command;
+
+use super::DataDirArgs;
+use crate::ingest::control::{ControlRequest, request, socket_path};
+
+/// A position on the floor as the operator types it: `X,Y` or `X,Y,HEADING` (metres, degrees).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct At {
+    /// x, metres.
+    pub x_m: f64,
+    /// y, metres.
+    pub y_m: f64,
+    /// Heading φ0 of the turntable's zero, degrees, if given.
+    pub heading_deg: Option<f64>,
+}
+
+impl FromStr for At {
+    type Err = String;
+
+    fn from_str(text: &str) -> Result<Self, Self::Err> {
+        let values: Vec<f64> = text
+            .split(',')
+            .map(|v| {
+                v.trim()
+                    .parse::<f64>()
+                    .ok()
+                    .filter(|v| v.is_finite())
+                    .ok_or_else(|| format!("{v:?} is not a finite number"))
+            })
+            .collect::<Result<_, _>>()?;
+        match values[..] {
+            [x_m, y_m] => Ok(At {
+                x_m,
+                y_m,
+                heading_deg: None,
+            }),
+            [x_m, y_m, heading] => Ok(At {
+                x_m,
+                y_m,
+                heading_deg: Some(heading),
+            }),
+            _ => Err(format!(
+                "expected X,Y or X,Y,HEADING, got {} values",
+                values.len()
+            )),
+        }
+    }
+}
+
+/// Options of `scan3d scan`.
+#[derive(Debug, clap::Args)]
+pub struct ScanArgs {
+    /// The edge's name (as in its certificate).
+    #[arg(long)]
+    pub edge: String,
+    /// Where the turntable stands: `X,Y[,HEADING]` in metres and degrees, map frame.
+    #[arg(long, value_name = "X,Y[,HEADING]", required_unless_present = "stop")]
+    pub at: Option<At>,
+    /// The position's name (default `pX_Y`).
+    #[arg(long, value_name = "POS")]
+    pub name: Option<String>,
+    /// Stop the running scan instead (the turntable returns home).
+    #[arg(long, conflicts_with_all = ["at", "name"])]
+    pub stop: bool,
+    /// Which server.
+    #[command(flatten)]
+    pub data: DataDirArgs,
+}
+
+impl ScanArgs {
+    /// The command this invocation sends.
+    pub fn command(&self) -> Command {
+        match self.at {
+            Some(at) if !self.stop => Command::StartStaticScan {
+                position: self
+                    .name
+                    .clone()
+                    .unwrap_or_else(|| format!("p{}_{}", at.x_m, at.y_m)),
+                x_m: at.x_m,
+                y_m: at.y_m,
+                heading_deg: at.heading_deg,
+            },
+            _ => Command::StopStaticScan,
+        }
+    }
+}
+
+/// Runs `scan3d scan`.
+pub fn run(args: &ScanArgs, out: &mut dyn Write) -> anyhow::Result<()> {
+    let socket = socket_path(&args.data.resolve()?);
+    let reply = request(
+        &socket,
+        &ControlRequest {
+            edge: args.edge.clone(),
+            command: args.command(),
+        },
+    )?;
+    if !reply.ok {
+        anyhow::bail!("{}", reply.detail);
+    }
+    writeln!(out, "{}", reply.detail)?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn positions_parse() {
+        assert_eq!(
+            "1.5,-2".parse::<At>(),
+            Ok(At {
+                x_m: 1.5,
+                y_m: -2.0,
+                heading_deg: None
+            })
+        );
+        assert_eq!(
+            "0,0,90".parse::<At>(),
+            Ok(At {
+                x_m: 0.0,
+                y_m: 0.0,
+                heading_deg: Some(90.0)
+            })
+        );
+        assert!("1".parse::<At>().is_err());
+        assert!("1,2,3,4".parse::<At>().is_err());
+        assert_eq!(
+            "1,x".parse::<At>(),
+            Err("\"x\" is not a finite number".to_string())
+        );
+        assert!("1,nan".parse::<At>().is_err());
+    }
+}
