@@ -1,8 +1,11 @@
 //! Point clouds: static-scan assembly (eq. 1), per-sensor 2D scans, and PLY / PCD / .scans export.
 
 pub mod assembly;
+pub mod io;
+pub mod pcd;
 pub mod ply;
 pub mod scans;
+pub mod scans_file;
 
 /// One point of a cloud with the intensity the sensor reported for it.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -1,0 +1,393 @@
+//! Loading and saving point clouds that keep their sensor origins, dispatching on the file
+//! extension: `.scans` ([`super::scans_file`]), `.ply` ([`super::ply`]) and `.pcd`
+//! ([`super::pcd`]).
+//!
+//! The in-memory form everywhere is `Vec<OriginScan>`: points grouped by the sensor origin
+//! they were seen from, which is exactly what octree insertion consumes (one ray origin per
+//! scan) and what the filters in [`super::filter`] keep. PLY and PCD carry a flat point list
+//! with optional per-point (or one cloud-wide) origins; [`FlatCloud`] is that form, with
+//! conversions both ways.
+
+use std::path::{Path, PathBuf};
+
+use super::OriginScan;
+use super::pcd::{self, PcdError};
+use super::ply::{self, PlyError};
+use super::scans_file::{self, ScansError};
+
+/// Text or binary body, for the formats that have both (PLY, PCD).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Encoding {
+    /// Little-endian binary (PLY `binary_little_endian`, PCD `DATA binary`).
+    #[default]
+    Binary,
+    /// Human-readable text (PLY `ascii`, PCD `DATA ascii`).
+    Ascii,
+}
+
+/// Where the points of a flat cloud were seen from, as a file states it.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Origins {
+    /// The file says nothing about the sensor origin.
+    Unknown,
+    /// One origin for the whole cloud (PCD `VIEWPOINT`).
+    Viewpoint([f64; 3]),
+    /// One origin per point, parallel to [`FlatCloud::points`].
+    PerPoint(Vec<[f64; 3]>),
+}
+
+/// A flat point list as PLY and PCD store it, with whatever origin information the file had.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FlatCloud {
+    /// The points, in file order.
+    pub points: Vec<[f32; 3]>,
+    /// Their sensor origins.
+    pub origins: Origins,
+}
+
+/// Why a flat cloud could not be turned into scans.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum OriginError {
+    /// No origin in the file and none given by the caller.
+    #[error("the cloud has no sensor origin: pass --origin x,y,z")]
+    Missing,
+    /// Per-point origins whose count differs from the point count.
+    #[error("{origins} per-point origins for {points} points")]
+    CountMismatch {
+        /// Number of origins.
+        origins: usize,
+        /// Number of points.
+        points: usize,
+    },
+}
+
+impl FlatCloud {
+    /// Flattens scans into a point list with one origin per point (scan order, then point
+    /// order). Empty scans vanish: a flat cloud cannot carry an origin without a point.
+    pub fn from_scans(scans: &[OriginScan]) -> Self {
+        let total = scans.iter().map(|s| s.points.len()).sum();
+        let mut points = Vec::with_capacity(total);
+        let mut origins = Vec::with_capacity(total);
+        for scan in scans {
+            points.extend_from_slice(&scan.points);
+            origins.extend(std::iter::repeat_n(scan.origin, scan.points.len()));
+        }
+        Self {
+            points,
+            origins: Origins::PerPoint(origins),
+        }
+    }
+
+    /// Groups the points into scans, dropping points with a non-finite coordinate or origin
+    /// (PCL marks "no return" with NaN in organised clouds).
+    ///
+    /// - Per-point origins: each maximal run of consecutive points with bit-identical origins
+    ///   becomes one scan, in file order (so [`FlatCloud::from_scans`] round-trips, except
+    ///   that adjacent scans with equal origins merge).
+    /// - A cloud-wide viewpoint: one scan from it, except that an all-zero viewpoint
+    ///   (PCL's default, written by every PCL tool whatever the sensor was) yields to
+    ///   `default_origin` when one is given.
+    /// - No origin: one scan from `default_origin`, or [`OriginError::Missing`].
+    pub fn into_scans(
+        self,
+        default_origin: Option<[f64; 3]>,
+    ) -> Result<Vec<OriginScan>, OriginError> {
+        let finite3 = |p: &[f32; 3]| p.iter().all(|c| c.is_finite());
+        let single = |origin: [f64; 3], points: Vec<[f32; 3]>| {
+            let points: Vec<_> = points.into_iter().filter(finite3).collect();
+            vec![OriginScan { origin, points }]
+        };
+        match self.origins {
+            Origins::PerPoint(origins) => {
+                if origins.len() != self.points.len() {
+                    return Err(OriginError::CountMismatch {
+                        origins: origins.len(),
+                        points: self.points.len(),
+                    });
+                }
+                let mut scans: Vec<OriginScan> = Vec::new();
+                for (p, o) in self.points.into_iter().zip(origins) {
+                    if !finite3(&p) || !o.iter().all(|c| c.is_finite()) {
+                        continue;
+                    }
+                    match scans.last_mut() {
+                        Some(last) if same_origin(&last.origin, &o) => last.points.push(p),
+                        _ => scans.push(OriginScan {
+                            origin: o,
+                            points: vec![p],
+                        }),
+                    }
+                }
+                Ok(scans)
+            }
+            Origins::Viewpoint(v) => match default_origin {
+                Some(d) if v == [0.0; 3] => Ok(single(d, self.points)),
+                _ => Ok(single(v, self.points)),
+            },
+            Origins::Unknown => match default_origin {
+                Some(d) => Ok(single(d, self.points)),
+                None if self.points.is_empty() => Ok(Vec::new()),
+                None => Err(OriginError::Missing),
+            },
+        }
+    }
+}
+
+/// Bit-identical origins (so `-0.0` and `0.0` are different scans, and NaN never matches).
+fn same_origin(a: &[f64; 3], b: &[f64; 3]) -> bool {
+    a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())
+}
+
+/// Why a cloud file could not be loaded or saved.
+#[derive(Debug, thiserror::Error)]
+pub enum CloudIoError {
+    /// The extension is not one this module handles.
+    #[error(
+        "{}: unknown point-cloud extension (expected .scans, .ply or .pcd)",
+        path.display()
+    )]
+    UnknownExtension {
+        /// The offending path.
+        path: PathBuf,
+    },
+    /// Reading or writing the file failed.
+    #[error("{}: {source}", path.display())]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// A malformed `.scans` file.
+    #[error("{}: {source}", path.display())]
+    Scans {
+        /// The file.
+        path: PathBuf,
+        /// What was wrong.
+        source: ScansError,
+    },
+    /// A malformed PLY file.
+    #[error("{}: {source}", path.display())]
+    Ply {
+        /// The file.
+        path: PathBuf,
+        /// What was wrong.
+        source: PlyError,
+    },
+    /// A malformed PCD file.
+    #[error("{}: {source}", path.display())]
+    Pcd {
+        /// The file.
+        path: PathBuf,
+        /// What was wrong.
+        source: PcdError,
+    },
+    /// The file's points have no sensor origin (or inconsistent ones).
+    #[error("{}: {source}", path.display())]
+    Origin {
+        /// The file.
+        path: PathBuf,
+        /// What was missing.
+        source: OriginError,
+    },
+}
+
+/// The formats [`load`] and [`save`] know, by extension (case-insensitive).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CloudFormat {
+    /// `.scans`.
+    Scans,
+    /// `.ply`.
+    Ply,
+    /// `.pcd`.
+    Pcd,
+}
+
+impl CloudFormat {
+    /// The format named by `path`'s extension, if it is one of ours.
+    pub fn from_path(path: &Path) -> Option<Self> {
+        let ext = path.extension()?.to_str()?.to_ascii_lowercase();
+        match ext.as_str() {
+            "scans" => Some(Self::Scans),
+            "ply" => Some(Self::Ply),
+            "pcd" => Some(Self::Pcd),
+            _ => None,
+        }
+    }
+}
+
+fn format_of(path: &Path) -> Result<CloudFormat, CloudIoError> {
+    CloudFormat::from_path(path).ok_or_else(|| CloudIoError::UnknownExtension {
+        path: path.to_owned(),
+    })
+}
+
+/// Loads a cloud with its sensor origins. `default_origin` is used for PLY/PCD files that do
+/// not carry origins (and overrides a PCD's all-zero default `VIEWPOINT`); `.scans` always
+/// carries its own. Points with non-finite coordinates are dropped.
+pub fn load(
+    path: &Path,
+    default_origin: Option<[f64; 3]>,
+) -> Result<Vec<OriginScan>, CloudIoError> {
+    let format = format_of(path)?;
+    let bytes = std::fs::read(path).map_err(|source| CloudIoError::Io {
+        path: path.to_owned(),
+        source,
+    })?;
+    let p = || path.to_owned();
+    let flat = match format {
+        CloudFormat::Scans => {
+            return scans_file::parse_scans(&bytes)
+                .map_err(|source| CloudIoError::Scans { path: p(), source });
+        }
+        CloudFormat::Ply => {
+            ply::parse_ply(&bytes).map_err(|source| CloudIoError::Ply { path: p(), source })?
+        }
+        CloudFormat::Pcd => {
+            pcd::parse_pcd(&bytes).map_err(|source| CloudIoError::Pcd { path: p(), source })?
+        }
+    };
+    flat.into_scans(default_origin)
+        .map_err(|source| CloudIoError::Origin { path: p(), source })
+}
+
+/// Saves `scans` in the format named by the extension, binary where there is a choice.
+pub fn save(path: &Path, scans: &[OriginScan]) -> Result<(), CloudIoError> {
+    save_with(path, scans, Encoding::Binary)
+}
+
+/// Saves `scans` with an explicit body encoding (ignored for `.scans`, which is binary only).
+pub fn save_with(
+    path: &Path,
+    scans: &[OriginScan],
+    encoding: Encoding,
+) -> Result<(), CloudIoError> {
+    let format = format_of(path)?;
+    let p = || path.to_owned();
+    let io_err = |source| CloudIoError::Io { path: p(), source };
+    let mut bytes = Vec::new();
+    match format {
+        CloudFormat::Scans => scans_file::write_scans(&mut bytes, scans)
+            .map_err(|source| CloudIoError::Scans { path: p(), source })?,
+        CloudFormat::Ply => ply::write_ply_scans(&mut bytes, scans, encoding).map_err(io_err)?,
+        CloudFormat::Pcd => pcd::write_pcd_scans(&mut bytes, scans, encoding).map_err(io_err)?,
+    }
+    std::fs::write(path, bytes).map_err(io_err)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn two_scans() -> Vec<OriginScan> {
+        vec![
+            OriginScan {
+                origin: [1.0, 2.0, 0.5],
+                points: vec![[1.5, 2.0, 0.25], [0.0, -1.0, 3.0]],
+            },
+            OriginScan {
+                origin: [-4.0, 0.25, 1.0],
+                points: vec![[7.0, 8.0, 9.0]],
+            },
+        ]
+    }
+
+    #[test]
+    fn flat_round_trip_keeps_scans_and_origins() {
+        let flat = FlatCloud::from_scans(&two_scans());
+        assert_eq!(flat.points.len(), 3);
+        assert_eq!(
+            flat.origins,
+            Origins::PerPoint(vec![[1.0, 2.0, 0.5], [1.0, 2.0, 0.5], [-4.0, 0.25, 1.0]])
+        );
+        assert_eq!(flat.into_scans(None).unwrap(), two_scans());
+    }
+
+    #[test]
+    fn origin_rules() {
+        let pts = vec![[1.0, 1.0, 1.0], [f32::NAN, 0.0, 0.0]];
+        let unknown = FlatCloud {
+            points: pts.clone(),
+            origins: Origins::Unknown,
+        };
+        assert_eq!(unknown.clone().into_scans(None), Err(OriginError::Missing));
+        assert!(OriginError::Missing.to_string().contains("--origin"));
+        let got = unknown.into_scans(Some([0.0, 0.0, 2.0])).unwrap();
+        assert_eq!(
+            got,
+            vec![OriginScan {
+                origin: [0.0, 0.0, 2.0],
+                points: vec![[1.0, 1.0, 1.0]] // NaN point dropped
+            }]
+        );
+        let zero_vp = FlatCloud {
+            points: pts.clone(),
+            origins: Origins::Viewpoint([0.0; 3]),
+        };
+        assert_eq!(
+            zero_vp.clone().into_scans(None).unwrap()[0].origin,
+            [0.0; 3]
+        );
+        assert_eq!(
+            zero_vp.into_scans(Some([5.0, 0.0, 0.0])).unwrap()[0].origin,
+            [5.0, 0.0, 0.0]
+        );
+        let vp = FlatCloud {
+            points: pts,
+            origins: Origins::Viewpoint([1.0, 0.0, 0.0]),
+        };
+        assert_eq!(
+            vp.into_scans(Some([5.0, 0.0, 0.0])).unwrap()[0].origin,
+            [1.0, 0.0, 0.0]
+        );
+        let bad = FlatCloud {
+            points: vec![[0.0; 3]],
+            origins: Origins::PerPoint(vec![]),
+        };
+        assert_eq!(
+            bad.into_scans(None),
+            Err(OriginError::CountMismatch {
+                origins: 0,
+                points: 1
+            })
+        );
+    }
+
+    #[test]
+    fn save_load_every_format() {
+        let dir = tempfile::tempdir().unwrap();
+        for name in ["a.scans", "a.ply", "a.PCD"] {
+            for enc in [Encoding::Binary, Encoding::Ascii] {
+                let path = dir.path().join(name);
+                save_with(&path, &two_scans(), enc).unwrap();
+                assert_eq!(load(&path, None).unwrap(), two_scans(), "{name} {enc:?}");
+            }
+        }
+        let e = save(&dir.path().join("a.graph"), &two_scans()).unwrap_err();
+        assert!(matches!(e, CloudIoError::UnknownExtension { .. }), "{e}");
+        let e = load(&dir.path().join("missing.ply"), None).unwrap_err();
+        assert!(matches!(e, CloudIoError::Io { .. }), "{e}");
+    }
+
+    #[test]
+    fn load_without_origin_asks_for_one() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("plain.ply");
+        std::fs::write(
+            &path,
+            "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n\
+             property float z\nend_header\n1 2 3\n",
+        )
+        .unwrap();
+        let e = load(&path, None).unwrap_err();
+        assert!(e.to_string().contains("pass --origin"), "{e}");
+        let scans = load(&path, Some([0.0, 0.0, 1.0])).unwrap();
+        assert_eq!(
+            scans,
+            vec![OriginScan {
+                origin: [0.0, 0.0, 1.0],
+                points: vec![[1.0, 2.0, 3.0]]
+            }]
+        );
+    }
+}
