@@ -13,7 +13,7 @@ use std::thread::JoinHandle;
 use std::time::Duration;
 
 use crate::clock::SharedClock;
-use crate::lidar::{DriverStats, LidarDriver, LidarEvent};
+use crate::lidar::{ArrivedSample, DriverStats, LidarDriver, LidarEvent};
 use crate::serial::{self, SerialError, SerialEvent, SerialOptions};
 use crate::timing::{Revolution, RevolutionAssembler, TimingConfig};
 
@@ -26,6 +26,9 @@ pub enum AcquisitionEvent {
     Lost(String),
     /// A full revolution with per-sample times.
     Revolution(Revolution),
+    /// One sample as it arrived, before revolution assembly; only when the thread was spawned
+    /// with `forward_samples` (the static-scan controller acts within a revolution).
+    Sample(ArrivedSample),
     /// Any other driver event: info, health, scanning, warnings, and `Failed` (after which the
     /// thread restarts the handshake following a pause). Samples never come this way: they
     /// arrive assembled as [`AcquisitionEvent::Revolution`]s.
@@ -53,12 +56,14 @@ pub struct Acquisition {
 const RESTART_PAUSE: Duration = Duration::from_secs(1);
 
 impl Acquisition {
-    /// Starts reading `driver` on the port described by `options`.
+    /// Starts reading `driver` on the port described by `options`. With `forward_samples`,
+    /// every sample is also sent on its own as it arrives ([`AcquisitionEvent::Sample`]).
     pub fn spawn(
         mut driver: Box<dyn LidarDriver + Send>,
         options: SerialOptions,
         clock: SharedClock,
         timing: TimingConfig,
+        forward_samples: bool,
     ) -> (Self, Receiver<AcquisitionEvent>) {
         let (tx, rx) = mpsc::channel();
         let shutdown = Arc::new(AtomicBool::new(false));
@@ -70,7 +75,7 @@ impl Acquisition {
                 while !stop.load(Ordering::Relaxed) {
                     let mut failed = false;
                     serial::run(driver.as_mut(), &options, clock.as_ref(), &stop, |event| {
-                        forward(event, &mut assembler, &tx, &mut failed)
+                        forward(event, &mut assembler, &tx, &mut failed, forward_samples)
                     })?;
                     if failed {
                         std::thread::sleep(RESTART_PAUSE);
@@ -126,6 +131,7 @@ fn forward(
     assembler: &mut RevolutionAssembler,
     tx: &Sender<AcquisitionEvent>,
     failed: &mut bool,
+    forward_samples: bool,
 ) -> ControlFlow<()> {
     let out = match event {
         SerialEvent::Opened => {
@@ -136,10 +142,15 @@ fn forward(
             assembler.reset();
             AcquisitionEvent::Lost(reason)
         }
-        SerialEvent::Driver(LidarEvent::Sample(sample)) => match assembler.push(sample) {
-            Some(rev) => AcquisitionEvent::Revolution(rev),
-            None => return ControlFlow::Continue(()),
-        },
+        SerialEvent::Driver(LidarEvent::Sample(sample)) => {
+            if forward_samples && tx.send(AcquisitionEvent::Sample(sample)).is_err() {
+                return ControlFlow::Break(());
+            }
+            match assembler.push(sample) {
+                Some(rev) => AcquisitionEvent::Revolution(rev),
+                None => return ControlFlow::Continue(()),
+            }
+        }
         SerialEvent::Driver(failure @ LidarEvent::Failed(_)) => {
             assembler.reset();
             *failed = true;

@@ -20,6 +20,18 @@ pub trait Clock: Send + Sync {
 /// Shared handle to a clock.
 pub type SharedClock = Arc<dyn Clock>;
 
+/// An embedded-hal [`DelayNs`](embedded_hal::delay::DelayNs) that waits `ns` of a clock's time
+/// (real time for [`MonotonicClock`], `ns / scale` for [`ScaledClock`]), so drivers paced by a
+/// delay — the stepper's step period, the IMU's reset waits — follow a scaled simulation.
+#[derive(Clone)]
+pub struct ClockDelay(pub SharedClock);
+
+impl embedded_hal::delay::DelayNs for ClockDelay {
+    fn delay_ns(&mut self, ns: u32) {
+        std::thread::sleep(self.0.real_duration(u64::from(ns)));
+    }
+}
+
 /// CLOCK_MONOTONIC via [`Instant`], the clock the edge uses on real hardware.
 #[derive(Debug, Clone, Copy)]
 pub struct MonotonicClock {

@@ -1,13 +1,17 @@
 //! The edge daemon's configuration file (`edge.toml`; example in `deploy/edge.toml`).
 //!
-//! Every lidar section is optional: a Pi wired to one lidar simply leaves the other out.
+//! Every device section is optional: a Pi wired to one lidar simply leaves the other out, and
+//! a trolley without a turntable has no `[stepper]`.
 
 use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 
+use crate::drivers::imu::ImuConfig;
 use crate::drivers::rplidar::RplidarConfig;
+use crate::drivers::stepper::StepperConfig;
 use crate::drivers::sweep::SweepConfig;
+use crate::static_scan::StaticScanConfig;
 
 /// The whole `edge.toml`.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -24,6 +28,69 @@ pub struct EdgeConfig {
     pub sweep: Option<SweepSection>,
     /// Where to stream to. Without it the daemon only acquires (and logs).
     pub uplink: Option<UplinkSection>,
+    /// The I2C bus shared by the IMU and the motor HAT.
+    #[serde(default)]
+    pub i2c: I2cSection,
+    /// The 9-axis IMU, if wired: read at its rate, fused by Madgwick, streamed.
+    pub imu: Option<ImuSection>,
+    /// The stepper under the Sweep, if wired: enables static 3D scans.
+    pub stepper: Option<StepperConfig>,
+    /// How static scans run (blocked sector, δφ, total turn, mount geometry).
+    #[serde(default)]
+    pub static_scan: StaticScanConfig,
+}
+
+/// `[i2c]`: which bus the IMU and the motor HAT share.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct I2cSection {
+    /// Linux I2C bus number (`/dev/i2c-N`); 1 on every Pi since model B rev 2.
+    pub bus: u8,
+}
+
+impl Default for I2cSection {
+    fn default() -> Self {
+        Self { bus: 1 }
+    }
+}
+
+/// `[imu]`: the driver settings plus the Madgwick filter's.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(try_from = "toml::Table")]
+pub struct ImuSection {
+    /// Register-level settings and calibration ([`ImuConfig`]'s keys).
+    pub driver: ImuConfig,
+    /// Madgwick gain β (`beta`, default 0.1).
+    pub beta: f64,
+    /// Initial orientation `[w, x, y, z]` (`initial_orientation_wxyz`); without it the first
+    /// accelerometer + magnetometer pair sets it.
+    pub initial_orientation_wxyz: Option<[f64; 4]>,
+}
+
+impl TryFrom<toml::Table> for ImuSection {
+    type Error = String;
+    fn try_from(mut table: toml::Table) -> Result<Self, String> {
+        let beta = match table.remove("beta") {
+            None => 0.1,
+            Some(toml::Value::Float(beta)) if beta.is_finite() && beta >= 0.0 => beta,
+            Some(other) => return Err(format!("[imu]: `beta` must be a number >= 0, got {other}")),
+        };
+        let initial_orientation_wxyz = match table.remove("initial_orientation_wxyz") {
+            None => None,
+            Some(value) => Some(
+                <[f64; 4]>::deserialize(value)
+                    .map_err(|e| format!("[imu]: `initial_orientation_wxyz`: {e}"))?,
+            ),
+        };
+        let driver =
+            ImuConfig::deserialize(toml::Value::Table(table)).map_err(|e| format!("[imu]: {e}"))?;
+        driver.validate().map_err(|e| format!("[imu]: {e}"))?;
+        Ok(Self {
+            driver,
+            beta,
+            initial_orientation_wxyz,
+        })
+    }
 }
 
 /// `[uplink]`: the server to stream to and the edge's credentials.
@@ -169,6 +236,26 @@ mod tests {
         let message = err.to_string();
         assert!(message.starts_with("edge.toml: line 2:"), "{message}");
         assert!(message.contains("baudrate"), "{message}");
+    }
+
+    #[test]
+    fn imu_stepper_and_static_scan_sections() {
+        let text = "device_name = \"t\"\n[i2c]\nbus = 3\n[imu]\naddress = 0x69\nbeta = 0.05\n\
+                    initial_orientation_wxyz = [1.0, 0.0, 0.0, 0.0]\n[stepper]\nsteps_per_rev = 400\n\
+                    [static_scan]\nblocked_sector_deg = 90.0\n[static_scan.mount]\nheight_m = 0.4\n";
+        let config = EdgeConfig::from_toml_str(text, Path::new("x")).unwrap();
+        assert_eq!(config.i2c.bus, 3);
+        let imu = config.imu.unwrap();
+        assert_eq!((imu.driver.address, imu.beta), (0x69, 0.05));
+        assert_eq!(imu.initial_orientation_wxyz, Some([1.0, 0.0, 0.0, 0.0]));
+        assert_eq!(config.stepper.unwrap().steps_per_rev, 400);
+        assert_eq!(config.static_scan.blocked_sector_deg, 90.0);
+        assert_eq!(config.static_scan.mount.height_m, 0.4);
+        let bad = "device_name = \"t\"\n[imu]\naddress = 0x42\n";
+        let message = EdgeConfig::from_toml_str(bad, Path::new("x"))
+            .unwrap_err()
+            .to_string();
+        assert!(message.contains("0x42"), "{message}");
     }
 
     #[test]

@@ -10,6 +10,12 @@
 //! room, then reports `AcquisitionPaused` / `AcquisitionResumed` status frames: nothing is
 //! dropped silently. SIGTERM stops the lidars (their STOP commands are sent), lets the uplink
 //! drain for a few seconds and leaves the rest in the on-disk spool for the next start.
+//!
+//! With `[imu]` and `[stepper]`, the I2C bus (rppal on the Pi, any embedded-hal `I2c` in
+//! [`run_with_i2c`]) is shared through `embedded-hal-bus` by the IMU thread (Madgwick-fused
+//! `Imu` frames at the IMU rate) and the turntable thread. A `StartStaticScan` command from the
+//! server makes the Sweep worker run a [`ScanSession`]: one step per revolution while the beam
+//! is blocked, every sample tagged with its yaw, sent as `StaticScan` frames.
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -17,20 +23,27 @@ use std::sync::{Arc, Mutex, mpsc::RecvTimeoutError};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
+use embedded_hal::delay::DelayNs;
+use embedded_hal::i2c::I2c;
+use embedded_hal_bus::i2c::MutexDevice;
 use scan3d_protocol::{
-    Body, DeviceStatus, Hello, LidarRevolution, SensorId, SensorInfo, StatusEvent,
+    Body, Command, DeviceStatus, Hello, LidarRevolution, SensorId, SensorInfo, StatusEvent,
 };
 use scan3d_service::daemon::{self, NotifyState};
 use tokio::sync::watch;
 
 use crate::acquisition::{Acquisition, AcquisitionEvent, AcquisitionSummary};
-use crate::clock::SharedClock;
+use crate::clock::{ClockDelay, SharedClock};
 use crate::config::EdgeConfig;
 use crate::drivers::rplidar::Rplidar;
 use crate::drivers::sweep::Sweep;
+use crate::imu_worker::{ImuEvent, ImuReport, ImuWorker};
 use crate::lidar::{LidarDriver, LidarEvent};
+use crate::scan_session::{ScanAction, ScanPosition, ScanSession};
 use crate::serial::SerialOptions;
+use crate::static_scan::StaticScanConfig;
 use crate::timing::{Revolution, TimingConfig};
+use crate::turntable::{Turntable, TurntableJob, TurntableReport};
 use crate::uplink::client::{SubmitError, Uplink, UplinkConfig, UplinkHandle, UplinkStats};
 use crate::uplink::spool::SpoolConfig;
 use crate::uplink::tls;
@@ -57,6 +70,19 @@ pub struct DaemonReport {
     pub uplink: Option<UplinkStats>,
     /// This boot's session id.
     pub session_id: u64,
+    /// The IMU thread's counters, if an IMU was configured.
+    pub imu: Option<ImuReport>,
+    /// Static scans started.
+    pub static_scans: u32,
+}
+
+/// The I2C side of the edge: the bus the IMU and the motor HAT share, and the delay that paces
+/// their drivers.
+pub struct I2cHardware<I, D> {
+    /// The bus (rppal's on the Pi; the hw-sim's emulated bus in simulation).
+    pub bus: I,
+    /// Delay for resets and step pacing (follows the daemon's clock).
+    pub delay: D,
 }
 
 /// Everything a running daemon shares between its threads.
@@ -81,6 +107,17 @@ impl Context {
         self.uplink.as_ref().is_none_or(UplinkHandle::has_room)
     }
 
+    /// Adds a sensor to the inventory and queues a new hello announcing it.
+    fn inventory_insert(&self, info: SensorInfo) {
+        self.inventory
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(info.sensor, info);
+        if let Err(e) = self.submit(self.hello()) {
+            tracing::warn!(error = %e, "hello not queued");
+        }
+    }
+
     fn hello(&self) -> Hello {
         let sensors = self
             .inventory
@@ -95,12 +132,44 @@ impl Context {
 
 /// Runs the daemon until `shutdown` turns true. Must be called inside a multi-threaded tokio
 /// runtime. `session_id` should be random per boot (the server keys recordings by it).
+/// With `[imu]` or `[stepper]` configured, opens the Pi's I2C bus `[i2c] bus` through rppal; if
+/// it cannot, the lidars still run and the error is logged.
 pub async fn run(
     config: EdgeConfig,
     clock: SharedClock,
     session_id: u64,
-    mut shutdown: watch::Receiver<bool>,
+    shutdown: watch::Receiver<bool>,
 ) -> anyhow::Result<DaemonReport> {
+    let i2c = if config.imu.is_some() || config.stepper.is_some() {
+        match rppal::i2c::I2c::with_bus(config.i2c.bus) {
+            Ok(bus) => Some(I2cHardware {
+                bus,
+                delay: ClockDelay(clock.clone()),
+            }),
+            Err(e) => {
+                tracing::error!(bus = config.i2c.bus, error = %e, "cannot open /dev/i2c-{}: running without IMU and stepper", config.i2c.bus);
+                None
+            }
+        }
+    } else {
+        None
+    };
+    run_with_i2c(config, clock, session_id, shutdown, i2c).await
+}
+
+/// [`run`] with the I2C bus passed in (the hw-sim's emulated bus, or any embedded-hal bus).
+pub async fn run_with_i2c<I, D>(
+    config: EdgeConfig,
+    clock: SharedClock,
+    session_id: u64,
+    mut shutdown: watch::Receiver<bool>,
+    i2c: Option<I2cHardware<I, D>>,
+) -> anyhow::Result<DaemonReport>
+where
+    I: I2c + Send + 'static,
+    D: DelayNs + Clone + Send + 'static,
+{
+    let (scan_requests_tx, scan_requests) = std::sync::mpsc::channel::<Command>();
     let (uplink_task, uplink_stop, uplink_handle) = match &config.uplink {
         Some(section) => {
             let client_config = tls::client_config(&section.pki_dir)?;
@@ -118,12 +187,23 @@ pub async fn run(
                 Uplink::new(uplink_config, clock.clone(), session_id)?;
             let (stop_tx, stop_rx) = watch::channel(false);
             let task = tokio::spawn(uplink.run(stop_rx));
+            let scan_requests = scan_requests_tx.clone();
             tokio::spawn(async move {
                 while let Some(command) = commands.recv().await {
-                    tracing::warn!(
-                        ?command,
-                        "this edge build does not act on server commands yet"
-                    );
+                    match command {
+                        Command::StartStaticScan { .. } | Command::StopStaticScan => {
+                            tracing::info!(?command, "command from the server");
+                            if scan_requests.send(command).is_err() {
+                                tracing::warn!(
+                                    "static scan refused: no Sweep worker with a stepper"
+                                );
+                            }
+                        }
+                        Command::SetMotorSpeed { sensor, hz } => tracing::warn!(
+                            %sensor, hz,
+                            "SetMotorSpeed is not supported: set motor_hz in edge.toml"
+                        ),
+                    }
                 }
             });
             (Some(task), Some(stop_tx), Some(handle))
@@ -146,7 +226,92 @@ pub async fn run(
         tracing::warn!(error = %e, "hello not queued");
     }
 
-    let mut workers: Vec<(SensorId, JoinHandle<LidarReport>)> = Vec::new();
+    // The IMU and the motor HAT share the bus; embedded-hal-bus's MutexDevice needs the mutex
+    // to outlive both threads, so it lives for the rest of the process (one per daemon run).
+    let (mut imu_bus, mut hat_bus) = (None, None);
+    if let Some(hardware) = i2c {
+        let bus: &'static Mutex<I> = Box::leak(Box::new(Mutex::new(hardware.bus)));
+        imu_bus = Some((MutexDevice::new(bus), hardware.delay.clone()));
+        hat_bus = Some((MutexDevice::new(bus), hardware.delay));
+    }
+    let imu = match (&config.imu, imu_bus) {
+        (Some(section), Some((bus, delay))) => {
+            let context = context.clone();
+            let mut lost = false;
+            Some(ImuWorker::spawn(
+                bus,
+                delay,
+                section.clone(),
+                clock.clone(),
+                move |event| {
+                    let body: Body = match event {
+                        ImuEvent::Sample(sample) => sample.into(),
+                        ImuEvent::Ready(ids) => {
+                            tracing::info!(who_am_i = ids.who_am_i, wia = ?ids.wia, "IMU ready");
+                            context.inventory_insert(SensorInfo {
+                                sensor: SensorId::IMU,
+                                model: "MPU-9250".into(),
+                                firmware: String::new(),
+                                serial: String::new(),
+                            });
+                            if !std::mem::take(&mut lost) {
+                                return;
+                            }
+                            status_body(
+                                &context,
+                                SensorId::IMU,
+                                StatusEvent::SensorBack,
+                                "answering again",
+                            )
+                        }
+                        ImuEvent::Lost(reason) => {
+                            tracing::error!(%reason, "IMU lost");
+                            lost = true;
+                            status_body(&context, SensorId::IMU, StatusEvent::SensorLost, reason)
+                        }
+                    };
+                    // IMU frames are small and frequent; while the spool is full they are
+                    // dropped here (counted by the uplink) rather than pausing the thread.
+                    if let Err(e) = context.submit(body) {
+                        tracing::debug!(error = %e, "IMU frame not queued");
+                    }
+                },
+            )?)
+        }
+        _ => None,
+    };
+    let turntable = match (&config.stepper, hat_bus) {
+        (Some(stepper), Some((bus, delay))) => {
+            let context = context.clone();
+            match Turntable::spawn(bus, delay, stepper, clock.clone(), move |state| {
+                if let Err(e) = context.submit(state) {
+                    tracing::debug!(error = %e, "stepper state not queued");
+                }
+            }) {
+                Ok(turntable) => Some(turntable),
+                Err(e) => {
+                    tracing::error!(error = %e, "stepper unavailable: static scans are off");
+                    None
+                }
+            }
+        }
+        _ => None,
+    };
+    let mut scan_hooks = match turntable {
+        Some(turntable) => Some(ScanHooks {
+            turntable,
+            requests: scan_requests,
+            config: config.static_scan.clone(),
+            session: None,
+            started: 0,
+        }),
+        None => {
+            drop(scan_requests);
+            None
+        }
+    };
+
+    let mut workers: Vec<(SensorId, JoinHandle<(LidarReport, u32)>)> = Vec::new();
     if let Some(section) = &config.rplidar {
         let driver_config = section.driver.clone();
         let serial = SerialOptions::new(&section.path, section.driver.baud);
@@ -154,7 +319,7 @@ pub async fn run(
             Box::new(move || Ok(Box::new(Rplidar::new(driver_config.clone())) as Box<_>));
         workers.push((
             SensorId::RPLIDAR,
-            spawn_worker(SensorId::RPLIDAR, make, serial, context.clone())?,
+            spawn_worker(SensorId::RPLIDAR, make, serial, context.clone(), None)?,
         ));
     }
     if let Some(section) = &config.sweep {
@@ -165,8 +330,17 @@ pub async fn run(
             Box::new(move || Ok(Box::new(Sweep::new(driver_config.clone())?) as Box<_>));
         workers.push((
             SensorId::SWEEP,
-            spawn_worker(SensorId::SWEEP, make, serial, context.clone())?,
+            spawn_worker(
+                SensorId::SWEEP,
+                make,
+                serial,
+                context.clone(),
+                scan_hooks.take(),
+            )?,
         ));
+    }
+    if scan_hooks.is_some() {
+        tracing::warn!("[stepper] without [sweep]: static scans are off");
     }
     daemon::notify(&[NotifyState::Ready]);
     let watchdog = tokio::spawn(daemon::watchdog());
@@ -186,11 +360,15 @@ pub async fn run(
     for (sensor, worker) in workers {
         let lidar = tokio::task::spawn_blocking(move || worker.join()).await;
         match lidar {
-            Ok(Ok(lidar)) => {
+            Ok(Ok((lidar, scans))) => {
                 report.lidars.insert(sensor, lidar);
+                report.static_scans += scans;
             }
             _ => tracing::error!(%sensor, "lidar worker panicked"),
         }
+    }
+    if let Some(imu) = imu {
+        report.imu = Some(tokio::task::spawn_blocking(move || imu.stop()).await?);
     }
     if let Some(stop) = uplink_stop {
         let _ = stop.send(true);
@@ -210,10 +388,157 @@ fn spawn_worker(
     make_driver: DriverFactory,
     serial: SerialOptions,
     context: Arc<Context>,
-) -> std::io::Result<JoinHandle<LidarReport>> {
+    mut scan: Option<ScanHooks>,
+) -> std::io::Result<JoinHandle<(LidarReport, u32)>> {
     std::thread::Builder::new()
         .name(format!("{sensor} worker"))
-        .spawn(move || lidar_worker(sensor, make_driver.as_ref(), serial, &context))
+        .spawn(move || {
+            let report = lidar_worker(sensor, make_driver.as_ref(), serial, &context, &mut scan);
+            let started = scan.as_mut().map_or(0, |hooks| {
+                hooks.shut_down(&context);
+                hooks.started
+            });
+            (report, started)
+        })
+}
+
+/// What the Sweep worker needs to run static scans.
+struct ScanHooks {
+    turntable: Turntable,
+    requests: std::sync::mpsc::Receiver<Command>,
+    config: StaticScanConfig,
+    session: Option<ScanSession>,
+    /// Scans started (the next scan's id).
+    started: u32,
+}
+
+impl ScanHooks {
+    /// Handles commands and stepper reports; frames to send go to `bodies`.
+    fn poll(&mut self, context: &Context, bodies: &mut Vec<Body>) {
+        let mut actions = Vec::new();
+        while let Ok(command) = self.requests.try_recv() {
+            match command {
+                Command::StartStaticScan {
+                    position,
+                    x_m,
+                    y_m,
+                    heading_deg,
+                } => {
+                    if self.session.is_some() {
+                        tracing::warn!(%position, "a static scan is already running; start refused");
+                        continue;
+                    }
+                    let position = ScanPosition {
+                        name: position,
+                        x_m,
+                        y_m,
+                        heading_deg: heading_deg.unwrap_or(0.0),
+                    };
+                    tracing::info!(scan = self.started, position = %position.name, x_m, y_m, "static scan starts");
+                    match ScanSession::start(
+                        self.started,
+                        position,
+                        &self.config,
+                        self.turntable.step_angle_deg(),
+                        context.clock.now_ns(),
+                    ) {
+                        Ok((session, started)) => {
+                            self.session = Some(session);
+                            self.started += 1;
+                            actions.push(started);
+                        }
+                        Err(e) => tracing::error!(error = %e, "static scan refused"),
+                    }
+                }
+                Command::StopStaticScan => {
+                    if let Some(session) = &mut self.session {
+                        session.stop(context.clock.now_ns(), &mut actions);
+                    }
+                }
+                Command::SetMotorSpeed { .. } => {}
+            }
+        }
+        while let Some(report) = self.turntable.try_report() {
+            match (report, &mut self.session) {
+                (TurntableReport::Moved { t_ns }, Some(session)) => {
+                    session.on_step_done(t_ns, &mut actions)
+                }
+                (
+                    TurntableReport::Failed {
+                        t_ns,
+                        steps_done,
+                        error,
+                    },
+                    Some(session),
+                ) => {
+                    tracing::error!(%error, "stepper move failed");
+                    session.on_step_failed(t_ns, steps_done, &mut actions);
+                }
+                (TurntableReport::Home(Ok(())), _) => tracing::info!("turntable home"),
+                (TurntableReport::Home(Err(e)), _) => {
+                    tracing::error!(error = %e, "turntable could not return home")
+                }
+                (report, None) => tracing::debug!(?report, "stepper report after the scan"),
+            }
+        }
+        self.carry_out(actions, bodies);
+    }
+
+    fn on_sample(&mut self, sample: &crate::lidar::ArrivedSample, bodies: &mut Vec<Body>) {
+        let mut actions = Vec::new();
+        if let Some(session) = &mut self.session {
+            session.on_sample(sample, &mut actions);
+        }
+        self.carry_out(actions, bodies);
+    }
+
+    /// Ends a running scan (Sweep lost, acquisition paused, daemon stopping).
+    fn stop(&mut self, context: &Context, why: &str, bodies: &mut Vec<Body>) {
+        let mut actions = Vec::new();
+        if let Some(session) = &mut self.session {
+            tracing::warn!(scan = session.scan_id(), why, "static scan stopped");
+            session.stop(context.clock.now_ns(), &mut actions);
+        }
+        self.carry_out(actions, bodies);
+    }
+
+    fn carry_out(&mut self, actions: Vec<ScanAction>, bodies: &mut Vec<Body>) {
+        for action in actions {
+            match action {
+                ScanAction::Send(body) => bodies.push(body),
+                ScanAction::Step(command) => {
+                    if !self.turntable.submit(TurntableJob::Move(command.as_move())) {
+                        tracing::error!("turntable thread gone");
+                    }
+                }
+                ScanAction::ReturnHome => {
+                    self.turntable.submit(TurntableJob::Home);
+                }
+            }
+        }
+        if self.session.as_ref().is_some_and(ScanSession::is_over) {
+            self.session = None;
+        }
+    }
+
+    /// At daemon stop: ends a running scan and waits (bounded) for the way home.
+    fn shut_down(&mut self, context: &Context) {
+        let mut bodies = Vec::new();
+        let running = self.session.is_some();
+        self.stop(context, "daemon stopping", &mut bodies);
+        for body in bodies {
+            if let Err(e) = context.submit(body) {
+                tracing::warn!(error = %e, "static scan frame not queued at shutdown");
+            }
+        }
+        if running {
+            while let Some(report) = self.turntable.wait_report(Duration::from_secs(30)) {
+                if matches!(report, TurntableReport::Home(_)) {
+                    break;
+                }
+            }
+        }
+    }
 }
 
 /// Acquires one lidar until the daemon stops, pausing while the spool is full.
@@ -222,10 +547,11 @@ fn lidar_worker(
     make_driver: &dyn Fn() -> anyhow::Result<Box<dyn LidarDriver + Send>>,
     serial: SerialOptions,
     context: &Context,
+    scan: &mut Option<ScanHooks>,
 ) -> LidarReport {
     let mut report = LidarReport::default();
-    // A frame refused by a full spool is kept and sent first after resuming.
-    let mut refused: Option<Body> = None;
+    // Frames refused by a full spool are kept and sent first after resuming.
+    let mut refused: Vec<Body> = Vec::new();
     let mut lost = false;
     while !context.stop.load(Ordering::Relaxed) {
         let driver = match make_driver() {
@@ -240,65 +566,113 @@ fn lidar_worker(
             serial.clone(),
             context.clock.clone(),
             TimingConfig::default(),
+            scan.is_some(),
         );
         let mut full = false;
+        let mut bodies: Vec<Body> = Vec::new();
         while !full && !context.stop.load(Ordering::Relaxed) {
+            if let Some(hooks) = scan.as_mut() {
+                hooks.poll(context, &mut bodies);
+            }
             let event = match events.recv_timeout(Duration::from_millis(100)) {
-                Ok(event) => event,
-                Err(RecvTimeoutError::Timeout) => continue,
+                Ok(event) => Some(event),
+                Err(RecvTimeoutError::Timeout) => None,
                 Err(RecvTimeoutError::Disconnected) => break,
             };
-            let body: Body = match event {
-                AcquisitionEvent::Revolution(rev) => {
-                    report.revolutions += 1;
-                    report.samples += rev.samples.len() as u64;
-                    revolution_frame(sensor, &rev).into()
-                }
-                AcquisitionEvent::Driver(LidarEvent::Info(info)) => {
-                    tracing::info!(%sensor, model = %info.model, firmware = %info.firmware, serial = %info.serial, "lidar identified");
-                    let entry = SensorInfo {
-                        sensor,
-                        model: info.model,
-                        firmware: info.firmware,
-                        serial: info.serial,
-                    };
-                    context
-                        .inventory
-                        .lock()
-                        .unwrap_or_else(|e| e.into_inner())
-                        .insert(sensor, entry);
-                    context.hello().into()
-                }
-                AcquisitionEvent::Lost(reason) => {
-                    lost = true;
-                    tracing::warn!(%sensor, %reason, "lidar lost");
-                    status_body(context, sensor, StatusEvent::SensorLost, reason)
-                }
-                AcquisitionEvent::Driver(LidarEvent::Scanning { .. }) if lost => {
-                    lost = false;
-                    tracing::info!(%sensor, "lidar back");
-                    status_body(context, sensor, StatusEvent::SensorBack, "scanning again")
-                }
-                AcquisitionEvent::Driver(LidarEvent::Failed(error)) => {
-                    tracing::error!(%sensor, %error, "lidar driver gave up; retrying");
-                    status_body(context, sensor, StatusEvent::SensorLost, error.to_string())
-                }
-                AcquisitionEvent::Driver(LidarEvent::Warning(text)) => {
-                    tracing::warn!(%sensor, "{text}");
+            let body: Option<Body> = match event {
+                None => None,
+                Some(event) => match event {
+                    AcquisitionEvent::Sample(sample) => {
+                        if let Some(hooks) = scan.as_mut() {
+                            hooks.on_sample(&sample, &mut bodies);
+                        }
+                        None
+                    }
+                    AcquisitionEvent::Revolution(rev) => {
+                        report.revolutions += 1;
+                        report.samples += rev.samples.len() as u64;
+                        Some(revolution_frame(sensor, &rev).into())
+                    }
+                    AcquisitionEvent::Driver(LidarEvent::Info(info)) => {
+                        tracing::info!(%sensor, model = %info.model, firmware = %info.firmware, serial = %info.serial, "lidar identified");
+                        let entry = SensorInfo {
+                            sensor,
+                            model: info.model,
+                            firmware: info.firmware,
+                            serial: info.serial,
+                        };
+                        context
+                            .inventory
+                            .lock()
+                            .unwrap_or_else(|e| e.into_inner())
+                            .insert(sensor, entry);
+                        Some(context.hello().into())
+                    }
+                    AcquisitionEvent::Lost(reason) => {
+                        lost = true;
+                        tracing::warn!(%sensor, %reason, "lidar lost");
+                        if let Some(hooks) = scan.as_mut() {
+                            hooks.stop(context, "Sweep lost", &mut bodies);
+                        }
+                        Some(status_body(
+                            context,
+                            sensor,
+                            StatusEvent::SensorLost,
+                            reason,
+                        ))
+                    }
+                    AcquisitionEvent::Driver(LidarEvent::Scanning { .. }) if lost => {
+                        lost = false;
+                        tracing::info!(%sensor, "lidar back");
+                        Some(status_body(
+                            context,
+                            sensor,
+                            StatusEvent::SensorBack,
+                            "scanning again",
+                        ))
+                    }
+                    AcquisitionEvent::Driver(LidarEvent::Failed(error)) => {
+                        tracing::error!(%sensor, %error, "lidar driver gave up; retrying");
+                        if let Some(hooks) = scan.as_mut() {
+                            hooks.stop(context, "Sweep driver failed", &mut bodies);
+                        }
+                        Some(status_body(
+                            context,
+                            sensor,
+                            StatusEvent::SensorLost,
+                            error.to_string(),
+                        ))
+                    }
+                    AcquisitionEvent::Driver(LidarEvent::Warning(text)) => {
+                        tracing::warn!(%sensor, "{text}");
+                        None
+                    }
+                    AcquisitionEvent::Opened | AcquisitionEvent::Driver(_) => None,
+                },
+            };
+            bodies.extend(body);
+            for body in refused
+                .drain(..)
+                .chain(bodies.drain(..))
+                .collect::<Vec<_>>()
+            {
+                if full {
+                    refused.push(body);
                     continue;
                 }
-                AcquisitionEvent::Opened | AcquisitionEvent::Driver(_) => continue,
-            };
-            for body in refused.take().into_iter().chain(std::iter::once(body)) {
                 match context.submit(body.clone()) {
                     Ok(()) => {}
                     Err(SubmitError::Full) => {
-                        refused = Some(body);
+                        refused.push(body);
                         full = true;
                     }
                     Err(e) => tracing::error!(%sensor, error = %e, "frame not queued"),
                 }
             }
+        }
+        if full && let Some(hooks) = scan.as_mut() {
+            // The Sweep stops while paused: a scan cannot go on without it.
+            hooks.stop(context, "spool full", &mut refused);
         }
         match acquisition.stop() {
             Ok(summary) => report.acquisition = summary,

@@ -8,6 +8,9 @@
 //! - [`probe`], [`i2c_probe`]: the `scan3d-edge probe` wiring checks (lidars; IMU and stepper).
 //! - [`config`]: the daemon's TOML configuration (`edge.toml`).
 //! - [`static_scan`]: static-scan controller: a step per revolution while blocked, φ per sample.
+//! - [`scan_session`]: one static scan as protocol messages and stepper jobs (sans-I/O).
+//! - [`turntable`], [`imu_worker`]: the stepper and IMU threads on the shared I2C bus.
+//! - [`daemon`]: the `scan3d-edge` service: lidar workers, IMU, turntable, uplink.
 #![warn(missing_docs)]
 
 pub mod acquisition;
@@ -17,10 +20,13 @@ pub mod config;
 pub mod daemon;
 pub mod drivers;
 pub mod i2c_probe;
+pub mod imu_worker;
 pub mod lidar;
 pub mod madgwick;
 pub mod probe;
+pub mod scan_session;
 pub mod serial;
 pub mod static_scan;
 pub mod timing;
+pub mod turntable;
 pub mod uplink;

@@ -66,6 +66,20 @@ pub struct StaticScanConfig {
     pub settle_ms: f64,
     /// Consecutive failed steps after which the scan is aborted (default 3).
     pub max_step_failures: u32,
+    /// Where the Sweep sits on the turntable (`[static_scan.mount]`); sent with every scan so
+    /// the server can apply eq. (1) from the recording alone.
+    pub mount: MountConfig,
+}
+
+/// The Sweep's optical centre relative to the turntable (the azimuth zero is
+/// [`StaticScanConfig::azimuth_zero_deg`]).
+#[derive(Debug, Clone, Copy, PartialEq, Default, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MountConfig {
+    /// Distance from the turntable axis along the scan plane's normal, metres.
+    pub axis_offset_m: f64,
+    /// Height above the floor, metres.
+    pub height_m: f64,
 }
 
 impl Default for StaticScanConfig {
@@ -78,6 +92,7 @@ impl Default for StaticScanConfig {
             max_step_rate_hz: 100.0,
             settle_ms: 2.0,
             max_step_failures: 3,
+            mount: MountConfig::default(),
         }
     }
 }

@@ -205,7 +205,8 @@ pub struct ImuSample {
     pub accel_mps2: [f32; 3],
     /// Angular rate x, y, z in rad/s (sensor frame).
     pub gyro_radps: [f32; 3],
-    /// Magnetic field x, y, z in µT, already rotated into the accelerometer's axes.
+    /// Magnetic field x, y, z in µT, already rotated into the accelerometer's axes; NaN when the
+    /// magnetometer had no new sample for this reading (it runs at 100 Hz, the IMU faster).
     pub mag_ut: [f32; 3],
     /// Orientation quaternion `[w, x, y, z]` from the edge's Madgwick filter, if it runs.
     pub orientation: Option<[f32; 4]>,

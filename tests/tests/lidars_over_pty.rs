@@ -68,6 +68,7 @@ impl Rig {
             SerialOptions::new(path, baud),
             scaled_clock(),
             TimingConfig::default(),
+            false,
         );
         Self {
             pty,

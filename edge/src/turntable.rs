@@ -1,0 +1,159 @@
+//! The turntable thread: owns the motor HAT and the stepper, executes moves for static scans
+//! and reports when each finished (edge clock), so the Sweep worker never blocks on I2C.
+//!
+//! ```text
+//!  Sweep worker ──TurntableJob──> turntable thread ──I2C──> PCA9685 HAT ──> stepper
+//!        ^                               │
+//!        └────────TurntableReport────────┘  (+ a StepperState frame after every move)
+//! ```
+
+use std::sync::mpsc::{self, Receiver, Sender};
+use std::thread::JoinHandle;
+
+use embedded_hal::delay::DelayNs;
+use embedded_hal::i2c::I2c;
+use scan3d_protocol::StepperState;
+
+use crate::clock::SharedClock;
+use crate::drivers::stepper::{MotorHat, Move, Stepper, StepperConfig};
+
+/// What the turntable thread is asked to do.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TurntableJob {
+    /// Make this move now.
+    Move(Move),
+    /// Go back to home (straight back, no cable wrap) and release the coils.
+    Home,
+}
+
+/// What the turntable thread reports back, in job order.
+#[derive(Debug, Clone, PartialEq)]
+pub enum TurntableReport {
+    /// The move finished at `t_ns` (edge clock).
+    Moved {
+        /// Completion time.
+        t_ns: u64,
+    },
+    /// The move stopped on an I2C error after `steps_done` steps.
+    Failed {
+        /// When the error came.
+        t_ns: u64,
+        /// Steps done before it (signed, forward positive).
+        steps_done: i32,
+        /// The driver's error.
+        error: String,
+    },
+    /// Home reached and coils released (`Err` = where it failed).
+    Home(Result<(), String>),
+}
+
+/// A running turntable thread.
+pub struct Turntable {
+    jobs: Sender<TurntableJob>,
+    reports: Receiver<TurntableReport>,
+    step_angle_deg: f64,
+    thread: Option<JoinHandle<()>>,
+}
+
+impl Turntable {
+    /// Initialises the HAT (errors name the chip and address) and starts the thread. Every
+    /// state change is handed to `on_state` (the daemon streams it as a `Stepper` frame).
+    pub fn spawn<I, D>(
+        bus: I,
+        mut delay: D,
+        config: &StepperConfig,
+        clock: SharedClock,
+        on_state: impl Fn(StepperState) + Send + 'static,
+    ) -> anyhow::Result<Self>
+    where
+        I: I2c + Send + 'static,
+        D: DelayNs + Send + 'static,
+    {
+        let mut stepper = Stepper::new(config)?;
+        let mut hat = MotorHat::new(bus, config.address, config.retries);
+        hat.init(&mut delay)
+            .map_err(|e| anyhow::anyhow!("stepper HAT: {e}"))?;
+        let step_angle_deg = stepper.step_angle_deg();
+        let (jobs, job_rx) = mpsc::channel::<TurntableJob>();
+        let (report_tx, reports) = mpsc::channel();
+        let thread = std::thread::Builder::new()
+            .name("turntable".into())
+            .spawn(move || {
+                let state = |stepper: &Stepper, t_ns: u64| StepperState {
+                    t_ns,
+                    commanded_angle_deg: stepper.commanded_angle_deg() as f32,
+                    step_index: stepper.position(),
+                    holding: stepper.is_energised(),
+                };
+                while let Ok(job) = job_rx.recv() {
+                    let report = match job {
+                        TurntableJob::Move(mv) => {
+                            let before = stepper.position();
+                            match stepper.run(&mut hat, mv, &mut delay) {
+                                Ok(()) => TurntableReport::Moved {
+                                    t_ns: clock.now_ns(),
+                                },
+                                Err(e) => TurntableReport::Failed {
+                                    t_ns: clock.now_ns(),
+                                    steps_done: i32::try_from(stepper.position() - before)
+                                        .unwrap_or(0),
+                                    error: e.to_string(),
+                                },
+                            }
+                        }
+                        TurntableJob::Home => TurntableReport::Home(
+                            stepper
+                                .return_home(&mut hat, &mut delay)
+                                .and_then(|_| stepper.release(&mut hat))
+                                .map_err(|e| e.to_string()),
+                        ),
+                    };
+                    on_state(state(&stepper, clock.now_ns()));
+                    if report_tx.send(report).is_err() {
+                        break;
+                    }
+                }
+                // Never leave the coils energised (they heat up holding a position).
+                if let Err(e) = stepper.release(&mut hat) {
+                    tracing::warn!(error = %e, "releasing the stepper coils failed");
+                }
+            })?;
+        Ok(Self {
+            jobs,
+            reports,
+            step_angle_deg,
+            thread: Some(thread),
+        })
+    }
+
+    /// Output-shaft degrees per step.
+    pub fn step_angle_deg(&self) -> f64 {
+        self.step_angle_deg
+    }
+
+    /// Queues a job; `false` if the thread is gone.
+    pub fn submit(&self, job: TurntableJob) -> bool {
+        self.jobs.send(job).is_ok()
+    }
+
+    /// The next report, if one is ready.
+    pub fn try_report(&self) -> Option<TurntableReport> {
+        self.reports.try_recv().ok()
+    }
+
+    /// Waits for the next report (for the return home at shutdown).
+    pub fn wait_report(&self, timeout: std::time::Duration) -> Option<TurntableReport> {
+        self.reports.recv_timeout(timeout).ok()
+    }
+}
+
+impl Drop for Turntable {
+    fn drop(&mut self) {
+        // Closing the job channel ends the thread after its current job.
+        let (closed, _) = mpsc::channel();
+        drop(std::mem::replace(&mut self.jobs, closed));
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+    }
+}
