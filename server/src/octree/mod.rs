@@ -1,1 +1,76 @@
 //! OctoMap-compatible occupancy octree: keys, ray stepping, voxel storage and `.bt`/`.ot`/`.graph` I/O.
+//!
+//! Semantics follow OctoMap 1.9.7's `insertPointCloud` bit for bit (research/octomap.md): the
+//! same keys, rays, per-scan de-duplication, f32 log-odds and pruning, so written `.bt`/`.ot`
+//! files are byte-identical to OctoMap's. The design is not OctoMap's pointer tree:
+//! [`VoxelMap`] keeps one value per known voxel in 4×4×4 blocks and marks each scan's rays in
+//! a dense window, and the [`Octree`] (flat preorder arrays) is derived only when a file is
+//! written or a tree query is needed.
+//!
+//! ```no_run
+//! # use scan3d_server::octree::*;
+//! # fn main() -> Result<(), OctreeError> {
+//! let bytes = std::fs::read("map.graph").unwrap_or_default();
+//! let mut map = VoxelMap::new(Resolution::new(0.1)?, SensorModel::default());
+//! for scan in read_graph(&bytes)? {
+//!     map.insert_scan(&scan, -1.0);
+//! }
+//! let tree = map.to_octree();
+//! let ot = tree.to_ot_bytes(); // OcTree::write
+//! let bt = tree.to_bt_bytes(); // OcTree::writeBinary
+//! # let _ = (ot, bt); Ok(()) }
+//! ```
+
+mod graph;
+mod io;
+mod key;
+mod model;
+mod ray;
+mod tree;
+mod voxels;
+
+pub use graph::{read_graph, transform_point};
+pub use io::format_resolution;
+pub use key::{KEY_CENTER, Key, Resolution, TREE_DEPTH};
+pub use model::{SensorModel, logodds};
+pub use ray::ray_keys;
+pub use tree::{Leaf, Leaves, Octree};
+pub use voxels::{InsertStats, VoxelMap};
+
+/// Why a file could not be read (or a parameter was rejected).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum OctreeError {
+    /// The resolution is not a finite positive number.
+    #[error("resolution must be finite and > 0, got {0}")]
+    BadResolution(f64),
+    /// The first line is not the expected OctoMap file header.
+    #[error("not an OctoMap {expected} file (first line must start with {expected:?})")]
+    BadMagic {
+        /// The header line expected.
+        expected: &'static str,
+    },
+    /// The header has no `data` line, or a field is missing or unparsable.
+    #[error("bad OctoMap header: {0}")]
+    BadHeader(String),
+    /// The tree type is not `OcTree` (e.g. `ColorOcTree`).
+    #[error("unsupported tree type {0:?} (only OcTree)")]
+    UnsupportedTreeType(String),
+    /// The file ends inside a record.
+    #[error("truncated file: {what} cut short")]
+    Truncated {
+        /// What was being read.
+        what: &'static str,
+    },
+    /// The header's node count differs from the nodes in the data.
+    #[error("header says {header} nodes, data has {read}")]
+    SizeMismatch {
+        /// `size` from the header.
+        header: u64,
+        /// Nodes actually read (so far, if larger).
+        read: u64,
+    },
+    /// A node below depth 16 claims children.
+    #[error("tree deeper than 16 levels")]
+    TooDeep,
+}

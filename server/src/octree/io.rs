@@ -1,0 +1,461 @@
+//! `.bt` (binary max-likelihood) and `.ot` (full) OcTree files, byte-compatible with OctoMap
+//! (research/octomap.md §6.1/§6.2). Pure: bytes in, bytes out.
+
+use super::OctreeError;
+use super::key::{Resolution, TREE_DEPTH};
+use super::model::SensorModel;
+use super::tree::{Octree, TreeBuilder};
+
+const BT_MAGIC: &str = "# Octomap OcTree binary file";
+const OT_MAGIC: &str = "# Octomap OcTree file";
+const COMMENT: &str =
+    "\n# (feel free to add / change comments, but leave the first line as it is!)\n#\n";
+
+/// The resolution as C++ `ostream << double` prints it (6 significant digits, `%g` style),
+/// e.g. `0.05`, `0.1`, `1e-05`.
+pub fn format_resolution(v: f64) -> String {
+    if v == 0.0 || !v.is_finite() {
+        return format!("{v}");
+    }
+    let sci = format!("{v:.5e}");
+    let (mant, exp) = sci.split_once('e').unwrap_or((&sci, "0"));
+    let exp: i32 = exp.parse().unwrap_or(0);
+    let trim = |s: &str| -> String {
+        if s.contains('.') {
+            s.trim_end_matches('0').trim_end_matches('.').to_string()
+        } else {
+            s.to_string()
+        }
+    };
+    if !(-4..6).contains(&exp) {
+        let sign = if exp < 0 { '-' } else { '+' };
+        format!("{}e{}{:02}", trim(mant), sign, exp.abs())
+    } else {
+        trim(&format!("{:.*}", (5 - exp) as usize, v))
+    }
+}
+
+fn header(magic: &str, nodes: usize, res: f64) -> Vec<u8> {
+    format!(
+        "{magic}{COMMENT}id OcTree\nsize {nodes}\nres {}\ndata\n",
+        format_resolution(res)
+    )
+    .into_bytes()
+}
+
+/// Fields of an OctoMap header.
+struct Header {
+    size: u64,
+    res: Resolution,
+}
+
+/// Parses the text header the way `AbstractOcTree::readHeader` does; returns the data after
+/// the `data` line.
+fn parse_header<'a>(
+    bytes: &'a [u8],
+    magic: &'static str,
+) -> Result<(Header, &'a [u8]), OctreeError> {
+    if !bytes.starts_with(magic.as_bytes()) {
+        return Err(OctreeError::BadMagic { expected: magic });
+    }
+    let mut p = bytes
+        .iter()
+        .position(|&b| b == b'\n')
+        .map_or(bytes.len(), |i| i + 1);
+    let skip_line = |p: &mut usize| {
+        *p = bytes[*p..]
+            .iter()
+            .position(|&b| b == b'\n')
+            .map_or(bytes.len(), |i| *p + i + 1);
+    };
+    let token = |p: &mut usize| -> &'a [u8] {
+        while *p < bytes.len() && bytes[*p].is_ascii_whitespace() {
+            *p += 1;
+        }
+        let start = *p;
+        while *p < bytes.len() && !bytes[*p].is_ascii_whitespace() {
+            *p += 1;
+        }
+        &bytes[start..*p]
+    };
+    let text = |t: &[u8]| String::from_utf8_lossy(t).into_owned();
+    let (mut id, mut size, mut res) = (None, None, None);
+    loop {
+        let t = token(&mut p);
+        match t {
+            b"" => return Err(OctreeError::BadHeader("no `data` line".into())),
+            b"data" => {
+                skip_line(&mut p);
+                break;
+            }
+            b"id" => id = Some(text(token(&mut p))),
+            b"size" => {
+                let v = text(token(&mut p));
+                size = Some(
+                    v.parse::<u64>()
+                        .map_err(|_| OctreeError::BadHeader(format!("size {v:?}")))?,
+                );
+            }
+            b"res" => {
+                let v = text(token(&mut p));
+                res = Some(
+                    v.parse::<f64>()
+                        .map_err(|_| OctreeError::BadHeader(format!("res {v:?}")))?,
+                );
+            }
+            _ => skip_line(&mut p),
+        }
+    }
+    match id.as_deref() {
+        Some("OcTree") | Some("1") => {}
+        Some(other) => return Err(OctreeError::UnsupportedTreeType(other.into())),
+        None => return Err(OctreeError::BadHeader("no id".into())),
+    }
+    let res = Resolution::new(res.ok_or_else(|| OctreeError::BadHeader("no res".into()))?)?;
+    Ok((
+        Header {
+            size: size.unwrap_or(0),
+            res,
+        },
+        &bytes[p.min(bytes.len())..],
+    ))
+}
+
+impl Octree {
+    /// Reads a `.bt` or `.ot` file, chosen by its first line. `model` gives the clamps that
+    /// `.bt` leaves take and the occupancy threshold (files do not store them).
+    pub fn read(bytes: &[u8], model: SensorModel) -> Result<Octree, OctreeError> {
+        if bytes.starts_with(BT_MAGIC.as_bytes()) {
+            Self::read_bt(bytes, model)
+        } else {
+            Self::read_ot(bytes, model)
+        }
+    }
+
+    /// Reads a `.bt` file like `OcTree::readBinary`: free leaves get clamp min, occupied ones
+    /// clamp max, inner nodes the max of their children, and the root keeps clamp max.
+    pub fn read_bt(bytes: &[u8], model: SensorModel) -> Result<Octree, OctreeError> {
+        let (h, data) = parse_header(bytes, BT_MAGIC)?;
+        if h.size == 0 {
+            return Ok(Octree::empty(h.res, model));
+        }
+        // Each data byte describes at most 4 nodes: no allocation beyond what the file holds.
+        let cap = (h.size as usize).min(data.len().saturating_mul(4) + 1);
+        let mut tb = TreeBuilder::unpruned(cap);
+        let mut rest = data;
+        let record = |rest: &mut &[u8]| -> Result<u16, OctreeError> {
+            match rest {
+                [a, b, tail @ ..] => {
+                    let v = u16::from(*a) | (u16::from(*b) << 8);
+                    *rest = tail;
+                    Ok(v)
+                }
+                _ => Err(OctreeError::Truncated {
+                    what: ".bt node record",
+                }),
+            }
+        };
+        // (children codes, next child to look at)
+        let mut stack: Vec<(u16, usize)> = Vec::with_capacity(17);
+        tb.open();
+        stack.push((record(&mut rest)?, 0));
+        while let Some(top) = stack.last_mut() {
+            if top.1 == 8 {
+                stack.pop();
+                tb.close();
+                continue;
+            }
+            let c = top.1;
+            top.1 += 1;
+            match (top.0 >> (2 * c)) & 3 {
+                1 => {
+                    tb.child(c);
+                    tb.leaf(model.clamp_min);
+                }
+                2 => {
+                    tb.child(c);
+                    tb.leaf(model.clamp_max);
+                }
+                3 => {
+                    if stack.len() >= usize::from(TREE_DEPTH) {
+                        return Err(OctreeError::TooDeep);
+                    }
+                    let codes = record(&mut rest)?;
+                    tb.child(c);
+                    tb.open();
+                    stack.push((codes, 0));
+                }
+                _ => {}
+            }
+            if tb.len() as u64 > h.size {
+                return Err(OctreeError::SizeMismatch {
+                    header: h.size,
+                    read: tb.len() as u64,
+                });
+            }
+        }
+        debug_assert_eq!(tb.open_depth(), 0);
+        tb.set_value(0, model.clamp_max);
+        if tb.len() as u64 != h.size {
+            return Err(OctreeError::SizeMismatch {
+                header: h.size,
+                read: tb.len() as u64,
+            });
+        }
+        Ok(tb.finish(h.res, model))
+    }
+
+    /// Reads an `.ot` file (`AbstractOcTree::read` of an `OcTree`): values as stored.
+    pub fn read_ot(bytes: &[u8], model: SensorModel) -> Result<Octree, OctreeError> {
+        let (h, data) = parse_header(bytes, OT_MAGIC)?;
+        if h.size == 0 {
+            return Ok(Octree::empty(h.res, model));
+        }
+        let cap = (h.size as usize).min(data.len() / 5 + 1);
+        let mut values = Vec::with_capacity(cap);
+        let mut masks = Vec::with_capacity(cap);
+        let mut chunks = data.chunks_exact(5);
+        let mut node = |depth: usize, stack: &mut Vec<u32>| -> Result<(), OctreeError> {
+            let c = chunks
+                .next()
+                .ok_or(OctreeError::Truncated { what: ".ot node" })?;
+            let m = c[4];
+            values.push(f32::from_le_bytes([c[0], c[1], c[2], c[3]]));
+            masks.push(m);
+            if m != 0 {
+                if depth >= usize::from(TREE_DEPTH) {
+                    return Err(OctreeError::TooDeep);
+                }
+                stack.push(m.count_ones());
+            }
+            Ok(())
+        };
+        let mut stack: Vec<u32> = Vec::with_capacity(17);
+        node(0, &mut stack)?;
+        let mut read = 1u64;
+        while let Some(top) = stack.last_mut() {
+            if *top == 0 {
+                stack.pop();
+                continue;
+            }
+            *top -= 1;
+            if read >= h.size {
+                return Err(OctreeError::SizeMismatch {
+                    header: h.size,
+                    read: read + 1,
+                });
+            }
+            let depth = stack.len();
+            node(depth, &mut stack)?;
+            read += 1;
+        }
+        if read != h.size {
+            return Err(OctreeError::SizeMismatch {
+                header: h.size,
+                read,
+            });
+        }
+        Ok(Octree::from_parts(h.res, model, values, masks))
+    }
+
+    /// The `.ot` file of this tree as it is (`OcTree::write`).
+    pub fn to_ot_bytes(&self) -> Vec<u8> {
+        let mut out = header(OT_MAGIC, self.num_nodes(), self.res.meters());
+        out.reserve(self.num_nodes() * 5);
+        for (v, m) in self.values.iter().zip(&self.masks) {
+            out.extend_from_slice(&v.to_le_bytes());
+            out.push(*m);
+        }
+        out
+    }
+
+    /// The `.bt` file OctoMap's `writeBinary` makes: max-likelihood, prune, then write.
+    pub fn to_bt_bytes(&self) -> Vec<u8> {
+        self.to_max_likelihood_pruned().to_bt_bytes_const()
+    }
+
+    /// The `.bt` encoding of this tree as it is (`writeBinaryConst`): the root's record, then
+    /// each inner node's 2-byte child codes in preorder (0 absent, 1 free, 2 occupied, 3 inner).
+    pub fn to_bt_bytes_const(&self) -> Vec<u8> {
+        let n = self.num_nodes();
+        let mut out = header(BT_MAGIC, n, self.res.meters());
+        out.reserve(n / 3 + 2);
+        for i in 0..n {
+            let m = self.masks[i];
+            if m == 0 && i != 0 {
+                continue;
+            }
+            let mut codes = 0u16;
+            let mut c = i + 1;
+            for pos in 0..8 {
+                if m & (1 << pos) == 0 {
+                    continue;
+                }
+                let code = if self.masks.get(c).is_some_and(|&cm| cm != 0) {
+                    3
+                } else if self
+                    .values
+                    .get(c)
+                    .is_some_and(|&v| self.model.is_occupied(v))
+                {
+                    2
+                } else {
+                    1
+                };
+                codes |= code << (2 * pos);
+                c = self.subtree_end(c);
+            }
+            out.extend_from_slice(&codes.to_le_bytes());
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::octree::{Key, VoxelMap};
+
+    #[test]
+    fn resolution_prints_like_cpp_ostream() {
+        assert_eq!(format_resolution(0.05), "0.05");
+        assert_eq!(format_resolution(0.1), "0.1");
+        assert_eq!(format_resolution(0.08), "0.08");
+        assert_eq!(format_resolution(1.0), "1");
+        assert_eq!(format_resolution(0.123456789), "0.123457");
+        assert_eq!(format_resolution(0.00001), "1e-05");
+        assert_eq!(format_resolution(1234567.0), "1.23457e+06");
+        assert_eq!(format_resolution(0.0001), "0.0001");
+    }
+
+    fn small_tree() -> Octree {
+        let model = SensorModel::default();
+        let mut m = VoxelMap::new(Resolution::new(0.1).unwrap(), model);
+        m.set_log_odds(Key([32768; 3]), model.clamp_max);
+        m.set_log_odds(Key([32767, 32768, 32768]), model.clamp_min);
+        m.to_octree()
+    }
+
+    #[test]
+    fn bt_bytes_by_hand() {
+        // Voxel A (32768,32768,32768) occupied, B (32767,32768,32768) free. At the root (key
+        // bit 15) A is child 7 and B child 6, both inner: byte1 = 0b1111_0000. Below, B's x bits
+        // are all 1 and y, z all 0: child 1 at every level; A takes child 0 at every level.
+        // 1 + 2 * 16 nodes, 1 + 2 * 15 records.
+        let bt = small_tree().to_bt_bytes();
+        let head = b"# Octomap OcTree binary file\n# (feel free to add / change comments, but leave the first line as it is!)\n#\nid OcTree\nsize 33\nres 0.1\ndata\n";
+        assert!(
+            bt.starts_with(head),
+            "{}",
+            String::from_utf8_lossy(&bt[..head.len()])
+        );
+        let data = &bt[head.len()..];
+        assert_eq!(data.len(), 2 * 31, "{data:02x?}");
+        assert_eq!(&data[..2], &[0x00, 0xf0]);
+        for r in 1..15 {
+            assert_eq!(
+                &data[2 * r..2 * r + 2],
+                &[0x0c, 0x00],
+                "B record {r}: child 1 inner {data:02x?}"
+            );
+        }
+        assert_eq!(
+            &data[30..32],
+            &[0x04, 0x00],
+            "B depth 15: child 1 free leaf"
+        );
+        for r in 16..30 {
+            assert_eq!(
+                &data[2 * r..2 * r + 2],
+                &[0x03, 0x00],
+                "A record {r}: child 0 inner"
+            );
+        }
+        assert_eq!(
+            &data[60..62],
+            &[0x02, 0x00],
+            "A depth 15: child 0 occupied leaf"
+        );
+        let t = Octree::read_bt(&bt, SensorModel::default()).unwrap();
+        assert_eq!(
+            (t.num_nodes(), t.num_leaves(), t.num_occupied()),
+            (33, 2, 1)
+        );
+        assert_eq!(t.to_bt_bytes(), bt);
+    }
+
+    #[test]
+    fn ot_roundtrip_and_truncation() {
+        let t = small_tree();
+        let ot = t.to_ot_bytes();
+        let back = Octree::read_ot(&ot, SensorModel::default()).unwrap();
+        assert_eq!(back.to_ot_bytes(), ot);
+        for cut in [ot.len() - 1, ot.len() - 5, ot.len() - 100, 20] {
+            assert!(
+                Octree::read(&ot[..cut], SensorModel::default()).is_err(),
+                "cut {cut}"
+            );
+        }
+        let bt = t.to_bt_bytes();
+        assert_eq!(
+            Octree::read(&bt[..bt.len() - 1], SensorModel::default()).unwrap_err(),
+            OctreeError::Truncated {
+                what: ".bt node record"
+            }
+        );
+    }
+
+    #[test]
+    fn lying_sizes_and_bad_headers_are_errors() {
+        let model = SensorModel::default();
+        let ot = small_tree().to_ot_bytes();
+        let pos = ot.windows(8).position(|w| w == b"size 33\n").unwrap();
+        let mut lying = ot[..pos].to_vec();
+        lying.extend_from_slice(b"size 4000000000\n");
+        lying.extend_from_slice(&ot[pos + 8..]);
+        assert_eq!(
+            Octree::read_ot(&lying, model).unwrap_err(),
+            OctreeError::SizeMismatch {
+                header: 4_000_000_000,
+                read: 33
+            }
+        );
+        assert!(matches!(
+            Octree::read(b"hello", model),
+            Err(OctreeError::BadMagic { .. })
+        ));
+        assert!(matches!(
+            Octree::read(
+                b"# Octomap OcTree file\nid ColorOcTree\nres 0.1\nsize 1\ndata\n",
+                model
+            ),
+            Err(OctreeError::UnsupportedTreeType(_))
+        ));
+        assert!(matches!(
+            Octree::read(b"# Octomap OcTree file\nid OcTree\nres -1\ndata\n", model),
+            Err(OctreeError::BadResolution(_))
+        ));
+        assert!(matches!(
+            Octree::read(b"# Octomap OcTree file\nid OcTree\nres 0.1\n", model),
+            Err(OctreeError::BadHeader(_))
+        ));
+        // 17 nested inner nodes.
+        let mut deep =
+            b"# Octomap OcTree binary file\nid OcTree\nsize 100\nres 0.1\ndata\n".to_vec();
+        for _ in 0..17 {
+            deep.extend_from_slice(&[0x03, 0x00]);
+        }
+        assert_eq!(
+            Octree::read(&deep, model).unwrap_err(),
+            OctreeError::TooDeep
+        );
+        // Empty tree.
+        let e = Octree::read(
+            b"# Octomap OcTree binary file\nid OcTree\nsize 0\nres 0.2\ndata\n",
+            model,
+        )
+        .unwrap();
+        assert_eq!(e.num_nodes(), 0);
+        assert!(e.to_bt_bytes().ends_with(b"size 0\nres 0.2\ndata\n"));
+    }
+}

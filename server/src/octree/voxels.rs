@@ -1,0 +1,612 @@
+//! Flat voxel storage for insertion: 4×4×4 voxel blocks in a hash map, per-scan ray marks in a
+//! dense window of block slots, and the OctoMap tree derived on demand.
+//!
+//! Why this gives OctoMap's tree: with eager pruning OctoMap's tree is, after every update, the
+//! canonical prune of its voxel values (a node collapses iff its 8 children are equal leaves),
+//! and its early abort at saturation leaves a voxel's value exactly as add-then-clamp would
+//! (research/octomap.md §4.3/§4.4). So storing one value per known voxel, applying each scan's
+//! de-duplicated updates per voxel with the same abort rule, and pruning canonically when the
+//! tree is needed gives the same nodes, values and bytes.
+
+use std::collections::HashMap;
+use std::hash::{BuildHasherDefault, Hasher};
+
+use super::key::{Key, Resolution, morton3};
+use super::model::SensorModel;
+use super::ray::ray_keys;
+use super::tree::{Octree, TreeBuilder};
+use crate::cloud::OriginScan;
+
+/// Bricks are 4×4×4 voxels, i.e. depth-14 nodes; one `u64` holds a bit per voxel.
+const BRICK_SHIFT: u32 = 2;
+/// Most window slots (u32 each) used per scan for the dense brick lookup; beyond it, a hash map.
+const WINDOW_MAX_CELLS: usize = 1 << 21;
+
+/// Packed brick coordinates (14 bits per axis).
+#[inline]
+fn brick_key(k: [u16; 3]) -> u64 {
+    u64::from(k[0] >> BRICK_SHIFT)
+        | (u64::from(k[1] >> BRICK_SHIFT) << 14)
+        | (u64::from(k[2] >> BRICK_SHIFT) << 28)
+}
+
+#[inline]
+fn brick_coords(bk: u64) -> [u16; 3] {
+    [
+        (bk & 0x3fff) as u16,
+        ((bk >> 14) & 0x3fff) as u16,
+        ((bk >> 28) & 0x3fff) as u16,
+    ]
+}
+
+/// Morton index (0..64) of a voxel inside its brick: bits x0 y0 z0 x1 y1 z1.
+#[inline]
+fn local_bit(k: [u16; 3]) -> u64 {
+    let (x, y, z) = (u32::from(k[0]), u32::from(k[1]), u32::from(k[2]));
+    let m = (x & 1)
+        | ((y & 1) << 1)
+        | ((z & 1) << 2)
+        | ((x & 2) << 2)
+        | ((y & 2) << 3)
+        | ((z & 2) << 4);
+    1u64 << m
+}
+
+/// A cheap multiplicative hasher for packed brick keys.
+#[derive(Default)]
+struct BrickHasher(u64);
+
+impl Hasher for BrickHasher {
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.write_u64(u64::from(b));
+        }
+    }
+    #[inline]
+    fn write_u64(&mut self, v: u64) {
+        self.0 = (self.0 ^ v).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+    }
+    #[inline]
+    fn finish(&self) -> u64 {
+        self.0.rotate_left(32)
+    }
+}
+
+type BrickMap = HashMap<u64, u32, BuildHasherDefault<BrickHasher>>;
+
+/// The values of one brick, in Morton order, and which of them are known.
+#[derive(Clone)]
+struct Block {
+    values: [f32; 64],
+    known: u64,
+}
+
+/// The free / occupied marks one scan made in one brick.
+#[derive(Clone, Copy)]
+struct Marks {
+    brick: u64,
+    free: u64,
+    occ: u64,
+}
+
+/// Per-scan scratch: marks per touched brick, found through a dense window around the scan.
+#[derive(Default)]
+struct Scratch {
+    marks: Vec<Marks>,
+    window: Vec<u32>,
+    lo: [u32; 3],
+    dim: [u32; 3],
+    overflow: BrickMap,
+    ends: Vec<([f32; 3], bool)>,
+}
+
+impl Scratch {
+    /// Sets the window to the brick box `lo..=hi`, shrunk around `center` while too large.
+    fn set_window(&mut self, mut lo: [u32; 3], mut hi: [u32; 3], center: [u32; 3]) {
+        loop {
+            let cells: usize = (0..3).map(|i| (hi[i] - lo[i] + 1) as usize).product();
+            if cells <= WINDOW_MAX_CELLS {
+                break;
+            }
+            let Some(a) = (0..3).max_by_key(|&i| hi[i] - lo[i]) else {
+                break;
+            };
+            let half = (hi[a] - lo[a]) / 4;
+            lo[a] = lo[a].max(center[a].saturating_sub(half));
+            hi[a] = hi[a].min(center[a] + half);
+        }
+        self.lo = lo;
+        self.dim = [hi[0] - lo[0] + 1, hi[1] - lo[1] + 1, hi[2] - lo[2] + 1];
+        let cells = (self.dim[0] * self.dim[1] * self.dim[2]) as usize;
+        if self.window.len() < cells {
+            self.window.resize(cells, u32::MAX);
+        }
+    }
+
+    #[inline]
+    fn cell(&self, bk: u64) -> Option<usize> {
+        let b = brick_coords(bk);
+        let x = u32::from(b[0]).wrapping_sub(self.lo[0]);
+        let y = u32::from(b[1]).wrapping_sub(self.lo[1]);
+        let z = u32::from(b[2]).wrapping_sub(self.lo[2]);
+        (x < self.dim[0] && y < self.dim[1] && z < self.dim[2])
+            .then(|| (x + self.dim[0] * (y + self.dim[1] * z)) as usize)
+    }
+
+    /// Index into `marks` of brick `bk`, creating an empty entry on first touch.
+    #[inline]
+    fn slot(&mut self, bk: u64) -> usize {
+        let new = self.marks.len() as u32;
+        let idx = match self.cell(bk) {
+            Some(c) => {
+                let w = &mut self.window[c];
+                if *w == u32::MAX {
+                    *w = new;
+                }
+                *w
+            }
+            None => *self.overflow.entry(bk).or_insert(new),
+        };
+        if idx == new {
+            self.marks.push(Marks {
+                brick: bk,
+                free: 0,
+                occ: 0,
+            });
+        }
+        idx as usize
+    }
+
+    /// Forgets this scan's marks (only the touched window cells are reset).
+    fn clear(&mut self) {
+        for i in 0..self.marks.len() {
+            if let Some(c) = self.cell(self.marks[i].brick) {
+                self.window[c] = u32::MAX;
+            }
+        }
+        self.marks.clear();
+        self.overflow.clear();
+    }
+}
+
+/// Marks keys of one scan, caching the last brick.
+struct Marker<'a> {
+    scratch: &'a mut Scratch,
+    last_brick: u64,
+    last_slot: usize,
+}
+
+impl Marker<'_> {
+    #[inline]
+    fn mark(&mut self, k: Key, occupied: bool) {
+        let bk = brick_key(k.0);
+        if bk != self.last_brick {
+            self.last_slot = self.scratch.slot(bk);
+            self.last_brick = bk;
+        }
+        let bit = local_bit(k.0);
+        // The slot exists: `slot` pushed it or returned an existing index.
+        if let Some(m) = self.scratch.marks.get_mut(self.last_slot) {
+            if occupied {
+                m.occ |= bit;
+            } else {
+                m.free |= bit;
+            }
+        }
+    }
+}
+
+/// What one insertion did with its points.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct InsertStats {
+    /// Points given.
+    pub points: u64,
+    /// Points skipped because a coordinate (or the origin) was NaN or infinite.
+    pub skipped_nonfinite: u64,
+    /// Points whose endpoint was outside the key range (no hit; their ray is dropped too).
+    pub out_of_bounds: u64,
+    /// Points beyond the max range (free space up to the cut, no hit).
+    pub max_range: u64,
+}
+
+impl InsertStats {
+    fn add(&mut self, o: &InsertStats) {
+        self.points += o.points;
+        self.skipped_nonfinite += o.skipped_nonfinite;
+        self.out_of_bounds += o.out_of_bounds;
+        self.max_range += o.max_range;
+    }
+}
+
+/// An occupancy map being built: one f32 log-odds per known voxel, updated with OctoMap's
+/// `insertPointCloud` semantics; [`VoxelMap::to_octree`] derives OctoMap's pruned tree.
+pub struct VoxelMap {
+    res: Resolution,
+    model: SensorModel,
+    blocks: Vec<Block>,
+    index: BrickMap,
+    scratch: Scratch,
+    totals: InsertStats,
+}
+
+impl std::fmt::Debug for VoxelMap {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("VoxelMap")
+            .field("resolution", &self.res.meters())
+            .field("blocks", &self.blocks.len())
+            .field("totals", &self.totals)
+            .finish()
+    }
+}
+
+impl VoxelMap {
+    /// An empty map.
+    pub fn new(res: Resolution, model: SensorModel) -> Self {
+        Self {
+            res,
+            model,
+            blocks: Vec::new(),
+            index: BrickMap::default(),
+            scratch: Scratch::default(),
+            totals: InsertStats::default(),
+        }
+    }
+
+    /// The voxel size and key conversions.
+    pub fn resolution(&self) -> &Resolution {
+        &self.res
+    }
+
+    /// The sensor model used by updates.
+    pub fn model(&self) -> &SensorModel {
+        &self.model
+    }
+
+    /// Sums of the [`InsertStats`] of every insertion so far.
+    pub fn totals(&self) -> InsertStats {
+        self.totals
+    }
+
+    /// Number of known voxels.
+    pub fn num_voxels(&self) -> u64 {
+        self.blocks
+            .iter()
+            .map(|b| u64::from(b.known.count_ones()))
+            .sum()
+    }
+
+    /// Approximate heap bytes held (blocks, index, scratch).
+    pub fn memory_bytes(&self) -> usize {
+        self.blocks.capacity() * std::mem::size_of::<Block>()
+            + self.index.capacity() * (std::mem::size_of::<(u64, u32)>() + 1)
+            + self.scratch.window.capacity() * 4
+            + self.scratch.marks.capacity() * std::mem::size_of::<Marks>()
+            + self.scratch.ends.capacity() * std::mem::size_of::<([f32; 3], bool)>()
+    }
+
+    fn block_mut(&mut self, bk: u64) -> &mut Block {
+        let next = self.blocks.len() as u32;
+        let i = *self.index.entry(bk).or_insert(next);
+        if i == next {
+            self.blocks.push(Block {
+                values: [0.0; 64],
+                known: 0,
+            });
+        }
+        &mut self.blocks[i as usize]
+    }
+
+    /// The log-odds of a voxel, or `None` if unknown.
+    pub fn log_odds(&self, key: Key) -> Option<f32> {
+        let i = *self.index.get(&brick_key(key.0))?;
+        let b = self.blocks.get(i as usize)?;
+        let bit = local_bit(key.0);
+        (b.known & bit != 0).then(|| b.values[bit.trailing_zeros() as usize])
+    }
+
+    /// Sets a voxel's log-odds outright (e.g. a ground-truth map: clamp max for occupied,
+    /// clamp min for free), like OctoMap's `setNodeValue` with eager pruning.
+    pub fn set_log_odds(&mut self, key: Key, log_odds: f32) {
+        let bit = local_bit(key.0);
+        let b = self.block_mut(brick_key(key.0));
+        b.values[bit.trailing_zeros() as usize] = log_odds;
+        b.known |= bit;
+    }
+
+    /// One `updateNode(key, occupied)`: a hit or a miss on a single voxel.
+    pub fn update(&mut self, key: Key, occupied: bool) {
+        let model = self.model;
+        let delta = if occupied { model.hit } else { model.miss };
+        let bit = local_bit(key.0);
+        let b = self.block_mut(brick_key(key.0));
+        apply(b, bit, delta, &model);
+    }
+
+    /// Inserts a scan given in the world frame (OctoMap's `insertPointCloud` with
+    /// `maxrange`, `lazy_eval = false`, `discretize = false`); the origin is cast to f32.
+    /// A negative `max_range` means no limit.
+    pub fn insert_scan(&mut self, scan: &OriginScan, max_range: f64) -> InsertStats {
+        let o = scan.origin.map(|c| c as f32);
+        self.insert_point_cloud(&scan.points, o, max_range)
+    }
+
+    /// Inserts points seen from `origin` (all world frame). Per scan each voxel gets one update:
+    /// a hit if some point ends in it, else a miss if some ray crosses it (origin voxel
+    /// included, end voxel excluded). Points beyond `max_range` (if `>= 0`) free space up to
+    /// the cut and make no hit. Non-finite points are skipped and counted.
+    pub fn insert_point_cloud(
+        &mut self,
+        points: &[[f32; 3]],
+        origin: [f32; 3],
+        max_range: f64,
+    ) -> InsertStats {
+        let mut stats = InsertStats {
+            points: points.len() as u64,
+            ..InsertStats::default()
+        };
+        if !origin.iter().all(|c| c.is_finite()) {
+            stats.skipped_nonfinite = stats.points;
+            self.totals.add(&stats);
+            return stats;
+        }
+        let res = self.res;
+        let origin_key = res.coord_to_key(origin);
+
+        // Pass 1: ray ends (cut at max range) and the brick box of everything the rays reach.
+        let mut ends = std::mem::take(&mut self.scratch.ends);
+        ends.clear();
+        let (mut lo, mut hi) = ([u32::MAX; 3], [0u32; 3]);
+        let mut grow = |k: Key| {
+            for i in 0..3 {
+                let b = u32::from(k.0[i] >> BRICK_SHIFT);
+                lo[i] = lo[i].min(b);
+                hi[i] = hi[i].max(b);
+            }
+        };
+        if let Some(k) = origin_key {
+            grow(k);
+        }
+        for p in points {
+            if !p.iter().all(|c| c.is_finite()) {
+                stats.skipped_nonfinite += 1;
+                continue;
+            }
+            let d = [p[0] - origin[0], p[1] - origin[1], p[2] - origin[2]];
+            let norm = f64::from(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            let (end, hit) = if max_range < 0.0 || norm <= max_range {
+                (*p, true)
+            } else {
+                stats.max_range += 1;
+                // Vector3::normalized() divides by (float)norm; new_end = origin + dir * (float)maxrange.
+                let n = norm as f32;
+                let dir = if norm > 0.0 {
+                    [d[0] / n, d[1] / n, d[2] / n]
+                } else {
+                    d
+                };
+                let mr = max_range as f32;
+                (
+                    [
+                        origin[0] + dir[0] * mr,
+                        origin[1] + dir[1] * mr,
+                        origin[2] + dir[2] * mr,
+                    ],
+                    false,
+                )
+            };
+            match res.coord_to_key(end) {
+                Some(k) => grow(k),
+                None => {
+                    if hit {
+                        stats.out_of_bounds += 1;
+                    }
+                    continue;
+                }
+            }
+            ends.push((end, hit));
+        }
+
+        // Pass 2: mark free keys along rays and occupied endpoints, per brick.
+        if lo[0] <= hi[0] {
+            let center = origin_key.map_or(lo, |k| k.0.map(|a| u32::from(a >> BRICK_SHIFT)));
+            self.scratch.set_window(lo, hi, center);
+            let mut marker = Marker {
+                scratch: &mut self.scratch,
+                last_brick: u64::MAX,
+                last_slot: 0,
+            };
+            for &(end, hit) in &ends {
+                ray_keys(&res, origin, end, |k| marker.mark(k, false));
+                if hit && let Some(k) = res.coord_to_key(end) {
+                    marker.mark(k, true);
+                }
+            }
+        }
+        self.scratch.ends = ends;
+
+        // Pass 3: one update per marked voxel; occupied wins over free.
+        let model = self.model;
+        let marks = std::mem::take(&mut self.scratch.marks);
+        for m in &marks {
+            let b = self.block_mut(m.brick);
+            apply(b, m.free & !m.occ, model.miss, &model);
+            apply(b, m.occ, model.hit, &model);
+        }
+        self.scratch.marks = marks;
+        self.scratch.clear();
+        self.totals.add(&stats);
+        stats
+    }
+
+    /// Derives OctoMap's eagerly pruned tree: the tree `OcTree::write` would save after the
+    /// same updates (inner value = max of children, 8 equal leaves collapse).
+    pub fn to_octree(&self) -> Octree {
+        let mut order: Vec<(u64, u32)> = self
+            .index
+            .iter()
+            .filter(|(_, i)| self.blocks.get(**i as usize).is_some_and(|b| b.known != 0))
+            .map(|(bk, i)| {
+                let b = brick_coords(*bk);
+                (morton3(b[0], b[1], b[2]), *i)
+            })
+            .collect();
+        order.sort_unstable();
+        let mut tb = TreeBuilder::with_capacity(order.len() * 4);
+        if !order.is_empty() {
+            self.build(&mut tb, 0, &order);
+        }
+        tb.finish(self.res, self.model)
+    }
+
+    fn build(&self, tb: &mut TreeBuilder, depth: u8, items: &[(u64, u32)]) {
+        tb.open();
+        if depth < 14 {
+            let shift = 3 * u32::from(13 - depth);
+            let mut rest = items;
+            while let Some(first) = rest.first() {
+                let c = (first.0 >> shift) & 7;
+                let n = rest
+                    .iter()
+                    .take_while(|it| (it.0 >> shift) & 7 == c)
+                    .count();
+                let (group, tail) = rest.split_at(n);
+                tb.child(c as usize);
+                self.build(tb, depth + 1, group);
+                rest = tail;
+            }
+        } else if let Some(b) = items.first().and_then(|it| self.blocks.get(it.1 as usize)) {
+            for c15 in 0..8 {
+                let known = (b.known >> (8 * c15)) & 0xff;
+                if known == 0 {
+                    continue;
+                }
+                tb.child(c15);
+                tb.open();
+                for c16 in 0..8 {
+                    if known & (1 << c16) != 0 {
+                        tb.child(c16);
+                        tb.leaf(b.values[8 * c15 + c16]);
+                    }
+                }
+                tb.close();
+            }
+        }
+        tb.close();
+    }
+}
+
+/// Applies `delta` to the voxels of `bits` in block `b`: the early abort for known voxels,
+/// add-then-clamp from 0.0 for new ones.
+#[inline]
+fn apply(b: &mut Block, mut bits: u64, delta: f32, model: &SensorModel) {
+    while bits != 0 {
+        let i = bits.trailing_zeros() as usize;
+        let bit = bits & bits.wrapping_neg();
+        bits ^= bit;
+        let v = &mut b.values[i];
+        *v = if b.known & bit != 0 {
+            model.update(*v, delta)
+        } else {
+            model.add_clamped(0.0, delta)
+        };
+        b.known |= bit;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn map(res: f64) -> VoxelMap {
+        VoxelMap::new(Resolution::new(res).unwrap(), SensorModel::default())
+    }
+
+    #[test]
+    fn local_bits_are_morton_order() {
+        assert_eq!(local_bit([0, 0, 0]), 1);
+        assert_eq!(local_bit([1, 0, 0]), 1 << 1);
+        assert_eq!(local_bit([0, 0, 1]), 1 << 4);
+        assert_eq!(local_bit([2, 0, 0]), 1 << 8);
+        assert_eq!(local_bit([3, 3, 3]), 1 << 63);
+        assert_eq!(brick_coords(brick_key([65535, 4, 9])), [16383, 1, 2]);
+    }
+
+    #[test]
+    fn occupied_wins_and_one_update_per_scan() {
+        // res 1: origin voxel 0; ray A ends in voxel 3 (passes 0,1,2), ray B ends in voxel 1.
+        let mut m = map(1.0);
+        let model = *m.model();
+        let st = m.insert_point_cloud(
+            &[[3.5, 0.5, 0.5], [1.5, 0.5, 0.5], [3.6, 0.5, 0.5]],
+            [0.5, 0.5, 0.5],
+            -1.0,
+        );
+        assert_eq!(st.points, 3);
+        let k = |x: u16| Key([32768 + x, 32768, 32768]);
+        assert_eq!(m.log_odds(k(0)), Some(model.miss));
+        assert_eq!(
+            m.log_odds(k(1)),
+            Some(model.hit),
+            "hit by B, crossed by A: one hit only"
+        );
+        assert_eq!(
+            m.log_odds(k(2)),
+            Some(model.miss),
+            "crossed twice, one miss"
+        );
+        assert_eq!(m.log_odds(k(3)), Some(model.hit), "two endpoints, one hit");
+        assert_eq!(m.log_odds(k(4)), None);
+        assert_eq!(m.num_voxels(), 4);
+    }
+
+    #[test]
+    fn max_range_frees_up_to_the_cut_without_a_hit_and_nonfinite_is_counted() {
+        let mut m = map(1.0);
+        let st = m.insert_point_cloud(
+            &[
+                [10.5, 0.5, 0.5],
+                [f32::NAN, 0.0, 0.0],
+                [0.0, f32::INFINITY, 0.0],
+            ],
+            [0.5, 0.5, 0.5],
+            3.0,
+        );
+        assert_eq!((st.max_range, st.skipped_nonfinite), (1, 2));
+        // Cut end at x = 3.5: voxels 0, 1, 2 free; voxel 3 (the cut end) not touched; no hit.
+        let k = |x: u16| Key([32768 + x, 32768, 32768]);
+        assert!((0..3).all(|x| m.log_odds(k(x)) == Some(m.model().miss)));
+        assert_eq!(m.log_odds(k(3)), None);
+        assert_eq!(m.totals().skipped_nonfinite, 2);
+    }
+
+    #[test]
+    fn out_of_bounds_endpoints_drop_the_ray() {
+        let mut m = map(0.1);
+        let st = m.insert_point_cloud(&[[5000.0, 0.0, 0.0]], [0.0, 0.0, 0.0], -1.0);
+        assert_eq!(st.out_of_bounds, 1);
+        assert_eq!(m.num_voxels(), 0);
+        assert_eq!(m.to_octree().num_nodes(), 0);
+    }
+
+    #[test]
+    fn a_huge_scan_box_falls_back_beyond_the_window() {
+        // Rays 3000 m long at 0.1 m: the brick box exceeds the window, the far part is hashed.
+        let mut m = map(0.1);
+        let pts = [
+            [3000.0f32, 3000.0, 3000.0],
+            [-3000.0, -3000.0, -3000.0],
+            [3000.0, -3000.0, 5.0],
+        ];
+        m.insert_point_cloud(&pts, [0.0, 0.0, 0.0], -1.0);
+        let r = *m.resolution();
+        for p in pts {
+            assert_eq!(m.log_odds(r.coord_to_key(p).unwrap()), Some(m.model().hit));
+        }
+        let mut n = 0;
+        ray_keys(&r, [0.0; 3], pts[0], |k| {
+            n += 1;
+            assert_eq!(m.log_odds(k), Some(m.model().miss));
+        });
+        assert!(n > 80_000);
+    }
+}
