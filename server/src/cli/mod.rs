@@ -5,6 +5,7 @@ use std::path::PathBuf;
 
 use clap::{Parser, Subcommand};
 
+pub mod assemble;
 pub mod pair;
 pub mod replay;
 pub mod scan;
@@ -33,6 +34,8 @@ pub enum Command {
     Replay(replay::ReplayArgs),
     /// Tell a connected edge to make a static 3D scan at a known position (or to stop one).
     Scan(scan::ScanArgs),
+    /// Turn a session's static scans into one world-frame cloud (eq. 1): PLY, PCD or .scans.
+    Assemble(assemble::AssembleArgs),
 }
 
 /// Where a server keeps its recordings: `--data-dir`, or the `data_dir` of `--config`.
@@ -65,5 +68,6 @@ pub fn execute(cli: Cli, out: &mut dyn Write) -> anyhow::Result<()> {
         Command::Sessions(args) => sessions::run(&args, out),
         Command::Replay(args) => replay::run(&args, out),
         Command::Scan(args) => scan::run(&args, out),
+        Command::Assemble(args) => assemble::run(&args, out),
     }
 }

@@ -21,8 +21,7 @@
 //! device reports 0; [`Position`] adds a heading φ0 so several positions can be spliced in
 //! one world frame.
 
-use std::io::{self, Write};
-
+use scan3d_protocol::{Body, StaticScan, StaticScanOutcome, StaticScanSamples, StaticScanWarning};
 use serde::{Deserialize, Serialize};
 
 pub use super::OriginScan;
@@ -104,46 +103,130 @@ pub fn static_point(
     ])
 }
 
-/// Writes `.scans` (`research/octomap.md` §6.5): for each scan `u32 n; f64 ox, oy, oz;
-/// n × (f32 x, f32 y, f32 z)`, little-endian, read until end of file.
-pub fn write_scans<W: Write>(mut out: W, scans: &[OriginScan]) -> io::Result<()> {
-    for scan in scans {
-        let n = u32::try_from(scan.points.len()).map_err(|_| {
-            io::Error::new(
-                io::ErrorKind::InvalidInput,
-                "more than 2^32 points in one scan",
-            )
-        })?;
-        out.write_all(&n.to_le_bytes())?;
-        for c in scan.origin {
-            out.write_all(&c.to_le_bytes())?;
-        }
-        for p in &scan.points {
-            for c in p {
-                out.write_all(&c.to_le_bytes())?;
+/// One static scan of a session, assembled in the world frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AssembledScan {
+    /// The scan's number within its edge session.
+    pub scan_id: u32,
+    /// Where it was taken.
+    pub position: Position,
+    /// How the Sweep sat on the turntable.
+    pub mount: MountGeometry,
+    /// Points grouped by sensor origin: one group per half revolution (each half has one yaw,
+    /// hence one optical centre), in recorded order.
+    pub scans: Vec<OriginScan>,
+    /// How it ended, if the end was recorded.
+    pub outcome: Option<StaticScanOutcome>,
+    /// Warnings the edge sent (late or failed steps, missed sectors).
+    pub warnings: Vec<StaticScanWarning>,
+    /// Samples without a return (range 0), skipped.
+    pub no_return: u64,
+}
+
+impl AssembledScan {
+    /// Number of points.
+    pub fn points(&self) -> usize {
+        self.scans.iter().map(|s| s.points.len()).sum()
+    }
+}
+
+/// Turns a session's `StaticScan` frames into world-frame points with eq. (1): feed every
+/// recorded frame in order, then take [`StaticScanAssembler::finish`]. Samples of a scan whose
+/// start was not recorded are counted in [`StaticScanAssembler::orphan_samples`], never guessed.
+#[derive(Debug, Default)]
+pub struct StaticScanAssembler {
+    scans: Vec<AssembledScan>,
+    orphans: u64,
+}
+
+impl StaticScanAssembler {
+    /// An empty assembler.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Takes one frame body; anything but `StaticScan` is ignored.
+    pub fn on_body(&mut self, body: &Body) {
+        let Body::StaticScan(message) = body else {
+            return;
+        };
+        match message {
+            StaticScan::Started(start) => self.scans.push(AssembledScan {
+                scan_id: start.scan_id,
+                position: Position {
+                    name: start.position.clone(),
+                    x_m: start.x_m,
+                    y_m: start.y_m,
+                    heading_deg: start.heading_deg,
+                },
+                mount: MountGeometry {
+                    axis_offset_m: start.mount.axis_offset_m,
+                    height_m: start.mount.height_m,
+                    azimuth_zero_deg: start.mount.azimuth_zero_deg,
+                },
+                scans: Vec::new(),
+                outcome: None,
+                warnings: Vec::new(),
+                no_return: 0,
+            }),
+            StaticScan::Samples(batch) => match self.current(batch.scan_id) {
+                Some(scan) => scan.add(batch),
+                None => self.orphans += batch.samples.len() as u64,
+            },
+            StaticScan::Warning(warning) => {
+                if let Some(scan) = self.current(warning.scan_id) {
+                    scan.warnings.push(warning.clone());
+                }
+            }
+            StaticScan::Finished(end) => {
+                if let Some(scan) = self.current(end.scan_id) {
+                    scan.outcome = Some(end.outcome);
+                }
             }
         }
     }
-    out.flush()
+
+    /// Samples whose scan start was never seen.
+    pub fn orphan_samples(&self) -> u64 {
+        self.orphans
+    }
+
+    /// The assembled scans, in start order.
+    pub fn finish(self) -> Vec<AssembledScan> {
+        self.scans
+    }
+
+    /// The latest scan with this id (ids restart with each edge session).
+    fn current(&mut self, scan_id: u32) -> Option<&mut AssembledScan> {
+        self.scans.iter_mut().rev().find(|s| s.scan_id == scan_id)
+    }
 }
 
-/// Writes a binary PCD (v0.7, `x y z` as `F 4`), the format PCL tools and viewers read.
-pub fn write_pcd<W: Write>(mut out: W, points: &[[f32; 3]]) -> io::Result<()> {
-    write!(
-        out,
-        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\n\
-         TYPE F F F\nCOUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\n\
-         DATA binary\n",
-        n = points.len()
-    )?;
-    let mut body = Vec::with_capacity(points.len() * 12);
-    for p in points {
-        for c in p {
-            body.extend_from_slice(&c.to_le_bytes());
+impl AssembledScan {
+    fn add(&mut self, batch: &StaticScanSamples) {
+        let mut current_yaw: Option<f32> = None;
+        for sample in &batch.samples {
+            let static_sample = StaticSample {
+                range_m: f64::from(sample.range_m),
+                azimuth_deg: f64::from(sample.azimuth_deg),
+                yaw_deg: f64::from(sample.yaw_deg),
+            };
+            let Some(point) = static_point(&self.position, &self.mount, &static_sample) else {
+                self.no_return += 1;
+                continue;
+            };
+            if current_yaw != Some(sample.yaw_deg) {
+                current_yaw = Some(sample.yaw_deg);
+                self.scans.push(OriginScan {
+                    origin: sensor_origin(&self.position, &self.mount, static_sample.yaw_deg),
+                    points: Vec::new(),
+                });
+            }
+            if let Some(scan) = self.scans.last_mut() {
+                scan.points.push(point.map(|c| c as f32));
+            }
         }
     }
-    out.write_all(&body)?;
-    out.flush()
 }
 
 #[cfg(test)]
@@ -234,21 +317,89 @@ mod tests {
     }
 
     #[test]
-    fn scans_and_pcd_bytes_are_exact() {
-        let scans = [OriginScan {
-            origin: [1.0, 2.0, 3.0],
-            points: vec![[0.5, -1.0, 2.0]],
-        }];
-        let mut bytes = Vec::new();
-        write_scans(&mut bytes, &scans).unwrap();
-        assert_eq!(bytes.len(), 4 + 24 + 12);
-        assert_eq!(&bytes[..4], &1u32.to_le_bytes());
-        assert_eq!(&bytes[4..12], &1.0f64.to_le_bytes());
-        assert_eq!(&bytes[28..32], &0.5f32.to_le_bytes());
-        let mut pcd = Vec::new();
-        write_pcd(&mut pcd, &[[1.0, 2.0, 3.0]]).unwrap();
-        let text = String::from_utf8_lossy(&pcd);
-        assert!(text.contains("POINTS 1\nDATA binary\n"), "{text}");
-        assert_eq!(&pcd[pcd.len() - 12..pcd.len() - 8], &1.0f32.to_le_bytes());
+    fn the_assembler_groups_points_by_half_revolution_origin() {
+        use scan3d_protocol::{MountInfo, StaticScanEnd, StaticScanStart, TaggedSweepSample};
+        let mut assembler = StaticScanAssembler::new();
+        // Samples before any start are orphans, not guessed.
+        let batch = |scan_id, samples: Vec<TaggedSweepSample>| {
+            Body::StaticScan(StaticScan::Samples(StaticScanSamples {
+                scan_id,
+                revolution: 0,
+                t_ns: 0,
+                samples,
+            }))
+        };
+        let tagged = |azimuth_deg, range_m, yaw_deg| TaggedSweepSample {
+            azimuth_deg,
+            range_m,
+            quality: 9,
+            yaw_deg,
+        };
+        assembler.on_body(&batch(0, vec![tagged(90.0, 1.0, 0.0)]));
+        assert_eq!(assembler.orphan_samples(), 1);
+        assembler.on_body(&Body::StaticScan(StaticScan::Started(StaticScanStart {
+            scan_id: 0,
+            t_ns: 0,
+            position: "door".into(),
+            x_m: 1.0,
+            y_m: 2.0,
+            heading_deg: 90.0,
+            step_deg: 1.8,
+            total_deg: 180.0,
+            blocked_sector_deg: 60.0,
+            mount: MountInfo {
+                axis_offset_m: 0.1,
+                height_m: 0.5,
+                azimuth_zero_deg: 0.0,
+            },
+        })));
+        assembler.on_body(&batch(
+            0,
+            vec![
+                tagged(90.0, 2.0, 0.0),
+                tagged(100.0, 0.0, 0.0), // no return
+                tagged(270.0, 2.0, 1.8),
+            ],
+        ));
+        assembler.on_body(&Body::StaticScan(StaticScan::Finished(StaticScanEnd {
+            scan_id: 0,
+            t_ns: 1,
+            outcome: StaticScanOutcome::Completed,
+            yaw_deg: 180.0,
+            revolutions: 100,
+            tagged: 3,
+            blocked: 0,
+            untrusted: 0,
+            late_steps: 0,
+            failed_steps: 0,
+        })));
+        let scans = assembler.finish();
+        assert_eq!(scans.len(), 1);
+        let scan = &scans[0];
+        assert_eq!(scan.outcome, Some(StaticScanOutcome::Completed));
+        assert_eq!((scan.points(), scan.no_return), (2, 1));
+        assert_eq!(scan.scans.len(), 2, "one origin per half revolution");
+        // φ = 90°: the optical centre is 0.1 m along (cos φ, sin φ) = +y from (1, 2), 0.5 m up.
+        let o = scan.scans[0].origin;
+        assert!(close(o, [1.0, 2.1, 0.5]), "{o:?}");
+        // θ = 90°, φ = 90°: the beam points along −x.
+        let p = scan.scans[0].points[0].map(f64::from);
+        assert!(close_f32(p, [-1.0, 2.1, 0.5]), "{p:?}");
+        // Second half at φ + δφ = 91.8°: θ = 270° points along +x rotated by 1.8°.
+        let phi = 91.8f64.to_radians();
+        let o2 = scan.scans[1].origin;
+        assert!(close(
+            o2,
+            [1.0 + 0.1 * phi.cos(), 2.0 + 0.1 * phi.sin(), 0.5]
+        ));
+        let q = scan.scans[1].points[0].map(f64::from);
+        assert!(close_f32(
+            q,
+            [o2[0] + 2.0 * phi.sin(), o2[1] - 2.0 * phi.cos(), 0.5]
+        ));
+    }
+
+    fn close_f32(a: [f64; 3], b: [f64; 3]) -> bool {
+        a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-5)
     }
 }
