@@ -1,6 +1,7 @@
 //! Point clouds: static-scan assembly (eq. 1), per-sensor 2D scans, and PLY / PCD / .scans export.
 
 pub mod assembly;
+pub mod filter;
 pub mod io;
 pub mod pcd;
 pub mod ply;
