@@ -70,6 +70,11 @@ pub struct ScaledClock {
 }
 
 impl ScaledClock {
+    /// The real instant at which this clock read 0 (to align a simulated device's clock).
+    pub fn epoch(&self) -> Instant {
+        self.epoch
+    }
+
     /// A clock whose epoch is now, advancing `scale` nanoseconds per real nanosecond.
     ///
     /// Non-finite or non-positive scales are treated as 1.

@@ -1,8 +1,14 @@
-//! `scan3d-sim demo`: the whole backbone on one machine. Both emulated lidars run on real ptys,
-//! the edge daemon reads them, and a server on loopback receives them (real QUIC, mutual TLS,
-//! certificates paired in a temporary directory). The server records the session to
-//! `DIR/session/`, and the demo writes `DIR/scans/*.ply` from what the **server** received.
-//! It prints frames, samples and samples lost, which must be 0.
+//! `scan3d-sim demo`: the whole system on one machine.
+//!
+//! 1. **Streaming.** Both emulated lidars run on real ptys, the edge daemon reads them, and a
+//!    server on loopback receives them (real QUIC, mutual TLS, certificates paired in a
+//!    temporary directory). The server records the session to `DIR/session/`, and the demo
+//!    writes `DIR/scans/*.ply` from what the **server** received. Samples lost must be 0.
+//! 2. **Static 3D scans** (the paper's §III-A, [`crate::maps`]): `map2`, `map3` and `ref` of
+//!    the conference room, each commanded position by position through the server to the edge,
+//!    which steps the emulated turntable (PCA9685 on the emulated I2C bus) during the Sweep's
+//!    blind sector. Clouds assembled from the recordings go to `DIR/clouds/*.ply|.scans`, with
+//!    their accuracy against the true surface; the truth itself goes to `DIR/truth/`.
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -19,7 +25,13 @@ use scan3d_server::ingest::recorder::{session_dir, topic};
 use scan3d_server::ingest::server::{IngestEvent, IngestStats};
 use scan3d_server::ingest::timesync::Estimate;
 
+use scan3d_server::cloud::OriginScan;
+use scan3d_server::cloud::io;
+
+use crate::maps::{MapPlan, MapResult, MapSetup, paper_maps, scan_map};
 use crate::rig::{self, Delivery, EdgeThread, LidarOptions, ServerThread, SimLidars};
+use crate::truth::{GroundTruth, write_world_description};
+use crate::world::World;
 
 /// Options of `scan3d-sim demo`.
 #[derive(Debug, Clone, clap::Args)]
@@ -40,6 +52,9 @@ pub struct DemoArgs {
     /// Seed for the world's noise and the fault injection.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Which static maps to make (comma-separated among map2, map3, ref; empty = none).
+    #[arg(long, value_delimiter = ',', default_value = "map2,map3,ref")]
+    pub maps: Vec<String>,
 }
 
 /// What the demo measured.
@@ -61,6 +76,10 @@ pub struct DemoReport {
     pub sensor_seconds: BTreeMap<SensorId, f64>,
     /// PLY files written from the server's frames.
     pub scans: Vec<PathBuf>,
+    /// The static maps made.
+    pub maps: Vec<MapResult>,
+    /// Ground-truth files written.
+    pub truth_files: Vec<PathBuf>,
     /// Wall time of the run.
     pub wall: Duration,
 }
@@ -103,10 +122,26 @@ pub fn run_demo(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         (0.0..=0.1).contains(&args.corrupt),
         "--corrupt must be within 0..=0.1"
     );
+    let plans: Vec<MapPlan> = args
+        .maps
+        .iter()
+        .filter(|name| !name.is_empty())
+        .map(|name| {
+            paper_maps()
+                .into_iter()
+                .find(|plan| plan.name == name)
+                .ok_or_else(|| anyhow::anyhow!("unknown map {name:?} (map2, map3, ref)"))
+        })
+        .collect::<anyhow::Result<_>>()?;
     let started = Instant::now();
     let data_dir = args.out.join("session");
     let scans_dir = args.out.join("scans");
-    for dir in [&data_dir, &scans_dir] {
+    for dir in [
+        &data_dir,
+        &scans_dir,
+        &args.out.join("clouds"),
+        &args.out.join("truth"),
+    ] {
         // Each run starts afresh: an old recording would mix two runs' sessions.
         if dir.exists() {
             std::fs::remove_dir_all(dir)
@@ -115,9 +150,54 @@ pub fn run_demo(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     }
     let work = std::env::temp_dir().join(format!("scan3d-demo-{}", std::process::id()));
-    let result = run_in(args, &work, &data_dir, &scans_dir, started);
+    let result = run_in(args, &work, &data_dir, &scans_dir, started).and_then(|mut report| {
+        let world = Arc::new(World::conference_room());
+        let truth = GroundTruth::new(&world);
+        report.truth_files = write_truth(&world, &truth, &args.out.join("truth"))?;
+        let setup = MapSetup {
+            world: &world,
+            truth: &truth,
+            work: &work,
+            data_dir: &args.out.join("static-sessions"),
+            clouds_dir: &args.out.join("clouds"),
+            time_scale: args.time_scale,
+            seed: args.seed,
+        };
+        for plan in &plans {
+            println!(
+                "static scans: {} ({} position(s), Sweep {} Hz) ...",
+                plan.name,
+                plan.positions.len(),
+                plan.motor_hz
+            );
+            report.maps.push(scan_map(plan, &setup)?);
+        }
+        report.wall = started.elapsed();
+        Ok(report)
+    });
     let _ = std::fs::remove_dir_all(&work);
     result
+}
+
+/// Writes the ground truth for evaluation: the world description (`world.toml`, loadable with
+/// `World::load`) and the true surface sampled every 2 cm (`surface.ply`).
+fn write_truth(world: &World, truth: &GroundTruth, dir: &Path) -> anyhow::Result<Vec<PathBuf>> {
+    let world_file = dir.join("world.toml");
+    write_world_description(world, &world_file)?;
+    let surface = dir.join("surface.ply");
+    let points: Vec<[f32; 3]> = truth
+        .sample(0.02)
+        .iter()
+        .map(|p| p.point.map(|c| c as f32))
+        .collect();
+    io::save(
+        &surface,
+        &[OriginScan {
+            origin: [0.0; 3],
+            points,
+        }],
+    )?;
+    Ok(vec![world_file, surface])
 }
 
 fn run_in(
@@ -187,6 +267,8 @@ fn run_in(
         server: server_stats,
         time_sync: received.time_sync,
         scans,
+        maps: Vec::new(),
+        truth_files: Vec::new(),
         wall: started.elapsed(),
     })
 }
@@ -296,9 +378,45 @@ pub fn summary(report: &DemoReport) -> String {
     }
     let _ = writeln!(
         s,
-        "edge CPU for both lidars at full rate: {:.2} % of one core (acquisition threads); wall time {:.1} s",
+        "edge CPU for both lidars at full rate: {:.2} % of one core (acquisition threads)",
         core_share * 100.0,
-        report.wall.as_secs_f64()
     );
+    if !report.maps.is_empty() {
+        let _ = writeln!(
+            s,
+            "static 3D scans (eq. 1), accuracy = point-to-true-surface distance:"
+        );
+        let _ = writeln!(
+            s,
+            "{:<5} {:>4} {:>5} {:>9} {:>10} {:>9} {:>9} {:>8} {:>7}",
+            "map", "pos", "Hz", "points", "scan s", "mean mm", "p95 mm", "warnings", "I2C/s"
+        );
+        for m in &report.maps {
+            let mean_scan = m.scan_seconds.iter().sum::<f64>() / m.scan_seconds.len().max(1) as f64;
+            let (mean, p95) = m
+                .accuracy
+                .map_or((f64::NAN, f64::NAN), |a| (a.mean_m * 1e3, a.p95_m * 1e3));
+            let _ = writeln!(
+                s,
+                "{:<5} {:>4} {:>5} {:>9} {:>10.1} {:>9.1} {:>9.1} {:>8} {:>7.0}",
+                m.plan.name,
+                m.plan.positions.len(),
+                m.plan.motor_hz,
+                m.points(),
+                mean_scan,
+                mean,
+                p95,
+                m.warnings,
+                m.i2c_per_s
+            );
+            for file in &m.files {
+                let _ = writeln!(s, "  wrote {}", file.display());
+            }
+        }
+    }
+    for file in &report.truth_files {
+        let _ = writeln!(s, "wrote {}", file.display());
+    }
+    let _ = writeln!(s, "wall time {:.1} s", report.wall.as_secs_f64());
     s
 }

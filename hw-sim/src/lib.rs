@@ -12,6 +12,8 @@
 //! - [`pair`]: a driver wired straight to an emulator in memory (deterministic tests, benches).
 //! - [`pty`]: runs an emulator on a Linux pty behind a symlink, paced at the wire rate.
 //! - [`rig`]: a whole installation (lidars, certificates, server, edge daemon) for the demo and tests.
+//! - [`static_rig`]: the paper's scanner: Sweep on the turntable, IMU and motor HAT on I2C.
+//! - [`maps`]: the paper's static maps through the whole system, scored against ground truth.
 //! - [`demo`]: the README's demo.
 #![warn(missing_docs)]
 
@@ -20,12 +22,14 @@ pub mod device;
 pub mod faults;
 pub mod i2c;
 pub mod imu;
+pub mod maps;
 pub mod mounts;
 pub mod noise;
 pub mod pair;
 pub mod pty;
 pub mod rig;
 pub mod rplidar;
+pub mod static_rig;
 pub mod stepper;
 pub mod sweep;
 pub mod truth;

@@ -149,6 +149,7 @@ fn serve(common: &CommonArgs, device: Box<dyn Device>) -> anyhow::Result<()> {
         time_scale: common.time_scale,
         faults: FaultConfig::corrupt(common.corrupt),
         seed: common.seed,
+        epoch: None,
     };
     let handle = PtyDevice::spawn(common.link.clone(), device, options)?;
     let mut stdout = std::io::stdout().lock();

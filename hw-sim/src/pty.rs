@@ -41,6 +41,10 @@ pub struct PtyOptions {
     pub faults: FaultConfig,
     /// Seed of the fault injector.
     pub seed: u64,
+    /// The real instant of simulated time 0; `None` = when the device starts. Give a shared
+    /// world clock's epoch when other emulators (e.g. the turntable under the Sweep) must see
+    /// the same simulated time.
+    pub epoch: Option<Instant>,
 }
 
 impl Default for PtyOptions {
@@ -49,6 +53,7 @@ impl Default for PtyOptions {
             time_scale: 1.0,
             faults: FaultConfig::default(),
             seed: 0,
+            epoch: None,
         }
     }
 }
@@ -257,7 +262,7 @@ impl PtyDevice {
             stats: Arc::clone(&stats),
             slave_path: Arc::clone(&slave_path),
             time_scale: options.time_scale,
-            start: now,
+            start: options.epoch.unwrap_or(now),
             last_tick: now,
             budget: 0.0,
             backlog: VecDeque::new(),

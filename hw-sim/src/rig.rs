@@ -8,18 +8,20 @@ use std::thread::JoinHandle;
 use std::time::Duration;
 
 use anyhow::Context;
-use scan3d_edge::clock::SharedClock;
+use scan3d_edge::clock::{ClockDelay, SharedClock};
 use scan3d_edge::config::{EdgeConfig, RplidarSection, SweepSection, UplinkSection};
-use scan3d_edge::daemon::{self, DaemonReport};
+use scan3d_edge::daemon::{self, DaemonReport, I2cHardware};
 use scan3d_edge::drivers::rplidar::RplidarConfig;
 use scan3d_edge::drivers::sweep::SweepConfig;
 use scan3d_protocol::{Body, SensorId};
+use scan3d_server::ingest::control::EdgeControl;
 use scan3d_server::ingest::pki::{self, PairRequest};
 use scan3d_server::ingest::recorder::read_session;
 use scan3d_server::ingest::server::{IngestConfig, IngestEvent, IngestServer, IngestStats};
 use tokio::sync::{mpsc, oneshot, watch};
 
 use crate::faults::{FaultConfig, SentSample};
+use crate::i2c::I2cBus;
 use crate::mounts;
 use crate::pty::{PtyDevice, PtyHandle, PtyOptions};
 use crate::rplidar::{RplidarEmulator, RplidarEmulatorConfig};
@@ -71,6 +73,7 @@ impl SimLidars {
             time_scale: options.time_scale,
             faults: FaultConfig::corrupt(options.corrupt),
             seed: options.seed.wrapping_add(seed_offset),
+            epoch: None,
         };
         let rplidar = RplidarEmulator::new(
             RplidarEmulatorConfig::default(),
@@ -107,6 +110,10 @@ impl SimLidars {
                 driver: SweepConfig::default(),
             }),
             uplink,
+            i2c: Default::default(),
+            imu: None,
+            stepper: None,
+            static_scan: Default::default(),
         }
     }
 
@@ -168,6 +175,7 @@ pub fn ingest_config(pki_dir: &Path, data_dir: &Path, port: u16) -> IngestConfig
 /// The ingest server on its own thread and runtime, as `scan3d serve` runs it.
 pub struct ServerThread {
     addr: std::net::SocketAddr,
+    control: EdgeControl,
     stop: Option<oneshot::Sender<()>>,
     thread: Option<JoinHandle<IngestStats>>,
     /// Everything the server reports (recorded frames, connections, time sync).
@@ -183,6 +191,7 @@ impl ServerThread {
             .build()?;
         let server = runtime.block_on(async { IngestServer::bind(config) })?;
         let addr = server.local_addr()?;
+        let control = server.control();
         let (events_tx, events) = mpsc::unbounded_channel();
         let (stop, stopped) = oneshot::channel::<()>();
         let thread = std::thread::Builder::new()
@@ -194,6 +203,7 @@ impl ServerThread {
             })?;
         Ok(Self {
             addr,
+            control,
             stop: Some(stop),
             thread: Some(thread),
             events,
@@ -203,6 +213,11 @@ impl ServerThread {
     /// Where edges connect.
     pub fn addr(&self) -> std::net::SocketAddr {
         self.addr
+    }
+
+    /// Sends commands to connected edges, as `scan3d scan` does through the control socket.
+    pub fn control(&self) -> &EdgeControl {
+        &self.control
     }
 
     /// Shuts down cleanly (commits, closes recordings) and returns the server's counters.
@@ -234,16 +249,34 @@ pub struct EdgeThread {
 }
 
 impl EdgeThread {
-    /// Starts the daemon with `config` on `clock`.
+    /// Starts the daemon with `config` on `clock` (no I2C devices).
     pub fn start(config: EdgeConfig, clock: SharedClock, session_id: u64) -> anyhow::Result<Self> {
+        Self::start_with_i2c::<I2cBus>(config, clock.clone(), session_id, None)
+    }
+
+    /// Starts the daemon with the emulated I2C bus (IMU, motor HAT) of `i2c`.
+    pub fn start_with_i2c<I: embedded_hal::i2c::I2c + Send + 'static>(
+        config: EdgeConfig,
+        clock: SharedClock,
+        session_id: u64,
+        i2c: Option<I>,
+    ) -> anyhow::Result<Self> {
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(2)
             .enable_all()
             .build()?;
         let (stop, stopped) = watch::channel(false);
+        let hardware = i2c.map(|bus| I2cHardware {
+            bus,
+            delay: ClockDelay(clock.clone()),
+        });
         let thread = std::thread::Builder::new()
             .name("edge daemon".into())
-            .spawn(move || runtime.block_on(daemon::run(config, clock, session_id, stopped)))?;
+            .spawn(move || {
+                runtime.block_on(daemon::run_with_i2c(
+                    config, clock, session_id, stopped, hardware,
+                ))
+            })?;
         Ok(Self {
             stop,
             thread: Some(thread),

@@ -61,6 +61,7 @@ impl Rig {
             time_scale: TIME_SCALE,
             faults,
             seed: 7,
+            epoch: None,
         };
         let pty = PtyDevice::spawn(path.clone(), device, options).expect("pty device");
         let (acquisition, events) = Acquisition::spawn(
