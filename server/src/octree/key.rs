@@ -69,12 +69,15 @@ impl Resolution {
     /// Multiplies by the reciprocal (not a division), like OctoMap.
     #[inline]
     pub fn coord_to_key_axis(&self, c: f64) -> Option<u16> {
-        let scaled = (self.factor * c).floor();
-        if (-32768.0..32768.0).contains(&scaled) {
-            Some((scaled as i32 + 32768) as u16)
-        } else {
-            None
+        let x = self.factor * c;
+        // floor(x) is in -32768..32768 iff x is in [-32768, 32768) (false for NaN). There,
+        // truncation corrected downwards is exactly floor, without a libm call.
+        if !(-32768.0..32768.0).contains(&x) {
+            return None;
         }
+        let t = x as i32;
+        let f = if f64::from(t) > x { t - 1 } else { t };
+        Some((f + 32768) as u16)
     }
 
     /// The voxel key of an f32 point (widened to f64 first), or `None` outside the key range.

@@ -13,14 +13,53 @@ pub fn ray_keys(
     end: [f32; 3],
     mut visit: impl FnMut(Key),
 ) -> bool {
+    ray_packed(res, origin, end, |k| visit(unpack(k)))
+}
+
+/// Packs a key into the stepping loop's 21-bit biased fields.
+#[inline]
+pub(crate) fn pack(k: Key) -> u64 {
+    (0..3).fold(0u64, |acc, i| {
+        acc | ((u64::from(k.0[i]) + BIAS) << (21 * i))
+    })
+}
+
+/// The u16 key of packed fields (wrapping like OctoMap's u16 keys).
+#[inline]
+pub(crate) fn unpack(k: u64) -> Key {
+    Key([0, 1, 2].map(|i| ((k >> (21 * i)) & FIELD).wrapping_sub(BIAS) as u16))
+}
+
+/// [`ray_keys`] with keys in the packed form of [`pack`].
+#[inline(always)]
+pub(crate) fn ray_packed(
+    res: &Resolution,
+    origin: [f32; 3],
+    end: [f32; 3],
+    visit: impl FnMut(u64),
+) -> bool {
     let (Some(key_origin), Some(key_end)) = (res.coord_to_key(origin), res.coord_to_key(end))
     else {
         return false;
     };
+    ray_packed_keyed(res, origin, key_origin, end, key_end, visit);
+    true
+}
+
+/// The stepping of [`ray_packed`] once both keys are known to be in range.
+#[inline(always)]
+pub(crate) fn ray_packed_keyed(
+    res: &Resolution,
+    origin: [f32; 3],
+    key_origin: Key,
+    end: [f32; 3],
+    key_end: Key,
+    mut visit: impl FnMut(u64),
+) {
     if key_origin == key_end {
-        return true;
+        return;
     }
-    visit(key_origin);
+    visit(pack(key_origin));
 
     let d = [end[0] - origin[0], end[1] - origin[1], end[2] - origin[2]];
     // Vector3::norm(): squares summed in f32, sqrt in f64, then cast to float.
@@ -47,32 +86,136 @@ pub fn ray_keys(
         }
     }
 
+    // The stepping loop, branch-free in the axis choice (ties: z, then y): the three keys
+    // live in one u64 as 21-bit fields biased by 2^17, so a step is one add and the end test
+    // one compare; emitted keys wrap to u16 like OctoMap's `key[dim] += step`.
     let length = f64::from(length);
-    let mut key = key_origin.0;
+    let inc = [0, 1, 2].map(|i| (i64::from(step[i]) << (21 * i)) as u64);
+    let (mut k, end) = (pack(key_origin), pack(key_end));
+    let (mut t0, mut t1, mut t2) = (t_max[0], t_max[1], t_max[2]);
+    let (d0, d1, d2) = (t_delta[0], t_delta[1], t_delta[2]);
     loop {
-        let dim = if t_max[0] < t_max[1] {
-            if t_max[0] < t_max[2] { 0 } else { 2 }
-        } else if t_max[1] < t_max[2] {
-            1
+        let x_lt_y = t0 < t1;
+        let cx = x_lt_y & (t0 < t2);
+        let cy = !x_lt_y & (t1 < t2);
+        let cz = !(cx | cy);
+        t0 += if cx { d0 } else { 0.0 };
+        t1 += if cy { d1 } else { 0.0 };
+        t2 += if cz { d2 } else { 0.0 };
+        k = k.wrapping_add(if cx {
+            inc[0]
+        } else if cy {
+            inc[1]
         } else {
-            2
-        };
-        key[dim] = key[dim].wrapping_add(step[dim] as u16);
-        t_max[dim] += t_delta[dim];
-        if key == key_end.0 {
+            inc[2]
+        });
+        if k == end {
             break;
         }
-        if t_max[0].min(t_max[1]).min(t_max[2]) > length {
+        // std::min(std::min(t0, t1), t2)
+        let m = if t1 < t0 { t1 } else { t0 };
+        let m = if t2 < m { t2 } else { m };
+        if m > length {
             break;
         }
-        visit(Key(key));
+        visit(k);
     }
-    true
 }
+
+/// Bias and mask of the packed 21-bit key fields of the stepping loop.
+pub(crate) const BIAS: u64 = 1 << 17;
+pub(crate) const FIELD: u64 = (1 << 21) - 1;
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A line-by-line transcription of OctoMap's `computeRayKeys` loop, to check the packed,
+    /// branch-free loop against.
+    fn reference(res: &Resolution, origin: [f32; 3], end: [f32; 3]) -> Option<Vec<Key>> {
+        let ko = res.coord_to_key(origin)?;
+        let ke = res.coord_to_key(end)?;
+        let mut ray = Vec::new();
+        if ko == ke {
+            return Some(ray);
+        }
+        ray.push(ko);
+        let d = [end[0] - origin[0], end[1] - origin[1], end[2] - origin[2]];
+        let length = f64::from(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt() as f32;
+        let dir = d.map(|c| c / length);
+        let r = res.meters();
+        let (mut step, mut t_max, mut t_delta) = ([0i32; 3], [f64::MAX; 3], [f64::MAX; 3]);
+        for i in 0..3 {
+            step[i] = if dir[i] > 0.0 {
+                1
+            } else if dir[i] < 0.0 {
+                -1
+            } else {
+                0
+            };
+            if step[i] != 0 {
+                let mut border = res.key_to_coord_axis(ko.0[i]);
+                border += f64::from((f64::from(step[i]) * r * 0.5) as f32);
+                t_max[i] = (border - f64::from(origin[i])) / f64::from(dir[i]);
+                t_delta[i] = r / f64::from(dir[i].abs());
+            }
+        }
+        let mut key = ko.0;
+        loop {
+            let dim = if t_max[0] < t_max[1] {
+                if t_max[0] < t_max[2] { 0 } else { 2 }
+            } else if t_max[1] < t_max[2] {
+                1
+            } else {
+                2
+            };
+            key[dim] = key[dim].wrapping_add(step[dim] as u16);
+            t_max[dim] += t_delta[dim];
+            if key == ke.0 {
+                break;
+            }
+            if t_max[0].min(t_max[1]).min(t_max[2]) > f64::from(length) {
+                break;
+            }
+            ray.push(Key(key));
+        }
+        Some(ray)
+    }
+
+    #[test]
+    fn fast_loop_equals_the_transcription_on_many_rays() {
+        // Deterministic pseudo-random rays, many from voxel centers and on grid lines (ties).
+        let mut s = 0x2545_f491_4f6c_dd1du64;
+        let mut rnd = move || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            s
+        };
+        for res in [0.05, 0.1, 0.07, 0.2, 1.0] {
+            let r = Resolution::new(res).unwrap();
+            for i in 0..20_000 {
+                let mut pt = |grid: bool| {
+                    [0; 3].map(|_| {
+                        let v = (rnd() % 4000) as f32 / 100.0 - 20.0;
+                        if grid {
+                            (v * 4.0).round() / 4.0 * res as f32
+                        } else {
+                            v
+                        }
+                    })
+                };
+                let (o, e) = (pt(i % 3 == 0), pt(i % 5 == 0));
+                let mut fast = Vec::new();
+                let ok = ray_keys(&r, o, e, |k| fast.push(k));
+                assert_eq!(
+                    reference(&r, o, e),
+                    ok.then_some(fast),
+                    "res {res} {o:?} -> {e:?}"
+                );
+            }
+        }
+    }
 
     fn keys(res: f64, o: [f32; 3], e: [f32; 3]) -> Option<Vec<[i32; 3]>> {
         let r = Resolution::new(res).unwrap();

@@ -13,7 +13,7 @@ use std::hash::{BuildHasherDefault, Hasher};
 
 use super::key::{Key, Resolution, morton3};
 use super::model::SensorModel;
-use super::ray::ray_keys;
+use super::ray::{BIAS, FIELD, pack, ray_packed_keyed, unpack};
 use super::tree::{Octree, TreeBuilder};
 use crate::cloud::OriginScan;
 
@@ -21,6 +21,10 @@ use crate::cloud::OriginScan;
 const BRICK_SHIFT: u32 = 2;
 /// Most window slots (u32 each) used per scan for the dense brick lookup; beyond it, a hash map.
 const WINDOW_MAX_CELLS: usize = 1 << 21;
+const _: () = assert!(
+    BIAS % 4 == 0,
+    "brick bits of packed keys must not depend on the bias"
+);
 
 /// Packed brick coordinates (14 bits per axis).
 #[inline]
@@ -97,7 +101,7 @@ struct Scratch {
     lo: [u32; 3],
     dim: [u32; 3],
     overflow: BrickMap,
-    ends: Vec<([f32; 3], bool)>,
+    ends: Vec<([f32; 3], Key, bool)>,
 }
 
 impl Scratch {
@@ -176,15 +180,37 @@ struct Marker<'a> {
     last_slot: usize,
 }
 
+/// Brick part of a packed key: each 21-bit field shifted down by 2.
+const PACKED_BRICK: u64 = (FIELD >> 2) | ((FIELD >> 2) << 21) | ((FIELD >> 2) << 42);
+
+/// Morton bit index inside a brick of the linear index x + 4y + 16z.
+const LIN_TO_MORTON: [u8; 64] = {
+    let mut t = [0u8; 64];
+    let mut i = 0;
+    while i < 64 {
+        let (x, y, z) = (i & 3, (i >> 2) & 3, i >> 4);
+        t[i] = ((x & 1)
+            | ((y & 1) << 1)
+            | ((z & 1) << 2)
+            | ((x & 2) << 2)
+            | ((y & 2) << 3)
+            | ((z & 2) << 4)) as u8;
+        i += 1;
+    }
+    t
+};
+
 impl Marker<'_> {
-    #[inline]
-    fn mark(&mut self, k: Key, occupied: bool) {
-        let bk = brick_key(k.0);
-        if bk != self.last_brick {
-            self.last_slot = self.scratch.slot(bk);
-            self.last_brick = bk;
+    /// Marks the voxel of a packed key (see `ray::pack`).
+    #[inline(always)]
+    fn mark(&mut self, k: u64, occupied: bool) {
+        let pb = (k >> 2) & PACKED_BRICK;
+        if pb != self.last_brick {
+            self.last_slot = self.scratch.slot(brick_key(unpack(k).0));
+            self.last_brick = pb;
         }
-        let bit = local_bit(k.0);
+        let lin = (k & 3) | ((k >> 19) & 0xc) | ((k >> 38) & 0x30);
+        let bit = 1u64 << LIN_TO_MORTON[lin as usize];
         // The slot exists: `slot` pushed it or returned an existing index.
         if let Some(m) = self.scratch.marks.get_mut(self.last_slot) {
             if occupied {
@@ -281,7 +307,7 @@ impl VoxelMap {
             + self.index.capacity() * (std::mem::size_of::<(u64, u32)>() + 1)
             + self.scratch.window.capacity() * 4
             + self.scratch.marks.capacity() * std::mem::size_of::<Marks>()
-            + self.scratch.ends.capacity() * std::mem::size_of::<([f32; 3], bool)>()
+            + self.scratch.ends.capacity() * std::mem::size_of::<([f32; 3], Key, bool)>()
     }
 
     fn block_mut(&mut self, bk: u64) -> &mut Block {
@@ -395,15 +421,12 @@ impl VoxelMap {
                 )
             };
             match res.coord_to_key(end) {
-                Some(k) => grow(k),
-                None => {
-                    if hit {
-                        stats.out_of_bounds += 1;
-                    }
-                    continue;
+                Some(k) => {
+                    grow(k);
+                    ends.push((end, k, hit));
                 }
+                None => stats.out_of_bounds += u64::from(hit),
             }
-            ends.push((end, hit));
         }
 
         // Pass 2: mark free keys along rays and occupied endpoints, per brick.
@@ -415,10 +438,14 @@ impl VoxelMap {
                 last_brick: u64::MAX,
                 last_slot: 0,
             };
-            for &(end, hit) in &ends {
-                ray_keys(&res, origin, end, |k| marker.mark(k, false));
-                if hit && let Some(k) = res.coord_to_key(end) {
-                    marker.mark(k, true);
+            for &(end, key_end, hit) in &ends {
+                if let Some(key_origin) = origin_key {
+                    ray_packed_keyed(&res, origin, key_origin, end, key_end, |k| {
+                        marker.mark(k, false)
+                    });
+                }
+                if hit {
+                    marker.mark(pack(key_end), true);
                 }
             }
         }
@@ -516,6 +543,7 @@ fn apply(b: &mut Block, mut bits: u64, delta: f32, model: &SensorModel) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::octree::ray_keys;
 
     fn map(res: f64) -> VoxelMap {
         VoxelMap::new(Resolution::new(res).unwrap(), SensorModel::default())
@@ -529,6 +557,15 @@ mod tests {
         assert_eq!(local_bit([2, 0, 0]), 1 << 8);
         assert_eq!(local_bit([3, 3, 3]), 1 << 63);
         assert_eq!(brick_coords(brick_key([65535, 4, 9])), [16383, 1, 2]);
+        for lin in 0..64u16 {
+            let k = [100 + (lin & 3), 200 + ((lin >> 2) & 3), 300 + (lin >> 4)];
+            assert_eq!(local_bit(k), 1 << LIN_TO_MORTON[usize::from(lin)]);
+            let p = pack(Key(k));
+            assert_eq!(
+                (p & 3) | ((p >> 19) & 0xc) | ((p >> 38) & 0x30),
+                u64::from(lin)
+            );
+        }
     }
 
     #[test]

@@ -1,0 +1,191 @@
+//! Insertion and `.bt` read speed of `scan3d_server::octree` against OctoMap 1.9.7 on the same
+//! input in the same run (research/octomap.md §8). `cargo bench -p scan3d-server --bench octree`.
+//!
+//! OctoMap's side is `shared/tools/octomap_bench.cpp`, compiled here with g++ -O2 -DNDEBUG
+//! against Debian's liboctomap-dev; without g++ or the headers it is skipped with a message.
+//! Times are best of `OCTREE_BENCH_REPS` (default 5) runs, as the machine is shared.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Instant;
+
+use scan3d_server::cloud::OriginScan;
+use scan3d_server::octree::{Octree, Resolution, SensorModel, VoxelMap, ray_keys, read_graph};
+
+fn shared() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared")
+}
+
+fn best<T>(reps: usize, mut f: impl FnMut() -> T) -> (f64, T) {
+    let mut best = f64::MAX;
+    let mut out = None;
+    for _ in 0..reps {
+        let t = Instant::now();
+        let v = f();
+        best = best.min(t.elapsed().as_secs_f64());
+        out = Some(v);
+    }
+    (best, out.expect("reps > 0"))
+}
+
+/// Compiles octomap_bench once; `None` (with the reason printed) when OctoMap is unavailable.
+fn octomap_bench() -> Option<PathBuf> {
+    let src = shared().join("tools/octomap_bench.cpp");
+    if !Path::new("/usr/include/octomap/OcTree.h").exists() {
+        println!("OctoMap: skipped (no /usr/include/octomap; apt-get install liboctomap-dev)");
+        return None;
+    }
+    let exe = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("octomap_bench");
+    if !exe.exists() {
+        let ok = Command::new("g++")
+            .args(["-O2", "-DNDEBUG", "-std=c++17", "-o"])
+            .arg(&exe)
+            .arg(&src)
+            .args(["-loctomap", "-loctomath"])
+            .status()
+            .is_ok_and(|s| s.success());
+        if !ok {
+            println!(
+                "OctoMap: skipped (could not compile {} with g++)",
+                src.display()
+            );
+            return None;
+        }
+    }
+    Some(exe)
+}
+
+/// Runs octomap_bench `reps` times and returns the best value of `field` (the number before
+/// " s" after `key`) and the last stdout.
+fn run_octomap(exe: &Path, args: &[&str], key: &str, reps: usize) -> Option<(f64, String)> {
+    let mut best = f64::MAX;
+    let mut last = String::new();
+    for _ in 0..reps {
+        let out = Command::new(exe).args(args).output().ok()?;
+        last = String::from_utf8_lossy(&out.stdout).into_owned();
+        let line = last.lines().find(|l| l.contains(key))?;
+        let after = &line[line.find(key)? + key.len()..];
+        let secs: f64 = after.split_whitespace().find_map(|w| w.parse().ok())?;
+        best = best.min(secs);
+    }
+    Some((best, last))
+}
+
+fn insert_all(scans: &[OriginScan], res: f64) -> VoxelMap {
+    let mut map = VoxelMap::new(Resolution::new(res).expect("valid"), SensorModel::default());
+    for s in scans {
+        map.insert_scan(s, -1.0);
+    }
+    map
+}
+
+fn main() {
+    let reps: usize = std::env::var("OCTREE_BENCH_REPS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(5)
+        .max(1);
+    let graph = shared().join("data/octomap/derived/geb079_sim.graph");
+    let Ok(bytes) = std::fs::read(&graph) else {
+        println!("skipped: {} not found", graph.display());
+        return;
+    };
+    let scans = read_graph(&bytes).expect("geb079_sim.graph parses");
+    let npts: usize = scans.iter().map(|s| s.points.len()).sum();
+    println!(
+        "input geb079_sim.graph: {} scans, {npts} points; best of {reps}",
+        scans.len()
+    );
+    let octomap = if std::env::var_os("OCTREE_BENCH_NO_OCTOMAP").is_some() {
+        println!("OctoMap: skipped (OCTREE_BENCH_NO_OCTOMAP set)");
+        None
+    } else {
+        octomap_bench()
+    };
+    let graph_s = graph.to_string_lossy().into_owned();
+
+    for res in [0.05, 0.1, 0.2] {
+        let r = Resolution::new(res).expect("valid");
+        let (t_dda, keys) = best(reps, || {
+            let mut n = 0u64;
+            for s in &scans {
+                let o = s.origin.map(|c| c as f32);
+                for p in &s.points {
+                    ray_keys(&r, o, *p, |_| n += 1);
+                }
+            }
+            n
+        });
+        println!(
+            "ours  res {res}: ray stepping alone: {keys} ray keys ({:.1} per ray) in {t_dda:.4} s = {:.2} ns/key",
+            keys as f64 / npts as f64,
+            t_dda * 1e9 / keys as f64
+        );
+        let (t_ins, map) = best(reps, || insert_all(&scans, res));
+        let (t_tree, tree) = best(reps, || map.to_octree());
+        println!(
+            "ours  res {res}: insert {t_ins:.4} s ({:.2} M pts/s), derive tree {t_tree:.4} s, total {:.4} s; \
+             {} voxels, tree {} nodes / {} leaves; memory: map {:.1} MB, tree {:.1} MB",
+            npts as f64 / t_ins / 1e6,
+            t_ins + t_tree,
+            map.num_voxels(),
+            tree.num_nodes(),
+            tree.num_leaves(),
+            map.memory_bytes() as f64 / 1e6,
+            tree.memory_bytes() as f64 / 1e6,
+        );
+        if let Some(exe) = &octomap {
+            let r = format!("{res}");
+            match run_octomap(
+                exe,
+                &["insert", &graph_s, "-res", &r],
+                "mode insertPointCloud:",
+                reps,
+            ) {
+                Some((t, out)) => {
+                    let mem = out
+                        .split("memoryUsage ")
+                        .nth(1)
+                        .and_then(|s| s.split_whitespace().next())
+                        .and_then(|s| s.parse::<f64>().ok())
+                        .map_or(String::from("?"), |b| format!("{:.1} MB", b / 1e6));
+                    println!(
+                        "octomap res {res}: insert {t:.4} s; memoryUsage {mem}; ratio octomap/ours: {:.1}x insert, {:.1}x insert+tree",
+                        t / t_ins,
+                        t / (t_ins + t_tree)
+                    );
+                }
+                None => println!("octomap res {res}: run failed"),
+            }
+        }
+    }
+
+    for name in ["geb079.bt", "reference/geb079_sim_0.08.bt"] {
+        let path = shared().join("data/octomap").join(name);
+        let Ok(file) = std::fs::read(&path) else {
+            continue;
+        };
+        let (t, tree) = best(reps.max(5), || {
+            Octree::read_bt(&file, SensorModel::default()).expect("reads")
+        });
+        let (ti, leaves) = best(reps.max(5), || {
+            tree.leaves().filter(|l| l.log_odds >= 0.0).count()
+        });
+        println!(
+            "ours  read {name}: {} nodes in {t:.4} s = {:.1} M nodes/s; iterate {} leaves ({leaves} occupied) {ti:.4} s",
+            tree.num_nodes(),
+            tree.num_nodes() as f64 / t / 1e6,
+            tree.num_leaves()
+        );
+        if let Some(exe) = &octomap {
+            let p = path.to_string_lossy().into_owned();
+            if let Some((to, _)) = run_octomap(exe, &["read", &p, "-repeat", "5"], "read min", 1) {
+                println!(
+                    "octomap read {name}: {to:.4} s = {:.1} M nodes/s; ratio {:.1}x",
+                    tree.num_nodes() as f64 / to / 1e6,
+                    to / t
+                );
+            }
+        }
+    }
+}
