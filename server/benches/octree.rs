@@ -4,6 +4,7 @@
 //! OctoMap's side is `shared/tools/octomap_bench.cpp`, compiled here with g++ -O2 -DNDEBUG
 //! against Debian's liboctomap-dev; without g++ or the headers it is skipped with a message.
 //! Times are best of `OCTREE_BENCH_REPS` (default 5) runs, as the machine is shared.
+//! `OCTREE_BENCH_NO_OCTOMAP=1` skips OctoMap; `OCTREE_BENCH_WRITE_DIR=d` writes our trees there.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -123,6 +124,15 @@ fn main() {
         );
         let (t_ins, map) = best(reps, || insert_all(&scans, res));
         let (t_tree, tree) = best(reps, || map.to_octree());
+        if let Some(dir) = std::env::var_os("OCTREE_BENCH_WRITE_DIR") {
+            // For checking with OctoMap's own tools (convert_octree, compare_octrees).
+            let dir = PathBuf::from(dir);
+            let ot = std::fs::write(dir.join(format!("ours_{res}.ot")), tree.to_ot_bytes());
+            let bt = std::fs::write(dir.join(format!("ours_{res}.bt")), tree.to_bt_bytes());
+            if ot.is_err() || bt.is_err() {
+                println!("could not write to {}", dir.display());
+            }
+        }
         println!(
             "ours  res {res}: insert {t_ins:.4} s ({:.2} M pts/s), derive tree {t_tree:.4} s, total {:.4} s; \
              {} voxels, tree {} nodes / {} leaves; memory: map {:.1} MB, tree {:.1} MB",

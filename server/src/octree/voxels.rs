@@ -22,7 +22,7 @@ const BRICK_SHIFT: u32 = 2;
 /// Most window slots (u32 each) used per scan for the dense brick lookup; beyond it, a hash map.
 const WINDOW_MAX_CELLS: usize = 1 << 21;
 const _: () = assert!(
-    BIAS % 4 == 0,
+    BIAS.is_multiple_of(4),
     "brick bits of packed keys must not depend on the bias"
 );
 
