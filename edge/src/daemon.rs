@@ -439,7 +439,10 @@ impl ScanHooks {
                         self.started,
                         position,
                         &self.config,
-                        self.turntable.step_angle_deg(),
+                        (
+                            self.turntable.step_angle_deg(),
+                            self.turntable.step_rate_hz(),
+                        ),
                         context.clock.now_ns(),
                     ) {
                         Ok((session, started)) => {

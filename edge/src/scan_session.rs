@@ -16,6 +16,7 @@ use crate::lidar::ArrivedSample;
 use crate::static_scan::{
     ScanEvent, StaticScanConfig, StaticScanController, StaticScanError, StepCommand,
 };
+use crate::timing::TimedSample;
 
 /// What the caller must do for a [`ScanSession`].
 #[derive(Debug, Clone, PartialEq)]
@@ -42,26 +43,108 @@ pub struct ScanPosition {
     pub heading_deg: f64,
 }
 
+/// Measurement times from arrival times, as each sample arrives: within a revolution the
+/// beam turns at a steady rate, so arrival time against unwrapped beam angle is a line plus
+/// the serial latency. The line fitted under the **lower envelope** of the last revolution's
+/// arrivals ([`crate::timing`]'s Moon–Skelly–Towsley fit, here made causal) gives each new
+/// sample's measurement time. Without it, a sample measured while the rotor still moved but
+/// delivered late (a USB latency timer, a busy host) would look as if it were taken after the
+/// step and be tagged with the new yaw.
+#[derive(Debug, Default)]
+struct MeasurementTimes {
+    /// Unwrapped beam angle of the last sample, degrees.
+    unwrapped_deg: Option<f64>,
+    /// (unwrapped angle, arrival ns) over the last revolution.
+    window: std::collections::VecDeque<(f64, f64)>,
+    /// The current line `arrival = a + b·angle` and the angle it was fitted at.
+    fit: Option<(f64, f64, f64)>,
+    /// The last estimate, so estimates never go backwards.
+    last_ns: u64,
+}
+
+impl MeasurementTimes {
+    /// Refit after the beam turned this far.
+    const REFIT_DEG: f64 = 5.0;
+    /// No fit before the window spans this much.
+    const MIN_SPAN_DEG: f64 = 30.0;
+
+    /// The measurement time of a sample at device angle `angle_deg` that arrived at
+    /// `arrival_ns` (never later than its arrival, never before the previous estimate).
+    fn estimate(&mut self, angle_deg: f64, arrival_ns: u64) -> u64 {
+        let unwrapped = match self.unwrapped_deg {
+            None => angle_deg,
+            Some(previous) => {
+                let delta = (angle_deg - previous.rem_euclid(360.0)).rem_euclid(360.0);
+                previous + if delta > 180.0 { delta - 360.0 } else { delta }
+            }
+        };
+        self.unwrapped_deg = Some(unwrapped);
+        self.window.push_back((unwrapped, arrival_ns as f64));
+        while self
+            .window
+            .front()
+            .is_some_and(|&(u, _)| unwrapped - u > 360.0)
+        {
+            self.window.pop_front();
+        }
+        let span = self.window.front().map_or(0.0, |&(u, _)| unwrapped - u);
+        let stale = self
+            .fit
+            .is_none_or(|(_, _, at)| (unwrapped - at).abs() >= Self::REFIT_DEG);
+        if span >= Self::MIN_SPAN_DEG && stale {
+            let (x, y): (Vec<f64>, Vec<f64>) = self.window.iter().copied().unzip();
+            let (a, b) = crate::timing::lower_envelope_fit(&x, &y);
+            self.fit = Some((a, b, unwrapped));
+        }
+        let estimate = match self.fit {
+            Some((a, b, _)) if span >= Self::MIN_SPAN_DEG => {
+                (a + b * unwrapped).clamp(0.0, arrival_ns as f64) as u64
+            }
+            _ => arrival_ns,
+        };
+        self.last_ns = self.last_ns.max(estimate);
+        self.last_ns
+    }
+}
+
 /// A running static scan.
 #[derive(Debug)]
 pub struct ScanSession {
     scan_id: u32,
     controller: StaticScanController,
+    times: MeasurementTimes,
     batch: Option<StaticScanSamples>,
     ended: bool,
 }
 
 impl ScanSession {
-    /// Starts scan number `scan_id` at `position`; `step_angle_deg` is the stepper's output
-    /// angle per step. Returns the session and the `Started` message to send.
+    /// Starts scan number `scan_id` at `position`. `step_angle_deg` is the stepper's output
+    /// angle per step and `step_rate_hz` the rate it steps at: above the motor's limit
+    /// ([`StaticScanConfig::max_step_rate_hz`]) steps would be lost, so the scan is refused;
+    /// below it, the controller budgets moves at the real rate. Returns the session and the
+    /// `Started` message to send.
     pub fn start(
         scan_id: u32,
         position: ScanPosition,
         config: &StaticScanConfig,
-        step_angle_deg: f64,
+        stepper: (f64, f64),
         now_ns: u64,
     ) -> Result<(Self, ScanAction), StaticScanError> {
-        let controller = StaticScanController::new(config.clone(), step_angle_deg)?;
+        let (step_angle_deg, step_rate_hz) = stepper;
+        if !(step_rate_hz.is_finite() && step_rate_hz > 0.0) {
+            return Err(StaticScanError::NotPositive("step rate"));
+        }
+        if step_rate_hz > config.max_step_rate_hz * (1.0 + 1e-9) {
+            return Err(StaticScanError::Overspeed {
+                commanded_hz: step_rate_hz,
+                max_hz: config.max_step_rate_hz,
+            });
+        }
+        let budgeted = StaticScanConfig {
+            max_step_rate_hz: step_rate_hz,
+            ..config.clone()
+        };
+        let controller = StaticScanController::new(budgeted, step_angle_deg)?;
         let started = StaticScanStart {
             scan_id,
             t_ns: now_ns,
@@ -81,6 +164,7 @@ impl ScanSession {
         let session = Self {
             scan_id,
             controller,
+            times: MeasurementTimes::default(),
             batch: None,
             ended: false,
         };
@@ -105,12 +189,21 @@ impl ScanSession {
         &self.controller
     }
 
-    /// Feeds one Sweep sample as it arrived.
+    /// Feeds one Sweep sample as it arrived; its measurement time is estimated from the
+    /// arrival times (see `MeasurementTimes`) before the controller decides its yaw.
     pub fn on_sample(&mut self, sample: &ArrivedSample, out: &mut Vec<ScanAction>) {
         if self.ended {
             return;
         }
-        self.controller.on_arrived(sample);
+        let t_ns = self
+            .times
+            .estimate(f64::from(sample.sample.angle_deg), sample.arrival_ns);
+        self.controller.on_sample(&TimedSample {
+            angle_deg: sample.sample.angle_deg,
+            range_m: sample.sample.range_m,
+            quality: sample.sample.quality,
+            t_ns,
+        });
         self.drain(out);
     }
 
@@ -324,7 +417,8 @@ mod tests {
 
     /// Runs a whole scan with a stepper that finishes each move `step_ms` after the command.
     fn run(config: &StaticScanConfig, step_ms: f64) -> Vec<ScanAction> {
-        let (mut session, started) = ScanSession::start(3, position(), config, 1.8, 0).unwrap();
+        let (mut session, started) =
+            ScanSession::start(3, position(), config, (1.8, 100.0), 0).unwrap();
         let mut all = vec![started];
         let mut out = Vec::new();
         let per_rev = 360;
@@ -440,9 +534,48 @@ mod tests {
     }
 
     #[test]
+    fn a_stepper_faster_than_the_motor_is_refused_and_a_slow_one_predicted_late() {
+        let config = StaticScanConfig::default(); // the motor follows 100 steps/s
+        let err = ScanSession::start(0, position(), &config, (1.8, 400.0), 0).unwrap_err();
+        assert!(matches!(
+            err,
+            StaticScanError::Overspeed { commanded_hz, max_hz } if commanded_hz == 400.0 && max_hz == 100.0
+        ));
+        // 5 steps/s: a 200 ms move cannot fit in the 167 ms sector at 1 Hz.
+        let (mut session, _) = ScanSession::start(0, position(), &config, (1.8, 5.0), 0).unwrap();
+        let mut out = Vec::new();
+        for i in 0..800 {
+            session.on_sample(&sample(i, 360, 1.0), &mut out);
+        }
+        assert!(out.iter().any(|a| matches!(
+            a,
+            ScanAction::Send(Body::StaticScan(StaticScan::Warning(w)))
+                if w.problem == StaticScanProblem::PredictedLate
+        )));
+    }
+
+    #[test]
+    fn measurement_times_take_the_least_delayed_phase() {
+        let mut times = MeasurementTimes::default();
+        // 1 Hz, a sample every degree measured at i ms·(1000/360); arrivals late by 1 ms plus
+        // a burst of 40 ms every 50 samples.
+        let mut worst: u64 = 0;
+        for i in 0..1080u64 {
+            let measured = i * 1_000_000_000 / 360;
+            let late = if i % 50 < 5 { 40_000_000 } else { 1_000_000 };
+            let estimate = times.estimate((i % 360) as f64, measured + late);
+            if i > 400 {
+                worst = worst.max(estimate.abs_diff(measured + 1_000_000));
+            }
+        }
+        // After a revolution, every estimate is within rounding of the 1 ms floor.
+        assert!(worst < 10_000, "worst error {worst} ns");
+    }
+
+    #[test]
     fn stop_flushes_and_goes_home() {
         let config = StaticScanConfig::default();
-        let (mut session, _) = ScanSession::start(0, position(), &config, 1.8, 0).unwrap();
+        let (mut session, _) = ScanSession::start(0, position(), &config, (1.8, 100.0), 0).unwrap();
         let mut out = Vec::new();
         for i in 0..500 {
             session.on_sample(&sample(i, 360, 1.0), &mut out);

@@ -199,6 +199,18 @@ pub enum StaticScanError {
     /// A step outcome was reported while no step was in flight.
     #[error("a step outcome was reported but no step is in flight")]
     NoStepInFlight,
+    /// The stepper is set to step faster than the motor can follow: steps would be lost and
+    /// every later yaw would be wrong, so no scan starts.
+    #[error(
+        "the stepper steps at {commanded_hz:.0} steps/s but the motor follows at most \
+         {max_hz:.0} (static_scan.max_step_rate_hz): steps would be lost"
+    )]
+    Overspeed {
+        /// The stepper's configured rate, steps per second.
+        commanded_hz: f64,
+        /// The motor's limit.
+        max_hz: f64,
+    },
     /// A failed step reported more steps done than commanded.
     #[error("{done} steps reported done of a move of {commanded}")]
     StepsDone {

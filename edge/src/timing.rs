@@ -199,7 +199,7 @@ fn signed_step(from: f32, to: f32) -> f64 {
 /// optimum is the edge of the points' lower convex hull that spans the mean of `x`. Late
 /// arrivals only ever lie above the line, so they cannot pull it; only the least-delayed
 /// samples define it. A negative slope (time running backwards) is clamped to zero.
-fn lower_envelope_fit(x: &[f64], y: &[f64]) -> (f64, f64) {
+pub(crate) fn lower_envelope_fit(x: &[f64], y: &[f64]) -> (f64, f64) {
     let mut points: Vec<(f64, f64)> = x.iter().copied().zip(y.iter().copied()).collect();
     points.sort_by(|p, q| p.0.total_cmp(&q.0).then(p.1.total_cmp(&q.1)));
     // Andrew's monotone chain, lower hull only; for equal x keep the lowest y.

@@ -52,6 +52,7 @@ pub struct Turntable {
     jobs: Sender<TurntableJob>,
     reports: Receiver<TurntableReport>,
     step_angle_deg: f64,
+    step_rate_hz: f64,
     thread: Option<JoinHandle<()>>,
 }
 
@@ -74,6 +75,7 @@ impl Turntable {
         hat.init(&mut delay)
             .map_err(|e| anyhow::anyhow!("stepper HAT: {e}"))?;
         let step_angle_deg = stepper.step_angle_deg();
+        let step_rate_hz = 1e9 / f64::from(stepper.step_period_ns().max(1));
         let (jobs, job_rx) = mpsc::channel::<TurntableJob>();
         let (report_tx, reports) = mpsc::channel();
         let thread = std::thread::Builder::new()
@@ -122,6 +124,7 @@ impl Turntable {
             jobs,
             reports,
             step_angle_deg,
+            step_rate_hz,
             thread: Some(thread),
         })
     }
@@ -129,6 +132,11 @@ impl Turntable {
     /// Output-shaft degrees per step.
     pub fn step_angle_deg(&self) -> f64 {
         self.step_angle_deg
+    }
+
+    /// Steps per second of a paced move (the stepper's configured speed).
+    pub fn step_rate_hz(&self) -> f64 {
+        self.step_rate_hz
     }
 
     /// Queues a job; `false` if the thread is gone.
