@@ -28,6 +28,7 @@ use scan3d_server::ingest::timesync::Estimate;
 use scan3d_server::cloud::OriginScan;
 use scan3d_server::cloud::io;
 
+use crate::noise::RangeNoise;
 use crate::maps::{MapPlan, MapResult, MapSetup, paper_maps, scan_map};
 use crate::rig::{self, Delivery, EdgeThread, LidarOptions, ServerThread, SimLidars};
 use crate::truth::{GroundTruth, write_world_description};
@@ -162,6 +163,7 @@ pub fn run_demo(args: &DemoArgs) -> anyhow::Result<DemoReport> {
             clouds_dir: &args.out.join("clouds"),
             time_scale: args.time_scale,
             seed: args.seed,
+            noise: RangeNoise::SWEEP,
         };
         for plan in &plans {
             println!(

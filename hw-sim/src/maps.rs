@@ -26,6 +26,7 @@ use scan3d_server::ingest::recorder::session_dir;
 use scan3d_server::ingest::server::IngestEvent;
 
 use crate::rig::{self, EDGE_NAME, EdgeThread, ServerThread};
+use crate::noise::RangeNoise;
 use crate::static_rig::{ScanRig, ScanRigOptions};
 use crate::truth::{Accuracy, GroundTruth};
 use crate::world::World;
@@ -105,6 +106,8 @@ pub struct MapResult {
     pub warnings: usize,
     /// Points cut by the range limit.
     pub cut: usize,
+    /// Steps the emulated rotor lost (driven faster than it follows): must be 0.
+    pub steps_lost: u64,
     /// I2C transactions per simulated second during the map.
     pub i2c_per_s: f64,
     /// The recorded session.
@@ -135,6 +138,8 @@ pub struct MapSetup<'a> {
     pub time_scale: f64,
     /// World noise seed.
     pub seed: u64,
+    /// The Sweep's range noise ([`RangeNoise::SWEEP`] for the paper's device).
+    pub noise: RangeNoise,
 }
 
 /// Runs one map: starts a server, the rig and the edge, scans every position, assembles the
@@ -148,6 +153,7 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
         clouds_dir,
         time_scale,
         seed,
+        noise,
     } = *setup;
     let first = plan
         .positions
@@ -166,6 +172,7 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
             motor_hz: plan.motor_hz,
             seed,
             sweep_settle_ms: 3000,
+            noise,
         },
     )?;
     let clock = ScaledClock::new(time_scale);
@@ -236,6 +243,7 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
         rig.bus_stats().transactions - bus_start.0,
         clock.now_ns() - bus_start.1,
     );
+    let steps_lost = rig.steps_lost();
     edge.stop()?;
     drain(&mut server);
     server.stop();
@@ -277,6 +285,7 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
         scan_seconds,
         warnings,
         cut,
+        steps_lost,
         i2c_per_s: transactions as f64 / (bus_ns.max(1) as f64 / 1e9),
         session_dir: session,
     })

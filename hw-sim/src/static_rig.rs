@@ -30,7 +30,8 @@ use crate::rig::EDGE_NAME;
 use crate::stepper::Pca9685Emulator;
 use crate::sweep::{SweepEmulator, SweepEmulatorConfig};
 use crate::turntable::TurntableMount;
-use crate::world::{PoseSource, World};
+use crate::noise::RangeNoise;
+use crate::world::{PoseSource, Scanner, World};
 
 /// How the Sweep sits on the demo turntable: 5 cm beside the axis, optical centre 1 m up.
 pub const DEMO_MOUNT: MountGeometry = MountGeometry {
@@ -50,6 +51,8 @@ pub struct ScanRigOptions {
     pub seed: u64,
     /// The Sweep's motor settle time, simulated ms.
     pub sweep_settle_ms: u64,
+    /// The Sweep's range noise.
+    pub noise: RangeNoise,
 }
 
 /// A movable [`TurntableMount`]: the operator may carry the rig between scans.
@@ -106,7 +109,10 @@ impl ScanRig {
                 settle_ms: options.sweep_settle_ms,
                 ..Default::default()
             },
-            SweepEmulator::default_scanner(world, crate::mounts::sweep()),
+            Scanner {
+                noise: options.noise,
+                ..SweepEmulator::default_scanner(world, crate::mounts::sweep())
+            },
             options.seed,
         )
         .with_pose_source(mount.clone());
