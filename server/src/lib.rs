@@ -4,6 +4,7 @@
 //! - [`ingest`]: QUIC server with mutual TLS, durable MCAP session recordings, time sync.
 //! - [`cloud`]: 3D assembly, point-cloud filters and PLY / PCD / `.scans` I/O.
 //! - [`octree`]: the OctoMap-compatible occupancy octree.
+//! - [`eval`]: the paper's map metrics (IoU, log-odds error, correlation) and truth scores.
 //! - [`config`]: the daemon's `server.toml`.
 //! - [`cli`]: the `scan3d` subcommands.
 #![warn(missing_docs)]
@@ -11,5 +12,6 @@
 pub mod cli;
 pub mod cloud;
 pub mod config;
+pub mod eval;
 pub mod ingest;
 pub mod octree;

@@ -6,6 +6,7 @@ use std::path::PathBuf;
 use clap::{Parser, Subcommand};
 
 pub mod assemble;
+pub mod eval;
 pub mod pair;
 pub mod replay;
 pub mod scan;
@@ -36,6 +37,8 @@ pub enum Command {
     Scan(scan::ScanArgs),
     /// Turn a session's static scans into one world-frame cloud (eq. 1): PLY, PCD or .scans.
     Assemble(assemble::AssembleArgs),
+    /// Score a map against a reference with the paper's metrics (IoU, log-odds, correlation).
+    Eval(eval::EvalArgs),
 }
 
 /// Where a server keeps its recordings: `--data-dir`, or the `data_dir` of `--config`.
@@ -69,5 +72,6 @@ pub fn execute(cli: Cli, out: &mut dyn Write) -> anyhow::Result<()> {
         Command::Replay(args) => replay::run(&args, out),
         Command::Scan(args) => scan::run(&args, out),
         Command::Assemble(args) => assemble::run(&args, out),
+        Command::Eval(args) => eval::run(&args, out),
     }
 }

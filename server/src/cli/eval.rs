@@ -1,0 +1,211 @@
+//! `scan3d eval REF TARGET [--bbox x0,y0,z0,x1,y1,z1] [--truth TRUTH] [--json]`: the paper's
+//! map metrics (`crate::eval`) of one map against a reference, as a table or one JSON object.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+
+use crate::eval::{self, LeafMap, Metrics, Role, VoxelBox};
+use crate::octree::SensorModel;
+
+/// Options of `scan3d eval`.
+#[derive(Debug, clap::Args)]
+pub struct EvalArgs {
+    /// The reference map (`.bt` or `.ot`).
+    pub reference: PathBuf,
+    /// The map to score against it (`.bt` or `.ot`, same resolution).
+    pub target: PathBuf,
+    /// The universe box in metres, `x0,y0,z0,x1,y1,z1`: the voxels whose centre is inside.
+    /// Default: the smallest key box holding every known voxel of either map.
+    #[arg(long, value_parser = parse_bbox, allow_hyphen_values = true)]
+    pub bbox: Option<MetricBox>,
+    /// A ground-truth map (same resolution): adds precision / recall / F1 / Chamfer.
+    #[arg(long)]
+    pub truth: Option<PathBuf>,
+    /// Print one JSON object instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// A box in metres, `(min corner, max corner)`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MetricBox {
+    /// `x0, y0, z0`.
+    pub min: [f64; 3],
+    /// `x1, y1, z1`.
+    pub max: [f64; 3],
+}
+
+/// Parses `x0,y0,z0,x1,y1,z1`.
+pub fn parse_bbox(s: &str) -> Result<MetricBox, String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|t| t.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("bbox: {e} (want x0,y0,z0,x1,y1,z1 in metres)"))?;
+    match v.as_slice() {
+        &[x0, y0, z0, x1, y1, z1] => Ok(MetricBox {
+            min: [x0, y0, z0],
+            max: [x1, y1, z1],
+        }),
+        _ => Err(format!(
+            "bbox: {} numbers given, want 6: x0,y0,z0,x1,y1,z1",
+            v.len()
+        )),
+    }
+}
+
+/// Reads a `.bt` / `.ot` map for evaluation (OctoMap's default sensor model).
+pub fn load_map(path: &Path) -> anyhow::Result<LeafMap> {
+    let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+    LeafMap::read(&bytes, SensorModel::default())
+        .with_context(|| format!("{}: not a readable OctoMap .bt/.ot file", path.display()))
+}
+
+/// The key box of a metric box at the reference's resolution.
+pub fn key_box(reference: &LeafMap, bbox: Option<MetricBox>) -> anyhow::Result<Option<VoxelBox>> {
+    bbox.map(|b| VoxelBox::from_metric(reference.resolution(), b.min, b.max))
+        .transpose()
+        .context("--bbox")
+}
+
+/// All metrics of `target` against `reference`, with the truth scores if `truth` is given.
+pub fn evaluate_maps(
+    reference: &LeafMap,
+    target: &LeafMap,
+    bbox: Option<VoxelBox>,
+    truth: Option<&LeafMap>,
+) -> anyhow::Result<Metrics> {
+    let mut m = eval::evaluate(reference, target, bbox)?;
+    if let Some(t) = truth {
+        eval::check_resolution(reference, t, Role::Truth)?;
+        m.truth = Some(eval::evaluate_truth(target, t, m.bbox)?);
+    }
+    Ok(m)
+}
+
+/// Runs `scan3d eval`.
+pub fn run(args: &EvalArgs, out: &mut dyn Write) -> anyhow::Result<()> {
+    let reference = load_map(&args.reference)?;
+    let target = load_map(&args.target)?;
+    let truth = args.truth.as_deref().map(load_map).transpose()?;
+    let bbox = key_box(&reference, args.bbox)?;
+    let m = evaluate_maps(&reference, &target, bbox, truth.as_ref())?;
+    if args.json {
+        serde_json::to_writer_pretty(&mut *out, &m)?;
+        writeln!(out)?;
+    } else {
+        write_table(&m, &args.reference, &args.target, out)?;
+    }
+    Ok(())
+}
+
+/// A number, or `-` for an undefined one.
+pub fn opt(v: Option<f64>, digits: usize) -> String {
+    v.map_or_else(|| "-".to_string(), |x| format!("{x:.digits$}"))
+}
+
+/// Writes the metrics as a readable text table.
+pub fn write_table(
+    m: &Metrics,
+    reference: &Path,
+    target: &Path,
+    out: &mut dyn Write,
+) -> anyhow::Result<()> {
+    let (lo, hi) = (m.bbox.min, m.bbox.max);
+    writeln!(out, "reference {}", reference.display())?;
+    writeln!(out, "target    {}", target.display())?;
+    writeln!(
+        out,
+        "resolution {} m; U = keys {lo:?}..={hi:?}: {} voxels",
+        m.resolution, m.voxels
+    )?;
+    writeln!(out)?;
+    writeln!(
+        out,
+        "{:<10} {:>14} {:>14} {:>14} {:>8} {:>8} {:>8} {:>10}",
+        "map", "occupied", "free", "unknown", "R_occ", "R_free", "R_no", "leaves"
+    )?;
+    for (name, c) in [("reference", &m.reference), ("target", &m.target)] {
+        writeln!(
+            out,
+            "{:<10} {:>14} {:>14} {:>14} {:>8.4} {:>8.4} {:>8.4} {:>10}",
+            name,
+            c.occupied,
+            c.free,
+            c.unknown,
+            c.ratio_occupied,
+            c.ratio_free,
+            c.ratio_unknown,
+            c.leaves
+        )?;
+    }
+    writeln!(out)?;
+    writeln!(
+        out,
+        "confusion (voxels; rows reference, columns target)  {:>14} {:>14} {:>14}",
+        "occupied", "free", "unknown"
+    )?;
+    for (name, row) in ["occupied", "free", "unknown"].iter().zip(&m.confusion) {
+        writeln!(
+            out,
+            "{:>50}  {:>14} {:>14} {:>14}",
+            name, row[0], row[1], row[2]
+        )?;
+    }
+    writeln!(out)?;
+    let i = &m.iou;
+    writeln!(
+        out,
+        "IoU (eq. M4-M7): occupied {}  free {}  unknown {}  weighted {:.6}",
+        opt(i.occupied, 6),
+        opt(i.free, 6),
+        opt(i.unknown, 6),
+        i.weighted
+    )?;
+    writeln!(
+        out,
+        "log-odds error (eq. M8, KLD ref||target): sum {:.6}  mean {}  over {} common voxels",
+        m.log_odds.sum,
+        opt(m.log_odds.mean, 6),
+        m.log_odds.common_voxels
+    )?;
+    writeln!(
+        out,
+        "correlation (eq. M9): paper {}  signed {}  (p_bar {})",
+        opt(m.correlation.paper, 6),
+        opt(m.correlation.signed, 6),
+        opt(m.correlation.p_bar, 6)
+    )?;
+    writeln!(
+        out,
+        "mean probability {}  mean |p_ref - p_target| {}",
+        opt(m.mean_probability, 6),
+        opt(m.probability_deviation, 6)
+    )?;
+    if let Some(t) = &m.truth {
+        writeln!(out)?;
+        writeln!(
+            out,
+            "against truth: {} target / {} truth occupied voxels in U",
+            t.target_occupied, t.truth_occupied
+        )?;
+        writeln!(
+            out,
+            "  exact:          precision {}  recall {}  F1 {}",
+            opt(t.precision, 4),
+            opt(t.recall, 4),
+            opt(t.f1, 4)
+        )?;
+        writeln!(
+            out,
+            "  1-voxel (26-n): precision {}  recall {}  F1 {}",
+            opt(t.precision_tolerant, 4),
+            opt(t.recall_tolerant, 4),
+            opt(t.f1_tolerant, 4)
+        )?;
+        writeln!(out, "  Chamfer distance {} m", opt(t.chamfer, 4))?;
+    }
+    Ok(())
+}
