@@ -9,9 +9,11 @@ pub mod assemble;
 pub mod eval;
 pub mod pair;
 pub mod replay;
+pub mod report;
 pub mod scan;
 pub mod serve;
 pub mod sessions;
+pub mod sweep;
 
 /// scan3d server and offline tools (laptop side).
 #[derive(Debug, Parser)]
@@ -39,6 +41,10 @@ pub enum Command {
     Assemble(assemble::AssembleArgs),
     /// Score a map against a reference with the paper's metrics (IoU, log-odds, correlation).
     Eval(eval::EvalArgs),
+    /// Table III, the metric table, metrics.json and Fig. 11 for several maps against a reference.
+    Report(report::ReportArgs),
+    /// Fig. 12: build time, nodes, occupied volume and evaluation time against resolution.
+    Sweep(sweep::SweepArgs),
 }
 
 /// Where a server keeps its recordings: `--data-dir`, or the `data_dir` of `--config`.
@@ -73,5 +79,7 @@ pub fn execute(cli: Cli, out: &mut dyn Write) -> anyhow::Result<()> {
         Command::Scan(args) => scan::run(&args, out),
         Command::Assemble(args) => assemble::run(&args, out),
         Command::Eval(args) => eval::run(&args, out),
+        Command::Report(args) => report::run(&args, out),
+        Command::Sweep(args) => sweep::run(&args, out),
     }
 }

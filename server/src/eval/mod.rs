@@ -56,6 +56,7 @@
 
 mod leafmap;
 mod merge;
+pub mod plot;
 mod truth;
 
 use serde::Serialize;
