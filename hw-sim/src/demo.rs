@@ -9,6 +9,9 @@
 //!    which steps the emulated turntable (PCA9685 on the emulated I2C bus) during the Sweep's
 //!    blind sector. Clouds assembled from the recordings go to `DIR/clouds/*.ply|.scans`, with
 //!    their accuracy against the true surface; the truth itself goes to `DIR/truth/`.
+//! 3. **Maps.** Each cloud, filtered as in the paper's Table II, is inserted into the
+//!    OctoMap-identical octree at `--resolution` (0.05 m): `DIR/maps/{map2,map3,ref}.bt`, with
+//!    the ground-truth map `DIR/maps/truth.bt` beside them.
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -28,10 +31,10 @@ use scan3d_server::ingest::timesync::Estimate;
 use scan3d_server::cloud::OriginScan;
 use scan3d_server::cloud::io;
 
+use crate::maps::{MapPlan, MapResult, MapSetup, build_map, paper_maps, scan_map};
 use crate::noise::RangeNoise;
-use crate::maps::{MapPlan, MapResult, MapSetup, paper_maps, scan_map};
 use crate::rig::{self, Delivery, EdgeThread, LidarOptions, ServerThread, SimLidars};
-use crate::truth::{GroundTruth, write_world_description};
+use crate::truth::{GroundTruth, truth_map, write_world_description};
 use crate::world::World;
 
 /// Options of `scan3d-sim demo`.
@@ -53,6 +56,9 @@ pub struct DemoArgs {
     /// Seed for the world's noise and the fault injection.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Octree resolution of the maps, metres.
+    #[arg(long, default_value_t = 0.05)]
+    pub resolution: f64,
     /// Which static maps to make (comma-separated among map2, map3, ref; empty = none).
     #[arg(long, value_delimiter = ',', default_value = "map2,map3,ref")]
     pub maps: Vec<String>,
@@ -81,6 +87,8 @@ pub struct DemoReport {
     pub maps: Vec<MapResult>,
     /// Ground-truth files written.
     pub truth_files: Vec<PathBuf>,
+    /// Occupancy maps written (`DIR/maps/*.bt`) with their leaf counts.
+    pub octrees: Vec<(PathBuf, u64)>,
     /// Wall time of the run.
     pub wall: Duration,
 }
@@ -142,6 +150,8 @@ pub fn run_demo(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         &scans_dir,
         &args.out.join("clouds"),
         &args.out.join("truth"),
+        &args.out.join("maps"),
+        &args.out.join("static-sessions"),
     ] {
         // Each run starts afresh: an old recording would mix two runs' sessions.
         if dir.exists() {
@@ -173,6 +183,21 @@ pub fn run_demo(args: &DemoArgs) -> anyhow::Result<DemoReport> {
                 plan.motor_hz
             );
             report.maps.push(scan_map(plan, &setup)?);
+        }
+        let maps_dir = args.out.join("maps");
+        for result in &report.maps {
+            let (_, tree) = build_map(result.plan.name, &result.cloud, args.resolution)?;
+            let path = maps_dir.join(format!("{}.bt", result.plan.name));
+            std::fs::write(&path, tree.to_bt_bytes())
+                .with_context(|| format!("cannot write {}", path.display()))?;
+            report.octrees.push((path, tree.num_leaves()));
+        }
+        if !report.maps.is_empty() {
+            let tree = truth_map(&world, &truth, args.resolution)?.to_octree();
+            let path = maps_dir.join("truth.bt");
+            std::fs::write(&path, tree.to_bt_bytes())
+                .with_context(|| format!("cannot write {}", path.display()))?;
+            report.octrees.push((path, tree.num_leaves()));
         }
         report.wall = started.elapsed();
         Ok(report)
@@ -271,6 +296,7 @@ fn run_in(
         scans,
         maps: Vec::new(),
         truth_files: Vec::new(),
+        octrees: Vec::new(),
         wall: started.elapsed(),
     })
 }
@@ -418,6 +444,9 @@ pub fn summary(report: &DemoReport) -> String {
     }
     for file in &report.truth_files {
         let _ = writeln!(s, "wrote {}", file.display());
+    }
+    for (file, leaves) in &report.octrees {
+        let _ = writeln!(s, "wrote {} ({leaves} leaves)", file.display());
     }
     let _ = writeln!(s, "wall time {:.1} s", report.wall.as_secs_f64());
     s

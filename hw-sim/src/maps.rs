@@ -21,12 +21,14 @@ use scan3d_protocol::{Body, Command, StaticScan, StaticScanOutcome};
 use scan3d_server::cli::assemble::assemble_session;
 use scan3d_server::cloud::OriginScan;
 use scan3d_server::cloud::assembly::Position;
+use scan3d_server::cloud::filter::{Filter, apply_all};
 use scan3d_server::cloud::io;
 use scan3d_server::ingest::recorder::session_dir;
 use scan3d_server::ingest::server::IngestEvent;
+use scan3d_server::octree::{Octree, Resolution, SensorModel, VoxelMap};
 
-use crate::rig::{self, EDGE_NAME, EdgeThread, ServerThread};
 use crate::noise::RangeNoise;
+use crate::rig::{self, EDGE_NAME, EdgeThread, ServerThread};
 use crate::static_rig::{ScanRig, ScanRigOptions};
 use crate::truth::{Accuracy, GroundTruth};
 use crate::world::World;
@@ -289,6 +291,41 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
         i2c_per_s: transactions as f64 / (bus_ns.max(1) as f64 / 1e9),
         session_dir: session,
     })
+}
+
+/// The paper's Table II filters for a map of the conference room: down-sampling and a
+/// pass-through box that keeps the room and cuts the glass wall (y ≥ 5.9 m) and what was seen
+/// through it or the doorway away; `ref` is also Gaussian-smoothed.
+pub fn table_ii_filters(name: &str) -> Vec<Filter> {
+    let mut filters = vec![
+        Filter::Voxel { leaf: 0.02 },
+        Filter::Box {
+            min: [-0.2, -0.2, -0.2],
+            max: [8.05, 5.9, 3.2],
+        },
+    ];
+    if name == "ref" {
+        filters.push(Filter::Gauss {
+            sigma: 0.02,
+            radius: 0.05,
+        });
+    }
+    filters
+}
+
+/// Filters a map's cloud (Table II) and inserts it, each half revolution from its own sensor
+/// origin, into an OctoMap-identical occupancy map at `resolution`.
+pub fn build_map(
+    name: &str,
+    cloud: &[OriginScan],
+    resolution: f64,
+) -> anyhow::Result<(Vec<OriginScan>, Octree)> {
+    let filtered = apply_all(&table_ii_filters(name), cloud.to_vec())?;
+    let mut map = VoxelMap::new(Resolution::new(resolution)?, SensorModel::default());
+    for scan in &filtered {
+        map.insert_scan(scan, -1.0);
+    }
+    Ok((filtered, map.to_octree()))
 }
 
 /// Waits until the server records a frame whose body satisfies `done`.

@@ -18,6 +18,8 @@ use std::path::{Path, PathBuf};
 use nalgebra::{Point3, Vector3};
 use serde::Serialize;
 
+use scan3d_server::octree::{Key, OctreeError, Resolution, SensorModel, VoxelMap};
+
 use crate::world::{Aabb, Material, Rect, Shape, World};
 
 /// One rectangle of true surface.
@@ -409,6 +411,61 @@ enum MaterialOut {
     Glass { p_return: f64, p_pass: f64 },
 }
 
+/// The ground-truth occupancy map of `world` at `resolution` metres, in OctoMap's key space:
+///
+/// - **occupied** (clamp max): every voxel a true surface inside the room (its boundary
+///   included: the walls' inner faces) passes through, found by sampling each surface patch
+///   every `resolution / 4` (so a surface crossing a voxel by less than a quarter voxel at a
+///   corner may be missed) — glass included; surfaces beyond the room (the corridor seen
+///   through the glass, the hall beyond the door) are not part of the map;
+/// - **free** (clamp min): every voxel whose centre is inside the room, not inside a solid box
+///   (furniture, glass) and not occupied;
+/// - **unknown**: everything else (outside the room: beyond walls, the doorway, the hall).
+///
+/// Written with [`scan3d_server::octree::Octree::to_bt_bytes`] it is a `.bt` any OctoMap tool
+/// opens, comparable voxel by voxel with maps of the same resolution.
+pub fn truth_map(
+    world: &World,
+    truth: &GroundTruth,
+    resolution: f64,
+) -> Result<VoxelMap, OctreeError> {
+    let res = Resolution::new(resolution)?;
+    let model = SensorModel::default();
+    let mut map = VoxelMap::new(res, model);
+    let room = world.room();
+    let key_range = |lo: f64, hi: f64| -> Option<(u16, u16)> {
+        Some((res.coord_to_key_axis(lo)?, res.coord_to_key_axis(hi)?))
+    };
+    let (Some((x0, x1)), Some((y0, y1)), Some((z0, z1))) = (
+        key_range(room.min.x, room.max.x),
+        key_range(room.min.y, room.max.y),
+        key_range(room.min.z, room.max.z),
+    ) else {
+        return Ok(map);
+    };
+    for kx in x0..=x1 {
+        for ky in y0..=y1 {
+            for kz in z0..=z1 {
+                let key = Key([kx, ky, kz]);
+                let [x, y, z] = res.key_to_coord(key);
+                if !world.is_inside_solid(&Point3::new(x, y, z)) {
+                    map.set_log_odds(key, model.clamp_min);
+                }
+            }
+        }
+    }
+    for sample in truth.sample(resolution / 4.0) {
+        if !room.contains(&Point3::from(sample.point)) {
+            continue;
+        }
+        let p = sample.point.map(|c| c as f32);
+        if let Some(key) = res.coord_to_key(p) {
+            map.set_log_odds(key, model.clamp_max);
+        }
+    }
+    Ok(map)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -600,5 +657,46 @@ mod tests {
             matches!(&bad, Err(m) if m.starts_with("cannot write /nonexistent/dir/world.toml")),
             "{bad:?}"
         );
+    }
+
+    #[test]
+    fn truth_map_of_a_box_room_by_hand() {
+        // A 4 × 3 × 2.5 m room of six 0.1 m slabs, at 0.5 m: 8 × 6 × 5 voxel centres inside.
+        let slab = |name: &str, min: [f64; 3], max: [f64; 3]| solid(name, min, max);
+        let world = World::new(
+            Aabb::new([0.0, 0.0, 0.0], [4.0, 3.0, 2.5]),
+            vec![
+                slab("floor", [-0.1, -0.1, -0.1], [4.1, 3.1, 0.0]),
+                slab("ceiling", [-0.1, -0.1, 2.5], [4.1, 3.1, 2.6]),
+                slab("west", [-0.1, -0.1, 0.0], [0.0, 3.1, 2.5]),
+                slab("east", [4.0, -0.1, 0.0], [4.1, 3.1, 2.5]),
+                slab("south", [-0.1, -0.1, 0.0], [4.1, 0.0, 2.5]),
+                slab("north", [-0.1, 3.0, 0.0], [4.1, 3.1, 2.5]),
+            ],
+        )
+        .expect("a valid world");
+        let truth = GroundTruth::new(&world);
+        let map = truth_map(&world, &truth, 0.5).expect("truth map");
+        let res = Resolution::new(0.5).expect("resolution");
+        let model = SensorModel::default();
+        let (mut occupied, mut free) = (0, 0);
+        let k = |c: f64| res.coord_to_key_axis(c).expect("in range");
+        for x in k(-1.0)..=k(5.0) {
+            for y in k(-1.0)..=k(4.0) {
+                for z in k(-1.0)..=k(3.5) {
+                    match map.log_odds(Key([x, y, z])) {
+                        Some(v) if v == model.clamp_max => occupied += 1,
+                        Some(v) if v == model.clamp_min => free += 1,
+                        Some(v) => panic!("unexpected value {v}"),
+                        None => {}
+                    }
+                }
+            }
+        }
+        // Faces at x = 0, y = 0, z = 0 fall in the first inner layer (a point on a voxel
+        // boundary belongs to the upper voxel, as in OctoMap): 30 + 40 + 48 − 5 − 6 − 8 + 1 =
+        // 100 inner voxels. The faces at x = 4, y = 3, z = 2.5 fall just outside: 30 + 40 + 48.
+        assert_eq!(occupied, 100 + 118);
+        assert_eq!(free, 8 * 6 * 5 - 100);
     }
 }

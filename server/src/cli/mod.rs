@@ -6,7 +6,10 @@ use std::path::PathBuf;
 use clap::{Parser, Subcommand};
 
 pub mod assemble;
+pub mod convert;
 pub mod eval;
+pub mod info;
+pub mod map;
 pub mod pair;
 pub mod replay;
 pub mod report;
@@ -39,6 +42,12 @@ pub enum Command {
     Scan(scan::ScanArgs),
     /// Turn a session's static scans into one world-frame cloud (eq. 1): PLY, PCD or .scans.
     Assemble(assemble::AssembleArgs),
+    /// Build an OctoMap-identical occupancy map (.bt/.ot) from a cloud, with filters.
+    Map(map::MapArgs),
+    /// Convert maps (.bt <-> .ot) or clouds (.graph/.scans/.ply/.pcd -> .scans/.ply/.pcd).
+    Convert(convert::ConvertArgs),
+    /// Describe a map: resolution, nodes, leaves, occupied/free, bounding box.
+    Info(info::InfoArgs),
     /// Score a map against a reference with the paper's metrics (IoU, log-odds, correlation).
     Eval(eval::EvalArgs),
     /// Table III, the metric table, metrics.json and Fig. 11 for several maps against a reference.
@@ -78,6 +87,9 @@ pub fn execute(cli: Cli, out: &mut dyn Write) -> anyhow::Result<()> {
         Command::Replay(args) => replay::run(&args, out),
         Command::Scan(args) => scan::run(&args, out),
         Command::Assemble(args) => assemble::run(&args, out),
+        Command::Map(args) => map::run(&args, out),
+        Command::Convert(args) => convert::run(&args, out),
+        Command::Info(args) => info::run(&args, out),
         Command::Eval(args) => eval::run(&args, out),
         Command::Report(args) => report::run(&args, out),
         Command::Sweep(args) => sweep::run(&args, out),

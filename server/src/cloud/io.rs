@@ -151,44 +151,44 @@ pub enum CloudIoError {
         path: PathBuf,
     },
     /// Reading or writing the file failed.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {reason}", path.display())]
     Io {
         /// The file.
         path: PathBuf,
         /// The OS error.
-        source: std::io::Error,
+        reason: std::io::Error,
     },
     /// A malformed `.scans` file.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {reason}", path.display())]
     Scans {
         /// The file.
         path: PathBuf,
         /// What was wrong.
-        source: ScansError,
+        reason: ScansError,
     },
     /// A malformed PLY file.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {reason}", path.display())]
     Ply {
         /// The file.
         path: PathBuf,
         /// What was wrong.
-        source: PlyError,
+        reason: PlyError,
     },
     /// A malformed PCD file.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {reason}", path.display())]
     Pcd {
         /// The file.
         path: PathBuf,
         /// What was wrong.
-        source: PcdError,
+        reason: PcdError,
     },
     /// The file's points have no sensor origin (or inconsistent ones).
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {reason}", path.display())]
     Origin {
         /// The file.
         path: PathBuf,
         /// What was missing.
-        source: OriginError,
+        reason: OriginError,
     },
 }
 
@@ -230,25 +230,25 @@ pub fn load(
     default_origin: Option<[f64; 3]>,
 ) -> Result<Vec<OriginScan>, CloudIoError> {
     let format = format_of(path)?;
-    let bytes = std::fs::read(path).map_err(|source| CloudIoError::Io {
+    let bytes = std::fs::read(path).map_err(|reason| CloudIoError::Io {
         path: path.to_owned(),
-        source,
+        reason,
     })?;
     let p = || path.to_owned();
     let flat = match format {
         CloudFormat::Scans => {
             return scans_file::parse_scans(&bytes)
-                .map_err(|source| CloudIoError::Scans { path: p(), source });
+                .map_err(|reason| CloudIoError::Scans { path: p(), reason });
         }
         CloudFormat::Ply => {
-            ply::parse_ply(&bytes).map_err(|source| CloudIoError::Ply { path: p(), source })?
+            ply::parse_ply(&bytes).map_err(|reason| CloudIoError::Ply { path: p(), reason })?
         }
         CloudFormat::Pcd => {
-            pcd::parse_pcd(&bytes).map_err(|source| CloudIoError::Pcd { path: p(), source })?
+            pcd::parse_pcd(&bytes).map_err(|reason| CloudIoError::Pcd { path: p(), reason })?
         }
     };
     flat.into_scans(default_origin)
-        .map_err(|source| CloudIoError::Origin { path: p(), source })
+        .map_err(|reason| CloudIoError::Origin { path: p(), reason })
 }
 
 /// Saves `scans` in the format named by the extension, binary where there is a choice.
@@ -264,11 +264,11 @@ pub fn save_with(
 ) -> Result<(), CloudIoError> {
     let format = format_of(path)?;
     let p = || path.to_owned();
-    let io_err = |source| CloudIoError::Io { path: p(), source };
+    let io_err = |reason| CloudIoError::Io { path: p(), reason };
     let mut bytes = Vec::new();
     match format {
         CloudFormat::Scans => scans_file::write_scans(&mut bytes, scans)
-            .map_err(|source| CloudIoError::Scans { path: p(), source })?,
+            .map_err(|reason| CloudIoError::Scans { path: p(), reason })?,
         CloudFormat::Ply => ply::write_ply_scans(&mut bytes, scans, encoding).map_err(io_err)?,
         CloudFormat::Pcd => pcd::write_pcd_scans(&mut bytes, scans, encoding).map_err(io_err)?,
     }

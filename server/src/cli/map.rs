@@ -1,0 +1,245 @@
+//! `scan3d map INPUT --res R … --out OUT.bt|OUT.ot`: a point cloud (OctoMap `.graph`, `.scans`,
+//! PLY or PCD) filtered as asked and inserted into an OctoMap-identical occupancy octree.
+//!
+//! Each scan is inserted from its own sensor origin with OctoMap's `insertPointCloud`
+//! semantics (`--max-range` cuts rays, `--hit/--miss/--clamp` set the sensor model), so the
+//! `.bt`/`.ot` written equal what OctoMap writes for the same input, byte for byte.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::cloud::OriginScan;
+use crate::cloud::filter::{Filter, apply_all};
+use crate::cloud::io;
+use crate::octree::{InsertStats, Octree, Resolution, SensorModel, VoxelMap, read_graph};
+
+/// A point `x,y,z` on the command line (clap value parser).
+pub fn parse_xyz_arg(text: &str) -> Result<[f64; 3], String> {
+    let values: Vec<f64> = text
+        .split(',')
+        .map(|v| {
+            v.trim()
+                .parse::<f64>()
+                .map_err(|_| format!("{v:?} is not a number"))
+        })
+        .collect::<Result<_, _>>()?;
+    match values[..] {
+        [x, y, z] if values.iter().all(|v| v.is_finite()) => Ok([x, y, z]),
+        _ => Err(format!(
+            "expected x,y,z (three finite numbers), got {text:?}"
+        )),
+    }
+}
+
+/// Two probabilities `MIN,MAX` on the command line.
+fn parse_clamp(text: &str) -> Result<(f64, f64), String> {
+    let (lo, hi) = text
+        .split_once(',')
+        .ok_or_else(|| format!("expected MIN,MAX, got {text:?}"))?;
+    let parse = |v: &str| {
+        v.trim()
+            .parse::<f64>()
+            .ok()
+            .filter(|p| *p > 0.0 && *p < 1.0)
+            .ok_or_else(|| format!("{v:?} is not a probability in (0, 1)"))
+    };
+    let (lo, hi) = (parse(lo)?, parse(hi)?);
+    if lo >= hi {
+        return Err(format!("clamp minimum {lo} must be below the maximum {hi}"));
+    }
+    Ok((lo, hi))
+}
+
+/// A probability in (0, 1) on the command line.
+fn parse_probability(text: &str) -> Result<f64, String> {
+    text.trim()
+        .parse::<f64>()
+        .ok()
+        .filter(|p| *p > 0.0 && *p < 1.0)
+        .ok_or_else(|| format!("{text:?} is not a probability in (0, 1)"))
+}
+
+/// Options of `scan3d map`.
+#[derive(Debug, clap::Args)]
+pub struct MapArgs {
+    /// The cloud: `.graph` (OctoMap ScanGraph), `.scans`, `.ply` or `.pcd`.
+    pub input: PathBuf,
+    /// Voxel edge length, metres.
+    #[arg(long)]
+    pub res: f64,
+    /// Rays longer than this are cut (free up to the cut, no hit); negative = no limit.
+    #[arg(long, default_value_t = -1.0, allow_negative_numbers = true)]
+    pub max_range: f64,
+    /// Sensor origin `x,y,z` for a PLY/PCD cloud that carries none.
+    #[arg(long, value_parser = parse_xyz_arg, allow_negative_numbers = true)]
+    pub origin: Option<[f64; 3]>,
+    /// Hit probability (OctoMap default 0.7).
+    #[arg(long, default_value_t = 0.7, value_parser = parse_probability)]
+    pub hit: f64,
+    /// Miss probability (OctoMap default 0.4).
+    #[arg(long, default_value_t = 0.4, value_parser = parse_probability)]
+    pub miss: f64,
+    /// Clamping probabilities `MIN,MAX` (OctoMap default 0.1192,0.971).
+    #[arg(long, value_parser = parse_clamp)]
+    pub clamp: Option<(f64, f64)>,
+    /// Point-cloud filters, applied in the order given: `voxel:LEAF`,
+    /// `box:x0,y0,z0,x1,y1,z1`, `box-out:…`, `sor:K,ALPHA`, `gauss:SIGMA,RADIUS`.
+    #[arg(long = "filter", value_name = "FILTER", allow_hyphen_values = true)]
+    pub filters: Vec<Filter>,
+    /// The map to write: `.bt` (max-likelihood, as OctoMap's writeBinary) or `.ot` (full).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+impl MapArgs {
+    /// The sensor model these options give.
+    pub fn model(&self) -> SensorModel {
+        let (lo, hi) = self.clamp.unwrap_or((0.1192, 0.971));
+        SensorModel::from_probabilities(self.hit, self.miss, lo, hi, 0.5)
+    }
+}
+
+/// Loads any cloud the CLI accepts, with sensor origins: `.graph` through OctoMap's pose
+/// transform, `.scans`/`.ply`/`.pcd` through [`crate::cloud::io`].
+pub fn load_cloud(path: &Path, origin: Option<[f64; 3]>) -> anyhow::Result<Vec<OriginScan>> {
+    let is_graph = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case("graph"));
+    if is_graph {
+        let bytes =
+            std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+        read_graph(&bytes).with_context(|| format!("{}", path.display()))
+    } else {
+        Ok(io::load(path, origin)?)
+    }
+}
+
+/// Which octree format a path names.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TreeFormat {
+    /// `.bt`: OctoMap's binary max-likelihood format.
+    Bt,
+    /// `.ot`: OctoMap's full format with log-odds.
+    Ot,
+}
+
+impl TreeFormat {
+    /// The format named by `path`'s extension.
+    pub fn of(path: &Path) -> Option<Self> {
+        match path.extension()?.to_str()?.to_ascii_lowercase().as_str() {
+            "bt" => Some(Self::Bt),
+            "ot" => Some(Self::Ot),
+            _ => None,
+        }
+    }
+}
+
+/// Reads a `.bt` or `.ot` file with OctoMap's default sensor model.
+pub fn read_tree(path: &Path) -> anyhow::Result<Octree> {
+    if TreeFormat::of(path).is_none() {
+        anyhow::bail!("{}: not a map (expected .bt or .ot)", path.display());
+    }
+    let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+    Octree::read(&bytes, SensorModel::default()).with_context(|| format!("{}", path.display()))
+}
+
+/// Writes `tree` as `.bt` or `.ot`, as the extension says.
+pub fn write_tree(path: &Path, tree: &Octree) -> anyhow::Result<()> {
+    let bytes = match TreeFormat::of(path) {
+        Some(TreeFormat::Bt) => tree.to_bt_bytes(),
+        Some(TreeFormat::Ot) => tree.to_ot_bytes(),
+        None => anyhow::bail!("{}: a map must end in .bt or .ot", path.display()),
+    };
+    std::fs::write(path, bytes).with_context(|| format!("cannot write {}", path.display()))
+}
+
+/// Inserts every scan, with a progress bar over points when `progress` is set.
+pub fn build_map(
+    scans: &[OriginScan],
+    res: f64,
+    max_range: f64,
+    model: SensorModel,
+    progress: bool,
+) -> anyhow::Result<(VoxelMap, InsertStats)> {
+    let mut map = VoxelMap::new(Resolution::new(res)?, model);
+    let total: u64 = scans.iter().map(|s| s.points.len() as u64).sum();
+    let bar = if progress && total > 1_000_000 {
+        let bar = ProgressBar::new(total);
+        bar.set_style(
+            ProgressStyle::with_template("{msg} [{bar:40}] {human_pos}/{human_len} points {eta}")
+                .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        bar.set_message("inserting");
+        Some(bar)
+    } else {
+        None
+    };
+    for scan in scans {
+        map.insert_scan(scan, max_range);
+        if let Some(bar) = &bar {
+            bar.inc(scan.points.len() as u64);
+        }
+    }
+    if let Some(bar) = bar {
+        bar.finish_and_clear();
+    }
+    let stats = map.totals();
+    Ok((map, stats))
+}
+
+/// Runs `scan3d map`.
+pub fn run(args: &MapArgs, out: &mut dyn Write) -> anyhow::Result<()> {
+    if TreeFormat::of(&args.out).is_none() {
+        anyhow::bail!("{}: a map must end in .bt or .ot", args.out.display());
+    }
+    Resolution::new(args.res)?;
+    let mut scans = load_cloud(&args.input, args.origin)?;
+    let loaded: usize = scans.iter().map(|s| s.points.len()).sum();
+    writeln!(
+        out,
+        "{}: {} scans, {loaded} points",
+        args.input.display(),
+        scans.len()
+    )?;
+    if !args.filters.is_empty() {
+        scans = apply_all(&args.filters, scans)?;
+        let kept: usize = scans.iter().map(|s| s.points.len()).sum();
+        let names: Vec<String> = args.filters.iter().map(ToString::to_string).collect();
+        writeln!(out, "filters {}: {kept} points kept", names.join(" → "))?;
+    }
+    let (map, stats) = build_map(&scans, args.res, args.max_range, args.model(), !args.quiet)?;
+    if stats.skipped_nonfinite > 0 {
+        writeln!(
+            out,
+            "skipped {} points with NaN or infinite coordinates",
+            stats.skipped_nonfinite
+        )?;
+    }
+    if stats.out_of_bounds > 0 {
+        writeln!(
+            out,
+            "dropped {} rays leaving the octree's key range",
+            stats.out_of_bounds
+        )?;
+    }
+    let tree = map.to_octree();
+    write_tree(&args.out, &tree)?;
+    writeln!(
+        out,
+        "wrote {}: resolution {} m, {} nodes, {} leaves ({} occupied, {} free)",
+        args.out.display(),
+        args.res,
+        tree.num_nodes(),
+        tree.num_leaves(),
+        tree.num_occupied(),
+        tree.num_free()
+    )?;
+    Ok(())
+}
