@@ -25,12 +25,12 @@ use scan3d_server::cloud::assembly::{MountGeometry, Position};
 use crate::faults::FaultConfig;
 use crate::i2c::{BusStats, I2cBus};
 use crate::imu::{ImuEmulator, StaticTruth};
+use crate::noise::RangeNoise;
 use crate::pty::{PtyDevice, PtyHandle, PtyOptions};
 use crate::rig::EDGE_NAME;
 use crate::stepper::Pca9685Emulator;
 use crate::sweep::{SweepEmulator, SweepEmulatorConfig};
 use crate::turntable::TurntableMount;
-use crate::noise::RangeNoise;
 use crate::world::{PoseSource, Scanner, World};
 
 /// How the Sweep sits on the demo turntable: 5 cm beside the axis, optical centre 1 m up.
