@@ -4,7 +4,8 @@
 //! OctoMap's side is `shared/tools/octomap_bench.cpp`, compiled here with g++ -O2 -DNDEBUG
 //! against Debian's liboctomap-dev; without g++ or the headers it is skipped with a message.
 //! Times are best of `OCTREE_BENCH_REPS` (default 5) runs, as the machine is shared.
-//! `OCTREE_BENCH_NO_OCTOMAP=1` skips OctoMap; `OCTREE_BENCH_WRITE_DIR=d` writes our trees there.
+//! `OCTREE_BENCH_NO_OCTOMAP=1` skips OctoMap; `OCTREE_BENCH_WRITE_DIR=d` writes our trees there;
+//! `OCTREE_BENCH_RES=0.2,0.1` picks the resolutions (default 0.05,0.1,0.2).
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -17,16 +18,25 @@ fn shared() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared")
 }
 
-fn best<T>(reps: usize, mut f: impl FnMut() -> T) -> (f64, T) {
-    let mut best = f64::MAX;
+/// Process CPU time in seconds (less sensitive than wall time to other processes on the
+/// shared cores; octomap_bench prints the same clock).
+fn cpu_now() -> f64 {
+    nix::time::clock_gettime(nix::time::ClockId::CLOCK_PROCESS_CPUTIME_ID)
+        .map_or(0.0, |t| t.tv_sec() as f64 + t.tv_nsec() as f64 * 1e-9)
+}
+
+/// Best wall and best process-CPU seconds of `reps` runs, and the last result.
+fn best<T>(reps: usize, mut f: impl FnMut() -> T) -> ((f64, f64), T) {
+    let (mut wall, mut cpu) = (f64::MAX, f64::MAX);
     let mut out = None;
     for _ in 0..reps {
-        let t = Instant::now();
+        let (t, c) = (Instant::now(), cpu_now());
         let v = f();
-        best = best.min(t.elapsed().as_secs_f64());
+        cpu = cpu.min(cpu_now() - c);
+        wall = wall.min(t.elapsed().as_secs_f64());
         out = Some(v);
     }
-    (best, out.expect("reps > 0"))
+    ((wall, cpu), out.expect("reps > 0"))
 }
 
 /// Compiles octomap_bench once; `None` (with the reason printed) when OctoMap is unavailable.
@@ -56,20 +66,33 @@ fn octomap_bench() -> Option<PathBuf> {
     Some(exe)
 }
 
-/// Runs octomap_bench `reps` times and returns the best value of `field` (the number before
-/// " s" after `key`) and the last stdout.
-fn run_octomap(exe: &Path, args: &[&str], key: &str, reps: usize) -> Option<(f64, String)> {
-    let mut best = f64::MAX;
+/// Runs octomap_bench `reps` times and returns the best of the first number after `key`
+/// (wall seconds), the best of the number after `cpu_key` on the same line (CPU seconds),
+/// and the last stdout.
+fn run_octomap(
+    exe: &Path,
+    args: &[&str],
+    key: &str,
+    cpu_key: &str,
+    reps: usize,
+) -> Option<((f64, f64), String)> {
+    let (mut wall, mut cpu) = (f64::MAX, f64::MAX);
     let mut last = String::new();
+    let first_number = |s: &str| -> Option<f64> {
+        s.split(|c: char| c.is_whitespace() || c == ',' || c == ')')
+            .find_map(|w| w.parse().ok())
+    };
     for _ in 0..reps {
         let out = Command::new(exe).args(args).output().ok()?;
         last = String::from_utf8_lossy(&out.stdout).into_owned();
         let line = last.lines().find(|l| l.contains(key))?;
         let after = &line[line.find(key)? + key.len()..];
-        let secs: f64 = after.split_whitespace().find_map(|w| w.parse().ok())?;
-        best = best.min(secs);
+        wall = wall.min(first_number(after)?);
+        if let Some(i) = after.find(cpu_key) {
+            cpu = cpu.min(first_number(&after[i + cpu_key.len()..])?);
+        }
     }
-    Some((best, last))
+    Some(((wall, cpu), last))
 }
 
 fn insert_all(scans: &[OriginScan], res: f64) -> VoxelMap {
@@ -105,9 +128,13 @@ fn main() {
     };
     let graph_s = graph.to_string_lossy().into_owned();
 
-    for res in [0.05, 0.1, 0.2] {
+    let resolutions: Vec<f64> = std::env::var("OCTREE_BENCH_RES")
+        .ok()
+        .map(|v| v.split(',').filter_map(|r| r.trim().parse().ok()).collect())
+        .unwrap_or_else(|| vec![0.05, 0.1, 0.2]);
+    for &res in &resolutions {
         let r = Resolution::new(res).expect("valid");
-        let (t_dda, keys) = best(reps, || {
+        let ((t_dda, _), keys) = best(reps, || {
             let mut n = 0u64;
             for s in &scans {
                 let o = s.origin.map(|c| c as f32);
@@ -122,8 +149,8 @@ fn main() {
             keys as f64 / npts as f64,
             t_dda * 1e9 / keys as f64
         );
-        let (t_ins, map) = best(reps, || insert_all(&scans, res));
-        let (t_tree, tree) = best(reps, || map.to_octree());
+        let ((t_ins, c_ins), map) = best(reps, || insert_all(&scans, res));
+        let ((t_tree, _), tree) = best(reps, || map.to_octree());
         if let Some(dir) = std::env::var_os("OCTREE_BENCH_WRITE_DIR") {
             // For checking with OctoMap's own tools (convert_octree, compare_octrees).
             let dir = PathBuf::from(dir);
@@ -134,15 +161,15 @@ fn main() {
             }
         }
         println!(
-            "ours  res {res}: insert {t_ins:.4} s ({:.2} M pts/s), derive tree {t_tree:.4} s, total {:.4} s; \
-             {} voxels, tree {} nodes / {} leaves; memory: map {:.1} MB, tree {:.1} MB",
+            "ours  res {res}: insert {t_ins:.4} s (cpu {c_ins:.4} s, {:.2} M pts/s), derive tree {t_tree:.4} s, total {:.4} s; \
+             {} voxels, tree {} nodes / {} leaves; memory: map {} B, tree {} B",
             npts as f64 / t_ins / 1e6,
             t_ins + t_tree,
             map.num_voxels(),
             tree.num_nodes(),
             tree.num_leaves(),
-            map.memory_bytes() as f64 / 1e6,
-            tree.memory_bytes() as f64 / 1e6,
+            map.memory_bytes(),
+            tree.memory_bytes(),
         );
         if let Some(exe) = &octomap {
             let r = format!("{res}");
@@ -150,18 +177,20 @@ fn main() {
                 exe,
                 &["insert", &graph_s, "-res", &r],
                 "mode insertPointCloud:",
+                "(cpu ",
                 reps,
             ) {
-                Some((t, out)) => {
+                Some(((t, c), out)) => {
                     let mem = out
                         .split("memoryUsage ")
                         .nth(1)
                         .and_then(|s| s.split_whitespace().next())
-                        .and_then(|s| s.parse::<f64>().ok())
-                        .map_or(String::from("?"), |b| format!("{:.1} MB", b / 1e6));
+                        .map_or("?", |s| s.trim_end_matches(|c: char| !c.is_ascii_digit()));
                     println!(
-                        "octomap res {res}: insert {t:.4} s; memoryUsage {mem}; ratio octomap/ours: {:.1}x insert, {:.1}x insert+tree",
+                        "octomap res {res}: insert {t:.4} s (cpu {c:.4} s); memoryUsage {mem} B; \
+                         ratio octomap/ours: {:.1}x insert (cpu {:.1}x), {:.1}x insert+tree",
                         t / t_ins,
+                        c / c_ins,
                         t / (t_ins + t_tree)
                     );
                 }
@@ -175,10 +204,10 @@ fn main() {
         let Ok(file) = std::fs::read(&path) else {
             continue;
         };
-        let (t, tree) = best(reps.max(5), || {
+        let ((t, _), tree) = best(reps.max(5), || {
             Octree::read_bt(&file, SensorModel::default()).expect("reads")
         });
-        let (ti, leaves) = best(reps.max(5), || {
+        let ((ti, _), leaves) = best(reps.max(5), || {
             tree.leaves().filter(|l| l.log_odds >= 0.0).count()
         });
         println!(
@@ -189,7 +218,9 @@ fn main() {
         );
         if let Some(exe) = &octomap {
             let p = path.to_string_lossy().into_owned();
-            if let Some((to, _)) = run_octomap(exe, &["read", &p, "-repeat", "5"], "read min", 1) {
+            if let Some(((to, _), _)) =
+                run_octomap(exe, &["read", &p, "-repeat", "5"], "read min", "cpu min", 1)
+            {
                 println!(
                     "octomap read {name}: {to:.4} s = {:.1} M nodes/s; ratio {:.1}x",
                     tree.num_nodes() as f64 / to / 1e6,

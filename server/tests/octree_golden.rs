@@ -257,3 +257,33 @@ fn ground_truth_from_voxel_states_writes_readable_bt() {
     );
     same(&rebuilt.to_bt_bytes(), &bytes, "geb079 rebuilt from voxels");
 }
+
+#[test]
+fn bt_read_equals_octomaps_read_bt_written_as_ot() {
+    // OctoMap's own `convert_octree in.bt out.ot` (readBinary then write) shows the tree
+    // OctoMap reads from a .bt: leaf clamps, inner max, root clamp max. Skipped without it.
+    let tool = std::path::Path::new("/usr/bin/convert_octree");
+    if !tool.exists() {
+        eprintln!("skipped: no {}", tool.display());
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    for stem in [
+        "geb079",
+        "reference/geb079_sim_0.08",
+        "reference/spherical_scan_0.05",
+    ] {
+        let bt = data(&format!("{stem}.bt"));
+        let out = dir.path().join("out.ot");
+        let ok = std::process::Command::new(tool)
+            .arg(&bt)
+            .arg(&out)
+            .output()
+            .unwrap()
+            .status
+            .success();
+        assert!(ok, "convert_octree {stem}");
+        let t = Octree::read_bt(&std::fs::read(&bt).unwrap(), SensorModel::default()).unwrap();
+        same(&t.to_ot_bytes(), &std::fs::read(&out).unwrap(), stem);
+    }
+}

@@ -4,7 +4,7 @@
 use super::OctreeError;
 use super::key::{Resolution, TREE_DEPTH};
 use super::model::SensorModel;
-use super::tree::{Octree, TreeBuilder};
+use super::tree::Octree;
 
 const BT_MAGIC: &str = "# Octomap OcTree binary file";
 const OT_MAGIC: &str = "# Octomap OcTree file";
@@ -121,6 +121,30 @@ fn parse_header<'a>(
     ))
 }
 
+/// Child mask (bit i: child i exists) of a `.bt` record's eight 2-bit codes.
+#[inline]
+fn child_mask(codes: u16) -> u8 {
+    const NIBBLE: [u8; 256] = {
+        let mut t = [0u8; 256];
+        let mut i = 0;
+        while i < 256 {
+            let mut m = 0;
+            let mut c = 0;
+            while c < 4 {
+                if (i >> (2 * c)) & 3 != 0 {
+                    m |= 1 << c;
+                }
+                c += 1;
+            }
+            t[i] = m;
+            i += 1;
+        }
+        t
+    };
+    let [lo, hi] = codes.to_le_bytes();
+    NIBBLE[usize::from(lo)] | (NIBBLE[usize::from(hi)] << 4)
+}
+
 impl Octree {
     /// Reads a `.bt` or `.ot` file, chosen by its first line. `model` gives the clamps that
     /// `.bt` leaves take and the occupancy threshold (files do not store them).
@@ -141,68 +165,96 @@ impl Octree {
         }
         // Each data byte describes at most 4 nodes: no allocation beyond what the file holds.
         let cap = (h.size as usize).min(data.len().saturating_mul(4) + 1);
-        let mut tb = TreeBuilder::unpruned(cap);
-        let mut rest = data;
-        let record = |rest: &mut &[u8]| -> Result<u16, OctreeError> {
-            match rest {
-                [a, b, tail @ ..] => {
-                    let v = u16::from(*a) | (u16::from(*b) << 8);
-                    *rest = tail;
-                    Ok(v)
-                }
-                _ => Err(OctreeError::Truncated {
-                    what: ".bt node record",
-                }),
-            }
+        let mut values: Vec<f32> = Vec::with_capacity(cap);
+        let mut masks: Vec<u8> = Vec::with_capacity(cap);
+        let mut ends: Vec<u32> = Vec::with_capacity(cap);
+        let (mut leaves, mut occupied) = (0u64, 0u64);
+        let leaf_value = [model.clamp_min, model.clamp_max];
+        let leaf_occupied = leaf_value.map(|v| u64::from(model.is_occupied(v)));
+        let too_many = |n: usize| OctreeError::SizeMismatch {
+            header: h.size,
+            read: n as u64,
         };
-        // (children codes, next child to look at)
-        let mut stack: Vec<(u16, usize)> = Vec::with_capacity(17);
-        tb.open();
-        stack.push((record(&mut rest)?, 0));
-        while let Some(top) = stack.last_mut() {
-            if top.1 == 8 {
-                stack.pop();
-                tb.close();
+        let mut records = data.chunks_exact(2);
+        let mut record = || -> Result<u16, OctreeError> {
+            records
+                .next()
+                .map(|r| u16::from_le_bytes([r[0], r[1]]))
+                .ok_or(OctreeError::Truncated {
+                    what: ".bt node record",
+                })
+        };
+
+        // Open inner nodes: (codes of children not yet read, node index, max child value).
+        let mut stack = [(0u16, 0u32, 0f32); TREE_DEPTH as usize];
+        let mut depth = 0usize;
+        let codes = record()?;
+        values.push(0.0);
+        masks.push(child_mask(codes));
+        ends.push(0);
+        stack[0] = (codes, 0, -f32::MAX);
+        loop {
+            let (rest, node, max) = stack[depth];
+            if rest == 0 {
+                // Close the node: value = max of its children, subtree ends here.
+                let end = values.len() as u32;
+                if let (Some(v), Some(e)) =
+                    (values.get_mut(node as usize), ends.get_mut(node as usize))
+                {
+                    *v = max;
+                    *e = end;
+                }
+                if depth == 0 {
+                    break;
+                }
+                depth -= 1;
+                let parent = &mut stack[depth].2;
+                *parent = parent.max(max);
                 continue;
             }
-            let c = top.1;
-            top.1 += 1;
-            match (top.0 >> (2 * c)) & 3 {
-                1 => {
-                    tb.child(c);
-                    tb.leaf(model.clamp_min);
-                }
-                2 => {
-                    tb.child(c);
-                    tb.leaf(model.clamp_max);
-                }
-                3 => {
-                    if stack.len() >= usize::from(TREE_DEPTH) {
-                        return Err(OctreeError::TooDeep);
-                    }
-                    let codes = record(&mut rest)?;
-                    tb.child(c);
-                    tb.open();
-                    stack.push((codes, 0));
-                }
-                _ => {}
+            let shift = rest.trailing_zeros() & !1;
+            let code = (rest >> shift) & 3;
+            stack[depth].0 = rest & !(3 << shift);
+            let n = values.len();
+            if n as u64 >= h.size {
+                return Err(too_many(n + 1));
             }
-            if tb.len() as u64 > h.size {
-                return Err(OctreeError::SizeMismatch {
-                    header: h.size,
-                    read: tb.len() as u64,
-                });
+            if code == 3 {
+                if depth + 1 >= usize::from(TREE_DEPTH) {
+                    return Err(OctreeError::TooDeep);
+                }
+                let codes = record()?;
+                values.push(0.0);
+                masks.push(child_mask(codes));
+                ends.push(0);
+                depth += 1;
+                stack[depth] = (codes, n as u32, -f32::MAX);
+            } else {
+                // Code 1 (free) or 2 (occupied).
+                let i = usize::from(code == 2);
+                let v = leaf_value[i];
+                values.push(v);
+                masks.push(0);
+                ends.push(n as u32 + 1);
+                leaves += 1;
+                occupied += leaf_occupied[i];
+                let m = &mut stack[depth].2;
+                *m = m.max(v);
             }
         }
-        debug_assert_eq!(tb.open_depth(), 0);
-        tb.set_value(0, model.clamp_max);
-        if tb.len() as u64 != h.size {
+        // The root keeps clamp max (OctoMap never recomputes it after reading).
+        if let Some(root) = values.first_mut() {
+            *root = model.clamp_max;
+        }
+        if values.len() as u64 != h.size {
             return Err(OctreeError::SizeMismatch {
                 header: h.size,
-                read: tb.len() as u64,
+                read: values.len() as u64,
             });
         }
-        Ok(tb.finish(h.res, model))
+        Ok(Octree::from_arrays(
+            h.res, model, values, masks, ends, leaves, occupied,
+        ))
     }
 
     /// Reads an `.ot` file (`AbstractOcTree::read` of an `OcTree`): values as stored.

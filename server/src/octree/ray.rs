@@ -1,6 +1,8 @@
 //! OctoMap's exact ray stepping (`computeRayKeys`, research/octomap.md §3): a 3D DDA over
 //! voxel keys in OctoMap's f32/f64 mix, origin voxel included, end voxel excluded, ties to z then y.
 
+use std::hint::select_unpredictable;
+
 use super::key::{Key, Resolution};
 
 /// Visits the keys of the ray from `origin` to `end` in order, as `computeRayKeys` would push
@@ -56,69 +58,106 @@ pub(crate) fn ray_packed_keyed(
     key_end: Key,
     mut visit: impl FnMut(u64),
 ) {
-    if key_origin == key_end {
+    let Some(mut ray) = RayStepper::new(res, origin, key_origin, end, key_end) else {
         return;
-    }
+    };
     visit(pack(key_origin));
+    while let Some(k) = ray.step() {
+        visit(k);
+    }
+}
 
-    let d = [end[0] - origin[0], end[1] - origin[1], end[2] - origin[2]];
-    // Vector3::norm(): squares summed in f32, sqrt in f64, then cast to float.
-    let length = f64::from(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt() as f32;
-    let dir = [d[0] / length, d[1] / length, d[2] / length];
+/// One ray of OctoMap's stepping loop as a resumable state, so that several rays can be
+/// stepped interleaved (their dependency chains then overlap in the CPU).
+///
+/// [`RayStepper::step`] yields the keys after the origin key, which the caller handles.
+#[derive(Clone, Copy)]
+pub(crate) struct RayStepper {
+    t: [f64; 3],
+    d: [f64; 3],
+    inc: [u64; 3],
+    k: u64,
+    end: u64,
+    length: f64,
+}
 
-    let r = res.meters();
-    let mut step = [0i32; 3];
-    let mut t_max = [f64::MAX; 3];
-    let mut t_delta = [f64::MAX; 3];
-    for i in 0..3 {
-        step[i] = if dir[i] > 0.0 {
-            1
-        } else if dir[i] < 0.0 {
-            -1
-        } else {
-            0
-        };
-        if step[i] != 0 {
-            let half = (f64::from(step[i]) * r * 0.5) as f32;
-            let border = res.key_to_coord_axis(key_origin.0[i]) + f64::from(half);
-            t_max[i] = (border - f64::from(origin[i])) / f64::from(dir[i]);
-            t_delta[i] = r / f64::from(dir[i].abs());
+impl RayStepper {
+    /// The per-ray constants of `computeRayKeys` (steps 4 and 5), or `None` when the origin
+    /// and end keys are equal (an empty ray).
+    #[inline(always)]
+    pub(crate) fn new(
+        res: &Resolution,
+        origin: [f32; 3],
+        key_origin: Key,
+        end: [f32; 3],
+        key_end: Key,
+    ) -> Option<Self> {
+        if key_origin == key_end {
+            return None;
         }
+        let d = [end[0] - origin[0], end[1] - origin[1], end[2] - origin[2]];
+        // Vector3::norm(): squares summed in f32, sqrt in f64, then cast to float.
+        let length = f64::from(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt() as f32;
+        let dir = [d[0] / length, d[1] / length, d[2] / length];
+
+        let r = res.meters();
+        let mut t = [f64::MAX; 3];
+        let mut dt = [f64::MAX; 3];
+        let mut inc = [0u64; 3];
+        for i in 0..3 {
+            let step: i32 = if dir[i] > 0.0 {
+                1
+            } else if dir[i] < 0.0 {
+                -1
+            } else {
+                0
+            };
+            if step != 0 {
+                let half = (f64::from(step) * r * 0.5) as f32;
+                let border = res.key_to_coord_axis(key_origin.0[i]) + f64::from(half);
+                t[i] = (border - f64::from(origin[i])) / f64::from(dir[i]);
+                dt[i] = r / f64::from(dir[i].abs());
+            }
+            // The three keys live in one u64 as 21-bit fields biased by 2^17, so a step is
+            // one add and the end test one compare; keys wrap to u16 like OctoMap's on unpack.
+            inc[i] = (i64::from(step) << (21 * i)) as u64;
+        }
+        Some(Self {
+            t,
+            d: dt,
+            inc,
+            k: pack(key_origin),
+            end: pack(key_end),
+            length: f64::from(length),
+        })
     }
 
-    // The stepping loop, branch-free in the axis choice (ties: z, then y): the three keys
-    // live in one u64 as 21-bit fields biased by 2^17, so a step is one add and the end test
-    // one compare; emitted keys wrap to u16 like OctoMap's `key[dim] += step`.
-    let length = f64::from(length);
-    let inc = [0, 1, 2].map(|i| (i64::from(step[i]) << (21 * i)) as u64);
-    let (mut k, end) = (pack(key_origin), pack(key_end));
-    let (mut t0, mut t1, mut t2) = (t_max[0], t_max[1], t_max[2]);
-    let (d0, d1, d2) = (t_delta[0], t_delta[1], t_delta[2]);
-    loop {
+    /// One iteration of the loop: the next key, or `None` when the ray is done (it reached
+    /// the end key, or every `tMax` is beyond the length). Branch-free in the axis choice
+    /// (ties: z, then y).
+    #[inline(always)]
+    pub(crate) fn step(&mut self) -> Option<u64> {
+        let [t0, t1, t2] = self.t;
         let x_lt_y = t0 < t1;
         let cx = x_lt_y & (t0 < t2);
         let cy = !x_lt_y & (t1 < t2);
         let cz = !(cx | cy);
-        t0 += if cx { d0 } else { 0.0 };
-        t1 += if cy { d1 } else { 0.0 };
-        t2 += if cz { d2 } else { 0.0 };
-        k = k.wrapping_add(if cx {
-            inc[0]
-        } else if cy {
-            inc[1]
-        } else {
-            inc[2]
-        });
-        if k == end {
-            break;
-        }
+        // Selects, not branches: the axis choice is unpredictable.
+        let t0 = t0 + select_unpredictable(cx, self.d[0], 0.0);
+        let t1 = t1 + select_unpredictable(cy, self.d[1], 0.0);
+        let t2 = t2 + select_unpredictable(cz, self.d[2], 0.0);
+        self.t = [t0, t1, t2];
+        let inc = select_unpredictable(cy, self.inc[1], self.inc[2]);
+        self.k = self
+            .k
+            .wrapping_add(select_unpredictable(cx, self.inc[0], inc));
         // std::min(std::min(t0, t1), t2)
         let m = if t1 < t0 { t1 } else { t0 };
         let m = if t2 < m { t2 } else { m };
-        if m > length {
-            break;
+        if (self.k == self.end) | (m > self.length) {
+            return None;
         }
-        visit(k);
+        Some(self.k)
     }
 }
 

@@ -66,12 +66,11 @@ fn node_range(c: Key, depth: u8) -> ([u32; 3], [u32; 3]) {
 }
 
 /// Builds preorder arrays node by node; closing a node sets its value to the max of its
-/// children, or collapses it when `prune` is on and its 8 children are equal leaves.
+/// children, or collapses it when its 8 children are equal leaves (eager pruning).
 pub(crate) struct TreeBuilder {
     values: Vec<f32>,
     masks: Vec<u8>,
     stack: Vec<Frame>,
-    prune: bool,
 }
 
 struct Frame {
@@ -88,15 +87,6 @@ impl TreeBuilder {
             values: Vec::with_capacity(n),
             masks: Vec::with_capacity(n),
             stack: Vec::new(),
-            prune: true,
-        }
-    }
-
-    /// A builder that keeps the structure as given (file readers).
-    pub(crate) fn unpruned(n: usize) -> Self {
-        Self {
-            prune: false,
-            ..Self::with_capacity(n)
         }
     }
 
@@ -145,8 +135,7 @@ impl TreeBuilder {
             return 0.0;
         };
         let p = f.pos;
-        let collapsible = self.prune
-            && f.mask == 0xff
+        let collapsible = f.mask == 0xff
             && self.values.len() == p + 9
             && self.masks[p + 1..].iter().all(|&m| m == 0)
             && self.values[p + 2..]
@@ -164,23 +153,6 @@ impl TreeBuilder {
         self.values[p] = v;
         self.note_child_value(v);
         v
-    }
-
-    /// Overrides the value of node `pos` (the `.bt` reader's root quirk).
-    pub(crate) fn set_value(&mut self, pos: usize, v: f32) {
-        if let Some(x) = self.values.get_mut(pos) {
-            *x = v;
-        }
-    }
-
-    /// Nodes pushed so far.
-    pub(crate) fn len(&self) -> usize {
-        self.values.len()
-    }
-
-    /// Open nodes.
-    pub(crate) fn open_depth(&self) -> usize {
-        self.stack.len()
     }
 
     pub(crate) fn finish(self, res: Resolution, model: SensorModel) -> Octree {
@@ -217,6 +189,28 @@ impl Octree {
                 stack.pop();
             }
         }
+        Self {
+            res,
+            model,
+            values,
+            masks,
+            ends,
+            leaves,
+            occupied,
+        }
+    }
+
+    /// Wraps preorder arrays with their subtree ends and leaf counts already computed (the
+    /// `.bt` reader builds them in its single pass).
+    pub(crate) fn from_arrays(
+        res: Resolution,
+        model: SensorModel,
+        values: Vec<f32>,
+        masks: Vec<u8>,
+        ends: Vec<u32>,
+        leaves: u64,
+        occupied: u64,
+    ) -> Self {
         Self {
             res,
             model,

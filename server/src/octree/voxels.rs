@@ -13,14 +13,16 @@ use std::hash::{BuildHasherDefault, Hasher};
 
 use super::key::{Key, Resolution, morton3};
 use super::model::SensorModel;
-use super::ray::{BIAS, FIELD, pack, ray_packed_keyed, unpack};
+use super::ray::{BIAS, FIELD, RayStepper, pack, unpack};
 use super::tree::{Octree, TreeBuilder};
 use crate::cloud::OriginScan;
 
 /// Bricks are 4×4×4 voxels, i.e. depth-14 nodes; one `u64` holds a bit per voxel.
 const BRICK_SHIFT: u32 = 2;
-/// Most window slots (u32 each) used per scan for the dense brick lookup; beyond it, a hash map.
-const WINDOW_MAX_CELLS: usize = 1 << 21;
+/// Most window cells (16 bytes each) used per scan for the dense brick lookup; beyond it, a hash map.
+const WINDOW_MAX_CELLS: usize = 1 << 20;
+/// Largest brick coordinate (14 bits).
+const BRICK_MAX: u32 = (1 << (16 - BRICK_SHIFT)) - 1;
 const _: () = assert!(
     BIAS.is_multiple_of(4),
     "brick bits of packed keys must not depend on the bias"
@@ -85,99 +87,21 @@ struct Block {
     known: u64,
 }
 
-/// The free / occupied marks one scan made in one brick.
-#[derive(Clone, Copy)]
-struct Marks {
-    brick: u64,
-    free: u64,
-    occ: u64,
-}
-
-/// Per-scan scratch: marks per touched brick, found through a dense window around the scan.
+/// Per-scan scratch: a dense window of bricks around the scan holding each brick's free and
+/// occupied marks (bit per voxel, Morton order), the list of touched cells, and a hash map for
+/// the rare keys outside the window.
 #[derive(Default)]
 struct Scratch {
-    marks: Vec<Marks>,
-    window: Vec<u32>,
+    /// Per window cell: `[free, occupied]` marks.
+    window: Vec<[u64; 2]>,
+    /// Cells with a mark, in first-touch order (reset after the scan).
+    touched: Vec<u32>,
+    /// Window origin in bricks, and the same in the brick fields of packed keys.
     lo: [u32; 3],
+    lo_packed: u64,
     dim: [u32; 3],
-    overflow: BrickMap,
+    overflow: HashMap<u64, [u64; 2], BuildHasherDefault<BrickHasher>>,
     ends: Vec<([f32; 3], Key, bool)>,
-}
-
-impl Scratch {
-    /// Sets the window to the brick box `lo..=hi`, shrunk around `center` while too large.
-    fn set_window(&mut self, mut lo: [u32; 3], mut hi: [u32; 3], center: [u32; 3]) {
-        loop {
-            let cells: usize = (0..3).map(|i| (hi[i] - lo[i] + 1) as usize).product();
-            if cells <= WINDOW_MAX_CELLS {
-                break;
-            }
-            let Some(a) = (0..3).max_by_key(|&i| hi[i] - lo[i]) else {
-                break;
-            };
-            let half = (hi[a] - lo[a]) / 4;
-            lo[a] = lo[a].max(center[a].saturating_sub(half));
-            hi[a] = hi[a].min(center[a] + half);
-        }
-        self.lo = lo;
-        self.dim = [hi[0] - lo[0] + 1, hi[1] - lo[1] + 1, hi[2] - lo[2] + 1];
-        let cells = (self.dim[0] * self.dim[1] * self.dim[2]) as usize;
-        if self.window.len() < cells {
-            self.window.resize(cells, u32::MAX);
-        }
-    }
-
-    #[inline]
-    fn cell(&self, bk: u64) -> Option<usize> {
-        let b = brick_coords(bk);
-        let x = u32::from(b[0]).wrapping_sub(self.lo[0]);
-        let y = u32::from(b[1]).wrapping_sub(self.lo[1]);
-        let z = u32::from(b[2]).wrapping_sub(self.lo[2]);
-        (x < self.dim[0] && y < self.dim[1] && z < self.dim[2])
-            .then(|| (x + self.dim[0] * (y + self.dim[1] * z)) as usize)
-    }
-
-    /// Index into `marks` of brick `bk`, creating an empty entry on first touch.
-    #[inline]
-    fn slot(&mut self, bk: u64) -> usize {
-        let new = self.marks.len() as u32;
-        let idx = match self.cell(bk) {
-            Some(c) => {
-                let w = &mut self.window[c];
-                if *w == u32::MAX {
-                    *w = new;
-                }
-                *w
-            }
-            None => *self.overflow.entry(bk).or_insert(new),
-        };
-        if idx == new {
-            self.marks.push(Marks {
-                brick: bk,
-                free: 0,
-                occ: 0,
-            });
-        }
-        idx as usize
-    }
-
-    /// Forgets this scan's marks (only the touched window cells are reset).
-    fn clear(&mut self) {
-        for i in 0..self.marks.len() {
-            if let Some(c) = self.cell(self.marks[i].brick) {
-                self.window[c] = u32::MAX;
-            }
-        }
-        self.marks.clear();
-        self.overflow.clear();
-    }
-}
-
-/// Marks keys of one scan, caching the last brick.
-struct Marker<'a> {
-    scratch: &'a mut Scratch,
-    last_brick: u64,
-    last_slot: usize,
 }
 
 /// Brick part of a packed key: each 21-bit field shifted down by 2.
@@ -200,25 +124,70 @@ const LIN_TO_MORTON: [u8; 64] = {
     t
 };
 
-impl Marker<'_> {
-    /// Marks the voxel of a packed key (see `ray::pack`).
-    #[inline(always)]
-    fn mark(&mut self, k: u64, occupied: bool) {
-        let pb = (k >> 2) & PACKED_BRICK;
-        if pb != self.last_brick {
-            self.last_slot = self.scratch.slot(brick_key(unpack(k).0));
-            self.last_brick = pb;
+impl Scratch {
+    /// Sets the window to the brick box `lo..=hi` (grown by one brick for rays that step a
+    /// voxel past their end), shrunk around `center` while too large.
+    fn set_window(&mut self, mut lo: [u32; 3], mut hi: [u32; 3], center: [u32; 3]) {
+        for i in 0..3 {
+            lo[i] = lo[i].saturating_sub(1);
+            hi[i] = (hi[i] + 1).min(BRICK_MAX);
         }
+        loop {
+            let cells: usize = (0..3).map(|i| (hi[i] - lo[i] + 1) as usize).product();
+            if cells <= WINDOW_MAX_CELLS {
+                break;
+            }
+            let Some(a) = (0..3).max_by_key(|&i| hi[i] - lo[i]) else {
+                break;
+            };
+            let half = (hi[a] - lo[a]) / 4;
+            lo[a] = lo[a].max(center[a].saturating_sub(half));
+            hi[a] = hi[a].min(center[a] + half);
+        }
+        self.lo = lo;
+        let bias = BIAS >> BRICK_SHIFT;
+        self.lo_packed = (0..3).fold(0, |acc, i| acc | ((u64::from(lo[i]) + bias) << (21 * i)));
+        self.dim = [hi[0] - lo[0] + 1, hi[1] - lo[1] + 1, hi[2] - lo[2] + 1];
+        let cells = (self.dim[0] * self.dim[1] * self.dim[2]) as usize;
+        if self.window.len() < cells {
+            self.window.resize(cells, [0; 2]);
+        }
+    }
+
+    /// Marks the voxel of a packed key (see `ray::pack`) free (`occ = 0`) or occupied (1).
+    #[inline(always)]
+    fn mark(&mut self, k: u64, occ: usize) {
+        // Window-relative brick coordinates; a field below the window wraps to a huge value.
+        let r = ((k >> BRICK_SHIFT) & PACKED_BRICK).wrapping_sub(self.lo_packed);
+        let (x, y, z) = (r & 0x1f_ffff, (r >> 21) & 0x1f_ffff, r >> 42);
         let lin = (k & 3) | ((k >> 19) & 0xc) | ((k >> 38) & 0x30);
         let bit = 1u64 << LIN_TO_MORTON[lin as usize];
-        // The slot exists: `slot` pushed it or returned an existing index.
-        if let Some(m) = self.scratch.marks.get_mut(self.last_slot) {
-            if occupied {
-                m.occ |= bit;
-            } else {
-                m.free |= bit;
+        let [dx, dy, dz] = self.dim.map(u64::from);
+        if (x < dx) & (y < dy) & (z < dz) {
+            let cell = x + dx * (y + dy * z);
+            if let Some(w) = self.window.get_mut(cell as usize) {
+                if w[0] | w[1] == 0 {
+                    self.touched.push(cell as u32);
+                }
+                w[occ & 1] |= bit;
+                return;
             }
         }
+        self.mark_overflow(k, occ, bit);
+    }
+
+    #[cold]
+    fn mark_overflow(&mut self, k: u64, occ: usize, bit: u64) {
+        self.overflow.entry(brick_key(unpack(k).0)).or_default()[occ & 1] |= bit;
+    }
+
+    /// Brick key of a window cell.
+    fn cell_brick(&self, cell: u32) -> u64 {
+        let [dx, dy, _] = self.dim;
+        let (x, y, z) = (cell % dx, (cell / dx) % dy, cell / dx / dy);
+        u64::from(self.lo[0] + x)
+            | (u64::from(self.lo[1] + y) << 14)
+            | (u64::from(self.lo[2] + z) << 28)
     }
 }
 
@@ -305,8 +274,8 @@ impl VoxelMap {
     pub fn memory_bytes(&self) -> usize {
         self.blocks.capacity() * std::mem::size_of::<Block>()
             + self.index.capacity() * (std::mem::size_of::<(u64, u32)>() + 1)
-            + self.scratch.window.capacity() * 4
-            + self.scratch.marks.capacity() * std::mem::size_of::<Marks>()
+            + self.scratch.window.capacity() * 16
+            + self.scratch.touched.capacity() * 4
             + self.scratch.ends.capacity() * std::mem::size_of::<([f32; 3], Key, bool)>()
     }
 
@@ -433,19 +402,12 @@ impl VoxelMap {
         if lo[0] <= hi[0] {
             let center = origin_key.map_or(lo, |k| k.0.map(|a| u32::from(a >> BRICK_SHIFT)));
             self.scratch.set_window(lo, hi, center);
-            let mut marker = Marker {
-                scratch: &mut self.scratch,
-                last_brick: u64::MAX,
-                last_slot: 0,
-            };
-            for &(end, key_end, hit) in &ends {
-                if let Some(key_origin) = origin_key {
-                    ray_packed_keyed(&res, origin, key_origin, end, key_end, |k| {
-                        marker.mark(k, false)
-                    });
-                }
+            if let Some(key_origin) = origin_key {
+                mark_rays(&mut self.scratch, &res, origin, key_origin, &ends);
+            }
+            for &(_, key_end, hit) in &ends {
                 if hit {
-                    marker.mark(pack(key_end), true);
+                    self.scratch.mark(pack(key_end), 1);
                 }
             }
         }
@@ -453,14 +415,28 @@ impl VoxelMap {
 
         // Pass 3: one update per marked voxel; occupied wins over free.
         let model = self.model;
-        let marks = std::mem::take(&mut self.scratch.marks);
-        for m in &marks {
-            let b = self.block_mut(m.brick);
-            apply(b, m.free & !m.occ, model.miss, &model);
-            apply(b, m.occ, model.hit, &model);
+        let touched = std::mem::take(&mut self.scratch.touched);
+        for &cell in &touched {
+            let bk = self.scratch.cell_brick(cell);
+            let [free, occ] = self
+                .scratch
+                .window
+                .get_mut(cell as usize)
+                .map_or([0; 2], std::mem::take);
+            let b = self.block_mut(bk);
+            apply(b, free & !occ, model.miss, &model);
+            apply(b, occ, model.hit, &model);
         }
-        self.scratch.marks = marks;
-        self.scratch.clear();
+        self.scratch.touched = touched;
+        self.scratch.touched.clear();
+        let overflow = std::mem::take(&mut self.scratch.overflow);
+        for (&bk, &[free, occ]) in &overflow {
+            let b = self.block_mut(bk);
+            apply(b, free & !occ, model.miss, &model);
+            apply(b, occ, model.hit, &model);
+        }
+        self.scratch.overflow = overflow;
+        self.scratch.overflow.clear();
         self.totals.add(&stats);
         stats
     }
@@ -519,6 +495,56 @@ impl VoxelMap {
             }
         }
         tb.close();
+    }
+}
+
+/// Marks the free keys of all rays from `origin` to `ends` (origin voxel included once),
+/// stepping two rays at a time so that their dependency chains overlap.
+fn mark_rays(
+    scratch: &mut Scratch,
+    res: &Resolution,
+    origin: [f32; 3],
+    key_origin: Key,
+    ends: &[([f32; 3], Key, bool)],
+) {
+    let mut rays = ends
+        .iter()
+        .filter_map(|&(end, key_end, _)| RayStepper::new(res, origin, key_origin, end, key_end));
+    let Some(mut a) = rays.next() else {
+        return;
+    };
+    scratch.mark(pack(key_origin), 0);
+    let Some(mut b) = rays.next() else {
+        while let Some(k) = a.step() {
+            scratch.mark(k, 0);
+        }
+        return;
+    };
+    loop {
+        match a.step() {
+            Some(k) => scratch.mark(k, 0),
+            None => match rays.next() {
+                Some(r) => a = r,
+                None => {
+                    while let Some(k) = b.step() {
+                        scratch.mark(k, 0);
+                    }
+                    return;
+                }
+            },
+        }
+        match b.step() {
+            Some(k) => scratch.mark(k, 0),
+            None => match rays.next() {
+                Some(r) => b = r,
+                None => {
+                    while let Some(k) = a.step() {
+                        scratch.mark(k, 0);
+                    }
+                    return;
+                }
+            },
+        }
     }
 }
 
