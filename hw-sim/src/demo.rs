@@ -12,6 +12,9 @@
 //! 3. **Maps.** Each cloud, filtered as in the paper's Table II, is inserted into the
 //!    OctoMap-identical octree at `--resolution` (0.05 m): `DIR/maps/{map2,map3,ref}.bt`, with
 //!    the ground-truth map `DIR/maps/truth.bt` beside them.
+//! 4. **Evaluation** (the paper's §IV): every map against `ref` and against the truth inside
+//!    the room's box, with `scan3d report` → `DIR/report/` (`table.md`, `metrics.json`,
+//!    `fig11.svg|png`) and `scan3d sweep` on `ref`'s filtered cloud → `fig12.svg|png`.
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -20,6 +23,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
+use clap::Parser;
 use scan3d_edge::clock::{ScaledClock, SharedClock};
 use scan3d_edge::daemon::DaemonReport;
 use scan3d_protocol::{Body, SensorId};
@@ -87,8 +91,10 @@ pub struct DemoReport {
     pub maps: Vec<MapResult>,
     /// Ground-truth files written.
     pub truth_files: Vec<PathBuf>,
-    /// Occupancy maps written (`DIR/maps/*.bt`) with their leaf counts.
-    pub octrees: Vec<(PathBuf, u64)>,
+    /// Occupancy maps written (`DIR/maps/*.bt`).
+    pub octrees: Vec<PathBuf>,
+    /// The evaluation's `table.md` (Table III and the metrics), empty without maps.
+    pub table: String,
     /// Wall time of the run.
     pub wall: Duration,
 }
@@ -186,24 +192,87 @@ pub fn run_demo(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         }
         let maps_dir = args.out.join("maps");
         for result in &report.maps {
-            let (_, tree) = build_map(result.plan.name, &result.cloud, args.resolution)?;
+            let (filtered, tree) = build_map(result.plan.name, &result.cloud, args.resolution)?;
+            if result.plan.name == "ref" {
+                io::save(&args.out.join("clouds/ref.filtered.scans"), &filtered)?;
+            }
             let path = maps_dir.join(format!("{}.bt", result.plan.name));
             std::fs::write(&path, tree.to_bt_bytes())
                 .with_context(|| format!("cannot write {}", path.display()))?;
-            report.octrees.push((path, tree.num_leaves()));
+            report.octrees.push(path);
         }
         if !report.maps.is_empty() {
             let tree = truth_map(&world, &truth, args.resolution)?.to_octree();
             let path = maps_dir.join("truth.bt");
             std::fs::write(&path, tree.to_bt_bytes())
                 .with_context(|| format!("cannot write {}", path.display()))?;
-            report.octrees.push((path, tree.num_leaves()));
+            report.octrees.push(path);
+            report.table = evaluate_maps(&args.out, &report.maps, &world)?;
         }
         report.wall = started.elapsed();
         Ok(report)
     });
     let _ = std::fs::remove_dir_all(&work);
     result
+}
+
+/// Scores every map against `ref` (when made) and the truth with `scan3d report`, inside the
+/// room's box, and runs `scan3d sweep` on `ref`'s filtered cloud; returns `table.md`.
+fn evaluate_maps(out: &Path, maps: &[MapResult], world: &World) -> anyhow::Result<String> {
+    let report_dir = out.join("report");
+    let room = world.room();
+    let bbox = format!(
+        "{},{},{},{},{},{}",
+        room.min.x, room.min.y, room.min.z, room.max.x, room.max.y, room.max.z
+    );
+    let map_path = |name: &str| out.join("maps").join(format!("{name}.bt"));
+    let reference = if maps.iter().any(|m| m.plan.name == "ref") {
+        map_path("ref")
+    } else {
+        map_path(maps.first().map_or("ref", |m| m.plan.name))
+    };
+    let mut args: Vec<String> = ["scan3d", "report", "--ref"]
+        .iter()
+        .map(ToString::to_string)
+        .collect();
+    args.push(reference.display().to_string());
+    args.push("--maps".into());
+    args.extend(
+        maps.iter()
+            .map(|m| map_path(m.plan.name))
+            .filter(|path| *path != reference || maps.len() == 1)
+            .map(|path| path.display().to_string()),
+    );
+    args.extend([
+        "--truth".into(),
+        map_path("truth").display().to_string(),
+        "--bbox".into(),
+        bbox,
+        "--out".into(),
+        report_dir.display().to_string(),
+    ]);
+    run_scan3d(&args)?;
+    let cloud = out.join("clouds/ref.filtered.scans");
+    if cloud.exists() {
+        run_scan3d(&[
+            "scan3d".into(),
+            "sweep".into(),
+            cloud.display().to_string(),
+            "--reps".into(),
+            "1".into(),
+            "--out".into(),
+            report_dir.display().to_string(),
+        ])?;
+    }
+    let table = report_dir.join("table.md");
+    std::fs::read_to_string(&table).with_context(|| format!("cannot read {}", table.display()))
+}
+
+/// Runs a `scan3d` command line in-process (the same code as the binary).
+fn run_scan3d(args: &[String]) -> anyhow::Result<()> {
+    let cli = scan3d_server::cli::Cli::try_parse_from(args)?;
+    let mut sink = Vec::new();
+    scan3d_server::cli::execute(cli, &mut sink)
 }
 
 /// Writes the ground truth for evaluation: the world description (`world.toml`, loadable with
@@ -297,6 +366,7 @@ fn run_in(
         maps: Vec::new(),
         truth_files: Vec::new(),
         octrees: Vec::new(),
+        table: String::new(),
         wall: started.elapsed(),
     })
 }
@@ -445,8 +515,11 @@ pub fn summary(report: &DemoReport) -> String {
     for file in &report.truth_files {
         let _ = writeln!(s, "wrote {}", file.display());
     }
-    for (file, leaves) in &report.octrees {
-        let _ = writeln!(s, "wrote {} ({leaves} leaves)", file.display());
+    for file in &report.octrees {
+        let _ = writeln!(s, "wrote {}", file.display());
+    }
+    if !report.table.is_empty() {
+        let _ = writeln!(s, "\n{}", report.table.trim_end());
     }
     let _ = writeln!(s, "wall time {:.1} s", report.wall.as_secs_f64());
     s
