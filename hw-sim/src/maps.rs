@@ -20,7 +20,7 @@ use scan3d_edge::clock::{Clock, ScaledClock, SharedClock};
 use scan3d_protocol::{Body, Command, StaticScan, StaticScanOutcome};
 use scan3d_server::cli::assemble::assemble_session;
 use scan3d_server::cloud::OriginScan;
-use scan3d_server::cloud::assembly::Position;
+use scan3d_server::cloud::assembly::{Position, cut_range};
 use scan3d_server::cloud::filter::{Filter, apply_all};
 use scan3d_server::cloud::io;
 use scan3d_server::ingest::recorder::session_dir;
@@ -253,21 +253,8 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
 
     let session = session_dir(data_dir, EDGE_NAME, session_id);
     let assembled = assemble_session(&session)?;
-    let mut cut = 0;
-    let cloud: Vec<OriginScan> = assembled
-        .into_iter()
-        .flat_map(|scan| scan.scans)
-        .map(|mut scan| {
-            let before = scan.points.len();
-            let o = scan.origin;
-            scan.points.retain(|p| {
-                let d2: f64 = (0..3).map(|i| (f64::from(p[i]) - o[i]).powi(2)).sum();
-                d2 <= plan.max_range_m * plan.max_range_m
-            });
-            cut += before - scan.points.len();
-            scan
-        })
-        .collect();
+    let mut cloud: Vec<OriginScan> = assembled.into_iter().flat_map(|scan| scan.scans).collect();
+    let cut = cut_range(&mut cloud, plan.max_range_m);
     let accuracy = truth.accuracy(
         cloud
             .iter()

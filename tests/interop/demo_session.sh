@@ -39,4 +39,13 @@ for ply in "$tmp"/out/scans/*.ply; do
     cmp "$ply" "$tmp/replay/scans/$(basename "$ply")"
     echo "identical: $(basename "$ply")"
 done
+echo "== scan3d assemble reproduces the demo's static map2 (position 'west', 10 m) from the recordings"
+statics=("$tmp"/out/static-sessions/sessions/sim-edge/*)
+[[ ${#statics[@]} -eq 3 ]] || { echo "expected three static-scan sessions, found ${#statics[@]}" >&2; exit 1; }
+"$bin/scan3d" assemble "${statics[@]}" --position west --max-range 10 --out "$tmp/map2.scans"
+cmp "$tmp/map2.scans" "$tmp/out/clouds/map2.scans"
+echo "identical: map2.scans"
+
+echo "== OctoMap's tools"
+bash "$here/octomap_tools.sh" "$tmp/out"
 echo "demo session check passed"

@@ -1,5 +1,6 @@
-//! `scan3d assemble SESSION_DIR --out cloud.ply|cloud.pcd|cloud.scans`: the static scans of a
-//! recorded session, turned into one world-frame cloud by eq. (1) and spliced across positions.
+//! `scan3d assemble SESSION_DIR… --out cloud.ply|cloud.pcd|cloud.scans`: the static scans of
+//! recorded sessions, turned into one world-frame cloud by eq. (1) and spliced across positions
+//! (and sessions: an edge that rebooted between positions records a new session).
 //!
 //! Every output keeps each point's sensor origin (one per half revolution), so `.scans` feeds
 //! the octree's ray casting directly and PLY/PCD open in any viewer.
@@ -10,21 +11,25 @@ use std::path::PathBuf;
 use anyhow::Context;
 
 use crate::cloud::OriginScan;
-use crate::cloud::assembly::{AssembledScan, StaticScanAssembler};
+use crate::cloud::assembly::{AssembledScan, StaticScanAssembler, cut_range};
 use crate::cloud::io;
 use crate::ingest::recorder::read_session;
 
 /// Options of `scan3d assemble`.
 #[derive(Debug, clap::Args)]
 pub struct AssembleArgs {
-    /// A session directory: `data_dir/sessions/<edge>/<session-id>`.
-    pub session_dir: PathBuf,
+    /// Session directories: `data_dir/sessions/<edge>/<session-id>`.
+    #[arg(required = true, num_args = 1..)]
+    pub session_dirs: Vec<PathBuf>,
     /// Output file(s); the format follows the extension (`.ply`, `.pcd`, `.scans`).
     #[arg(long, required = true)]
     pub out: Vec<PathBuf>,
-    /// Only these positions (by name; repeatable). Default: every scan of the session.
+    /// Only these positions (by name; repeatable). Default: every scan of the sessions.
     #[arg(long = "position", value_name = "NAME")]
     pub positions: Vec<String>,
+    /// Drop points farther than this from their sensor origin, metres.
+    #[arg(long)]
+    pub max_range: Option<f64>,
 }
 
 /// The scans of a session directory, assembled.
@@ -54,19 +59,27 @@ pub fn run(args: &AssembleArgs, out: &mut dyn Write) -> anyhow::Result<()> {
             )
         })?;
     }
-    let scans: Vec<AssembledScan> = assemble_session(&args.session_dir)?
-        .into_iter()
-        .filter(|s| args.positions.is_empty() || args.positions.contains(&s.position.name))
-        .collect();
+    let mut scans: Vec<AssembledScan> = Vec::new();
+    for dir in &args.session_dirs {
+        scans.extend(
+            assemble_session(dir)?
+                .into_iter()
+                .filter(|s| args.positions.is_empty() || args.positions.contains(&s.position.name)),
+        );
+    }
     if scans.is_empty() {
         anyhow::bail!(
-            "{} holds no static scan{}",
-            args.session_dir.display(),
+            "no static scan{} in {}",
             if args.positions.is_empty() {
                 String::new()
             } else {
                 format!(" at {}", args.positions.join(", "))
-            }
+            },
+            args.session_dirs
+                .iter()
+                .map(|d| d.display().to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
         );
     }
     for scan in &scans {
@@ -87,7 +100,11 @@ pub fn run(args: &AssembleArgs, out: &mut dyn Write) -> anyhow::Result<()> {
             }
         )?;
     }
-    let cloud: Vec<OriginScan> = scans.into_iter().flat_map(|s| s.scans).collect();
+    let mut cloud: Vec<OriginScan> = scans.into_iter().flat_map(|s| s.scans).collect();
+    if let Some(max_range) = args.max_range {
+        let cut = cut_range(&mut cloud, max_range);
+        writeln!(out, "dropped {cut} points beyond {max_range} m")?;
+    }
     for path in &args.out {
         io::save(path, &cloud)?;
         writeln!(out, "wrote {}", path.display())?;

@@ -229,6 +229,22 @@ impl AssembledScan {
     }
 }
 
+/// Drops points farther than `max_range_m` from their scan's sensor origin (a range limit
+/// applied after assembly, e.g. the paper's 6 m / 10 m maps); returns how many were dropped.
+pub fn cut_range(scans: &mut [OriginScan], max_range_m: f64) -> usize {
+    let mut cut = 0;
+    for scan in scans {
+        let o = scan.origin;
+        let before = scan.points.len();
+        scan.points.retain(|p| {
+            let d2: f64 = (0..3).map(|i| (f64::from(p[i]) - o[i]).powi(2)).sum();
+            d2 <= max_range_m * max_range_m
+        });
+        cut += before - scan.points.len();
+    }
+    cut
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
