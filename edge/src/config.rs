@@ -227,6 +227,11 @@ mod tests {
         assert_eq!(uplink.server, "laptop.local:4433");
         assert_eq!(uplink.tls_name(), "laptop.local");
         assert_eq!(uplink.pki_dir, Path::new("/etc/scan3d/pki"));
+        let imu = config.imu.expect("imu section");
+        assert_eq!((imu.driver.address, imu.beta), (0x68, 0.1));
+        assert_eq!(config.stepper.expect("stepper section").steps_per_rev, 200);
+        assert_eq!(config.static_scan.mount.height_m, 1.0);
+        assert_eq!(config.i2c.bus, 1);
     }
 
     #[test]
