@@ -124,6 +124,17 @@ const LIN_TO_MORTON: [u8; 64] = {
     t
 };
 
+/// Reorders a brick's marks from linear bit order (x + 4y + 16z) to Morton order.
+#[inline]
+fn to_morton(mut lin: u64) -> u64 {
+    let mut m = 0;
+    while lin != 0 {
+        m |= 1u64 << LIN_TO_MORTON[lin.trailing_zeros() as usize];
+        lin &= lin - 1;
+    }
+    m
+}
+
 impl Scratch {
     /// Sets the window to the brick box `lo..=hi` (grown by one brick for rays that step a
     /// voxel past their end), shrunk around `center` while too large.
@@ -155,18 +166,27 @@ impl Scratch {
     }
 
     /// Marks the voxel of a packed key (see `ray::pack`) free (`occ = 0`) or occupied (1).
+    /// Marks are in linear order (bit x + 4y + 16z); [`to_morton`] reorders them per brick.
+    /// All free marks of a scan must come before its occupied marks.
     #[inline(always)]
     fn mark(&mut self, k: u64, occ: usize) {
         // Window-relative brick coordinates; a field below the window wraps to a huge value.
         let r = ((k >> BRICK_SHIFT) & PACKED_BRICK).wrapping_sub(self.lo_packed);
         let (x, y, z) = (r & 0x1f_ffff, (r >> 21) & 0x1f_ffff, r >> 42);
         let lin = (k & 3) | ((k >> 19) & 0xc) | ((k >> 38) & 0x30);
-        let bit = 1u64 << LIN_TO_MORTON[lin as usize];
+        let bit = 1u64 << lin;
         let [dx, dy, dz] = self.dim.map(u64::from);
         if (x < dx) & (y < dy) & (z < dz) {
             let cell = x + dx * (y + dy * z);
             if let Some(w) = self.window.get_mut(cell as usize) {
-                if w[0] | w[1] == 0 {
+                // Free marks come first, so a cell is new iff its free word is still 0 (and,
+                // for an occupied mark, its occupied word too).
+                let new = if occ == 0 {
+                    w[0] == 0
+                } else {
+                    w[0] | w[1] == 0
+                };
+                if new {
                     self.touched.push(cell as u32);
                 }
                 w[occ & 1] |= bit;
@@ -422,7 +442,8 @@ impl VoxelMap {
                 .scratch
                 .window
                 .get_mut(cell as usize)
-                .map_or([0; 2], std::mem::take);
+                .map_or([0; 2], std::mem::take)
+                .map(to_morton);
             let b = self.block_mut(bk);
             apply(b, free & !occ, model.miss, &model);
             apply(b, occ, model.hit, &model);
@@ -430,7 +451,8 @@ impl VoxelMap {
         self.scratch.touched = touched;
         self.scratch.touched.clear();
         let overflow = std::mem::take(&mut self.scratch.overflow);
-        for (&bk, &[free, occ]) in &overflow {
+        for (&bk, marks) in &overflow {
+            let [free, occ] = marks.map(to_morton);
             let b = self.block_mut(bk);
             apply(b, free & !occ, model.miss, &model);
             apply(b, occ, model.hit, &model);
@@ -498,8 +520,9 @@ impl VoxelMap {
     }
 }
 
-/// Marks the free keys of all rays from `origin` to `ends` (origin voxel included once),
-/// stepping two rays at a time so that their dependency chains overlap.
+/// Marks the free keys of all rays from `origin` to `ends` (origin voxel included once).
+/// Rays are stepped in pairs of neighbours (similar lengths), interleaved, so that their
+/// loop-carried dependency chains overlap; all state stays in registers.
 fn mark_rays(
     scratch: &mut Scratch,
     res: &Resolution,
@@ -510,40 +533,41 @@ fn mark_rays(
     let mut rays = ends
         .iter()
         .filter_map(|&(end, key_end, _)| RayStepper::new(res, origin, key_origin, end, key_end));
-    let Some(mut a) = rays.next() else {
+    let Some(first) = rays.next() else {
         return;
     };
     scratch.mark(pack(key_origin), 0);
-    let Some(mut b) = rays.next() else {
-        while let Some(k) = a.step() {
-            scratch.mark(k, 0);
-        }
-        return;
-    };
-    loop {
-        match a.step() {
-            Some(k) => scratch.mark(k, 0),
-            None => match rays.next() {
-                Some(r) => a = r,
-                None => {
-                    while let Some(k) = b.step() {
-                        scratch.mark(k, 0);
-                    }
-                    return;
+    let mut pending = Some(first);
+    while let Some(mut a) = pending.take().or_else(|| rays.next()) {
+        let Some(mut b) = rays.next() else {
+            while let Some(k) = a.step() {
+                scratch.mark(k, 0);
+            }
+            break;
+        };
+        loop {
+            let (ka, kb) = (a.step(), b.step());
+            match (ka, kb) {
+                (Some(ka), Some(kb)) => {
+                    scratch.mark(ka, 0);
+                    scratch.mark(kb, 0);
                 }
-            },
-        }
-        match b.step() {
-            Some(k) => scratch.mark(k, 0),
-            None => match rays.next() {
-                Some(r) => b = r,
-                None => {
+                (Some(ka), None) => {
+                    scratch.mark(ka, 0);
                     while let Some(k) = a.step() {
                         scratch.mark(k, 0);
                     }
-                    return;
+                    break;
                 }
-            },
+                (None, Some(kb)) => {
+                    scratch.mark(kb, 0);
+                    while let Some(k) = b.step() {
+                        scratch.mark(k, 0);
+                    }
+                    break;
+                }
+                (None, None) => break,
+            }
         }
     }
 }
