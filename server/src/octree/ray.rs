@@ -161,6 +161,337 @@ impl RayStepper {
     }
 }
 
+/// Where [`mark_free`] puts the keys of rays: a dense window of 4×4×4-voxel bricks (one
+/// 64-bit word of free marks per brick, bit `x + 4y + 16z` of the voxel inside the brick),
+/// plus a way to mark keys outside it.
+pub(crate) trait FreeMarks {
+    /// The window's lowest brick in the brick fields of packed keys (each 21-bit field of a
+    /// packed key shifted down by 2), and its size in bricks per axis. Cell `x + dx(y + dy z)`
+    /// is the brick at window-relative coordinates (x, y, z).
+    fn window(&self) -> (u64, [u32; 3]);
+    /// ORs `bits` into the free word of window cell `cell` (always inside the window).
+    fn mark_cell(&mut self, cell: u32, bits: u64);
+    /// Marks one packed key free, wherever it is.
+    fn mark_key(&mut self, key: u64);
+}
+
+/// Marks free every key of the rays from `origin` to each of `ends` (end point and its key)
+/// after the origin key, which the caller marks. With AVX2, rays go four at a time, one per
+/// lane, from setup to end, and each lane gathers its marks per brick before writing them
+/// (a ray crosses several voxels of a brick in a row); otherwise rays step in scalar pairs.
+/// Both mark exactly the keys of `computeRayKeys` ([`RayStepper::step`]).
+#[inline]
+pub(crate) fn mark_free(
+    res: &Resolution,
+    origin: [f32; 3],
+    key_origin: Key,
+    ends: impl Iterator<Item = ([f32; 3], Key)>,
+    marks: &mut impl FreeMarks,
+) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2 (checked just above), the only requirement of
+        // `avx2::mark_free`'s `#[target_feature]`.
+        unsafe { avx2::mark_free(res, origin, key_origin, ends, marks) };
+        return;
+    }
+    let rays =
+        ends.filter_map(|(end, key_end)| RayStepper::new(res, origin, key_origin, end, key_end));
+    step_rays_pairs(rays, |_, k| marks.mark_key(k));
+}
+
+/// Steps every ray of `rays` and calls `visit(n, key)` with the ray's position `n` in `rays`
+/// and each packed key after its origin key, in order per ray. Rays go in pairs, interleaved,
+/// so that their loop-carried dependency chains overlap.
+pub(crate) fn step_rays_pairs(
+    rays: impl Iterator<Item = RayStepper>,
+    mut visit: impl FnMut(usize, u64),
+) {
+    let mut rays = rays.enumerate();
+    while let Some((na, mut a)) = rays.next() {
+        let Some((nb, mut b)) = rays.next() else {
+            while let Some(k) = a.step() {
+                visit(na, k);
+            }
+            break;
+        };
+        loop {
+            match (a.step(), b.step()) {
+                (Some(ka), Some(kb)) => {
+                    visit(na, ka);
+                    visit(nb, kb);
+                }
+                (Some(ka), None) => {
+                    visit(na, ka);
+                    while let Some(k) = a.step() {
+                        visit(na, k);
+                    }
+                    break;
+                }
+                (None, Some(kb)) => {
+                    visit(nb, kb);
+                    while let Some(k) = b.step() {
+                        visit(nb, k);
+                    }
+                    break;
+                }
+                (None, None) => break,
+            }
+        }
+    }
+}
+
+/// Four rays per AVX2 vector, one per lane, set up and stepped together until all four end.
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use std::arch::x86_64::*;
+
+    use super::{FIELD, FreeMarks, Key, Resolution, pack};
+
+    /// Brick part of a packed key (see `voxels`): each 21-bit field shifted down by 2.
+    const PACKED_BRICK: i64 = ((FIELD >> 2) | ((FIELD >> 2) << 21) | ((FIELD >> 2) << 42)) as i64;
+    /// Capacity of the buffer of gathered (cell, marks) pairs written in batches.
+    const PENDING: usize = 256;
+
+    #[target_feature(enable = "avx2")]
+    fn epi_lanes(v: __m256i) -> [u64; 4] {
+        [
+            _mm256_extract_epi64::<0>(v) as u64,
+            _mm256_extract_epi64::<1>(v) as u64,
+            _mm256_extract_epi64::<2>(v) as u64,
+            _mm256_extract_epi64::<3>(v) as u64,
+        ]
+    }
+
+    /// Gathered marks waiting to be written, appended without branches.
+    struct Pending {
+        cell: [u32; PENDING],
+        bits: [u64; PENDING],
+        n: usize,
+    }
+
+    impl Pending {
+        /// Appends the lanes of `cell`/`bits` whose bit is set in `lanes`.
+        #[target_feature(enable = "avx2")]
+        fn push(&mut self, cell: __m256i, bits: __m256i, lanes: u32) {
+            let (c, b) = (epi_lanes(cell), epi_lanes(bits));
+            for l in 0..4 {
+                let i = self.n % PENDING;
+                self.cell[i] = c[l] as u32;
+                self.bits[i] = b[l];
+                self.n = i + ((lanes >> l) & 1) as usize;
+            }
+        }
+
+        fn drain(&mut self, marks: &mut impl FreeMarks) {
+            for (&c, &b) in self.cell.iter().zip(&self.bits).take(self.n) {
+                marks.mark_cell(c, b);
+            }
+            self.n = 0;
+        }
+    }
+
+    #[target_feature(enable = "avx2")]
+    pub(super) fn mark_free(
+        res: &Resolution,
+        origin: [f32; 3],
+        key_origin: Key,
+        ends: impl Iterator<Item = ([f32; 3], Key)>,
+        marks: &mut impl FreeMarks,
+    ) {
+        let mut ends = ends;
+        // Per-axis setup constants shared by all rays (computeRayKeys step 5): the origin
+        // voxel's borders on either side, `keyToCoord + (float)(±res/2)`, minus the origin.
+        let r = res.meters();
+        let half = f64::from((r * 0.5) as f32);
+        let num = [0, 1, 2].map(|i| {
+            let c = res.key_to_coord_axis(key_origin.0[i]);
+            let o = f64::from(origin[i]);
+            (
+                _mm256_set1_pd((c + half) - o),
+                _mm256_set1_pd((c + -half) - o),
+            )
+        });
+        let o4 = [0, 1, 2].map(|i| _mm_set1_ps(origin[i]));
+        let rv = _mm256_set1_pd(r);
+        let max = _mm256_set1_pd(f64::MAX);
+        let k0 = _mm256_set1_epi64x(pack(key_origin) as i64);
+
+        let (lo, dim) = marks.window();
+        let lo = _mm256_set1_epi64x(lo as i64);
+        let [dx, dy, dz] = dim.map(|d| _mm256_set1_epi64x(i64::from(d)));
+        let brick = _mm256_set1_epi64x(PACKED_BRICK);
+        let field = _mm256_set1_epi64x(FIELD as i64);
+        let one = _mm256_set1_epi64x(1);
+        let zero = _mm256_setzero_si256();
+        let mut pending = Pending {
+            cell: [0; PENDING],
+            bits: [0; PENDING],
+            n: 0,
+        };
+        loop {
+            // Four rays; lanes without one (or with an empty ray) start dead.
+            let mut e = [[0f32; 4]; 3];
+            let mut end = [0u64; 4];
+            let mut live = 0u32;
+            let mut any = false;
+            for l in 0..4 {
+                if let Some((p, k)) = ends.next() {
+                    any = true;
+                    for i in 0..3 {
+                        e[i][l] = p[i];
+                    }
+                    end[l] = pack(k);
+                    live |= u32::from(k != key_origin) << l;
+                } else {
+                    for i in 0..3 {
+                        e[i][l] = origin[i];
+                    }
+                }
+            }
+            if !any {
+                break;
+            }
+            if live == 0 {
+                continue;
+            }
+            // computeRayKeys steps 4-5 in every lane, in the same f32/f64 operations.
+            let d = [0, 1, 2]
+                .map(|i| _mm_sub_ps(_mm_setr_ps(e[i][0], e[i][1], e[i][2], e[i][3]), o4[i]));
+            let len2 = _mm_add_ps(
+                _mm_add_ps(_mm_mul_ps(d[0], d[0]), _mm_mul_ps(d[1], d[1])),
+                _mm_mul_ps(d[2], d[2]),
+            );
+            let length = _mm256_cvtps_pd(_mm256_cvtpd_ps(_mm256_sqrt_pd(_mm256_cvtps_pd(len2))));
+            let length32 = _mm256_cvtpd_ps(length);
+            let mut t = [max; 3];
+            let mut dt = [max; 3];
+            let mut inc = [zero; 3];
+            for i in 0..3 {
+                let dir = _mm256_cvtps_pd(_mm_div_ps(d[i], length32));
+                let pos = _mm256_cmp_pd::<_CMP_GT_OQ>(dir, _mm256_setzero_pd());
+                let neg = _mm256_cmp_pd::<_CMP_LT_OQ>(dir, _mm256_setzero_pd());
+                let moving = _mm256_or_pd(pos, neg);
+                let n = _mm256_blendv_pd(num[i].1, num[i].0, pos);
+                let absdir = _mm256_andnot_pd(_mm256_set1_pd(-0.0), dir);
+                t[i] = _mm256_blendv_pd(max, _mm256_div_pd(n, dir), moving);
+                dt[i] = _mm256_blendv_pd(max, _mm256_div_pd(rv, absdir), moving);
+                let unit = _mm256_set1_epi64x(1i64 << (21 * i));
+                // +unit where dir > 0, -unit where dir < 0.
+                inc[i] = _mm256_sub_epi64(
+                    _mm256_and_si256(_mm256_castpd_si256(pos), unit),
+                    _mm256_and_si256(_mm256_castpd_si256(neg), unit),
+                );
+            }
+            let end =
+                _mm256_setr_epi64x(end[0] as i64, end[1] as i64, end[2] as i64, end[3] as i64);
+            let mut live_v = _mm256_setr_epi64x(
+                -i64::from(live & 1),
+                -i64::from((live >> 1) & 1),
+                -i64::from((live >> 2) & 1),
+                -i64::from((live >> 3) & 1),
+            );
+            let [mut t0, mut t1, mut t2] = t;
+            let mut k = k0;
+            // Per lane: the window cell being gathered and its marks so far (0: none).
+            let mut cur_cell = _mm256_set1_epi64x(-1);
+            let mut cur_bits = zero;
+            loop {
+                // RayStepper::step in every lane: the axis of the smallest t (ties: z, then y).
+                let c01 = _mm256_cmp_pd::<_CMP_LT_OQ>(t0, t1);
+                let cx = _mm256_and_pd(c01, _mm256_cmp_pd::<_CMP_LT_OQ>(t0, t2));
+                let cy = _mm256_andnot_pd(c01, _mm256_cmp_pd::<_CMP_LT_OQ>(t1, t2));
+                let cxy = _mm256_or_pd(cx, cy);
+                t0 = _mm256_add_pd(t0, _mm256_and_pd(cx, dt[0]));
+                t1 = _mm256_add_pd(t1, _mm256_and_pd(cy, dt[1]));
+                t2 = _mm256_add_pd(t2, _mm256_andnot_pd(cxy, dt[2]));
+                let (ix, iy, ixy) = (
+                    _mm256_castpd_si256(cx),
+                    _mm256_castpd_si256(cy),
+                    _mm256_castpd_si256(cxy),
+                );
+                let step = _mm256_or_si256(
+                    _mm256_or_si256(_mm256_and_si256(ix, inc[0]), _mm256_and_si256(iy, inc[1])),
+                    _mm256_andnot_si256(ixy, inc[2]),
+                );
+                k = _mm256_add_epi64(k, step);
+                // min_pd(a, b) is `a < b ? a : b`, i.e. std::min(std::min(t0, t1), t2).
+                let m = _mm256_min_pd(t2, _mm256_min_pd(t1, t0));
+                let done = _mm256_or_si256(
+                    _mm256_cmpeq_epi64(k, end),
+                    _mm256_castpd_si256(_mm256_cmp_pd::<_CMP_GT_OQ>(m, length)),
+                );
+                // Lanes with a key to mark this step; a lane once done stays done.
+                live_v = _mm256_andnot_si256(done, live_v);
+                let go = live_v;
+
+                // The key's window cell and its bit in the brick (as `voxels::Scratch::mark`);
+                // a field below the window wraps to a huge value and fails its test.
+                let r = _mm256_sub_epi64(_mm256_and_si256(_mm256_srli_epi64::<2>(k), brick), lo);
+                let x = _mm256_and_si256(r, field);
+                let y = _mm256_and_si256(_mm256_srli_epi64::<21>(r), field);
+                let z = _mm256_srli_epi64::<42>(r);
+                let inside = _mm256_and_si256(
+                    _mm256_and_si256(_mm256_cmpgt_epi64(dx, x), _mm256_cmpgt_epi64(dy, y)),
+                    _mm256_cmpgt_epi64(dz, z),
+                );
+                let cell = _mm256_add_epi64(
+                    x,
+                    _mm256_mul_epu32(dx, _mm256_add_epi64(y, _mm256_mul_epu32(dy, z))),
+                );
+                let lin = _mm256_or_si256(
+                    _mm256_or_si256(
+                        _mm256_and_si256(k, _mm256_set1_epi64x(3)),
+                        _mm256_and_si256(_mm256_srli_epi64::<19>(k), _mm256_set1_epi64x(0xc)),
+                    ),
+                    _mm256_and_si256(_mm256_srli_epi64::<38>(k), _mm256_set1_epi64x(0x30)),
+                );
+                let bit = _mm256_sllv_epi64(one, lin);
+                let fast = _mm256_and_si256(go, inside);
+                let same = _mm256_cmpeq_epi64(cell, cur_cell);
+                // A lane leaving its cell writes the marks gathered there.
+                let flush = _mm256_andnot_si256(
+                    _mm256_or_si256(same, _mm256_cmpeq_epi64(cur_bits, zero)),
+                    fast,
+                );
+                pending.push(
+                    cur_cell,
+                    cur_bits,
+                    _mm256_movemask_pd(_mm256_castsi256_pd(flush)) as u32,
+                );
+                let gathered = _mm256_or_si256(_mm256_and_si256(same, cur_bits), bit);
+                cur_bits = _mm256_blendv_epi8(cur_bits, gathered, fast);
+                cur_cell = _mm256_blendv_epi8(cur_cell, cell, fast);
+                let slow = _mm256_movemask_pd(_mm256_castsi256_pd(_mm256_andnot_si256(inside, go)));
+                if slow != 0 {
+                    let kk = epi_lanes(k);
+                    for (l, &key) in kk.iter().enumerate() {
+                        if slow & (1 << l) != 0 {
+                            marks.mark_key(key);
+                        }
+                    }
+                }
+                if pending.n > PENDING - 8 {
+                    pending.drain(marks);
+                }
+                if _mm256_testz_si256(go, go) != 0 {
+                    break;
+                }
+            }
+            let rest = _mm256_xor_si256(_mm256_cmpeq_epi64(cur_bits, zero), _mm256_set1_epi64x(-1));
+            pending.push(
+                cur_cell,
+                cur_bits,
+                _mm256_movemask_pd(_mm256_castsi256_pd(rest)) as u32,
+            );
+            if pending.n > PENDING - 8 {
+                pending.drain(marks);
+            }
+        }
+        pending.drain(marks);
+    }
+}
+
 /// Bias and mask of the packed 21-bit key fields of the stepping loop.
 pub(crate) const BIAS: u64 = 1 << 17;
 pub(crate) const FIELD: u64 = (1 << 21) - 1;
@@ -252,6 +583,144 @@ mod tests {
                     ok.then_some(fast),
                     "res {res} {o:?} -> {e:?}"
                 );
+            }
+        }
+    }
+
+    /// Every key of every ray through `step` (origin key first), grouped by ray.
+    fn batched(
+        r: &Resolution,
+        origin: [f32; 3],
+        ends: &[[f32; 3]],
+        step: fn(std::vec::IntoIter<RayStepper>, &mut dyn FnMut(usize, u64)),
+    ) -> Vec<Option<Vec<Key>>> {
+        let ko = r.coord_to_key(origin);
+        let mut out: Vec<Option<Vec<Key>>> = Vec::new();
+        let mut which = Vec::new();
+        let mut steppers = Vec::new();
+        for &e in ends {
+            match (ko, r.coord_to_key(e)) {
+                (Some(ko), Some(ke)) => {
+                    let s = RayStepper::new(r, origin, ko, e, ke);
+                    out.push(Some(if s.is_some() { vec![ko] } else { vec![] }));
+                    if let Some(s) = s {
+                        which.push(out.len() - 1);
+                        steppers.push(s);
+                    }
+                }
+                _ => out.push(None),
+            }
+        }
+        step(steppers.into_iter(), &mut |n, k| {
+            if let Some(Some(v)) = out.get_mut(which[n]) {
+                v.push(unpack(k));
+            }
+        });
+        out
+    }
+
+    /// Records marked keys; cells are decoded back to keys.
+    struct TestMarks {
+        lo_packed: u64,
+        lo: [u32; 3],
+        dim: [u32; 3],
+        keys: Vec<Key>,
+    }
+
+    impl FreeMarks for TestMarks {
+        fn window(&self) -> (u64, [u32; 3]) {
+            (self.lo_packed, self.dim)
+        }
+        fn mark_cell(&mut self, cell: u32, bits: u64) {
+            let [dx, dy, _] = self.dim;
+            let c = [cell % dx, (cell / dx) % dy, cell / dx / dy];
+            for lin in (0..64).filter(|l| bits & (1 << l) != 0) {
+                let v = [lin & 3, (lin >> 2) & 3, lin >> 4];
+                self.keys.push(Key(
+                    [0, 1, 2].map(|i| (((self.lo[i] + c[i]) << 2) + v[i]) as u16)
+                ));
+            }
+        }
+        fn mark_key(&mut self, key: u64) {
+            self.keys.push(unpack(key));
+        }
+    }
+
+    #[test]
+    fn batched_stepping_equals_the_transcription() {
+        // Bundles of rays from one origin (as in a scan): random lengths from 0 to ~40 m, many
+        // ends and origins on voxel borders (ties, the length stop rule), for both kernels.
+        let mut s = 0x9e37_79b9_7f4a_7c15u64;
+        let mut rnd = move || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            s
+        };
+        for res in [0.05, 0.1, 0.07, 0.2, 1.0] {
+            let r = Resolution::new(res).unwrap();
+            for bundle in 0..40 {
+                let mut pt = |grid: bool, scale: u64| {
+                    [0; 3].map(|_| {
+                        let v = (rnd() % (2 * scale)) as f32 / 100.0 - scale as f32 / 100.0;
+                        if grid {
+                            (v / res as f32).round() * res as f32
+                        } else {
+                            v
+                        }
+                    })
+                };
+                let origin = pt(bundle % 4 == 0, 500);
+                let ends: Vec<[f32; 3]> = (0..1500)
+                    .map(|i| {
+                        let scale = [5, 100, 1000, 4000][i % 4];
+                        let e = pt(i % 3 == 0, scale);
+                        [origin[0] + e[0], origin[1] + e[1], origin[2] + e[2]]
+                    })
+                    .collect();
+                let want: Vec<_> = ends.iter().map(|&e| reference(&r, origin, e)).collect();
+                assert_eq!(
+                    batched(&r, origin, &ends, |rays, visit| step_rays_pairs(
+                        rays, visit
+                    )),
+                    want,
+                    "res {res}: pairs"
+                );
+                // The marks of all rays (origin keys aside) as sets, with windows that hold
+                // all, some or none of the keys.
+                let mut all: Vec<Key> = want
+                    .iter()
+                    .flatten()
+                    .flat_map(|v| v.iter().skip(1))
+                    .copied()
+                    .collect();
+                all.sort_unstable();
+                all.dedup();
+                let Some(ko) = r.coord_to_key(origin) else {
+                    continue;
+                };
+                for (half, shift) in [(50u32, 0i64), (3, 0), (2, 5), (1, 40_000)] {
+                    let b = ko.0.map(|a| i64::from(a >> 2) + shift - i64::from(half));
+                    let lo = b.map(|c| c.clamp(0, 1 << 14) as u64 + (BIAS >> 2));
+                    let mut sink = TestMarks {
+                        lo_packed: lo[0] | (lo[1] << 21) | (lo[2] << 42),
+                        lo: b.map(|c| c.clamp(0, 1 << 14) as u32),
+                        dim: [2 * half + 1; 3],
+                        keys: Vec::new(),
+                    };
+                    let keyed = ends.iter().filter_map(|&e| Some((e, r.coord_to_key(e)?)));
+                    mark_free(&r, origin, ko, keyed, &mut sink);
+                    sink.keys.sort_unstable();
+                    sink.keys.dedup();
+                    // Window cells fit u32 as in `voxels` (at most 2^20 cells).
+                    assert!(
+                        sink.keys == all,
+                        "res {res}: window ±{half} shifted {shift}: {} keys marked, {} expected, first difference {:?}",
+                        sink.keys.len(),
+                        all.len(),
+                        sink.keys.iter().zip(&all).find(|(a, b)| a != b)
+                    );
+                }
             }
         }
     }

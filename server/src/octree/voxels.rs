@@ -13,7 +13,7 @@ use std::hash::{BuildHasherDefault, Hasher};
 
 use super::key::{Key, Resolution, morton3};
 use super::model::SensorModel;
-use super::ray::{BIAS, FIELD, RayStepper, pack, unpack};
+use super::ray::{BIAS, FIELD, FreeMarks, mark_free, pack, unpack};
 use super::tree::{Octree, TreeBuilder};
 use crate::cloud::OriginScan;
 
@@ -208,6 +208,27 @@ impl Scratch {
         u64::from(self.lo[0] + x)
             | (u64::from(self.lo[1] + y) << 14)
             | (u64::from(self.lo[2] + z) << 28)
+    }
+}
+
+impl FreeMarks for Scratch {
+    fn window(&self) -> (u64, [u32; 3]) {
+        (self.lo_packed, self.dim)
+    }
+
+    #[inline]
+    fn mark_cell(&mut self, cell: u32, bits: u64) {
+        if let Some(w) = self.window.get_mut(cell as usize) {
+            if w[0] == 0 {
+                self.touched.push(cell);
+            }
+            w[0] |= bits;
+        }
+    }
+
+    #[inline]
+    fn mark_key(&mut self, key: u64) {
+        self.mark(key, 0);
     }
 }
 
@@ -521,8 +542,6 @@ impl VoxelMap {
 }
 
 /// Marks the free keys of all rays from `origin` to `ends` (origin voxel included once).
-/// Rays are stepped in pairs of neighbours (similar lengths), interleaved, so that their
-/// loop-carried dependency chains overlap; all state stays in registers.
 fn mark_rays(
     scratch: &mut Scratch,
     res: &Resolution,
@@ -530,46 +549,17 @@ fn mark_rays(
     key_origin: Key,
     ends: &[([f32; 3], Key, bool)],
 ) {
-    let mut rays = ends
-        .iter()
-        .filter_map(|&(end, key_end, _)| RayStepper::new(res, origin, key_origin, end, key_end));
-    let Some(first) = rays.next() else {
+    if ends.iter().all(|e| e.1 == key_origin) {
         return;
-    };
-    scratch.mark(pack(key_origin), 0);
-    let mut pending = Some(first);
-    while let Some(mut a) = pending.take().or_else(|| rays.next()) {
-        let Some(mut b) = rays.next() else {
-            while let Some(k) = a.step() {
-                scratch.mark(k, 0);
-            }
-            break;
-        };
-        loop {
-            let (ka, kb) = (a.step(), b.step());
-            match (ka, kb) {
-                (Some(ka), Some(kb)) => {
-                    scratch.mark(ka, 0);
-                    scratch.mark(kb, 0);
-                }
-                (Some(ka), None) => {
-                    scratch.mark(ka, 0);
-                    while let Some(k) = a.step() {
-                        scratch.mark(k, 0);
-                    }
-                    break;
-                }
-                (None, Some(kb)) => {
-                    scratch.mark(kb, 0);
-                    while let Some(k) = b.step() {
-                        scratch.mark(k, 0);
-                    }
-                    break;
-                }
-                (None, None) => break,
-            }
-        }
     }
+    scratch.mark(pack(key_origin), 0);
+    mark_free(
+        res,
+        origin,
+        key_origin,
+        ends.iter().map(|e| (e.0, e.1)),
+        scratch,
+    );
 }
 
 /// Applies `delta` to the voxels of `bits` in block `b`: the early abort for known voxels,
