@@ -253,6 +253,27 @@ mod avx2 {
     /// Capacity of the buffer of gathered (cell, marks) pairs written in batches.
     const PENDING: usize = 256;
 
+    /// Per 4-bit lane mask, the 32-bit permutation moving the 64-bit lanes set in the mask to
+    /// the front, in order.
+    const COMPRESS: [[i32; 8]; 16] = {
+        let mut t = [[0i32; 8]; 16];
+        let mut m = 0;
+        while m < 16 {
+            let mut j = 0;
+            let mut l = 0;
+            while l < 4 {
+                if m & (1 << l) != 0 {
+                    t[m][2 * j] = 2 * l as i32;
+                    t[m][2 * j + 1] = 2 * l as i32 + 1;
+                    j += 1;
+                }
+                l += 1;
+            }
+            m += 1;
+        }
+        t
+    };
+
     #[target_feature(enable = "avx2")]
     fn epi_lanes(v: __m256i) -> [u64; 4] {
         [
@@ -271,16 +292,22 @@ mod avx2 {
     }
 
     impl Pending {
-        /// Appends the lanes of `cell`/`bits` whose bit is set in `lanes`.
+        /// Appends the lanes of `cell`/`bits` whose bit is set in `lanes`: they are moved to
+        /// the front (a permutation from [`COMPRESS`]) and all four stored, so the only
+        /// serial dependency is the count.
         #[target_feature(enable = "avx2")]
         fn push(&mut self, cell: __m256i, bits: __m256i, lanes: u32) {
-            let (c, b) = (epi_lanes(cell), epi_lanes(bits));
+            let p = COMPRESS[(lanes & 15) as usize];
+            let idx = _mm256_setr_epi32(p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]);
+            let c = epi_lanes(_mm256_permutevar8x32_epi32(cell, idx));
+            let b = epi_lanes(_mm256_permutevar8x32_epi32(bits, idx));
+            let base = self.n;
             for l in 0..4 {
-                let i = self.n % PENDING;
+                let i = (base + l) % PENDING;
                 self.cell[i] = c[l] as u32;
                 self.bits[i] = b[l];
-                self.n = i + ((lanes >> l) & 1) as usize;
             }
+            self.n = base + lanes.count_ones() as usize;
         }
 
         fn drain(&mut self, marks: &mut impl FreeMarks) {

@@ -408,10 +408,11 @@ impl VoxelMap {
                 continue;
             }
             let d = [p[0] - origin[0], p[1] - origin[1], p[2] - origin[2]];
-            let norm = f64::from(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-            let (end, hit) = if max_range < 0.0 || norm <= max_range {
+            let norm = || f64::from(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            let (end, hit) = if max_range < 0.0 || norm() <= max_range {
                 (*p, true)
             } else {
+                let norm = norm();
                 stats.max_range += 1;
                 // Vector3::normalized() divides by (float)norm; new_end = origin + dir * (float)maxrange.
                 let n = norm as f32;
