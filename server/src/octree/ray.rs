@@ -263,8 +263,8 @@ mod avx2 {
             let mut l = 0;
             while l < 4 {
                 if m & (1 << l) != 0 {
-                    t[m][2 * j] = 2 * l as i32;
-                    t[m][2 * j + 1] = 2 * l as i32 + 1;
+                    t[m][2 * j] = 2 * l;
+                    t[m][2 * j + 1] = 2 * l + 1;
                     j += 1;
                 }
                 l += 1;
