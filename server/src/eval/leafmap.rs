@@ -9,10 +9,10 @@
 //! tests compare the two on every reference file) and return the same [`OctreeError`]s.
 
 use super::VoxelBox;
-use crate::octree::{Octree, OctreeError, Resolution, SensorModel, TREE_DEPTH};
-
-const BT_MAGIC: &str = "# Octomap OcTree binary file";
-const OT_MAGIC: &str = "# Octomap OcTree file";
+use crate::octree::{
+    BT_MAGIC, Header, OT_MAGIC, Octree, OctreeError, Resolution, SensorModel, TREE_DEPTH,
+    parse_header,
+};
 
 /// Bits of a packed code that hold the Morton index of the leaf's first voxel.
 const MORTON_BITS: u32 = 48;
@@ -178,7 +178,7 @@ impl LeafMap {
 
     /// Reads a `.bt` file (2-bit child codes per inner node in preorder).
     pub fn read_bt(bytes: &[u8], model: SensorModel) -> Result<Self, OctreeError> {
-        let (size, res, data) = parse_header(bytes, BT_MAGIC)?;
+        let (Header { size, res }, data) = parse_header(bytes, BT_MAGIC)?;
         if size == 0 {
             return Ok(Builder::new(0, &model).finish(res, model, 0));
         }
@@ -239,7 +239,7 @@ impl LeafMap {
 
     /// Reads an `.ot` file (f32 log-odds and child mask per node, in preorder).
     pub fn read_ot(bytes: &[u8], model: SensorModel) -> Result<Self, OctreeError> {
-        let (size, res, data) = parse_header(bytes, OT_MAGIC)?;
+        let (Header { size, res }, data) = parse_header(bytes, OT_MAGIC)?;
         if size == 0 {
             return Ok(Builder::new(0, &model).finish(res, model, 0));
         }
@@ -355,73 +355,6 @@ impl LeafMap {
 #[inline]
 pub(super) fn split_code(c: u64) -> (u64, u64) {
     (c & MORTON_MASK, 1u64 << (3 * (c >> MORTON_BITS)))
-}
-
-/// The header rules of `AbstractOcTree::readHeader` (as `octree::io` implements them):
-/// magic first line, then `id`, `size`, `res` in any order, other lines skipped, up to the
-/// `data` line. Returns (size, resolution, data).
-fn parse_header<'a>(
-    bytes: &'a [u8],
-    magic: &'static str,
-) -> Result<(u64, Resolution, &'a [u8]), OctreeError> {
-    if !bytes.starts_with(magic.as_bytes()) {
-        return Err(OctreeError::BadMagic { expected: magic });
-    }
-    let line_end = |p: usize| {
-        bytes
-            .get(p..)
-            .and_then(|s| s.iter().position(|&b| b == b'\n'))
-            .map_or(bytes.len(), |i| p + i + 1)
-    };
-    let mut p = line_end(0);
-    let token = |p: &mut usize| -> &'a [u8] {
-        let s = bytes.get(*p..).unwrap_or_default();
-        let start = s
-            .iter()
-            .position(|b| !b.is_ascii_whitespace())
-            .unwrap_or(s.len());
-        let len = s[start..]
-            .iter()
-            .position(|b| b.is_ascii_whitespace())
-            .unwrap_or(s.len() - start);
-        *p += start + len;
-        &s[start..start + len]
-    };
-    let text = |t: &[u8]| String::from_utf8_lossy(t).into_owned();
-    let (mut id, mut size, mut res) = (None, None, None);
-    loop {
-        let t = token(&mut p);
-        match t {
-            b"" => return Err(OctreeError::BadHeader("no `data` line".into())),
-            b"data" => {
-                p = line_end(p);
-                break;
-            }
-            b"id" => id = Some(text(token(&mut p))),
-            b"size" => {
-                let v = text(token(&mut p));
-                size = Some(
-                    v.parse::<u64>()
-                        .map_err(|_| OctreeError::BadHeader(format!("size {v:?}")))?,
-                );
-            }
-            b"res" => {
-                let v = text(token(&mut p));
-                res = Some(
-                    v.parse::<f64>()
-                        .map_err(|_| OctreeError::BadHeader(format!("res {v:?}")))?,
-                );
-            }
-            _ => p = line_end(p),
-        }
-    }
-    match id.as_deref() {
-        Some("OcTree") | Some("1") => {}
-        Some(other) => return Err(OctreeError::UnsupportedTreeType(other.into())),
-        None => return Err(OctreeError::BadHeader("no id".into())),
-    }
-    let res = Resolution::new(res.ok_or_else(|| OctreeError::BadHeader("no res".into()))?)?;
-    Ok((size.unwrap_or(0), res, bytes.get(p..).unwrap_or_default()))
 }
 
 #[cfg(test)]

@@ -6,8 +6,10 @@ use super::key::{Resolution, TREE_DEPTH};
 use super::model::SensorModel;
 use super::tree::Octree;
 
-const BT_MAGIC: &str = "# Octomap OcTree binary file";
-const OT_MAGIC: &str = "# Octomap OcTree file";
+/// First line of a `.bt` file.
+pub(crate) const BT_MAGIC: &str = "# Octomap OcTree binary file";
+/// First line of an `.ot` file.
+pub(crate) const OT_MAGIC: &str = "# Octomap OcTree file";
 const COMMENT: &str =
     "\n# (feel free to add / change comments, but leave the first line as it is!)\n#\n";
 
@@ -44,14 +46,16 @@ fn header(magic: &str, nodes: usize, res: f64) -> Vec<u8> {
 }
 
 /// Fields of an OctoMap header.
-struct Header {
-    size: u64,
-    res: Resolution,
+pub(crate) struct Header {
+    /// Node count (OctoMap's `size`).
+    pub(crate) size: u64,
+    /// Voxel size.
+    pub(crate) res: Resolution,
 }
 
 /// Parses the text header the way `AbstractOcTree::readHeader` does; returns the data after
 /// the `data` line.
-fn parse_header<'a>(
+pub(crate) fn parse_header<'a>(
     bytes: &'a [u8],
     magic: &'static str,
 ) -> Result<(Header, &'a [u8]), OctreeError> {

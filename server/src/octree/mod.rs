@@ -31,6 +31,7 @@ mod voxels;
 
 pub use graph::{read_graph, transform_point};
 pub use io::format_resolution;
+pub(crate) use io::{BT_MAGIC, Header, OT_MAGIC, parse_header};
 pub use key::{KEY_CENTER, Key, Resolution, TREE_DEPTH};
 pub use model::{SensorModel, logodds};
 pub use ray::ray_keys;
