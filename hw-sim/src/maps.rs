@@ -110,6 +110,8 @@ pub struct MapResult {
     pub cut: usize,
     /// Steps the emulated rotor lost (driven faster than it follows): must be 0.
     pub steps_lost: u64,
+    /// The IMU frames seen while scanning.
+    pub imu: ImuSeen,
     /// I2C transactions per simulated second during the map.
     pub i2c_per_s: f64,
     /// The recorded session.
@@ -121,6 +123,15 @@ impl MapResult {
     pub fn points(&self) -> usize {
         self.cloud.iter().map(|s| s.points.len()).sum()
     }
+}
+
+/// The IMU stream the server recorded during a map.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct ImuSeen {
+    /// `Imu` frames recorded.
+    pub frames: u64,
+    /// The last Madgwick orientation `[w, x, y, z]` the edge sent.
+    pub last_orientation: Option<[f32; 4]>,
 }
 
 /// Where and how maps are made.
@@ -189,7 +200,8 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
 
     // Scanning: the server has the Sweep's revolutions at the planned rate.
     let ready_by = Instant::now() + Duration::from_secs_f64(60.0 / time_scale + 20.0);
-    wait_for(&mut server, ready_by, |body| {
+    let mut imu = ImuSeen::default();
+    wait_for(&mut server, ready_by, &mut imu, |body| {
         matches!(body, Body::Revolution(rev) if rev.sensor == scan3d_protocol::SensorId::SWEEP
             && rev.t1_ns.saturating_sub(rev.t0_ns) > (0.8e9 / f64::from(plan.motor_hz)) as u64)
     })
@@ -211,7 +223,7 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
         let sim_budget = 130.0 / f64::from(plan.motor_hz) + 10.0;
         let deadline = Instant::now() + Duration::from_secs_f64(sim_budget / time_scale + 30.0);
         let mut outcome = None;
-        wait_for(&mut server, deadline, |body| match body {
+        wait_for(&mut server, deadline, &mut imu, |body| match body {
             Body::StaticScan(StaticScan::Warning(_)) => {
                 warnings += 1;
                 false
@@ -275,6 +287,7 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
         warnings,
         cut,
         steps_lost,
+        imu,
         i2c_per_s: transactions as f64 / (bus_ns.max(1) as f64 / 1e9),
         session_dir: session,
     })
@@ -319,13 +332,19 @@ pub fn build_map(
 fn wait_for(
     server: &mut ServerThread,
     deadline: Instant,
+    imu: &mut ImuSeen,
     mut done: impl FnMut(&Body) -> bool,
 ) -> anyhow::Result<()> {
     loop {
         while let Ok(event) = server.events.try_recv() {
-            if let IngestEvent::Frame { frame, .. } = event
-                && done(&frame.body)
-            {
+            let IngestEvent::Frame { frame, .. } = event else {
+                continue;
+            };
+            if let Body::Imu(sample) = &frame.body {
+                imu.frames += 1;
+                imu.last_orientation = sample.orientation.or(imu.last_orientation);
+            }
+            if done(&frame.body) {
                 return Ok(());
             }
         }

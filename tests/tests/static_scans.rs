@@ -81,6 +81,22 @@ fn run(name: &'static str, positions: Vec<Position>, noise: RangeNoise) -> Vec<C
     };
     let result = scan_map(&plan, &setup).expect("the static scan runs end to end");
     assert_eq!(result.steps_lost, 0, "the rotor lost steps");
+    // The IMU streamed all along (200 Hz, ~60 s simulated), fused on the edge: the emulated
+    // rig stands level, so the Madgwick attitude has roll and pitch near zero.
+    assert!(result.imu.frames > 2000, "{} IMU frames", result.imu.frames);
+    let [w, x, y, z] = result
+        .imu
+        .last_orientation
+        .expect("an orientation")
+        .map(f64::from);
+    let roll = (2.0 * (w * x + y * z)).atan2(1.0 - 2.0 * (x * x + y * y));
+    let pitch = (2.0 * (w * y - z * x)).clamp(-1.0, 1.0).asin();
+    assert!(
+        roll.to_degrees().abs() < 2.0 && pitch.to_degrees().abs() < 2.0,
+        "roll {} pitch {}",
+        roll.to_degrees(),
+        pitch.to_degrees()
+    );
     assert!(clouds.join(format!("{name}.ply")).exists());
     assert!(clouds.join(format!("{name}.scans")).exists());
     result
