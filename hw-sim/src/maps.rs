@@ -17,8 +17,10 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use scan3d_edge::clock::{Clock, ScaledClock, SharedClock};
-use scan3d_protocol::{Body, Command, StaticScan, StaticScanOutcome};
+use scan3d_protocol::{Body, StaticScan, StaticScanOutcome};
+use scan3d_server::cli::DataDirArgs;
 use scan3d_server::cli::assemble::assemble_session;
+use scan3d_server::cli::scan::{At, ScanArgs};
 use scan3d_server::cloud::OriginScan;
 use scan3d_server::cloud::assembly::{Position, cut_range};
 use scan3d_server::cloud::filter::{Filter, apply_all};
@@ -211,14 +213,25 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
     let mut warnings = 0;
     for position in &plan.positions {
         rig.move_to(position.clone());
-        let command = Command::StartStaticScan {
-            position: position.name.clone(),
-            x_m: position.x_m,
-            y_m: position.y_m,
-            heading_deg: Some(position.heading_deg),
+        // What the operator types: `scan3d scan --edge sim-edge --at X,Y,HEADING --name POS`,
+        // through the server's control socket.
+        let scan = ScanArgs {
+            edge: EDGE_NAME.into(),
+            at: Some(At {
+                x_m: position.x_m,
+                y_m: position.y_m,
+                heading_deg: Some(position.heading_deg),
+            }),
+            name: Some(position.name.clone()),
+            stop: false,
+            data: DataDirArgs {
+                data_dir: Some(data_dir.to_path_buf()),
+                config: PathBuf::from("/nonexistent/server.toml"),
+            },
         };
         let started = clock.now_ns();
-        server.control().send(EDGE_NAME, command)?;
+        scan3d_server::cli::scan::run(&scan, &mut std::io::sink())
+            .with_context(|| format!("scan3d scan at {}", position.name))?;
         // 100 revolutions plus the way home; generous for a loaded machine.
         let sim_budget = 130.0 / f64::from(plan.motor_hz) + 10.0;
         let deadline = Instant::now() + Duration::from_secs_f64(sim_budget / time_scale + 30.0);

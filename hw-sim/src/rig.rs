@@ -14,7 +14,7 @@ use scan3d_edge::daemon::{self, DaemonReport, I2cHardware};
 use scan3d_edge::drivers::rplidar::RplidarConfig;
 use scan3d_edge::drivers::sweep::SweepConfig;
 use scan3d_protocol::{Body, SensorId};
-use scan3d_server::ingest::control::EdgeControl;
+use scan3d_server::ingest::control::{EdgeControl, serve_socket, socket_path};
 use scan3d_server::ingest::pki::{self, PairRequest};
 use scan3d_server::ingest::recorder::read_session;
 use scan3d_server::ingest::server::{IngestConfig, IngestEvent, IngestServer, IngestStats};
@@ -183,8 +183,11 @@ pub struct ServerThread {
 }
 
 impl ServerThread {
-    /// Binds and starts serving.
+    /// Binds and starts serving, with the operator's control socket in the data directory
+    /// (`data_dir/control.sock`, as `scan3d serve` has it).
     pub fn start(config: IngestConfig) -> anyhow::Result<Self> {
+        std::fs::create_dir_all(&config.data_dir)?;
+        let socket = socket_path(&config.data_dir);
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(2)
             .enable_all()
@@ -194,12 +197,21 @@ impl ServerThread {
         let control = server.control();
         let (events_tx, events) = mpsc::unbounded_channel();
         let (stop, stopped) = oneshot::channel::<()>();
+        let socket_control = control.clone();
         let thread = std::thread::Builder::new()
             .name("ingest server".into())
             .spawn(move || {
-                runtime.block_on(server.run(Some(events_tx), async {
-                    let _ = stopped.await;
-                }))
+                runtime.block_on(async move {
+                    let control = tokio::spawn(serve_socket(socket.clone(), socket_control));
+                    let stats = server
+                        .run(Some(events_tx), async {
+                            let _ = stopped.await;
+                        })
+                        .await;
+                    control.abort();
+                    let _ = std::fs::remove_file(&socket);
+                    stats
+                })
             })?;
         Ok(Self {
             addr,
