@@ -686,7 +686,7 @@ mod tests {
         };
         for res in [0.05, 0.1, 0.07, 0.2, 1.0] {
             let r = Resolution::new(res).unwrap();
-            for bundle in 0..40 {
+            for bundle in 0..16 {
                 let mut pt = |grid: bool, scale: u64| {
                     [0; 3].map(|_| {
                         let v = (rnd() % (2 * scale)) as f32 / 100.0 - scale as f32 / 100.0;
