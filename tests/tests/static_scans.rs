@@ -69,7 +69,7 @@ fn run(name: &'static str, positions: Vec<Position>, noise: RangeNoise) -> Vec<C
         work: &dir.path().join("work"),
         data_dir: &dir.path().join("data"),
         clouds_dir: &clouds,
-        time_scale: 20.0,
+        time_scale: 10.0,
         seed: 5,
         noise,
     };
