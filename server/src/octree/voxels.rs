@@ -108,6 +108,7 @@ struct Scratch {
 const PACKED_BRICK: u64 = (FIELD >> 2) | ((FIELD >> 2) << 21) | ((FIELD >> 2) << 42);
 
 /// Morton bit index inside a brick of the linear index x + 4y + 16z.
+#[cfg(test)]
 const LIN_TO_MORTON: [u8; 64] = {
     let mut t = [0u8; 64];
     let mut i = 0;
@@ -124,15 +125,27 @@ const LIN_TO_MORTON: [u8; 64] = {
     t
 };
 
-/// Reorders a brick's marks from linear bit order (x + 4y + 16z) to Morton order.
-#[inline]
-fn to_morton(mut lin: u64) -> u64 {
-    let mut m = 0;
-    while lin != 0 {
-        m |= 1u64 << LIN_TO_MORTON[lin.trailing_zeros() as usize];
-        lin &= lin - 1;
+/// The bits of a 64-bit set with index bits `i` and `j` exchanged (`i < j`): a delta swap.
+const fn swap_index_bits(w: u64, i: u32, j: u32) -> u64 {
+    let d = (1u32 << j) - (1u32 << i);
+    // Positions whose index has bit i set and bit j clear: the lower of each swapped pair.
+    let mut mask = 0u64;
+    let mut q = 0;
+    while q < 64 {
+        if (q >> i) & 1 == 1 && (q >> j) & 1 == 0 {
+            mask |= 1 << q;
+        }
+        q += 1;
     }
-    m
+    let t = ((w >> d) ^ w) & mask;
+    w ^ t ^ (t << d)
+}
+
+/// Reorders a brick's marks from linear bit order (x0 x1 y0 y1 z0 z1) to Morton order
+/// (x0 y0 z0 x1 y1 z1): three index-bit swaps moving x1 to 3, y0 to 1, y1 to 4 and z0 to 2.
+#[inline]
+fn to_morton(lin: u64) -> u64 {
+    swap_index_bits(swap_index_bits(swap_index_bits(lin, 1, 3), 1, 4), 1, 2)
 }
 
 impl Scratch {
@@ -606,6 +619,21 @@ mod tests {
                 (p & 3) | ((p >> 19) & 0xc) | ((p >> 38) & 0x30),
                 u64::from(lin)
             );
+        }
+    }
+
+    #[test]
+    fn to_morton_moves_each_linear_bit_to_its_morton_bit() {
+        for (lin, &m) in LIN_TO_MORTON.iter().enumerate() {
+            assert_eq!(to_morton(1 << lin), 1 << m, "bit {lin}");
+        }
+        let mut w = 0x0123_4567_89ab_cdefu64;
+        for _ in 0..100 {
+            let by_bits = (0..64)
+                .filter(|l| w & (1 << l) != 0)
+                .fold(0u64, |m, l| m | (1 << LIN_TO_MORTON[l]));
+            assert_eq!(to_morton(w), by_bits);
+            w = w.rotate_left(7).wrapping_mul(0x9e37_79b9_7f4a_7c15);
         }
     }
 
