@@ -8,16 +8,16 @@
 //! (default 7) runs, as the machine is shared. The two map files are built once and cached in
 //! the target directory.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
 
+use common::{octomap_bench, shared};
+
 use scan3d_server::eval::{LeafMap, evaluate};
 use scan3d_server::octree::{Octree, Resolution, SensorModel, VoxelMap, read_graph};
-
-fn shared() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared")
-}
 
 fn best<T>(reps: usize, mut f: impl FnMut() -> T) -> (f64, T) {
     let mut best = f64::MAX;
@@ -61,35 +61,6 @@ fn maps(dir: &Path) -> Option<(PathBuf, PathBuf)> {
     std::fs::write(&ot, tree.to_ot_bytes()).expect("write .ot");
     std::fs::write(&bt, tree.to_bt_bytes()).expect("write .bt");
     Some((ot, bt))
-}
-
-/// Compiles octomap_bench once; `None` (with the reason printed) when OctoMap is unavailable.
-fn octomap_bench() -> Option<PathBuf> {
-    let src = shared().join("tools/octomap_bench.cpp");
-    if !Path::new("/usr/include/octomap/OcTree.h").exists() {
-        println!(
-            "octomap_bench: skipped (no /usr/include/octomap; apt-get install liboctomap-dev)"
-        );
-        return None;
-    }
-    let exe = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("octomap_bench_eval");
-    if !exe.exists() {
-        let ok = Command::new("g++")
-            .args(["-O2", "-DNDEBUG", "-std=c++17", "-o"])
-            .arg(&exe)
-            .arg(&src)
-            .args(["-loctomap", "-loctomath"])
-            .status()
-            .is_ok_and(|s| s.success());
-        if !ok {
-            println!(
-                "octomap_bench: skipped (could not compile {} with g++)",
-                src.display()
-            );
-            return None;
-        }
-    }
-    Some(exe)
 }
 
 /// Best "read" and "compare" seconds of `octomap_bench cmp a b` over `reps` runs.
@@ -165,7 +136,7 @@ fn main() {
         println!("octomap_bench cmp: skipped (EVAL_BENCH_NO_OCTOMAP set)");
         return;
     }
-    if let Some(exe) = octomap_bench() {
+    if let Some(exe) = octomap_bench("octomap_bench_eval") {
         match octomap_cmp(&exe, &ot_path, &bt_path, reps.min(3)) {
             Some((read, cmp)) => println!(
                 "octomap_bench cmp on the same pair: read {:.4} s ({:.1} M nodes/s), confusion only {:.1} ms; \

@@ -7,16 +7,16 @@
 //! `OCTREE_BENCH_NO_OCTOMAP=1` skips OctoMap; `OCTREE_BENCH_WRITE_DIR=d` writes our trees there;
 //! `OCTREE_BENCH_RES=0.2,0.1` picks the resolutions (default 0.05,0.1,0.2).
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
 
+use common::{octomap_bench, shared};
+
 use scan3d_server::cloud::OriginScan;
 use scan3d_server::octree::{Octree, Resolution, SensorModel, VoxelMap, ray_keys, read_graph};
-
-fn shared() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared")
-}
 
 /// Process CPU time in seconds (less sensitive than wall time to other processes on the
 /// shared cores; octomap_bench prints the same clock).
@@ -37,33 +37,6 @@ fn best<T>(reps: usize, mut f: impl FnMut() -> T) -> ((f64, f64), T) {
         out = Some(v);
     }
     ((wall, cpu), out.expect("reps > 0"))
-}
-
-/// Compiles octomap_bench once; `None` (with the reason printed) when OctoMap is unavailable.
-fn octomap_bench() -> Option<PathBuf> {
-    let src = shared().join("tools/octomap_bench.cpp");
-    if !Path::new("/usr/include/octomap/OcTree.h").exists() {
-        println!("OctoMap: skipped (no /usr/include/octomap; apt-get install liboctomap-dev)");
-        return None;
-    }
-    let exe = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("octomap_bench");
-    if !exe.exists() {
-        let ok = Command::new("g++")
-            .args(["-O2", "-DNDEBUG", "-std=c++17", "-o"])
-            .arg(&exe)
-            .arg(&src)
-            .args(["-loctomap", "-loctomath"])
-            .status()
-            .is_ok_and(|s| s.success());
-        if !ok {
-            println!(
-                "OctoMap: skipped (could not compile {} with g++)",
-                src.display()
-            );
-            return None;
-        }
-    }
-    Some(exe)
 }
 
 /// Runs octomap_bench `reps` times and returns the best of the first number after `key`
@@ -124,7 +97,7 @@ fn main() {
         println!("OctoMap: skipped (OCTREE_BENCH_NO_OCTOMAP set)");
         None
     } else {
-        octomap_bench()
+        octomap_bench("octomap_bench")
     };
     let graph_s = graph.to_string_lossy().into_owned();
 
