@@ -1,12 +1,13 @@
 //! The one pass every metric rests on: a merge of two maps' leaves in Morton order.
 
 use std::collections::HashMap;
-use std::hash::{BuildHasherDefault, Hasher};
+use std::hash::BuildHasherDefault;
 
 use serde::Serialize;
 
 use super::leafmap::{LeafMap, split_code, unmorton};
 use super::{EvalError, FREE, OCCUPIED, Role, UNKNOWN, VoxelBox};
+use crate::octree::U64Hasher;
 
 /// Voxels known in both maps that share one (first map, second map) log-odds pair.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -43,26 +44,6 @@ impl Comparison {
     }
 }
 
-/// A cheap multiplicative hasher for the packed value pairs of the spill map.
-#[derive(Default)]
-struct PairHasher(u64);
-
-impl Hasher for PairHasher {
-    fn write(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            self.write_u64(u64::from(b));
-        }
-    }
-    #[inline]
-    fn write_u64(&mut self, v: u64) {
-        self.0 = (self.0 ^ v).wrapping_mul(0x9e37_79b9_7f4a_7c15);
-    }
-    #[inline]
-    fn finish(&self) -> u64 {
-        self.0.rotate_left(29)
-    }
-}
-
 /// Slots of the direct-mapped front of the histogram (a power of two).
 const SLOTS: usize = 1024;
 
@@ -71,7 +52,7 @@ const SLOTS: usize = 1024;
 /// update is one multiply and one add).
 struct Histogram {
     slots: Vec<(u64, u64)>,
-    spill: HashMap<u64, u64, BuildHasherDefault<PairHasher>>,
+    spill: HashMap<u64, u64, BuildHasherDefault<U64Hasher>>,
 }
 
 impl Histogram {

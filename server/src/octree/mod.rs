@@ -36,6 +36,7 @@ pub use key::{KEY_CENTER, Key, Resolution, TREE_DEPTH};
 pub use model::{SensorModel, logodds};
 pub use ray::ray_keys;
 pub use tree::{Leaf, Leaves, Octree};
+pub(crate) use voxels::U64Hasher;
 pub use voxels::{InsertStats, VoxelMap};
 
 /// Why a file could not be read (or a parameter was rejected).

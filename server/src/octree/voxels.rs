@@ -58,11 +58,12 @@ fn local_bit(k: [u16; 3]) -> u64 {
     1u64 << m
 }
 
-/// A cheap multiplicative hasher for packed brick keys.
+/// A cheap multiplicative hasher for packed `u64` keys (bricks here, value pairs in `eval`):
+/// the keys are already well spread, so one multiply beats SipHash by far.
 #[derive(Default)]
-struct BrickHasher(u64);
+pub(crate) struct U64Hasher(u64);
 
-impl Hasher for BrickHasher {
+impl Hasher for U64Hasher {
     fn write(&mut self, bytes: &[u8]) {
         for &b in bytes {
             self.write_u64(u64::from(b));
@@ -78,7 +79,7 @@ impl Hasher for BrickHasher {
     }
 }
 
-type BrickMap = HashMap<u64, u32, BuildHasherDefault<BrickHasher>>;
+type BrickMap = HashMap<u64, u32, BuildHasherDefault<U64Hasher>>;
 
 /// The values of one brick, in Morton order, and which of them are known.
 #[derive(Clone)]
@@ -100,7 +101,7 @@ struct Scratch {
     lo: [u32; 3],
     lo_packed: u64,
     dim: [u32; 3],
-    overflow: HashMap<u64, [u64; 2], BuildHasherDefault<BrickHasher>>,
+    overflow: HashMap<u64, [u64; 2], BuildHasherDefault<U64Hasher>>,
     ends: Vec<([f32; 3], Key, bool)>,
 }
 
