@@ -406,52 +406,36 @@ impl VoxelMap {
         let mut ends = std::mem::take(&mut self.scratch.ends);
         ends.clear();
         let (mut lo, mut hi) = ([u32::MAX; 3], [0u32; 3]);
-        let mut grow = |k: Key| {
-            for i in 0..3 {
-                let b = u32::from(k.0[i] >> BRICK_SHIFT);
-                lo[i] = lo[i].min(b);
-                hi[i] = hi[i].max(b);
-            }
-        };
         if let Some(k) = origin_key {
-            grow(k);
+            grow(&mut lo, &mut hi, k);
         }
-        for p in points {
-            if !p.iter().all(|c| c.is_finite()) {
-                stats.skipped_nonfinite += 1;
-                continue;
-            }
-            let d = [p[0] - origin[0], p[1] - origin[1], p[2] - origin[2]];
-            let norm = || f64::from(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-            let (end, hit) = if max_range < 0.0 || norm() <= max_range {
-                (*p, true)
-            } else {
-                let norm = norm();
-                stats.max_range += 1;
-                // Vector3::normalized() divides by (float)norm; new_end = origin + dir * (float)maxrange.
-                let n = norm as f32;
-                let dir = if norm > 0.0 {
-                    [d[0] / n, d[1] / n, d[2] / n]
-                } else {
-                    d
+        #[cfg(target_arch = "x86_64")]
+        let fast = max_range < 0.0 && std::arch::is_x86_feature_detected!("avx2");
+        let mut i = 0;
+        while i < points.len() {
+            #[cfg(target_arch = "x86_64")]
+            if fast {
+                // SAFETY: the CPU supports AVX2 (checked above), the only requirement of
+                // `avx2::unlimited_ends`'s `#[target_feature]`.
+                i += unsafe {
+                    avx2::unlimited_ends(
+                        &res,
+                        points.get(i..).unwrap_or(&[]),
+                        &mut ends,
+                        &mut lo,
+                        &mut hi,
+                    )
                 };
-                let mr = max_range as f32;
-                (
-                    [
-                        origin[0] + dir[0] * mr,
-                        origin[1] + dir[1] * mr,
-                        origin[2] + dir[2] * mr,
-                    ],
-                    false,
-                )
-            };
-            match res.coord_to_key(end) {
-                Some(k) => {
-                    grow(k);
-                    ends.push((end, k, hit));
-                }
-                None => stats.out_of_bounds += u64::from(hit),
             }
+            // A group the fast path left (a point out of range, or the last few), or all
+            // points without it.
+            let stop = (i + 4).min(points.len());
+            for p in points.get(i..stop).unwrap_or(&[]) {
+                push_end(
+                    &res, origin, max_range, p, &mut ends, &mut stats, &mut lo, &mut hi,
+                );
+            }
+            i = stop;
         }
 
         // Pass 2: mark free keys along rays and occupied endpoints, per brick.
@@ -553,6 +537,136 @@ impl VoxelMap {
             }
         }
         tb.close();
+    }
+}
+
+/// Widens the brick box `lo..=hi` to the brick of `k`.
+#[inline]
+fn grow(lo: &mut [u32; 3], hi: &mut [u32; 3], k: Key) {
+    for i in 0..3 {
+        let b = u32::from(k.0[i] >> BRICK_SHIFT);
+        lo[i] = lo[i].min(b);
+        hi[i] = hi[i].max(b);
+    }
+}
+
+/// Pass 1 for one point: its ray end (cut at `max_range` if `>= 0`), key and whether it is
+/// a hit, pushed to `ends` with the brick box grown; or counted as skipped.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn push_end(
+    res: &Resolution,
+    origin: [f32; 3],
+    max_range: f64,
+    p: &[f32; 3],
+    ends: &mut Vec<([f32; 3], Key, bool)>,
+    stats: &mut InsertStats,
+    lo: &mut [u32; 3],
+    hi: &mut [u32; 3],
+) {
+    if !p.iter().all(|c| c.is_finite()) {
+        stats.skipped_nonfinite += 1;
+        return;
+    }
+    let d = [p[0] - origin[0], p[1] - origin[1], p[2] - origin[2]];
+    let norm = || f64::from(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+    let (end, hit) = if max_range < 0.0 || norm() <= max_range {
+        (*p, true)
+    } else {
+        let norm = norm();
+        stats.max_range += 1;
+        // Vector3::normalized() divides by (float)norm; new_end = origin + dir * (float)maxrange.
+        let n = norm as f32;
+        let dir = if norm > 0.0 {
+            [d[0] / n, d[1] / n, d[2] / n]
+        } else {
+            d
+        };
+        let mr = max_range as f32;
+        (
+            [
+                origin[0] + dir[0] * mr,
+                origin[1] + dir[1] * mr,
+                origin[2] + dir[2] * mr,
+            ],
+            false,
+        )
+    };
+    match res.coord_to_key(end) {
+        Some(k) => {
+            grow(lo, hi, k);
+            ends.push((end, k, hit));
+        }
+        None => stats.out_of_bounds += u64::from(hit),
+    }
+}
+
+/// Pass 1 without a max range, four points per AVX2 vector.
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use std::arch::x86_64::*;
+
+    use super::{BRICK_SHIFT, Key, Resolution};
+
+    #[target_feature(enable = "avx2")]
+    fn lanes(v: __m128i) -> [u32; 4] {
+        [
+            _mm_extract_epi32::<0>(v) as u32,
+            _mm_extract_epi32::<1>(v) as u32,
+            _mm_extract_epi32::<2>(v) as u32,
+            _mm_extract_epi32::<3>(v) as u32,
+        ]
+    }
+
+    /// Pushes the ends (hits) of the leading groups of four points whose keys are all in range,
+    /// as `push_end` with no max range would (a key in range implies finite coordinates),
+    /// growing `lo..=hi`; returns how many points it took (a multiple of 4). The key is
+    /// `coord_to_key_axis`'s: `floor(c * (1/res)) + 32768` for `c * (1/res)` in [-2^15, 2^15).
+    #[target_feature(enable = "avx2")]
+    pub(super) fn unlimited_ends(
+        res: &Resolution,
+        points: &[[f32; 3]],
+        ends: &mut Vec<([f32; 3], Key, bool)>,
+        lo: &mut [u32; 3],
+        hi: &mut [u32; 3],
+    ) -> usize {
+        let factor = _mm256_set1_pd(1.0 / res.meters());
+        let (min, max) = (_mm256_set1_pd(-32768.0), _mm256_set1_pd(32768.0));
+        let bias = _mm_set1_epi32(32768);
+        let mut kmin = [_mm_set1_epi32(-1); 3];
+        let mut kmax = [_mm_setzero_si128(); 3];
+        let mut taken = 0;
+        'groups: for g in points.chunks_exact(4) {
+            let mut keys = [[0u32; 4]; 3];
+            for a in 0..3 {
+                let c = _mm_setr_ps(g[0][a], g[1][a], g[2][a], g[3][a]);
+                let x = _mm256_mul_pd(factor, _mm256_cvtps_pd(c));
+                let inside = _mm256_and_pd(
+                    _mm256_cmp_pd::<_CMP_GE_OQ>(x, min),
+                    _mm256_cmp_pd::<_CMP_LT_OQ>(x, max),
+                );
+                if _mm256_movemask_pd(inside) != 15 {
+                    break 'groups;
+                }
+                let k = _mm_add_epi32(_mm256_cvttpd_epi32(_mm256_floor_pd(x)), bias);
+                kmin[a] = _mm_min_epu32(kmin[a], k);
+                kmax[a] = _mm_max_epu32(kmax[a], k);
+                keys[a] = lanes(k);
+            }
+            for (l, p) in g.iter().enumerate() {
+                let k = Key([keys[0][l] as u16, keys[1][l] as u16, keys[2][l] as u16]);
+                ends.push((*p, k, true));
+            }
+            taken += 4;
+        }
+        if taken > 0 {
+            for a in 0..3 {
+                let (m, n) = (lanes(kmin[a]), lanes(kmax[a]));
+                lo[a] = lo[a].min(m[0].min(m[1]).min(m[2]).min(m[3]) >> BRICK_SHIFT);
+                hi[a] = hi[a].max(n[0].max(n[1]).max(n[2]).max(n[3]) >> BRICK_SHIFT);
+            }
+        }
+        taken
     }
 }
 
@@ -684,6 +798,33 @@ mod tests {
         assert!((0..3).all(|x| m.log_odds(k(x)) == Some(m.model().miss)));
         assert_eq!(m.log_odds(k(3)), None);
         assert_eq!(m.totals().skipped_nonfinite, 2);
+    }
+
+    #[test]
+    fn unlimited_range_equals_a_range_beyond_every_point() {
+        // No max range takes the four-point path; a huge one the per-point path. Out-of-range
+        // and non-finite points sit at various places in groups of four, and a tail of three.
+        let mut pts: Vec<[f32; 3]> = (0..39)
+            .map(|i| {
+                let f = i as f32;
+                [
+                    (f * 0.37).sin() * 9.0,
+                    (f * 0.71).cos() * 7.0,
+                    f * 0.05 - 1.0,
+                ]
+            })
+            .collect();
+        pts[5] = [5000.0, 0.0, 0.0];
+        pts[10] = [0.0, f32::NAN, 0.0];
+        pts[15] = [0.0, 0.0, -f32::INFINITY];
+        pts[36] = [0.0, -5000.0, 0.0];
+        let (mut a, mut b) = (map(0.1), map(0.1));
+        let sa = a.insert_point_cloud(&pts, [0.3, -0.2, 0.1], -1.0);
+        let sb = b.insert_point_cloud(&pts, [0.3, -0.2, 0.1], 1e30);
+        assert_eq!((sa.out_of_bounds, sa.skipped_nonfinite), (2, 2));
+        assert_eq!(sa, sb);
+        assert!(a.num_voxels() > 100);
+        assert_eq!(a.to_octree().to_bt_bytes(), b.to_octree().to_bt_bytes());
     }
 
     #[test]
