@@ -286,33 +286,39 @@ mod avx2 {
 
     /// Gathered marks waiting to be written, appended without branches.
     struct Pending {
-        cell: [u32; PENDING],
+        cell: [u64; PENDING],
         bits: [u64; PENDING],
         n: usize,
     }
 
     impl Pending {
         /// Appends the lanes of `cell`/`bits` whose bit is set in `lanes`: they are moved to
-        /// the front (a permutation from [`COMPRESS`]) and all four stored, so the only
-        /// serial dependency is the count.
+        /// the front (a permutation from [`COMPRESS`]) and all four stored with one vector
+        /// store each, so the only serial dependency is the count. Needs `n <= PENDING - 4`.
         #[target_feature(enable = "avx2")]
         fn push(&mut self, cell: __m256i, bits: __m256i, lanes: u32) {
             let p = COMPRESS[(lanes & 15) as usize];
             let idx = _mm256_setr_epi32(p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]);
-            let c = epi_lanes(_mm256_permutevar8x32_epi32(cell, idx));
-            let b = epi_lanes(_mm256_permutevar8x32_epi32(bits, idx));
-            let base = self.n;
-            for l in 0..4 {
-                let i = (base + l) % PENDING;
-                self.cell[i] = c[l] as u32;
-                self.bits[i] = b[l];
+            let n = self.n;
+            if let (Some(c), Some(b)) = (self.cell.get_mut(n..n + 4), self.bits.get_mut(n..n + 4)) {
+                // SAFETY: `c` and `b` are 4 u64s each, the 32 bytes the unaligned stores write.
+                unsafe {
+                    _mm256_storeu_si256(
+                        c.as_mut_ptr().cast(),
+                        _mm256_permutevar8x32_epi32(cell, idx),
+                    );
+                    _mm256_storeu_si256(
+                        b.as_mut_ptr().cast(),
+                        _mm256_permutevar8x32_epi32(bits, idx),
+                    );
+                }
+                self.n = n + lanes.count_ones() as usize;
             }
-            self.n = base + lanes.count_ones() as usize;
         }
 
         fn drain(&mut self, marks: &mut impl FreeMarks) {
             for (&c, &b) in self.cell.iter().zip(&self.bits).take(self.n) {
-                marks.mark_cell(c, b);
+                marks.mark_cell(c as u32, b);
             }
             self.n = 0;
         }
