@@ -103,12 +103,7 @@ impl DemoReport {
     /// Samples that did not make it from the emulators' wire into the recording, over the
     /// recorded span, plus any difference between what the edge sent and what was recorded.
     pub fn samples_lost(&self) -> u64 {
-        self.deliveries
-            .iter()
-            .map(|d| {
-                d.missing_in_span + d.unexplained + d.edge_samples.abs_diff(d.recorded_samples)
-            })
-            .sum()
+        self.deliveries.iter().map(|d| d.lost()).sum()
     }
 }
 
@@ -442,7 +437,7 @@ pub fn summary(report: &DemoReport) -> String {
             0.0
         };
         core_share += share;
-        let lost = d.missing_in_span + d.unexplained + d.edge_samples.abs_diff(d.recorded_samples);
+        let lost = d.lost();
         let _ = writeln!(
             s,
             "{:<8} {:>6} {:>14} {:>12} {:>12} {:>6} {:>8.2}%",

@@ -93,6 +93,8 @@ pub struct PtyStats {
     pub bytes_written: u64,
     /// Bytes dropped because the backlog exceeded its bound (UART overrun).
     pub bytes_dropped_overrun: u64,
+    /// Wire units (nodes, capsules, blocks) dropped whole by those overruns.
+    pub units_dropped_overrun: u64,
     /// Bytes dropped because no client held the port.
     pub bytes_dropped_no_client: u64,
     /// Bytes received from clients.
@@ -105,6 +107,7 @@ pub struct PtyStats {
 struct SharedStats {
     bytes_written: AtomicU64,
     bytes_dropped_overrun: AtomicU64,
+    units_dropped_overrun: AtomicU64,
     bytes_dropped_no_client: AtomicU64,
     bytes_read: AtomicU64,
     connects: AtomicU64,
@@ -115,6 +118,7 @@ impl SharedStats {
         PtyStats {
             bytes_written: self.bytes_written.load(Ordering::Relaxed),
             bytes_dropped_overrun: self.bytes_dropped_overrun.load(Ordering::Relaxed),
+            units_dropped_overrun: self.units_dropped_overrun.load(Ordering::Relaxed),
             bytes_dropped_no_client: self.bytes_dropped_no_client.load(Ordering::Relaxed),
             bytes_read: self.bytes_read.load(Ordering::Relaxed),
             connects: self.connects.load(Ordering::Relaxed),
@@ -438,6 +442,7 @@ impl PtyDevice {
             let out = self.injector.inject(&unit);
             if self.backlog_bytes + out.bytes.len() > limit {
                 add(&self.stats.bytes_dropped_overrun, out.bytes.len());
+                add(&self.stats.units_dropped_overrun, 1);
                 continue;
             }
             self.backlog_bytes += out.bytes.len();

@@ -335,6 +335,27 @@ pub struct Delivery {
     /// Bytes the emulator's pty dropped because the reader fell behind (a UART overrun): their
     /// samples were never sent, so they are not counted as missing.
     pub overrun_bytes: u64,
+    /// Wire units those bytes made up. A dropped express capsule also makes the capsule before
+    /// it undecodable (capsules decode in pairs), so each can cost up to one more unit.
+    pub overrun_units: u64,
+}
+
+impl Delivery {
+    /// Most samples an overrun can take beyond its own: one neighbouring express capsule
+    /// (32 samples) per dropped unit. Zero on a line that never overran.
+    pub fn overrun_allowance(&self) -> u64 {
+        self.overrun_units * 32
+    }
+
+    /// Samples lost on the way from the emulator's wire to the recording that no overrun
+    /// explains, plus any difference between what the edge sent and what was recorded: 0 on
+    /// a correct system.
+    pub fn lost(&self) -> u64 {
+        self.missing_in_span
+            .saturating_sub(self.overrun_allowance())
+            + self.unexplained
+            + self.edge_samples.abs_diff(self.recorded_samples)
+    }
 }
 
 /// Compares a session recording with what the emulators sent and the edge submitted.
@@ -378,6 +399,7 @@ pub fn account(
             missing_in_span: 0,
             unexplained: 0,
             overrun_bytes: lidars.pty(sensor).stats().bytes_dropped_overrun,
+            overrun_units: lidars.pty(sensor).stats().units_dropped_overrun,
         };
         let same = |r: &(f32, f32, u8), s: &SentSample| {
             (r.0 - s.sample.angle_deg).abs() < 0.05

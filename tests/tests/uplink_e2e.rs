@@ -57,8 +57,10 @@ fn assert_exactly_once(deliveries: &[Delivery]) {
             d.unexplained, 0,
             "{d:?}: recorded samples the emulator never sent"
         );
-        assert_eq!(
-            d.missing_in_span, 0,
+        // A loaded machine can overrun the emulator's pty (bytes never sent, as a UART
+        // overrun); only the capsule each dropped unit leaves undecodable may go with them.
+        assert!(
+            d.missing_in_span <= d.overrun_allowance(),
             "{d:?}: samples lost between emulator and recording"
         );
         assert_eq!(
