@@ -194,8 +194,17 @@ pub fn execute(cli: Cli, out: &mut dyn Write) -> anyhow::Result<()> {
                 )?;
             }
             if let Some(s) = &config.sweep {
-                Sweep::new(s.driver.clone())?;
                 writeln!(out, "sweep {}", s.path.display())?;
+            }
+            if let Some(u) = &config.uplink {
+                writeln!(
+                    out,
+                    "uplink to {} (TLS name {}), spool {} MiB in memory, {} MiB on disk",
+                    u.server,
+                    u.tls_name(),
+                    u.spool_memory_mb,
+                    u.spool_disk_mb
+                )?;
             }
             Ok(())
         }

@@ -6,9 +6,10 @@
 //!        (serial shell + driver)   (frames, status)        (acks remove frames)
 //! ```
 //!
-//! When the spool is full (server unreachable for long), a worker stops its lidar, waits for
-//! room, then reports `AcquisitionPaused` / `AcquisitionResumed` status frames: nothing is
-//! dropped silently. SIGTERM stops the lidars (their STOP commands are sent), lets the uplink
+//! When the spool is full (server unreachable for long) or cannot write to disk (disk full,
+//! I/O errors), a worker stops its lidar, keeps the frames the spool refused, waits for room
+//! (the uplink retries the disk with a backoff), then sends the kept frames first and reports
+//! `AcquisitionPaused` / `AcquisitionResumed` status frames: nothing is dropped silently. SIGTERM stops the lidars (their STOP commands are sent), lets the uplink
 //! drain for a few seconds and leaves the rest in the on-disk spool for the next start.
 //!
 //! With `[imu]` and `[stepper]`, the I2C bus (rppal on the Pi, any embedded-hal `I2c` in
@@ -45,7 +46,6 @@ use crate::static_scan::StaticScanConfig;
 use crate::timing::{Revolution, TimingConfig};
 use crate::turntable::{Turntable, TurntableJob, TurntableReport};
 use crate::uplink::client::{SubmitError, Uplink, UplinkConfig, UplinkHandle, UplinkStats};
-use crate::uplink::spool::SpoolConfig;
 use crate::uplink::tls;
 
 /// What one lidar worker did.
@@ -55,7 +55,7 @@ pub struct LidarReport {
     pub revolutions: u64,
     /// Samples in those revolutions.
     pub samples: u64,
-    /// Times acquisition paused because the spool was full.
+    /// Times acquisition paused because the spool was full or could not write to disk.
     pub pauses: u64,
     /// Driver and timing counters of the last acquisition run.
     pub acquisition: AcquisitionSummary,
@@ -169,14 +169,13 @@ where
     I: I2c + Send + 'static,
     D: DelayNs + Clone + Send + 'static,
 {
+    // A configuration built in code (the simulator, tests) gets the checks a file gets.
+    config.validate()?;
     let (scan_requests_tx, scan_requests) = std::sync::mpsc::channel::<Command>();
     let (uplink_task, uplink_stop, uplink_handle) = match &config.uplink {
         Some(section) => {
             let client_config = tls::client_config(&section.pki_dir)?;
-            let mut spool = SpoolConfig::new(config.state_dir.join("spool"));
-            spool.memory_limit_bytes =
-                usize::try_from(section.spool_memory_mb << 20).unwrap_or(usize::MAX);
-            spool.disk_limit_bytes = section.spool_disk_mb << 20;
+            let spool = section.spool_config(config.state_dir.join("spool"))?;
             let uplink_config = UplinkConfig::new(
                 section.server.clone(),
                 section.tls_name().to_owned(),
@@ -544,7 +543,58 @@ impl ScanHooks {
     }
 }
 
-/// Acquires one lidar until the daemon stops, pausing while the spool is full.
+/// Why a worker paused acquisition.
+#[derive(Debug, Clone, PartialEq, Eq)]
+enum PauseCause {
+    /// The spool reached its limits (the server is unreachable or too slow).
+    SpoolFull,
+    /// The spool cannot write to disk (disk full, I/O error).
+    Unwritable(String),
+}
+
+impl PauseCause {
+    /// The reason sent in the `AcquisitionPaused` status.
+    fn reason(&self) -> String {
+        match self {
+            PauseCause::SpoolFull => "spool full".into(),
+            PauseCause::Unwritable(reason) => format!("spool cannot write to disk: {reason}"),
+        }
+    }
+}
+
+/// Submits the frames an earlier pause kept (`refused`), then `bodies`, in order, until the
+/// spool refuses one for lack of room or a writable disk: that frame and every later one stay
+/// in `refused`, to go first after the pause. Returns why it must pause, if it must. Only a
+/// frame that can never be queued (over the size limit) is dropped, with an error.
+fn submit_in_order(
+    sensor: SensorId,
+    submit: &mut dyn FnMut(Body) -> Result<(), SubmitError>,
+    refused: &mut Vec<Body>,
+    bodies: &mut Vec<Body>,
+) -> Option<PauseCause> {
+    let mut pause = None;
+    for body in std::mem::take(refused).into_iter().chain(bodies.drain(..)) {
+        if pause.is_some() {
+            refused.push(body);
+            continue;
+        }
+        match submit(body.clone()) {
+            Ok(()) => {}
+            Err(SubmitError::Full) => {
+                refused.push(body);
+                pause = Some(PauseCause::SpoolFull);
+            }
+            Err(SubmitError::Unwritable { reason }) => {
+                refused.push(body);
+                pause = Some(PauseCause::Unwritable(reason));
+            }
+            Err(e) => tracing::error!(%sensor, error = %e, "frame not queued"),
+        }
+    }
+    pause
+}
+
+/// Acquires one lidar until the daemon stops, pausing while the spool has no room.
 fn lidar_worker(
     sensor: SensorId,
     make_driver: &dyn Fn() -> anyhow::Result<Box<dyn LidarDriver + Send>>,
@@ -553,7 +603,7 @@ fn lidar_worker(
     scan: &mut Option<ScanHooks>,
 ) -> LidarReport {
     let mut report = LidarReport::default();
-    // Frames refused by a full spool are kept and sent first after resuming.
+    // Frames refused by a full or unwritable spool are kept and sent first after resuming.
     let mut refused: Vec<Body> = Vec::new();
     let mut lost = false;
     while !context.stop.load(Ordering::Relaxed) {
@@ -571,9 +621,9 @@ fn lidar_worker(
             TimingConfig::default(),
             scan.is_some(),
         );
-        let mut full = false;
+        let mut pause: Option<PauseCause> = None;
         let mut bodies: Vec<Body> = Vec::new();
-        while !full && !context.stop.load(Ordering::Relaxed) {
+        while pause.is_none() && !context.stop.load(Ordering::Relaxed) {
             if let Some(hooks) = scan.as_mut() {
                 hooks.poll(context, &mut bodies);
             }
@@ -654,37 +704,34 @@ fn lidar_worker(
                 },
             };
             bodies.extend(body);
-            for body in refused
-                .drain(..)
-                .chain(bodies.drain(..))
-                .collect::<Vec<_>>()
-            {
-                if full {
-                    refused.push(body);
-                    continue;
-                }
-                match context.submit(body.clone()) {
-                    Ok(()) => {}
-                    Err(SubmitError::Full) => {
-                        refused.push(body);
-                        full = true;
-                    }
-                    Err(e) => tracing::error!(%sensor, error = %e, "frame not queued"),
-                }
-            }
+            pause = submit_in_order(
+                sensor,
+                &mut |body| context.submit(body),
+                &mut refused,
+                &mut bodies,
+            );
         }
-        if full && let Some(hooks) = scan.as_mut() {
+        if let Some(cause) = &pause
+            && let Some(hooks) = scan.as_mut()
+        {
             // The Sweep stops while paused: a scan cannot go on without it.
-            hooks.stop(context, "spool full", &mut refused);
+            hooks.stop(context, &cause.reason(), &mut refused);
         }
         match acquisition.stop() {
             Ok(summary) => report.acquisition = summary,
             Err(e) => tracing::warn!(%sensor, error = %e, "acquisition ended with an error"),
         }
-        if full {
+        if let Some(cause) = pause {
             report.pauses += 1;
             let paused_at = context.clock.now_ns();
-            tracing::warn!(%sensor, "spool full (server unreachable or too slow): acquisition paused");
+            match &cause {
+                PauseCause::SpoolFull => {
+                    tracing::warn!(%sensor, "spool full (server unreachable or too slow): acquisition paused")
+                }
+                PauseCause::Unwritable(reason) => {
+                    tracing::warn!(%sensor, %reason, "spool cannot write to disk: acquisition paused, retrying the disk")
+                }
+            }
             while !context.has_room() && !context.stop.load(Ordering::Relaxed) {
                 std::thread::sleep(Duration::from_millis(100));
             }
@@ -694,19 +741,30 @@ fn lidar_worker(
                 t_ns: paused_at,
                 sensor,
                 event: StatusEvent::AcquisitionPaused,
-                reason: "spool full".into(),
+                reason: cause.reason(),
             };
             let resume = DeviceStatus {
                 t_ns: resumed_at,
                 sensor,
                 event: StatusEvent::AcquisitionResumed,
-                reason: "spool has room again".into(),
+                reason: match cause {
+                    PauseCause::SpoolFull => "spool has room again".into(),
+                    PauseCause::Unwritable(_) => "spool writes to disk again".into(),
+                },
             };
-            for status in [pause, resume] {
-                if let Err(e) = context.submit(status) {
-                    tracing::warn!(%sensor, error = %e, "pause report not queued");
-                }
-            }
+            // Queued behind the frames the pause kept; they all go out when acquisition resumes.
+            refused.extend([pause.into(), resume.into()]);
+        }
+    }
+    if !refused.is_empty() {
+        submit_in_order(
+            sensor,
+            &mut |body| context.submit(body),
+            &mut refused,
+            &mut Vec::new(),
+        );
+        if !refused.is_empty() {
+            tracing::error!(%sensor, frames = refused.len(), "frames lost at shutdown: the spool had no room for them");
         }
     }
     report
@@ -741,4 +799,106 @@ pub fn revolution_frame(sensor: SensorId, rev: &Revolution) -> LidarRevolution {
         }
     }
     frame
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::atomic::AtomicU64;
+
+    use scan3d_protocol::{Frame, Heartbeat, decode};
+
+    use super::*;
+    use crate::clock::Clock;
+    use crate::uplink::spool::{SpoolConfig, StorageFaults};
+
+    /// A clock the test moves by hand.
+    #[derive(Default)]
+    struct ManualClock(AtomicU64);
+
+    impl Clock for ManualClock {
+        fn now_ns(&self) -> u64 {
+            self.0.load(Ordering::Relaxed)
+        }
+    }
+
+    /// A quinn client configuration that is never used to connect.
+    fn unused_client_config() -> quinn::ClientConfig {
+        let provider = Arc::new(rustls::crypto::ring::default_provider());
+        let tls = rustls::ClientConfig::builder_with_provider(provider)
+            .with_protocol_versions(&[&rustls::version::TLS13])
+            .unwrap()
+            .with_root_certificates(rustls::RootCertStore::empty())
+            .with_no_client_auth();
+        quinn::ClientConfig::new(Arc::new(
+            quinn::crypto::rustls::QuicClientConfig::try_from(tls).unwrap(),
+        ))
+    }
+
+    fn heartbeat(n: u64) -> Body {
+        Heartbeat { sent_ns: n }.into()
+    }
+
+    #[test]
+    fn a_disk_write_failure_pauses_keeps_every_frame_and_resumes_once_writes_succeed() {
+        let dir = tempfile::tempdir().unwrap();
+        let faults = StorageFaults::default();
+        let mut spool = SpoolConfig::new(dir.path());
+        // Two 14-byte heartbeats fit in memory; the third makes the oldest spill to disk, and
+        // memory stays above the 75 % resume mark until that spill succeeds.
+        spool.memory_limit_bytes = 30;
+        spool.faults = faults.clone();
+        let clock = Arc::new(ManualClock::default());
+        let config = UplinkConfig::new(
+            "localhost:1".into(),
+            "localhost".into(),
+            unused_client_config(),
+            spool,
+        );
+        let (_uplink, handle, _commands) = Uplink::new(config, clock.clone(), 7).unwrap();
+        let mut submit = |body: Body| handle.submit(body).map(|_| ());
+        let mut refused = Vec::new();
+
+        faults.set_disk_full(true);
+        let mut bodies: Vec<Body> = (0..10).map(heartbeat).collect();
+        let pause = submit_in_order(SensorId::RPLIDAR, &mut submit, &mut refused, &mut bodies);
+        assert!(
+            matches!(&pause, Some(PauseCause::Unwritable(reason)) if reason.contains("No space left")),
+            "{pause:?}"
+        );
+        let kept = refused.len();
+        assert!(kept > 0 && kept < 10, "{kept} frames kept");
+        assert!(!handle.has_room(), "paused while the disk is full");
+        let stats = handle.stats();
+        assert_eq!(stats.storage_episodes, 1);
+
+        // Retries back off while the disk stays full; the episode is counted once.
+        for step in 1..=5 {
+            clock.0.store(step * 1_000_000_000, Ordering::Relaxed);
+            assert!(!handle.has_room());
+        }
+        assert_eq!(handle.stats().storage_episodes, 1);
+
+        faults.set_disk_full(false);
+        clock.0.store(20_000_000_000, Ordering::Relaxed);
+        assert!(
+            handle.has_room(),
+            "resumes once the disk takes writes again"
+        );
+        let mut bodies: Vec<Body> = (10..15).map(heartbeat).collect();
+        let pause = submit_in_order(SensorId::RPLIDAR, &mut submit, &mut refused, &mut bodies);
+        assert_eq!(pause, None);
+        assert!(refused.is_empty());
+        assert_eq!(handle.stats().storage_episodes, 1);
+
+        let delivered: Vec<(u64, Body)> = handle
+            .drain_unsent()
+            .into_iter()
+            .map(|frame| {
+                let (decoded, _): (Frame, _) = decode(&frame.bytes).unwrap();
+                (frame.seq, decoded.body)
+            })
+            .collect();
+        let expected: Vec<(u64, Body)> = (0..15).map(|n| (n, heartbeat(n))).collect();
+        assert_eq!(delivered, expected, "every frame, once, in order");
+    }
 }

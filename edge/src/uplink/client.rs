@@ -70,6 +70,11 @@ pub struct UplinkStats {
     pub submitted: u64,
     /// Frames refused because the spool was full (the caller paused acquisition).
     pub refused_full: u64,
+    /// Frames refused because the spool could not write to disk (the caller paused).
+    pub refused_unwritable: u64,
+    /// Storage episodes: runs of failed spool writes, from the first failure to the first
+    /// success ([`Spool::storage_episodes`]).
+    pub storage_episodes: u64,
     /// Connections established.
     pub connections: u64,
     /// Connections the server refused for the certificate.
@@ -88,6 +93,13 @@ pub enum SubmitError {
     /// The spool is full: pause acquisition until [`UplinkHandle::has_room`].
     #[error("spool full: the server has not acknowledged enough frames")]
     Full,
+    /// The spool cannot write to disk (full or failing): pause acquisition until
+    /// [`UplinkHandle::has_room`], which retries the writes with a backoff.
+    #[error("spool cannot write to disk: {reason}")]
+    Unwritable {
+        /// The write error.
+        reason: String,
+    },
     /// The frame cannot be encoded (over the size limit).
     #[error("cannot encode the frame: {0}")]
     Encode(#[from] scan3d_protocol::EncodeError),
@@ -114,6 +126,15 @@ impl Inner {
     fn stats(&self) -> MutexGuard<'_, UplinkStats> {
         self.stats.lock().unwrap_or_else(|e| e.into_inner())
     }
+
+    /// The counters, with the spool's own filled in.
+    fn snapshot(&self) -> UplinkStats {
+        let storage_episodes = self.spool().storage_episodes();
+        UplinkStats {
+            storage_episodes,
+            ..self.stats().clone()
+        }
+    }
 }
 
 /// The producers' side of the uplink; cheap to clone.
@@ -139,6 +160,10 @@ impl UplinkHandle {
                 self.inner.stats().refused_full += 1;
                 return Err(SubmitError::Full);
             }
+            Err(SpoolError::Unwritable { reason }) => {
+                self.inner.stats().refused_unwritable += 1;
+                return Err(SubmitError::Unwritable { reason });
+            }
             Err(e) => return Err(SubmitError::Spool(e)),
         }
         *next_seq += 1;
@@ -148,9 +173,16 @@ impl UplinkHandle {
         Ok(seq)
     }
 
-    /// After a [`SubmitError::Full`]: whether enough has been acknowledged to resume.
+    /// After a [`SubmitError::Full`] or [`SubmitError::Unwritable`]: whether acquisition may
+    /// resume (enough acknowledged, and the disk writable again). While the spool's disk fails,
+    /// each call retries the pending writes once their backoff has elapsed
+    /// ([`Spool::retry_storage`]), so the caller only has to poll.
     pub fn has_room(&self) -> bool {
-        self.inner.spool().has_room()
+        let mut spool = self.inner.spool();
+        if spool.storage_failing() {
+            spool.retry_storage(self.inner.clock.now_ns());
+        }
+        spool.has_room()
     }
 
     /// Frames waiting for an acknowledgement.
@@ -163,9 +195,16 @@ impl UplinkHandle {
         self.inner.session_id
     }
 
+    /// Hands out every frame not yet sent, as the connection task would (tests).
+    #[cfg(test)]
+    pub(crate) fn drain_unsent(&self) -> Vec<super::spool::SpooledFrame> {
+        let mut spool = self.inner.spool();
+        std::iter::from_fn(|| spool.next_unsent()).collect()
+    }
+
     /// A snapshot of the counters.
     pub fn stats(&self) -> UplinkStats {
-        self.inner.stats().clone()
+        self.inner.snapshot()
     }
 }
 
@@ -272,7 +311,7 @@ impl Uplink {
                 "unacknowledged frames kept on disk for the next start"
             );
         }
-        self.inner.stats().clone()
+        self.inner.snapshot()
     }
 
     async fn resolve(&self) -> Result<SocketAddr, String> {

@@ -15,6 +15,19 @@
 //! reports it. [`Spool::has_room`] turns true again only once usage (memory + disk) falls below
 //! [`SpoolConfig::resume_below`] of the total limit, so acquisition does not flap.
 //!
+//! # When the disk fails
+//!
+//! A spill that cannot be written (disk full, I/O error) is treated like a full spool: the frame
+//! that needed the room is refused with [`SpoolError::Unwritable`] (*not* taken, so the caller
+//! keeps it and pauses), nothing already taken is dropped (a partly written record is cut off
+//! and the frame stays in memory), and a **storage episode** begins: it is logged once, counted
+//! in [`Spool::storage_episodes`], and while it lasts no push touches the disk (one that needs
+//! to spill is refused at once). The owner calls [`Spool::retry_storage`] with the current time;
+//! it retries the pending spill with a doubling backoff ([`STORAGE_RETRY_MIN_NS`] to
+//! [`STORAGE_RETRY_MAX_NS`]) and ends the episode once the writes succeed (or once
+//! acknowledgements left nothing that needs writing). Only then can [`Spool::has_room`] turn
+//! true again.
+//!
 //! A segment is fsynced when it is closed (it reached [`SpoolConfig::segment_bytes`]) and on
 //! [`Spool::sync`]; it is deleted as soon as every frame in it is acknowledged.
 //! [`Spool::shutdown_flush`] spills everything still in memory and syncs, so a restarted edge
@@ -72,6 +85,8 @@ use std::fs::{self, File, OpenOptions};
 use std::io::{self, Write};
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use scan3d_protocol::MAX_FRAME_LEN;
 
@@ -80,6 +95,39 @@ pub const RECORD_MAGIC: [u8; 4] = *b"S3SR";
 
 /// Bytes in a record before the frame bytes: magic, len, crc32, session, seq.
 pub const RECORD_HEADER_LEN: usize = 28;
+
+/// First retry delay of a failed spill (see [`Spool::retry_storage`]): 100 ms.
+pub const STORAGE_RETRY_MIN_NS: u64 = 100_000_000;
+
+/// Longest retry delay of a failed spill: 5 s.
+pub const STORAGE_RETRY_MAX_NS: u64 = 5_000_000_000;
+
+/// Injected storage faults, so the disk-full path is tested without filling a disk: while
+/// [`set_disk_full`](Self::set_disk_full) is on, every segment write and creation of the spools
+/// sharing this value fails with `ENOSPC`, exactly where a full disk fails them. Clones share the
+/// switch. The default never fails.
+#[derive(Debug, Clone, Default)]
+pub struct StorageFaults(Arc<AtomicBool>);
+
+impl StorageFaults {
+    /// Turns the simulated full disk on or off.
+    pub fn set_disk_full(&self, full: bool) {
+        self.0.store(full, Ordering::Relaxed);
+    }
+
+    fn check(&self) -> io::Result<()> {
+        if self.0.load(Ordering::Relaxed) {
+            return Err(io::Error::from_raw_os_error(28)); // ENOSPC
+        }
+        Ok(())
+    }
+}
+
+impl PartialEq for StorageFaults {
+    fn eq(&self, other: &Self) -> bool {
+        Arc::ptr_eq(&self.0, &other.0)
+    }
+}
 
 /// Where and how much the spool may keep.
 #[derive(Debug, Clone, PartialEq)]
@@ -97,6 +145,8 @@ pub struct SpoolConfig {
     /// memory + disk usage falls below this fraction of `memory_limit_bytes + disk_limit_bytes`.
     /// Must be in `(0, 1]`.
     pub resume_below: f64,
+    /// Simulated disk failures for tests (never fails by default).
+    pub faults: StorageFaults,
 }
 
 impl SpoolConfig {
@@ -109,6 +159,7 @@ impl SpoolConfig {
             disk_limit_bytes: 256 << 20,
             segment_bytes: 4 << 20,
             resume_below: 0.75,
+            faults: StorageFaults::default(),
         }
     }
 }
@@ -142,6 +193,14 @@ pub enum SpoolError {
     /// until [`Spool::has_room`].
     #[error("spool full: the frame would exceed the disk limit")]
     Full,
+    /// The frame needed room on disk and the disk cannot be written (full, or failing); the
+    /// frame was not taken. Pause acquisition until [`Spool::has_room`] (see the module
+    /// documentation, "When the disk fails").
+    #[error("spool cannot write to disk ({reason}); the frame was not taken")]
+    Unwritable {
+        /// The write error that began the storage episode.
+        reason: String,
+    },
     /// The frame can never fit, even in an empty spool (or exceeds [`MAX_FRAME_LEN`]).
     #[error("frame of {len} bytes can never fit in the spool")]
     TooLarge {
@@ -224,8 +283,24 @@ pub struct Spool {
     /// A read handle on the segment last read from.
     reader: Option<(u64, File)>,
     paused: bool,
+    /// The storage episode under way, if a spill failed and has not succeeded since.
+    storage: Option<StorageEpisode>,
+    storage_episodes: u64,
     recovery: Recovery,
     lost_frames: u64,
+}
+
+/// A run of failed spills, from the first failure to the first success.
+#[derive(Debug)]
+struct StorageEpisode {
+    /// The error that began it, for logs and refusals.
+    reason: String,
+    /// When to retry (`None` until the first [`Spool::retry_storage`] schedules it).
+    next_retry_ns: Option<u64>,
+    /// The delay after the next failed retry.
+    backoff_ns: u64,
+    /// Failed retries so far.
+    retries: u64,
 }
 
 impl Spool {
@@ -258,6 +333,8 @@ impl Spool {
             active: None,
             reader: None,
             paused: false,
+            storage: None,
+            storage_episodes: 0,
             recovery: Recovery::default(),
             lost_frames: 0,
         };
@@ -279,7 +356,8 @@ impl Spool {
     /// Takes an encoded frame. Keeps it in memory, spilling the oldest in-memory frames to disk
     /// when the memory limit is exceeded. On any error the frame is not taken; on
     /// [`SpoolError::Full`] the spool reports [`is_full`](Self::is_full) until enough is
-    /// acknowledged.
+    /// acknowledged, on [`SpoolError::Unwritable`] until [`retry_storage`](Self::retry_storage)
+    /// succeeds.
     pub fn push(&mut self, session_id: u64, seq: u64, bytes: Vec<u8>) -> Result<(), SpoolError> {
         let len = bytes.len();
         let memory_limit = self.config.memory_limit_bytes;
@@ -314,13 +392,27 @@ impl Spool {
             self.paused = true;
             return Err(SpoolError::Full);
         }
+        if disk_needed > 0
+            && let Some(episode) = &self.storage
+        {
+            self.paused = true;
+            return Err(SpoolError::Unwritable {
+                reason: episode.reason.clone(),
+            });
+        }
         while self.spill_cursor < spill_end {
-            self.spill_entry(self.spill_cursor)?;
+            if let Err(error) = self.spill_entry(self.spill_cursor) {
+                return Err(self.storage_failed(error));
+            }
             self.spill_cursor += 1;
         }
         let id = self.next_id();
         let slot = if spill_new {
-            let (segment, offset) = self.append_record(&encode_record(session_id, seq, &bytes))?;
+            let (segment, offset) =
+                match self.append_record(&encode_record(session_id, seq, &bytes)) {
+                    Ok(place) => place,
+                    Err(error) => return Err(self.storage_failed(error)),
+                };
             self.spill_cursor = id + 1;
             Slot::Disk { segment, offset }
         } else {
@@ -338,10 +430,83 @@ impl Spool {
     }
 
     /// True after a push was refused with [`SpoolError::Full`], until acknowledgements bring
-    /// usage (memory + disk) below [`SpoolConfig::resume_below`] of the total limit. (A push that
-    /// fits is still taken meanwhile; the flag is the caller's signal to pause.)
+    /// usage (memory + disk) below [`SpoolConfig::resume_below`] of the total limit, or with
+    /// [`SpoolError::Unwritable`], until the storage episode ends. (A push that fits is still
+    /// taken meanwhile; the flag is the caller's signal to pause.)
     pub fn is_full(&self) -> bool {
         self.paused
+    }
+
+    /// True while a storage episode lasts: a spill failed and has not succeeded since.
+    pub fn storage_failing(&self) -> bool {
+        self.storage.is_some()
+    }
+
+    /// Storage episodes so far (runs of failed spills, each logged once).
+    pub fn storage_episodes(&self) -> u64 {
+        self.storage_episodes
+    }
+
+    /// During a storage episode, retries the pending spill if its backoff has elapsed at
+    /// `now_ns` (any monotonic clock in nanoseconds): the oldest in-memory frames are written
+    /// until memory is back below [`SpoolConfig::resume_below`] of its limit (or the disk limit
+    /// is reached). When every write succeeds the episode ends and the pause lifts (unless the
+    /// spool is also over its usage threshold); on failure the next retry waits twice as long,
+    /// up to [`STORAGE_RETRY_MAX_NS`]. The first call after a failure only schedules the
+    /// retry. Returns whether the episode is over. Without an episode, returns true at once.
+    pub fn retry_storage(&mut self, now_ns: u64) -> bool {
+        let Some(episode) = &mut self.storage else {
+            return true;
+        };
+        let due = *episode
+            .next_retry_ns
+            .get_or_insert(now_ns.saturating_add(episode.backoff_ns));
+        if now_ns < due {
+            return false;
+        }
+        let target = (self.config.memory_limit_bytes as f64 * self.config.resume_below) as usize;
+        let mut outcome = Ok(());
+        while self.bytes_in_memory > target {
+            let Some(entry) = self.entry(self.spill_cursor) else {
+                break;
+            };
+            if let Slot::Memory(held) = &entry.slot
+                && self.bytes_on_disk.saturating_add(record_len(held.len()))
+                    > self.config.disk_limit_bytes
+            {
+                break;
+            }
+            if let Err(error) = self.spill_entry(self.spill_cursor) {
+                outcome = Err(error);
+                break;
+            }
+            self.spill_cursor += 1;
+        }
+        let Some(episode) = &mut self.storage else {
+            return true;
+        };
+        match outcome {
+            Ok(()) => {
+                tracing::info!(
+                    dir = %self.config.dir.display(),
+                    failed_retries = episode.retries,
+                    "spool writes succeed again"
+                );
+                self.storage = None;
+                self.update_pause();
+                true
+            }
+            Err(error) => {
+                episode.retries += 1;
+                episode.next_retry_ns = Some(now_ns.saturating_add(episode.backoff_ns));
+                episode.backoff_ns = episode
+                    .backoff_ns
+                    .saturating_mul(2)
+                    .min(STORAGE_RETRY_MAX_NS);
+                tracing::debug!(%error, retries = episode.retries, "spool write retry failed");
+                false
+            }
+        }
     }
 
     /// The opposite of [`is_full`](Self::is_full): acquisition may run.
@@ -585,7 +750,12 @@ impl Spool {
         };
         let id = active.id;
         let offset = self.segments.get(&id).map_or(0, |segment| segment.bytes);
-        if let Err(source) = active.file.write_all(record) {
+        let written = self
+            .config
+            .faults
+            .check()
+            .and_then(|()| active.file.write_all(record));
+        if let Err(source) = written {
             // Cut off a partial record; the next record starts a fresh segment.
             let _ = active.file.set_len(offset);
             drop(active);
@@ -611,6 +781,10 @@ impl Spool {
         let id = self.next_segment;
         self.next_segment = id.saturating_add(1);
         let path = segment_path(&self.config.dir, id);
+        self.config
+            .faults
+            .check()
+            .map_err(io_err("creating", &path))?;
         let file = OpenOptions::new()
             .append(true)
             .create_new(true)
@@ -684,6 +858,39 @@ impl Spool {
         }
     }
 
+    /// Starts (or continues) a storage episode after a failed spill; the error to return.
+    fn storage_failed(&mut self, error: SpoolError) -> SpoolError {
+        self.paused = true;
+        let reason = match &error {
+            SpoolError::Io { source, .. } => source.to_string(),
+            other => other.to_string(),
+        };
+        if self.storage.is_none() {
+            tracing::error!(%error, "spool cannot write to disk: acquisition pauses until writes succeed again");
+            self.storage_episodes += 1;
+            self.storage = Some(StorageEpisode {
+                reason: reason.clone(),
+                next_retry_ns: None,
+                backoff_ns: STORAGE_RETRY_MIN_NS,
+                retries: 0,
+            });
+        }
+        SpoolError::Unwritable { reason }
+    }
+
+    /// Lifts the pause once usage is below the threshold and no storage episode lasts.
+    fn update_pause(&mut self) {
+        if self.paused && self.storage.is_none() {
+            let capacity = (self.config.memory_limit_bytes as u64)
+                .saturating_add(self.config.disk_limit_bytes);
+            let resume_at = (capacity as f64 * self.config.resume_below) as u64;
+            let usage = self.bytes_in_memory as u64 + self.bytes_on_disk;
+            if usage < resume_at {
+                self.paused = false;
+            }
+        }
+    }
+
     /// Drops released entries from the front and lifts the pause once usage is low enough.
     fn after_release(&mut self) {
         while self
@@ -696,15 +903,7 @@ impl Spool {
         }
         self.send_cursor = self.send_cursor.max(self.front_id);
         self.spill_cursor = self.spill_cursor.max(self.front_id);
-        if self.paused {
-            let capacity = (self.config.memory_limit_bytes as u64)
-                .saturating_add(self.config.disk_limit_bytes);
-            let resume_at = (capacity as f64 * self.config.resume_below) as u64;
-            let usage = self.bytes_in_memory as u64 + self.bytes_on_disk;
-            if usage < resume_at {
-                self.paused = false;
-            }
-        }
+        self.update_pause();
     }
 
     /// Reads a spilled frame back and checks it is the record that was written.
@@ -1370,6 +1569,61 @@ mod tests {
         assert_eq!((spool.lost_frames(), spool.len()), (2, 1));
         spool.rewind();
         assert_eq!(drain(&mut spool), seqs(1, 2..3));
+    }
+
+    #[test]
+    fn a_failing_disk_refuses_without_losing_and_retries_with_backoff_until_writes_succeed() {
+        let dir = tempfile::tempdir().unwrap();
+        let faults = StorageFaults::default();
+        let cfg = SpoolConfig {
+            faults: faults.clone(),
+            ..config(dir.path(), 100, 10_000, 1_000)
+        };
+        let mut spool = Spool::open(cfg).unwrap();
+        push_n(&mut spool, 1, 0..4, 30); // 3 in memory, 1 spilled
+        faults.set_disk_full(true);
+        let refused = spool.push(1, 4, payload(1, 4, 30));
+        assert!(
+            matches!(&refused, Err(SpoolError::Unwritable { reason }) if reason.contains("No space left")),
+            "{refused:?}"
+        );
+        assert!(spool.is_full() && spool.storage_failing());
+        assert_eq!((spool.len(), spool.storage_episodes()), (4, 1));
+        assert_eq!(
+            spool.bytes_on_disk(),
+            REC30,
+            "nothing half-written is counted"
+        );
+        // During the episode, a push that needs the disk is refused without touching it.
+        assert!(matches!(
+            spool.push(1, 4, payload(1, 4, 30)),
+            Err(SpoolError::Unwritable { .. })
+        ));
+        // Retries: the first call schedules, then 100 ms, 200 ms, 400 ms… apart.
+        let s = 1_000_000_000;
+        assert!(!spool.retry_storage(s));
+        assert!(
+            !spool.retry_storage(s + STORAGE_RETRY_MIN_NS - 1),
+            "not due yet"
+        );
+        assert!(!spool.retry_storage(s + STORAGE_RETRY_MIN_NS), "due, fails");
+        let second = s + STORAGE_RETRY_MIN_NS + 2 * STORAGE_RETRY_MIN_NS;
+        assert!(!spool.retry_storage(second - 1) && spool.storage_failing());
+        assert!(!spool.retry_storage(second));
+        assert_eq!(
+            spool.storage_episodes(),
+            1,
+            "one episode, however many retries"
+        );
+        faults.set_disk_full(false);
+        assert!(!spool.retry_storage(second + 1), "backoff still applies");
+        assert!(spool.retry_storage(second + 4 * STORAGE_RETRY_MIN_NS));
+        assert!(spool.has_room() && !spool.storage_failing());
+        push_n(&mut spool, 1, 4..8, 30);
+        assert_eq!(drain(&mut spool), seqs(1, 0..8), "nothing lost, in order");
+        let on_disk: u64 = segment_files(dir.path()).iter().map(|(_, len)| len).sum();
+        assert_eq!(spool.bytes_on_disk(), on_disk);
+        assert_eq!(spool.storage_episodes(), 1);
     }
 
     #[derive(Debug, Clone)]

@@ -63,6 +63,12 @@ use codec::{ExpectedAnswer, Hunt, InfoAnswer, SampleRate};
 use nodes::NodeParser;
 
 const MS: u64 = 1_000_000;
+
+/// Milliseconds from the configuration as nanoseconds, saturating: a deadline far in the future
+/// must stay far in the future, never wrap to the past.
+fn ms(value: u64) -> u64 {
+    value.saturating_mul(MS)
+}
 /// First firmware with EXPRESS_SCAN and GET_SAMPLERATE (1.17).
 const FW_1_17: u16 = 0x0111;
 
@@ -131,6 +137,71 @@ impl Default for RplidarConfig {
             info_attempts_after_reset: 30,
             spinup_timeout_ms: 5000,
         }
+    }
+}
+
+/// A setting of [`RplidarConfig`] outside what the driver and the device accept.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("`{key}` = {value} is out of range (allowed: {allowed})")]
+pub struct RplidarConfigError {
+    /// The key, as written in `[rplidar]`.
+    pub key: &'static str,
+    /// The value given.
+    pub value: u64,
+    /// The accepted range, for the message.
+    pub allowed: &'static str,
+}
+
+/// Longest timeout or wait accepted, ms (10 minutes: anything longer is a typo, and a deadline
+/// that far away would hide a dead device).
+pub const MAX_TIMEOUT_MS: u64 = 600_000;
+
+impl RplidarConfig {
+    /// Checks every setting against what the device and the driver can use: a baud rate a
+    /// serial port can run (9600–4000000; Slamtec lidars use 115200, 256000, 460800 or
+    /// 1000000), a PWM duty in 0–1023, timeouts of 1 ms to [`MAX_TIMEOUT_MS`] (waits may be 0),
+    /// and 1–1000 attempts.
+    pub fn validate(&self) -> Result<(), RplidarConfigError> {
+        let check =
+            |key: &'static str, value: u64, range: std::ops::RangeInclusive<u64>, allowed| {
+                if range.contains(&value) {
+                    Ok(())
+                } else {
+                    Err(RplidarConfigError {
+                        key,
+                        value,
+                        allowed,
+                    })
+                }
+            };
+        check(
+            "baud",
+            self.baud.into(),
+            9_600..=4_000_000,
+            "9600 to 4000000",
+        )?;
+        check("motor_pwm", self.motor_pwm.into(), 0..=1023, "0 to 1023")?;
+        for (key, value) in [
+            ("answer_timeout_ms", self.answer_timeout_ms),
+            ("info_timeout_ms", self.info_timeout_ms),
+            ("spinup_timeout_ms", self.spinup_timeout_ms),
+        ] {
+            check(key, value, 1..=MAX_TIMEOUT_MS, "1 to 600000 ms")?;
+        }
+        for (key, value) in [
+            ("stop_wait_ms", self.stop_wait_ms),
+            ("reset_wait_ms", self.reset_wait_ms),
+        ] {
+            check(key, value, 0..=MAX_TIMEOUT_MS, "0 to 600000 ms")?;
+        }
+        for (key, value) in [
+            ("answer_attempts", self.answer_attempts),
+            ("info_attempts", self.info_attempts),
+            ("info_attempts_after_reset", self.info_attempts_after_reset),
+        ] {
+            check(key, value.into(), 1..=1000, "1 to 1000")?;
+        }
+        Ok(())
     }
 }
 
@@ -254,13 +325,13 @@ impl Rplidar {
         if reset {
             self.transmits.push_back(Transmit::Write(codec::reset()));
             self.phase = Phase::Settling {
-                until: now + self.config.reset_wait_ms * MS,
+                until: now.saturating_add(ms(self.config.reset_wait_ms)),
                 info_attempts: self.config.info_attempts_after_reset,
             };
         } else {
             self.transmits.push_back(Transmit::Write(codec::stop()));
             self.phase = Phase::Settling {
-                until: now + self.config.stop_wait_ms * MS,
+                until: now.saturating_add(ms(self.config.stop_wait_ms)),
                 info_attempts: self.config.info_attempts,
             };
         }
@@ -310,8 +381,8 @@ impl Rplidar {
             request,
             attempts: 1,
             max_attempts: max_attempts.max(1),
-            timeout_ns: timeout_ms * MS,
-            deadline: now + timeout_ms * MS,
+            timeout_ns: ms(timeout_ms),
+            deadline: now.saturating_add(ms(timeout_ms)),
             got_descriptor: false,
         });
     }
@@ -450,7 +521,7 @@ impl Rplidar {
         self.resyncs_reported = self.stats.resyncs;
         self.phase = Phase::Scanning {
             parser,
-            deadline: now + self.config.spinup_timeout_ms * MS,
+            deadline: now.saturating_add(ms(self.config.spinup_timeout_ms)),
         };
     }
 
@@ -465,7 +536,7 @@ impl Rplidar {
                 .push_back(Transmit::Write(pending.request.clone()));
             self.phase = Phase::Awaiting(Pending {
                 attempts: pending.attempts + 1,
-                deadline: now + pending.timeout_ns,
+                deadline: now.saturating_add(pending.timeout_ns),
                 got_descriptor: false,
                 ..pending
             });
@@ -562,14 +633,14 @@ impl Rplidar {
             StreamParser::Capsules(p) => p.parse(&self.buf, &mut self.stats, &mut emit),
         };
         if frames > 0 {
-            *deadline = now + self.config.answer_timeout_ms * MS;
+            *deadline = now.saturating_add(ms(self.config.answer_timeout_ms));
         }
         self.stats.samples_emitted += emitted;
         self.consume(consumed);
         if self.stats.resyncs > self.resyncs_reported && now >= self.next_resync_report {
             let lost = self.stats.resyncs - self.resyncs_reported;
             self.resyncs_reported = self.stats.resyncs;
-            self.next_resync_report = now + 1000 * MS;
+            self.next_resync_report = now.saturating_add(1000 * MS);
             self.warn(format!(
                 "scan stream lost framing {lost} time(s); resynchronised"
             ));
@@ -719,6 +790,51 @@ mod tests {
         d.handle_timeout(ms(100));
         assert_eq!(tx(d), [Transmit::FlushInput, w(&[0xA5, 0x50])]);
         assert_eq!(d.poll_timeout(), Some(ms(600)));
+    }
+
+    #[test]
+    fn huge_timeouts_saturate_instead_of_wrapping_into_the_past() {
+        let mut d = Rplidar::new(RplidarConfig {
+            stop_wait_ms: u64::MAX,
+            ..RplidarConfig::default()
+        });
+        let now = u64::MAX / 2;
+        d.start(now);
+        assert_eq!(tx(&mut d), [w(&[0xA5, 0x25])]);
+        assert_eq!(
+            d.poll_timeout(),
+            Some(u64::MAX),
+            "the wait ends at the end of time"
+        );
+        d.handle_timeout(now + 1);
+        assert!(tx(&mut d).is_empty(), "still waiting");
+    }
+
+    #[test]
+    fn validation_names_the_key_and_the_allowed_range() {
+        assert_eq!(RplidarConfig::default().validate(), Ok(()));
+        let bad = |config: RplidarConfig| config.validate().unwrap_err().to_string();
+        let message = bad(RplidarConfig {
+            baud: 0,
+            ..RplidarConfig::default()
+        });
+        assert_eq!(
+            message,
+            "`baud` = 0 is out of range (allowed: 9600 to 4000000)"
+        );
+        let message = bad(RplidarConfig {
+            answer_timeout_ms: u64::MAX,
+            ..RplidarConfig::default()
+        });
+        assert!(
+            message.starts_with("`answer_timeout_ms` = 18446744073709551615"),
+            "{message}"
+        );
+        let message = bad(RplidarConfig {
+            info_attempts: 0,
+            ..RplidarConfig::default()
+        });
+        assert!(message.starts_with("`info_attempts` = 0"), "{message}");
     }
 
     #[test]
