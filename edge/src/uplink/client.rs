@@ -6,10 +6,13 @@
 //! the spool only when the server acknowledges them (after they are on its disk). After a
 //! reconnect everything unacknowledged is sent again; the server ignores what it already has.
 //!
-//! A connection the server closes during the TLS handshake, or right after it with a crypto
-//! error, means the server refused this edge's certificate: that is logged as an error on
-//! every attempt and counted in [`UplinkStats::auth_failures`], and retried with a long backoff
-//! (the operator may be fixing the pairing), never silently.
+//! A failed TLS authentication is told apart by who refused ([`classify`]): this edge's TLS
+//! stack rejecting the server's certificate (unknown CA, a name that is not `server_name`,
+//! expired…; a locally raised crypto error) is [`ConnectFailure::ServerCertificateRejected`];
+//! the server closing the connection with a TLS alert (it does not accept this edge's
+//! certificate) is [`ConnectFailure::RefusedByServer`]. Either is logged as an error naming the
+//! side that refused, on every attempt, counted in [`UplinkStats::auth_failures`], and retried
+//! with a long backoff (the operator may be fixing the pairing), never silently.
 
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -77,8 +80,11 @@ pub struct UplinkStats {
     pub storage_episodes: u64,
     /// Connections established.
     pub connections: u64,
-    /// Connections the server refused for the certificate.
+    /// Connections that failed TLS authentication, on either side (this edge rejecting the
+    /// server's certificate, or the server refusing this edge's).
     pub auth_failures: u64,
+    /// Of those, the ones where this edge rejected the server's certificate.
+    pub server_certificate_rejections: u64,
     /// Frames written to a connection (resends included).
     pub frames_sent: u64,
     /// Acknowledgements received.
@@ -217,8 +223,83 @@ pub struct Uplink {
 /// How one connection attempt ended.
 enum SessionEnd {
     Shutdown,
-    AuthRefused(String),
-    Lost(String),
+    Failed(ConnectFailure),
+}
+
+impl SessionEnd {
+    fn lost(reason: String) -> Self {
+        SessionEnd::Failed(ConnectFailure::Other(reason))
+    }
+}
+
+/// Why a connection failed, by who refused it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum ConnectFailure {
+    /// This edge's TLS stack rejected the server's certificate: signed by another CA than the
+    /// bundle's `ca.pem`, not valid for `server_name`, expired, revoked…
+    ServerCertificateRejected {
+        /// rustls' reason, e.g. `invalid peer certificate: UnknownIssuer`.
+        reason: String,
+    },
+    /// The server closed the connection with a TLS alert: it does not accept this edge's
+    /// certificate (another pairing, revoked, expired).
+    RefusedByServer {
+        /// The alert's name, e.g. `UnknownCA`, `BadCertificate`, `CertificateRequired`.
+        alert: String,
+        /// The server's close reason, if it gave one.
+        reason: String,
+    },
+    /// Anything else: network, timeouts, the server closing for another reason.
+    Other(String),
+}
+
+impl std::fmt::Display for ConnectFailure {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ConnectFailure::ServerCertificateRejected { reason } => {
+                write!(f, "this edge rejected the server's certificate: {reason}")
+            }
+            ConnectFailure::RefusedByServer { alert, reason } if reason.is_empty() => {
+                write!(
+                    f,
+                    "the server refused this edge's certificate (TLS alert {alert})"
+                )
+            }
+            ConnectFailure::RefusedByServer { alert, reason } => write!(
+                f,
+                "the server refused this edge's certificate (TLS alert {alert}: {reason})"
+            ),
+            ConnectFailure::Other(reason) => f.write_str(reason),
+        }
+    }
+}
+
+/// Classifies a quinn connection error by who refused: a crypto error (QUIC codes
+/// 0x100–0x1ff, a TLS alert) raised by this side's TLS stack is a rejected server
+/// certificate; one received in the server's CONNECTION_CLOSE is the server refusing this
+/// edge (TLS 1.3 reports it only after the client thinks the handshake is done).
+pub fn classify(error: &quinn::ConnectionError) -> ConnectFailure {
+    let alert = |code: quinn::TransportErrorCode| {
+        let code = u64::from(code);
+        (0x100..=0x1ff)
+            .contains(&code)
+            .then(|| rustls::AlertDescription::from((code - 0x100) as u8))
+    };
+    match error {
+        quinn::ConnectionError::TransportError(e) if alert(e.code).is_some() => {
+            ConnectFailure::ServerCertificateRejected {
+                reason: e.reason.clone(),
+            }
+        }
+        quinn::ConnectionError::ConnectionClosed(close) => match alert(close.error_code) {
+            Some(alert) => ConnectFailure::RefusedByServer {
+                alert: format!("{alert:?}"),
+                reason: String::from_utf8_lossy(&close.reason).into_owned(),
+            },
+            None => ConnectFailure::Other(error.to_string()),
+        },
+        other => ConnectFailure::Other(other.to_string()),
+    }
 }
 
 impl Uplink {
@@ -267,19 +348,28 @@ impl Uplink {
             let started = Instant::now();
             let end = match self.resolve().await {
                 Ok(addr) => self.session(endpoint, addr, &mut shutdown).await,
-                Err(reason) => SessionEnd::Lost(reason),
+                Err(reason) => SessionEnd::lost(reason),
             };
             let wait = match end {
                 SessionEnd::Shutdown => break,
-                SessionEnd::AuthRefused(reason) => {
-                    tracing::error!(server = %self.config.server, %reason,
-                        "the server refused this edge's certificate; check that pki_dir holds the bundle `scan3d pair` made for this edge on this server");
+                SessionEnd::Failed(failure @ ConnectFailure::ServerCertificateRejected { .. }) => {
+                    tracing::error!(server = %self.config.server, server_name = %self.config.server_name, %failure,
+                        "this edge refused the server: check that pki_dir's ca.pem is the CA of this server's pairing and that server_name is one of the names given to `scan3d pair --server-name`");
                     let mut stats = self.inner.stats();
                     stats.auth_failures += 1;
-                    stats.last_error = Some(format!("authentication refused: {reason}"));
+                    stats.server_certificate_rejections += 1;
+                    stats.last_error = Some(failure.to_string());
                     self.config.auth_backoff
                 }
-                SessionEnd::Lost(reason) => {
+                SessionEnd::Failed(failure @ ConnectFailure::RefusedByServer { .. }) => {
+                    tracing::error!(server = %self.config.server, %failure,
+                        "the server refused this edge: check that pki_dir holds the bundle `scan3d pair` made for this edge on this server");
+                    let mut stats = self.inner.stats();
+                    stats.auth_failures += 1;
+                    stats.last_error = Some(failure.to_string());
+                    self.config.auth_backoff
+                }
+                SessionEnd::Failed(ConnectFailure::Other(reason)) => {
                     tracing::warn!(server = %self.config.server, %reason, "uplink down; retrying");
                     self.inner.stats().last_error = Some(reason);
                     if started.elapsed() > Duration::from_secs(10) {
@@ -331,20 +421,28 @@ impl Uplink {
     ) -> SessionEnd {
         let connecting = match endpoint.connect(addr, &self.config.server_name) {
             Ok(connecting) => connecting,
-            Err(e) => return SessionEnd::Lost(format!("cannot connect to {addr}: {e}")),
+            Err(e) => return SessionEnd::lost(format!("cannot connect to {addr}: {e}")),
         };
         let connection = tokio::select! {
             result = connecting => match result {
                 Ok(connection) => connection,
-                Err(e) if is_auth_failure(&e) => return SessionEnd::AuthRefused(e.to_string()),
-                Err(e) => return SessionEnd::Lost(format!("cannot connect to {addr}: {e}")),
+                Err(e) => return SessionEnd::Failed(match classify(&e) {
+                    ConnectFailure::Other(_) => ConnectFailure::Other(format!("cannot connect to {addr}: {e}")),
+                    failure => failure,
+                }),
             },
             _ = shutdown.changed() => return SessionEnd::Shutdown,
         };
         let (mut send, recv) = match connection.open_bi().await {
             Ok(streams) => streams,
-            Err(e) if is_auth_failure(&e) => return SessionEnd::AuthRefused(e.to_string()),
-            Err(e) => return SessionEnd::Lost(format!("cannot open a stream: {e}")),
+            Err(e) => {
+                return SessionEnd::Failed(match classify(&e) {
+                    ConnectFailure::Other(_) => {
+                        ConnectFailure::Other(format!("cannot open a stream: {e}"))
+                    }
+                    failure => failure,
+                });
+            }
         };
         tracing::info!(server = %addr, session = format!("{:016x}", self.inner.session_id), "uplink connected");
         self.inner.stats().connections += 1;
@@ -453,19 +551,7 @@ async fn read_from_server(mut recv: quinn::RecvStream, inner: Arc<Inner>) {
 /// Classifies the end of a connection that was up.
 fn lost_or_refused(connection: &quinn::Connection, fallback: String) -> SessionEnd {
     match connection.close_reason() {
-        Some(e) if is_auth_failure(&e) => SessionEnd::AuthRefused(e.to_string()),
-        Some(e) => SessionEnd::Lost(e.to_string()),
-        None => SessionEnd::Lost(fallback),
-    }
-}
-
-/// A TLS alert from the peer (QUIC crypto error codes 0x100–0x1ff): with mutual TLS this is the
-/// server refusing our certificate (TLS 1.3 reports it only after the client thinks it is done).
-fn is_auth_failure(error: &quinn::ConnectionError) -> bool {
-    let is_crypto = |code: quinn::TransportErrorCode| (0x100..=0x1ff).contains(&u64::from(code));
-    match error {
-        quinn::ConnectionError::ConnectionClosed(close) => is_crypto(close.error_code),
-        quinn::ConnectionError::TransportError(e) => is_crypto(e.code),
-        _ => false,
+        Some(e) => SessionEnd::Failed(classify(&e)),
+        None => SessionEnd::lost(fallback),
     }
 }

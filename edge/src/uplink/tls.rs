@@ -108,6 +108,7 @@ mod tests {
     use rustls::pki_types::{CertificateDer, PrivateKeyDer, PrivatePkcs8KeyDer};
 
     use super::*;
+    use crate::uplink::client::{ConnectFailure, classify};
 
     /// A CA with a server certificate for `localhost` and one client certificate.
     struct TestPki {
@@ -270,6 +271,99 @@ mod tests {
                 assert_eq!(u64::from(e.code), 0x100 + 48, "{e}");
             }
             other => panic!("expected a handshake failure, got {other:?}"),
+        }
+    }
+
+    /// Accepts connections forever, letting each handshake run to its end.
+    fn serve_handshakes(server: quinn::Endpoint) {
+        tokio::spawn(async move {
+            while let Some(incoming) = server.accept().await {
+                tokio::spawn(async move {
+                    if let Ok(connection) = incoming.await {
+                        connection.closed().await;
+                    }
+                });
+            }
+        });
+    }
+
+    /// Connects with `bundle` and returns how the connection failed (waiting for the close a
+    /// TLS 1.3 server sends after the client thinks the handshake is done).
+    async fn failure(bundle: &Path, addr: SocketAddr, name: &str) -> ConnectFailure {
+        let client = client_endpoint(bundle);
+        let connecting = client.connect(addr, name).unwrap();
+        let error = tokio::time::timeout(LIMIT, async {
+            match connecting.await {
+                Ok(connection) => connection.closed().await,
+                Err(e) => e,
+            }
+        })
+        .await
+        .expect("the connection ends");
+        classify(&error)
+    }
+
+    #[tokio::test]
+    async fn a_server_certificate_from_another_ca_is_blamed_on_this_edge_not_the_server() {
+        let ours = test_pki("our CA");
+        let theirs = test_pki("their CA");
+        let bundle = write_bundle(&ours);
+        let server = server(&theirs);
+        let addr = server.local_addr().unwrap();
+        serve_handshakes(server);
+        match failure(bundle.path(), addr, "localhost").await {
+            ConnectFailure::ServerCertificateRejected { reason } => {
+                assert!(reason.contains("UnknownIssuer"), "{reason}")
+            }
+            other => panic!("expected this edge to reject the server, got {other:?}"),
+        }
+    }
+
+    #[tokio::test]
+    async fn a_server_certificate_for_another_name_is_blamed_on_this_edge() {
+        let pki = test_pki("test CA");
+        let bundle = write_bundle(&pki);
+        let server = server(&pki);
+        let addr = server.local_addr().unwrap();
+        serve_handshakes(server);
+        match failure(bundle.path(), addr, "elsewhere.example").await {
+            ConnectFailure::ServerCertificateRejected { reason } => {
+                assert!(reason.contains("not valid for name"), "{reason}")
+            }
+            other => panic!("expected this edge to reject the server, got {other:?}"),
+        }
+    }
+
+    #[tokio::test]
+    async fn an_edge_certificate_from_another_ca_is_blamed_on_the_server_refusing_it() {
+        let ours = test_pki("our CA");
+        let stranger = test_pki("another pairing");
+        // The right CA for the server, but an edge certificate from another pairing.
+        let bundle = write_bundle(&TestPki {
+            edge_pem: stranger.edge_pem.clone(),
+            edge_key_pem: stranger.edge_key_pem.clone(),
+            edge_der: stranger.edge_der.clone(),
+            ..test_pki_clone(&ours)
+        });
+        let server = server(&ours);
+        let addr = server.local_addr().unwrap();
+        serve_handshakes(server);
+        match failure(bundle.path(), addr, "localhost").await {
+            ConnectFailure::RefusedByServer { alert, .. } => {
+                assert_eq!(alert, "UnknownCA")
+            }
+            other => panic!("expected the server to refuse this edge, got {other:?}"),
+        }
+    }
+
+    fn test_pki_clone(pki: &TestPki) -> TestPki {
+        TestPki {
+            ca_pem: pki.ca_pem.clone(),
+            server_der: pki.server_der.clone(),
+            server_key: pki.server_key.clone(),
+            edge_pem: pki.edge_pem.clone(),
+            edge_key_pem: pki.edge_key_pem.clone(),
+            edge_der: pki.edge_der.clone(),
         }
     }
 
