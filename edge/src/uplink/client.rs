@@ -78,6 +78,10 @@ pub struct UplinkStats {
     /// Storage episodes: runs of failed spool writes, from the first failure to the first
     /// success ([`Spool::storage_episodes`]).
     pub storage_episodes: u64,
+    /// Frames lost on the edge, which the server will never receive: torn or corrupt spool
+    /// records dropped at start-up ([`Recovery::damaged_records`](super::spool::Recovery)) plus
+    /// spilled frames that could not be read back ([`Spool::lost_frames`]).
+    pub frames_lost_on_edge: u64,
     /// Connections established.
     pub connections: u64,
     /// Connections that failed TLS authentication, on either side (this edge rejecting the
@@ -135,9 +139,15 @@ impl Inner {
 
     /// The counters, with the spool's own filled in.
     fn snapshot(&self) -> UplinkStats {
-        let storage_episodes = self.spool().storage_episodes();
+        let spool = self.spool();
+        let (storage_episodes, frames_lost_on_edge) = (
+            spool.storage_episodes(),
+            spool.recovery().damaged_records + spool.lost_frames(),
+        );
+        drop(spool);
         UplinkStats {
             storage_episodes,
+            frames_lost_on_edge,
             ..self.stats().clone()
         }
     }
@@ -311,6 +321,17 @@ impl Uplink {
         session_id: u64,
     ) -> Result<(Self, UplinkHandle, mpsc::UnboundedReceiver<Command>), SpoolError> {
         let spool = Spool::open(config.spool.clone())?;
+        let recovery = spool.recovery();
+        if recovery.damaged_records > 0 {
+            // Each damaged run was logged with its segment and offset; the frames around it
+            // are resent and released by the server's range acknowledgements.
+            tracing::error!(
+                damaged_records = recovery.damaged_records,
+                damaged_bytes = recovery.damaged_bytes,
+                recovered = recovery.frames,
+                "frames lost on the edge: the spool held torn or corrupt records"
+            );
+        }
         let (commands, commands_rx) = mpsc::unbounded_channel();
         let inner = Arc::new(Inner {
             spool: Mutex::new(spool),

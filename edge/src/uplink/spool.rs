@@ -34,9 +34,27 @@
 //! resends it. A crash loses only the frames that were still in memory (and, on power loss, the
 //! unsynced tail of the current segment).
 //!
-//! Acknowledgements are not persisted: after a restart, acknowledged frames that share a segment
-//! with unacknowledged ones are resent. That is harmless — the server ignores duplicate
-//! `(session, seq)` frames.
+//! Acknowledgements may come in any order ([`Spool::ack_range`]: the server acknowledges
+//! ranges, so one frame it never got does not hold back the ones after it). They are not
+//! persisted as such; instead, a closed segment in which at least half the bytes are
+//! acknowledged, with an acknowledged record *after* an unacknowledged one (the mark of a gap,
+//! not of acknowledgements still progressing through it), is **compacted**: its unacknowledged
+//! records are copied to a temporary file that then replaces it (fsync, rename, fsync of the
+//! directory). So a spool holding one frame the server never acknowledged, among many it did,
+//! shrinks to that frame, also across restarts. Acknowledged frames that still share an
+//! uncompacted segment with unacknowledged ones are resent after a restart; that is harmless —
+//! the server ignores duplicate `(session, seq)` frames.
+//!
+//! # What is never given up, and what is lost
+//!
+//! The spool never drops an intact frame it holds: only an acknowledgement releases it. The
+//! server acknowledges every frame it receives (one it cannot decode is recorded raw and
+//! acknowledged too), so a frame kept for ever would be one the server keeps refusing, which
+//! the protocol does not allow. A gap in the sequence numbers can therefore only come from a
+//! frame lost on the edge: a record torn or corrupted on disk (dropped on [`Spool::open`],
+//! counted in [`Recovery::damaged_records`]) or a spilled frame that cannot be read back
+//! ([`Spool::lost_frames`]). Both are logged as errors with the segment and offset, and counted
+//! in the uplink's statistics; range acknowledgements release every frame around them.
 //!
 //! # On-disk format
 //!
@@ -182,8 +200,11 @@ pub struct Recovery {
     pub segments: usize,
     /// Intact records recovered (they are resent).
     pub frames: usize,
-    /// Bytes skipped as torn or corrupt (each run is logged with a warning).
+    /// Bytes skipped as torn or corrupt (each run is logged as an error).
     pub damaged_bytes: u64,
+    /// Runs of torn or corrupt bytes, each costing at least one record: frames lost on the
+    /// edge, which the server will never receive.
+    pub damaged_records: u64,
 }
 
 /// Errors of the spool.
@@ -244,12 +265,16 @@ struct Entry {
 }
 
 /// Bookkeeping of one segment file.
-#[derive(Debug)]
+#[derive(Debug, Default)]
 struct Segment {
     /// File size in bytes.
     bytes: u64,
     /// Records in it not yet released.
     live: usize,
+    /// Bytes of those records (headers included).
+    live_bytes: u64,
+    /// A compaction of it failed; it is not tried again in this run.
+    no_compact: bool,
 }
 
 /// The segment currently appended to.
@@ -285,6 +310,8 @@ pub struct Spool {
     paused: bool,
     /// The storage episode under way, if a spill failed and has not succeeded since.
     storage: Option<StorageEpisode>,
+    /// Segments that lost a record since the last compaction check.
+    compact_candidates: BTreeSet<u64>,
     storage_episodes: u64,
     recovery: Recovery,
     lost_frames: u64,
@@ -314,8 +341,17 @@ impl Spool {
         let mut ids = Vec::new();
         for dir_entry in fs::read_dir(&config.dir).map_err(io_err("listing", &config.dir))? {
             let dir_entry = dir_entry.map_err(io_err("listing", &config.dir))?;
-            if let Some(id) = dir_entry.file_name().to_str().and_then(parse_segment_name) {
+            let name = dir_entry.file_name();
+            let name = name.to_str().unwrap_or_default();
+            if let Some(id) = parse_segment_name(name) {
                 ids.push(id);
+            } else if name
+                .strip_suffix(".compact")
+                .and_then(parse_segment_name)
+                .is_some()
+            {
+                // A compaction cut short: the segment it was replacing is still whole.
+                let _ = fs::remove_file(dir_entry.path());
             }
         }
         ids.sort_unstable();
@@ -334,6 +370,7 @@ impl Spool {
             reader: None,
             paused: false,
             storage: None,
+            compact_candidates: BTreeSet::new(),
             storage_episodes: 0,
             recovery: Recovery::default(),
             lost_frames: 0,
@@ -663,6 +700,7 @@ impl Spool {
         let data = fs::read(&path).map_err(io_err("reading", &path))?;
         let mut offset = 0usize;
         let mut frames = 0usize;
+        let mut live_bytes = 0u64;
         while let Some(rest) = data.get(offset..).filter(|rest| !rest.is_empty()) {
             match parse_record(rest) {
                 Ok(record) => {
@@ -678,19 +716,21 @@ impl Spool {
                     });
                     self.index.insert((record.session_id, record.seq, entry_id));
                     offset += RECORD_HEADER_LEN + record.frame.len();
+                    live_bytes += record_len(record.frame.len());
                     frames += 1;
                 }
                 Err(fault) => {
                     let resume = find_next_record(&data, offset + 1);
                     let skipped = resume.unwrap_or(data.len()) - offset;
-                    tracing::warn!(
+                    tracing::error!(
                         segment = %path.display(),
                         offset,
                         skipped,
                         %fault,
-                        "dropping a torn or corrupt spool record"
+                        "frames lost on the edge: dropping a torn or corrupt spool record"
                     );
                     self.recovery.damaged_bytes += skipped as u64;
+                    self.recovery.damaged_records += 1;
                     offset = resume.unwrap_or(data.len());
                 }
             }
@@ -708,6 +748,8 @@ impl Spool {
             Segment {
                 bytes: data.len() as u64,
                 live: frames,
+                live_bytes,
+                no_compact: false,
             },
         );
         Ok(())
@@ -767,12 +809,10 @@ impl Spool {
             });
         }
         self.active = Some(active);
-        let segment = self
-            .segments
-            .entry(id)
-            .or_insert(Segment { bytes: 0, live: 0 });
+        let segment = self.segments.entry(id).or_default();
         segment.bytes += record_bytes;
         segment.live += 1;
+        segment.live_bytes += record_bytes;
         self.bytes_on_disk += record_bytes;
         Ok((id, offset))
     }
@@ -794,7 +834,7 @@ impl Spool {
         File::open(&self.config.dir)
             .and_then(|dir| dir.sync_all())
             .map_err(io_err("syncing", &self.config.dir))?;
-        self.segments.insert(id, Segment { bytes: 0, live: 0 });
+        self.segments.insert(id, Segment::default());
         Ok(ActiveSegment { id, file })
     }
 
@@ -846,13 +886,18 @@ impl Spool {
         let Some(entry) = self.entry_mut(id) else {
             return;
         };
+        let len = entry.len;
         match std::mem::replace(&mut entry.slot, Slot::Released) {
             Slot::Memory(bytes) => self.bytes_in_memory -= bytes.len(),
             Slot::Disk { segment, .. } => {
                 if let Some(held) = self.segments.get_mut(&segment) {
                     held.live = held.live.saturating_sub(1);
+                    held.live_bytes = held.live_bytes.saturating_sub(record_len(len));
                 }
                 self.retire_if_dead(segment);
+                if self.segments.contains_key(&segment) {
+                    self.compact_candidates.insert(segment);
+                }
             }
             Slot::Released => {}
         }
@@ -903,7 +948,119 @@ impl Spool {
         }
         self.send_cursor = self.send_cursor.max(self.front_id);
         self.spill_cursor = self.spill_cursor.max(self.front_id);
+        for segment in std::mem::take(&mut self.compact_candidates) {
+            self.maybe_compact(segment);
+        }
         self.update_pause();
+    }
+
+    /// Compacts segment `id` if at least half its bytes are released and a released record
+    /// follows a live one (see the module documentation). A failure is logged and leaves the
+    /// segment as it was (its frames are all still there).
+    fn maybe_compact(&mut self, id: u64) {
+        let Some(segment) = self.segments.get(&id) else {
+            return;
+        };
+        if segment.live == 0
+            || segment.no_compact
+            || self.storage.is_some()
+            || segment.live_bytes.saturating_mul(2) > segment.bytes
+        {
+            return;
+        }
+        let live: Vec<(u64, u64)> = (self.front_id..)
+            .zip(&self.entries)
+            .filter_map(|(entry_id, entry)| match entry.slot {
+                Slot::Disk { segment, offset } if segment == id => Some((entry_id, offset)),
+                _ => None,
+            })
+            .collect();
+        // Live records forming the segment's tail: acknowledgements are still progressing
+        // through it in order, and it will soon be deleted whole.
+        let mut end = segment.bytes;
+        let tail = live.iter().rev().all(|&(entry_id, offset)| {
+            let len = self.entry(entry_id).map_or(0, |entry| entry.len);
+            let contiguous = offset + record_len(len) == end;
+            end = offset;
+            contiguous
+        });
+        if tail {
+            return;
+        }
+        if self.active.as_ref().is_some_and(|active| active.id == id)
+            && let Err(error) = self.close_active()
+        {
+            tracing::warn!(%error, "spool segment not compacted");
+            return;
+        }
+        match self.rewrite_segment(id, &live) {
+            Ok(bytes) => {
+                tracing::debug!(
+                    segment = id,
+                    records = live.len(),
+                    bytes,
+                    "spool segment compacted"
+                );
+            }
+            Err(error) => {
+                tracing::warn!(%error, "spool segment not compacted; it keeps its acknowledged frames");
+                let _ = fs::remove_file(compact_path(&self.config.dir, id));
+                if let Some(segment) = self.segments.get_mut(&id) {
+                    segment.no_compact = true;
+                }
+            }
+        }
+    }
+
+    /// Replaces segment `id` by a file holding only the records of `live` (`(entry id,
+    /// offset)`, in file order); returns the new size.
+    fn rewrite_segment(&mut self, id: u64, live: &[(u64, u64)]) -> Result<u64, String> {
+        let mut data = Vec::new();
+        let mut offsets = Vec::with_capacity(live.len());
+        for &(entry_id, offset) in live {
+            let Some(entry) = self.entry(entry_id) else {
+                return Err(format!("entry {entry_id} vanished"));
+            };
+            let (session_id, seq, len) = (entry.session_id, entry.seq, entry.len);
+            let frame = self.read_record(id, offset, session_id, seq, len)?;
+            offsets.push(data.len() as u64);
+            data.extend_from_slice(&encode_record(session_id, seq, &frame));
+        }
+        let path = segment_path(&self.config.dir, id);
+        let temporary = compact_path(&self.config.dir, id);
+        self.config
+            .faults
+            .check()
+            .and_then(|()| {
+                let mut file = File::create(&temporary)?;
+                file.write_all(&data)?;
+                file.sync_data()?;
+                fs::rename(&temporary, &path)?;
+                File::open(&self.config.dir)?.sync_all()
+            })
+            .map_err(|error| format!("compacting {}: {error}", path.display()))?;
+        if self
+            .reader
+            .as_ref()
+            .is_some_and(|(reader, _)| *reader == id)
+        {
+            self.reader = None;
+        }
+        for (&(entry_id, _), &offset) in live.iter().zip(&offsets) {
+            if let Some(entry) = self.entry_mut(entry_id) {
+                entry.slot = Slot::Disk {
+                    segment: id,
+                    offset,
+                };
+            }
+        }
+        let new_bytes = data.len() as u64;
+        if let Some(segment) = self.segments.get_mut(&id) {
+            self.bytes_on_disk = self.bytes_on_disk - segment.bytes + new_bytes;
+            segment.bytes = new_bytes;
+            segment.live_bytes = new_bytes;
+        }
+        Ok(new_bytes)
     }
 
     /// Reads a spilled frame back and checks it is the record that was written.
@@ -1048,6 +1205,11 @@ fn find_next_record(data: &[u8], from: usize) -> Option<usize> {
 
 fn segment_path(dir: &Path, id: u64) -> PathBuf {
     dir.join(format!("segment-{id:020}.spool"))
+}
+
+/// The temporary file a compaction of segment `id` writes before renaming it over the segment.
+fn compact_path(dir: &Path, id: u64) -> PathBuf {
+    dir.join(format!("segment-{id:020}.spool.compact"))
 }
 
 /// The segment number in a segment file name, `None` for any other file.
@@ -1375,7 +1537,8 @@ mod tests {
             &Recovery {
                 segments: 3,
                 frames: 7,
-                damaged_bytes: 0
+                damaged_bytes: 0,
+                damaged_records: 0
             },
             "7 records in segments of at most 3"
         );
@@ -1399,7 +1562,8 @@ mod tests {
             &Recovery {
                 segments: 1,
                 frames: 6,
-                damaged_bytes: 48
+                damaged_bytes: 48,
+                damaged_records: 1
             }
         );
         assert_eq!(drain(&mut spool), seqs(1, 0..6));
@@ -1429,7 +1593,8 @@ mod tests {
             &Recovery {
                 segments: 1,
                 frames: 4,
-                damaged_bytes: REC30
+                damaged_bytes: REC30,
+                damaged_records: 1
             }
         );
         assert_eq!(drain(&mut spool), [(1, 0), (1, 1), (1, 3), (1, 4)]);
@@ -1447,7 +1612,8 @@ mod tests {
             &Recovery {
                 segments: 0,
                 frames: 0,
-                damaged_bytes: 12
+                damaged_bytes: 12,
+                damaged_records: 1
             }
         );
         assert!(!segment_path(dir.path(), 3).exists());
@@ -1569,6 +1735,82 @@ mod tests {
         assert_eq!((spool.lost_frames(), spool.len()), (2, 1));
         spool.rewind();
         assert_eq!(drain(&mut spool), seqs(1, 2..3));
+    }
+
+    #[test]
+    fn a_gap_frame_is_all_the_spool_keeps_once_everything_after_it_is_acked_by_ranges() {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = || config(dir.path(), 0, 10_000, 4 * REC30);
+        let mut spool = Spool::open(cfg()).unwrap();
+        push_n(&mut spool, 1, 0..10, 30); // segments [0 1 2 3] [4 5 6 7] [8 9]
+        assert_eq!(drain(&mut spool), seqs(1, 0..10));
+        assert_eq!(spool.bytes_on_disk(), 10 * REC30);
+        // The server never got seq 1 and acknowledges the rest in ranges, out of order.
+        spool.ack_range(1, 6, 9);
+        spool.ack_range(1, 0, 0);
+        spool.ack_range(1, 2, 5);
+        assert_eq!(spool.len(), 1);
+        assert_eq!(
+            spool.bytes_on_disk(),
+            REC30,
+            "only the gap frame stays on disk"
+        );
+        assert_eq!(
+            segment_files(dir.path()),
+            [("segment-00000000000000000000.spool".to_string(), REC30)]
+        );
+        spool.rewind();
+        assert_eq!(drain(&mut spool), seqs(1, 1..2));
+        // New frames still go to a new segment, after it.
+        push_n(&mut spool, 1, 10..11, 30);
+        spool.shutdown_flush().unwrap();
+        drop(spool);
+        let mut spool = Spool::open(cfg()).unwrap();
+        assert_eq!(spool.recovery().frames, 2);
+        assert_eq!(drain(&mut spool), [(1, 1), (1, 10)]);
+        spool.ack_range(1, 10, 10);
+        assert_eq!((spool.len(), spool.bytes_on_disk()), (1, REC30));
+        drop(spool);
+        let mut spool = Spool::open(cfg()).unwrap();
+        assert_eq!(drain(&mut spool), seqs(1, 1..2), "still only the gap frame");
+    }
+
+    #[test]
+    fn acks_progressing_in_order_never_rewrite_a_segment() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut spool = Spool::open(config(dir.path(), 0, 10_000, 4 * REC30)).unwrap();
+        push_n(&mut spool, 1, 0..4, 30);
+        let path = segment_path(dir.path(), 0);
+        let inode = |p: &Path| std::os::unix::fs::MetadataExt::ino(&fs::metadata(p).unwrap());
+        let before = inode(&path);
+        spool.ack(1, 2); // three quarters released, but as a prefix
+        assert_eq!((inode(&path), spool.bytes_on_disk()), (before, 4 * REC30));
+        spool.ack(1, 3);
+        assert!(segment_files(dir.path()).is_empty());
+    }
+
+    #[test]
+    fn a_torn_record_is_counted_lost_and_the_frames_around_it_are_resent_and_released() {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = || config(dir.path(), 0, 10_000, 1_000);
+        let mut spool = Spool::open(cfg()).unwrap();
+        push_n(&mut spool, 1, 0..6, 30);
+        drop(spool);
+        let path = segment_path(dir.path(), 0);
+        let mut data = fs::read(&path).unwrap();
+        data[2 * REC30 as usize + 30] ^= 0x40; // seq 2's payload
+        fs::write(&path, &data).unwrap();
+        let mut spool = Spool::open(cfg()).unwrap();
+        assert_eq!(spool.recovery().damaged_records, 1);
+        assert_eq!(drain(&mut spool), [(1, 0), (1, 1), (1, 3), (1, 4), (1, 5)]);
+        // The server acknowledges what it got, around the hole the lost frame left.
+        spool.ack_range(1, 0, 1);
+        spool.ack_range(1, 3, 5);
+        assert!(spool.is_empty());
+        assert!(
+            segment_files(dir.path()).is_empty(),
+            "released, not kept for ever"
+        );
     }
 
     #[test]
