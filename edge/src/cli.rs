@@ -317,3 +317,35 @@ impl JsonLines<'_> {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn check_config(path: PathBuf) -> anyhow::Result<String> {
+        let cli = Cli::parse_from(
+            ["scan3d-edge", "check-config", "--config"]
+                .map(Into::into)
+                .into_iter()
+                .chain([path.into_os_string()]),
+        );
+        let mut out = Vec::new();
+        execute(cli, &mut out)?;
+        Ok(String::from_utf8(out)?)
+    }
+
+    #[test]
+    fn check_config_passes_the_shipped_example_and_refuses_what_the_daemon_cannot_use() {
+        let shipped = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../deploy/edge.toml"));
+        let printed = check_config(shipped).unwrap();
+        assert!(printed.starts_with("device edge-pi-01\n"), "{printed}");
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("edge.toml");
+        std::fs::write(&path, "device_name = \"t\"\n[stepper]\nsteps_per_rev = 0\n").unwrap();
+        let message = format!("{:#}", check_config(path).unwrap_err());
+        assert!(
+            message.contains("line 3: `stepper.steps_per_rev` = 0"),
+            "{message}"
+        );
+    }
+}

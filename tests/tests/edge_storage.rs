@@ -27,7 +27,11 @@ struct Tmpfs<'a>(&'a Path);
 impl<'a> Tmpfs<'a> {
     fn mount(dir: &'a Path, size: &str) -> Self {
         std::fs::create_dir_all(dir).unwrap();
-        run("mount", &["-t", "tmpfs", "-o", &format!("size={size}"), "tmpfs"], dir);
+        run(
+            "mount",
+            &["-t", "tmpfs", "-o", &format!("size={size}"), "tmpfs"],
+            dir,
+        );
         Tmpfs(dir)
     }
 
@@ -48,7 +52,11 @@ fn run(program: &str, args: &[&str], dir: &Path) {
         .arg(dir)
         .status()
         .unwrap_or_else(|e| panic!("{program}: {e}"));
-    assert!(status.success(), "{program} {args:?} {}: {status} (needs root)", dir.display());
+    assert!(
+        status.success(),
+        "{program} {args:?} {}: {status} (needs root)",
+        dir.display()
+    );
 }
 
 fn wait_until(timeout: Duration, what: &str, mut done: impl FnMut() -> bool) {
@@ -148,9 +156,7 @@ fn a_full_disk_pauses_the_spool_without_losing_a_frame_and_everything_arrives_on
             _ => None,
         })
         .collect();
-    let expected: Vec<(u64, String)> = (0..total)
-        .map(|n| (n as u64, status(n).reason))
-        .collect();
+    let expected: Vec<(u64, String)> = (0..total).map(|n| (n as u64, status(n).reason)).collect();
     assert_eq!(recorded.len(), expected.len());
     assert!(recorded == expected, "every frame once, in order");
     drop(disk);
