@@ -9,7 +9,7 @@
 //! x-io and ROS `imu_filter_madgwick`.
 //!
 //! **Conventions** (those of x-io's `MadgwickAHRS.c`, the `ahrs` Python package and the
-//! reference vectors in `shared/data/madgwick/`):
+//! reference vectors in `testdata/madgwick/`):
 //! - the quaternion is Hamilton, scalar first, and rotates sensor vectors into the earth frame:
 //!   v_earth = q ⊗ v_sensor ⊗ q*;
 //! - the earth frame is **NWU**: x = magnetic north (horizontal), y = west, z = up;
@@ -344,7 +344,8 @@ mod tests {
     use super::*;
     use std::f64::consts::{FRAC_PI_2, PI};
 
-    const DATA_DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data/madgwick/");
+    /// The reference vectors vendored in the repository (testdata/madgwick/README.md).
+    const DATA_DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../testdata/madgwick/");
     const G: f64 = 9.80665;
     /// The reference data's earth field: 50 µT, 60° inclination (down), NWU.
     const M_EARTH: [f64; 3] = [25.0, 0.0, -43.30127018922193];

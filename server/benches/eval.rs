@@ -1,7 +1,7 @@
 //! Speed of `scan3d_server::eval` (issue 6): all metrics on geb079_sim at 0.05 m, its `.ot`
 //! (2.76 M leaves) against its `.bt` (1.67 M leaves), both made with the octree module; target
 //! ≤ 50 ms after loading, loading ≥ 100 M nodes/s. Printed beside OctoMap's
-//! `shared/tools/octomap_bench cmp` on the same pair (compiled with g++ -O2 -DNDEBUG against
+//! `benches/octomap_bench.cpp`'s `cmp` on the same pair (compiled with g++ -O2 -DNDEBUG against
 //! Debian's liboctomap-dev; skipped with a message when that is not possible).
 //!
 //! `cargo bench -p scan3d-server --bench eval`. Times are the best of `EVAL_BENCH_REPS`
@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
 
-use common::{octomap_bench, shared};
+use common::{octomap_bench, octomap_data};
 
 use scan3d_server::eval::{LeafMap, evaluate};
 use scan3d_server::octree::{Octree, Resolution, SensorModel, VoxelMap, read_graph};
@@ -32,17 +32,14 @@ fn best<T>(reps: usize, mut f: impl FnMut() -> T) -> (f64, T) {
 }
 
 /// geb079_sim at 0.05 m as (.ot, .bt) files, built with the octree module on first use.
-fn maps(dir: &Path) -> Option<(PathBuf, PathBuf)> {
+fn maps(dir: &Path) -> (PathBuf, PathBuf) {
     let ot = dir.join("geb079_sim_0.05.ot");
     let bt = dir.join("geb079_sim_0.05.bt");
     if ot.exists() && bt.exists() {
-        return Some((ot, bt));
+        return (ot, bt);
     }
-    let graph = shared().join("data/octomap/derived/geb079_sim.graph");
-    let Ok(bytes) = std::fs::read(&graph) else {
-        println!("skipped: {} not found", graph.display());
-        return None;
-    };
+    let graph = octomap_data("derived/geb079_sim.graph");
+    let bytes = std::fs::read(&graph).expect("read geb079_sim.graph");
     let scans = read_graph(&bytes).expect("geb079_sim.graph parses");
     let t = Instant::now();
     let mut map = VoxelMap::new(
@@ -60,7 +57,7 @@ fn maps(dir: &Path) -> Option<(PathBuf, PathBuf)> {
     );
     std::fs::write(&ot, tree.to_ot_bytes()).expect("write .ot");
     std::fs::write(&bt, tree.to_bt_bytes()).expect("write .bt");
-    Some((ot, bt))
+    (ot, bt)
 }
 
 /// Best "read" and "compare" seconds of `octomap_bench cmp a b` over `reps` runs.
@@ -87,9 +84,7 @@ fn main() {
         .unwrap_or(7)
         .max(1);
     let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR"));
-    let Some((ot_path, bt_path)) = maps(&dir) else {
-        return;
-    };
+    let (ot_path, bt_path) = maps(&dir);
     let ot_bytes = std::fs::read(&ot_path).expect("read .ot");
     let bt_bytes = std::fs::read(&bt_path).expect("read .bt");
     let (t_ot, ot) = best(reps, || {

@@ -1,7 +1,7 @@
 //! Insertion and `.bt` read speed of `scan3d_server::octree` against OctoMap 1.9.7 on the same
 //! input in the same run (research/octomap.md §8). `cargo bench -p scan3d-server --bench octree`.
 //!
-//! OctoMap's side is `shared/tools/octomap_bench.cpp`, compiled here with g++ -O2 -DNDEBUG
+//! OctoMap's side is `benches/octomap_bench.cpp`, compiled here with g++ -O2 -DNDEBUG
 //! against Debian's liboctomap-dev; without g++ or the headers it is skipped with a message.
 //! Times are best of `OCTREE_BENCH_REPS` (default 5) runs, as the machine is shared.
 //! `OCTREE_BENCH_NO_OCTOMAP=1` skips OctoMap; `OCTREE_BENCH_WRITE_DIR=d` writes our trees there;
@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
 
-use common::{octomap_bench, shared};
+use common::{octomap_bench, octomap_data};
 
 use scan3d_server::cloud::OriginScan;
 use scan3d_server::octree::{Octree, Resolution, SensorModel, VoxelMap, ray_keys, read_graph};
@@ -82,11 +82,8 @@ fn main() {
         .and_then(|v| v.parse().ok())
         .unwrap_or(5)
         .max(1);
-    let graph = shared().join("data/octomap/derived/geb079_sim.graph");
-    let Ok(bytes) = std::fs::read(&graph) else {
-        println!("skipped: {} not found", graph.display());
-        return;
-    };
+    let graph = octomap_data("derived/geb079_sim.graph");
+    let bytes = std::fs::read(&graph).expect("read geb079_sim.graph");
     let scans = read_graph(&bytes).expect("geb079_sim.graph parses");
     let npts: usize = scans.iter().map(|s| s.points.len()).sum();
     println!(
@@ -173,10 +170,8 @@ fn main() {
     }
 
     for name in ["geb079.bt", "reference/geb079_sim_0.08.bt"] {
-        let path = shared().join("data/octomap").join(name);
-        let Ok(file) = std::fs::read(&path) else {
-            continue;
-        };
+        let path = octomap_data(name);
+        let file = std::fs::read(&path).expect("read a vendored map");
         let ((t, _), tree) = best(reps.max(5), || {
             Octree::read_bt(&file, SensorModel::default()).expect("reads")
         });

@@ -1,16 +1,12 @@
 //! `scan3d eval | report | sweep` (issue 6), run in-process on OctoMap's data.
 
-use std::path::PathBuf;
+mod common;
 
 use clap::Parser;
 use scan3d_server::cli::{Cli, execute};
 
 fn data(rel: &str) -> String {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../../shared/data/octomap")
-        .join(rel)
-        .to_string_lossy()
-        .into_owned()
+    common::octomap_data(rel).to_string_lossy().into_owned()
 }
 
 fn run(args: &[&str]) -> anyhow::Result<String> {

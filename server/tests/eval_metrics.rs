@@ -1,20 +1,13 @@
 //! The map metrics of `scan3d_server::eval` (issue 6) against hand-computed small maps,
 //! OctoMap's own confusion counts (research/octomap.md §8.5) and `compare_octrees`' KLD.
 
-use std::path::PathBuf;
+mod common;
+
 use std::process::Command;
 
+use common::{octomap_tool, read_octomap_data as read};
 use scan3d_server::eval::{EvalError, LeafMap, Role, VoxelBox, compare, evaluate, evaluate_truth};
 use scan3d_server::octree::{Key, Octree, OctreeError, Resolution, SensorModel, VoxelMap};
-
-fn octomap_data() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/octomap")
-}
-
-fn read(rel: &str) -> Vec<u8> {
-    let p = octomap_data().join(rel);
-    std::fs::read(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
-}
 
 fn load(rel: &str) -> LeafMap {
     LeafMap::read(&read(rel), SensorModel::default()).expect("reads")
@@ -195,17 +188,15 @@ fn log_odds_sum_equals_compare_octrees_kld() {
         assert_eq!(m.log_odds.common_voxels, 556_561);
         assert_eq!(format!("{:.1}", m.log_odds.sum), "85865.5");
     }
-    // Live, when Debian's octomap-tools is installed (CI): the same to its 6 digits.
-    let Ok(out) = Command::new("compare_octrees").arg("--version").output() else {
-        eprintln!("compare_octrees not installed: live check skipped");
+    // Live, when Debian's octomap-tools is installed (required in CI): the same to its 6 digits.
+    let Some(compare_octrees) = octomap_tool("compare_octrees") else {
         return;
     };
-    drop(out);
     let dir = tempfile::tempdir().unwrap();
     let (a, b) = (dir.path().join("full.ot"), dir.path().join("ml.ot"));
     std::fs::write(&a, &ot_bytes).unwrap();
     std::fs::write(&b, ml_tree.to_ot_bytes()).unwrap();
-    let out = Command::new("compare_octrees")
+    let out = Command::new(&compare_octrees)
         .arg(&a)
         .arg(&b)
         .output()

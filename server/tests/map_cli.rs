@@ -1,16 +1,13 @@
 //! `scan3d map / convert / info` end to end on OctoMap's own data: the files the CLI writes are
-//! byte-identical to OctoMap 1.9.7's (`shared/data/octomap/reference/`).
+//! byte-identical to OctoMap 1.9.7's (`testdata/octomap/reference/`).
 
-use std::path::{Path, PathBuf};
+mod common;
+
+use std::path::Path;
 
 use clap::Parser;
+use common::octomap_data as data;
 use scan3d_server::cli::{Cli, execute};
-
-fn shared(path: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../shared/data/octomap")
-        .join(path)
-}
 
 fn run(args: &[&str]) -> anyhow::Result<String> {
     let cli = Cli::try_parse_from(std::iter::once("scan3d").chain(args.iter().copied()))?;
@@ -26,7 +23,7 @@ fn s(path: &Path) -> &str {
 #[test]
 fn map_writes_octomaps_bytes() {
     let dir = tempfile::tempdir().unwrap();
-    let graph = shared("spherical_scan.graph");
+    let graph = data("spherical_scan.graph");
     for ext in ["bt", "ot"] {
         let out = dir.path().join(format!("m.{ext}"));
         run(&[
@@ -40,7 +37,7 @@ fn map_writes_octomaps_bytes() {
         ])
         .unwrap();
         let ours = std::fs::read(&out).unwrap();
-        let theirs = std::fs::read(shared(&format!("reference/spherical_scan_0.2.{ext}"))).unwrap();
+        let theirs = std::fs::read(data(&format!("reference/spherical_scan_0.2.{ext}"))).unwrap();
         assert!(ours == theirs, "{ext} differs from OctoMap's");
     }
 }
@@ -49,11 +46,11 @@ fn map_writes_octomaps_bytes() {
 fn convert_ot_to_bt_is_writebinary() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("m.bt");
-    let text = run(&["convert", s(&shared("reference/scan_dat_0.2.ot")), s(&out)]).unwrap();
+    let text = run(&["convert", s(&data("reference/scan_dat_0.2.ot")), s(&out)]).unwrap();
     assert!(text.starts_with("wrote "), "{text}");
     assert_eq!(
         std::fs::read(&out).unwrap(),
-        std::fs::read(shared("reference/scan_dat_0.2.bt")).unwrap()
+        std::fs::read(data("reference/scan_dat_0.2.bt")).unwrap()
     );
 }
 
@@ -62,11 +59,11 @@ fn a_cloud_through_ply_keeps_its_origins_and_gives_the_same_map() {
     let dir = tempfile::tempdir().unwrap();
     let ply = dir.path().join("c.ply");
     let ot = dir.path().join("c.ot");
-    run(&["convert", s(&shared("spherical_scan.graph")), s(&ply)]).unwrap();
+    run(&["convert", s(&data("spherical_scan.graph")), s(&ply)]).unwrap();
     run(&["map", s(&ply), "--res", "0.1", "--out", s(&ot), "--quiet"]).unwrap();
     assert_eq!(
         std::fs::read(&ot).unwrap(),
-        std::fs::read(shared("reference/spherical_scan_0.1.ot")).unwrap()
+        std::fs::read(data("reference/spherical_scan_0.1.ot")).unwrap()
     );
 }
 
@@ -75,7 +72,7 @@ fn info_reports_counts_and_bounds() {
     let text = run(&[
         "info",
         "--json",
-        s(&shared("reference/spherical_scan_0.1.bt")),
+        s(&data("reference/spherical_scan_0.1.bt")),
     ])
     .unwrap();
     let v: serde_json::Value = serde_json::from_str(&text).unwrap();
@@ -125,7 +122,7 @@ fn non_finite_points_are_skipped_and_counted_and_filters_apply_in_order() {
 fn bad_inputs_give_one_clear_error() {
     let dir = tempfile::tempdir().unwrap();
     let truncated = dir.path().join("t.bt");
-    let bytes = std::fs::read(shared("reference/spherical_scan_0.1.bt")).unwrap();
+    let bytes = std::fs::read(data("reference/spherical_scan_0.1.bt")).unwrap();
     std::fs::write(&truncated, &bytes[..bytes.len() / 2]).unwrap();
     let err = run(&["info", s(&truncated)]).unwrap_err().to_string();
     assert!(err.contains("t.bt"), "{err}");
@@ -135,7 +132,7 @@ fn bad_inputs_give_one_clear_error() {
     assert!(err.contains("missing.ply"), "{err}");
     let err = run(&[
         "map",
-        s(&shared("spherical_scan.graph")),
+        s(&data("spherical_scan.graph")),
         "--res",
         "0.1",
         "--out",
@@ -146,7 +143,7 @@ fn bad_inputs_give_one_clear_error() {
     assert!(err.contains("must end in .bt or .ot"), "{err}");
     let err = run(&[
         "convert",
-        s(&shared("reference/spherical_scan_0.1.bt")),
+        s(&data("reference/spherical_scan_0.1.bt")),
         "x.ply",
     ])
     .unwrap_err()

@@ -1,21 +1,12 @@
-//! Byte identity against OctoMap 1.9.7's golden files in `../shared/data/octomap/reference/`
-//! (research/octomap.md; data README): our `.ot` equals `OcTree::write` and our `.bt` equals
-//! `OcTree::writeBinary` after inserting the same `.graph` with graph2tree's defaults.
+//! Byte identity against OctoMap 1.9.7's golden files in `testdata/octomap/reference/`
+//! (research/octomap.md; testdata/octomap/README.md): our `.ot` equals `OcTree::write` and our
+//! `.bt` equals `OcTree::writeBinary` after inserting the same `.graph` with graph2tree's
+//! defaults.
 
-use std::path::PathBuf;
+mod common;
 
+use common::{octomap_data as data, octomap_tool, read_octomap_data as read};
 use scan3d_server::octree::{Octree, OctreeError, Resolution, SensorModel, VoxelMap, read_graph};
-
-fn data(rel: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../../shared/data/octomap")
-        .join(rel)
-}
-
-fn read(rel: &str) -> Vec<u8> {
-    let p = data(rel);
-    std::fs::read(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
-}
 
 fn build(graph: &str, res: f64) -> Octree {
     let scans = read_graph(&read(graph)).expect("graph parses");
@@ -261,12 +252,11 @@ fn ground_truth_from_voxel_states_writes_readable_bt() {
 #[test]
 fn bt_read_equals_octomaps_read_bt_written_as_ot() {
     // OctoMap's own `convert_octree in.bt out.ot` (readBinary then write) shows the tree
-    // OctoMap reads from a .bt: leaf clamps, inner max, root clamp max. Skipped without it.
-    let tool = std::path::Path::new("/usr/bin/convert_octree");
-    if !tool.exists() {
-        eprintln!("skipped: no {}", tool.display());
+    // OctoMap reads from a .bt: leaf clamps, inner max, root clamp max. Skipped without it,
+    // unless SCAN3D_REQUIRE_OCTOMAP=1.
+    let Some(tool) = octomap_tool("convert_octree") else {
         return;
-    }
+    };
     let dir = tempfile::tempdir().unwrap();
     for stem in [
         "geb079",
@@ -275,7 +265,7 @@ fn bt_read_equals_octomaps_read_bt_written_as_ot() {
     ] {
         let bt = data(&format!("{stem}.bt"));
         let out = dir.path().join("out.ot");
-        let ok = std::process::Command::new(tool)
+        let ok = std::process::Command::new(&tool)
             .arg(&bt)
             .arg(&out)
             .output()
@@ -286,4 +276,46 @@ fn bt_read_equals_octomaps_read_bt_written_as_ot() {
         let t = Octree::read_bt(&std::fs::read(&bt).unwrap(), SensorModel::default()).unwrap();
         same(&t.to_ot_bytes(), &std::fs::read(&out).unwrap(), stem);
     }
+}
+
+#[test]
+fn a_missing_octomap_tool_fails_when_required_and_is_a_notice_otherwise() {
+    // Runs the convert_octree comparison above in a child of this test binary with an empty
+    // PATH, so the tool cannot be found, with and without SCAN3D_REQUIRE_OCTOMAP=1.
+    let run = |required: bool| {
+        let mut cmd = std::process::Command::new(std::env::current_exe().unwrap());
+        cmd.args([
+            "bt_read_equals_octomaps_read_bt_written_as_ot",
+            "--exact",
+            "--nocapture",
+        ])
+        .env("PATH", "")
+        .env_remove(common::REQUIRE_OCTOMAP);
+        if required {
+            cmd.env(common::REQUIRE_OCTOMAP, "1");
+        }
+        let out = cmd.output().unwrap();
+        let text = format!(
+            "{}{}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        );
+        (out.status.success(), text)
+    };
+    let (ok, text) = run(true);
+    assert!(
+        !ok,
+        "passed although the tool is required and missing:\n{text}"
+    );
+    assert!(
+        text.contains("SCAN3D_REQUIRE_OCTOMAP=1 but OctoMap's `convert_octree` is not on PATH"),
+        "{text}"
+    );
+    assert!(text.contains("1 failed"), "{text}");
+    let (ok, text) = run(false);
+    assert!(ok, "{text}");
+    assert!(
+        text.contains("skipped the comparison with OctoMap: OctoMap's `convert_octree`"),
+        "{text}"
+    );
 }

@@ -19,7 +19,7 @@ if [[ -n "${SCAN3D_BIN_DIR:-}" ]]; then
     bin="$SCAN3D_BIN_DIR"
 else
     (cd "$root" && cargo build --release --bin scan3d-sim --bin scan3d)
-    bin="$root/target/release"
+    bin="${CARGO_TARGET_DIR:-$root/target}/release"
 fi
 
 echo "== demo into $tmp/out"

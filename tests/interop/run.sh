@@ -29,7 +29,7 @@ if [[ -n "${SCAN3D_SIM:-}" ]]; then
 else
     echo "== cargo build --release --bin scan3d-sim"
     (cd "$root" && cargo build --release --bin scan3d-sim)
-    sim="$root/target/release/scan3d-sim"
+    sim="${CARGO_TARGET_DIR:-$root/target}/release/scan3d-sim"
 fi
 [[ -x "$sim" ]] || { echo "scan3d-sim not found at $sim" >&2; exit 1; }
 
