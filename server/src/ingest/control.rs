@@ -14,8 +14,9 @@
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
+use std::time::Duration;
 
-use scan3d_protocol::Command;
+use scan3d_protocol::{Command, InvalidCommand};
 use serde::{Deserialize, Serialize};
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::net::{UnixListener, UnixStream};
@@ -27,7 +28,7 @@ pub fn socket_path(data_dir: &Path) -> PathBuf {
 }
 
 /// Why a command could not be routed.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum ControlError {
     /// No live connection of that edge.
     #[error("edge {edge:?} is not connected (connected: {connected})")]
@@ -37,6 +38,9 @@ pub enum ControlError {
         /// The edges that are, comma-separated (or "none").
         connected: String,
     },
+    /// The command is not one an edge can be sent ([`Command::validate`]).
+    #[error("invalid command: {0}")]
+    Invalid(#[from] InvalidCommand),
 }
 
 /// Routes commands to the edges connected to an ingest server; cheap to clone.
@@ -77,8 +81,11 @@ impl EdgeControl {
         names
     }
 
-    /// Queues `command` on `edge`'s connection (sent with the next outgoing frames).
+    /// Queues `command` on `edge`'s connection (sent with the next outgoing frames). The
+    /// command is validated first ([`Command::validate`]): this is the only way commands reach
+    /// a connection, so a connection never holds one it cannot encode.
     pub fn send(&self, edge: &str, command: Command) -> Result<(), ControlError> {
+        command.validate()?;
         let sent = self
             .lock()
             .get(edge)
@@ -144,36 +151,257 @@ pub fn handle_request(control: &EdgeControl, line: &str) -> ControlReply {
     }
 }
 
-/// Serves the control socket at `path` until the task is dropped. A stale socket file left by
-/// a crashed server is replaced.
-pub async fn serve_socket(path: PathBuf, control: EdgeControl) -> std::io::Result<()> {
-    if path.exists() && UnixStream::connect(&path).await.is_err() {
-        std::fs::remove_file(&path)?;
-    }
-    let listener = UnixListener::bind(&path)?;
-    tracing::info!(socket = %path.display(), "control socket ready");
-    loop {
-        let (stream, _) = listener.accept().await?;
-        let control = control.clone();
-        tokio::spawn(async move {
-            if let Err(e) = answer(stream, &control).await {
-                tracing::warn!(error = %e, "control connection failed");
-            }
-        });
+/// Longest control socket path: `sun_path` holds 108 bytes on Linux, one of them the
+/// terminating NUL.
+pub const MAX_SOCKET_PATH_LEN: usize = 107;
+
+/// Permissions of the control socket: owner only. Connecting needs write permission, so this
+/// and the peer check ([`ControlSocket`]) both say "the server's own user (or root)".
+pub const SOCKET_MODE: u32 = 0o600;
+
+/// Bounds on what the control socket accepts, so a local client cannot make it hold memory,
+/// tasks or file descriptors for ever.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ControlLimits {
+    /// Longest request line, newline excluded; a longer one is answered with an error and the
+    /// connection closed.
+    pub max_line_len: usize,
+    /// Connections served at once; a further one is answered with an error and closed.
+    pub max_connections: usize,
+    /// A connection that sends no complete request (or does not take its reply) for this long
+    /// is closed.
+    pub idle_timeout: Duration,
+    /// First pause after a failed `accept` (e.g. EMFILE); doubled on each further failure.
+    pub accept_backoff_min: Duration,
+    /// Longest pause after a failed `accept`.
+    pub accept_backoff_max: Duration,
+}
+
+impl Default for ControlLimits {
+    /// 64 KiB lines (a request is a few hundred bytes), 16 connections, 30 s idle, accept
+    /// retries after 10 ms up to 1 s.
+    fn default() -> Self {
+        ControlLimits {
+            max_line_len: 64 * 1024,
+            max_connections: 16,
+            idle_timeout: Duration::from_secs(30),
+            accept_backoff_min: Duration::from_millis(10),
+            accept_backoff_max: Duration::from_secs(1),
+        }
     }
 }
 
-async fn answer(stream: UnixStream, control: &EdgeControl) -> std::io::Result<()> {
-    let (read, mut write) = stream.into_split();
-    let mut lines = BufReader::new(read).lines();
-    while let Some(line) = lines.next_line().await? {
-        let reply = handle_request(control, &line);
-        tracing::info!(ok = reply.ok, detail = %reply.detail, "control request");
-        let mut text = serde_json::to_string(&reply).map_err(std::io::Error::other)?;
-        text.push('\n');
-        write.write_all(text.as_bytes()).await?;
+/// Why the control socket could not be opened.
+#[derive(Debug, thiserror::Error)]
+pub enum SocketError {
+    /// The path does not fit in `sun_path`.
+    #[error(
+        "control socket path {} is {len} bytes, longer than the {max} bytes a Unix socket path may have; choose a shorter data_dir",
+        path.display()
+    )]
+    PathTooLong {
+        /// The socket path.
+        path: PathBuf,
+        /// Its length in bytes.
+        len: usize,
+        /// [`MAX_SOCKET_PATH_LEN`].
+        max: usize,
+    },
+    /// Another server already listens on the path.
+    #[error("control socket {}: another server is already listening on it", path.display())]
+    InUse {
+        /// The socket path.
+        path: PathBuf,
+    },
+    /// Removing a stale socket, binding or setting the mode failed.
+    #[error("control socket {}: {source}", path.display())]
+    Io {
+        /// The socket path.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+}
+
+/// The bound control socket; [`ControlSocket::serve`] answers its connections.
+///
+/// Who may connect: the socket file is [`SOCKET_MODE`] (set explicitly, whatever the umask),
+/// and every connection's peer credentials (`SO_PEERCRED`) must be the server's own effective
+/// uid or root; anyone else is answered with an error and disconnected.
+#[derive(Debug)]
+pub struct ControlSocket {
+    listener: UnixListener,
+    path: PathBuf,
+    limits: ControlLimits,
+}
+
+impl ControlSocket {
+    /// Binds the socket at `path`, replacing a stale socket file left by a crashed server
+    /// (but never one a live server answers on).
+    pub async fn bind(path: PathBuf, limits: ControlLimits) -> Result<Self, SocketError> {
+        use std::os::unix::fs::PermissionsExt;
+        let len = path.as_os_str().len();
+        if len > MAX_SOCKET_PATH_LEN {
+            return Err(SocketError::PathTooLong {
+                path,
+                len,
+                max: MAX_SOCKET_PATH_LEN,
+            });
+        }
+        let io_err = |path: &Path| {
+            let path = path.to_path_buf();
+            move |source| SocketError::Io { path, source }
+        };
+        if std::fs::symlink_metadata(&path).is_ok() {
+            if UnixStream::connect(&path).await.is_ok() {
+                return Err(SocketError::InUse { path });
+            }
+            std::fs::remove_file(&path).map_err(io_err(&path))?;
+        }
+        let listener = UnixListener::bind(&path).map_err(io_err(&path))?;
+        std::fs::set_permissions(&path, std::fs::Permissions::from_mode(SOCKET_MODE))
+            .map_err(io_err(&path))?;
+        tracing::info!(socket = %path.display(), "control socket ready");
+        Ok(ControlSocket {
+            listener,
+            path,
+            limits,
+        })
     }
-    Ok(())
+
+    /// The socket's path.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Answers connections for as long as the task runs. A failed `accept` (EMFILE, ENOMEM,
+    /// ...) is logged and retried after a growing pause, so the socket neither dies nor spins.
+    pub async fn serve(self, control: EdgeControl) -> std::convert::Infallible {
+        let limits = self.limits;
+        let slots = Arc::new(tokio::sync::Semaphore::new(limits.max_connections));
+        let own_uid = nix::unistd::geteuid().as_raw();
+        let mut backoff = limits.accept_backoff_min;
+        loop {
+            let stream = match self.listener.accept().await {
+                Ok((stream, _)) => {
+                    backoff = limits.accept_backoff_min;
+                    stream
+                }
+                Err(e) => {
+                    tracing::warn!(
+                        socket = %self.path.display(),
+                        error = %e,
+                        retry_in_ms = backoff.as_millis(),
+                        "control socket cannot accept; retrying"
+                    );
+                    tokio::time::sleep(backoff).await;
+                    backoff = (backoff * 2).min(limits.accept_backoff_max);
+                    continue;
+                }
+            };
+            let refusal = match stream.peer_cred() {
+                Ok(cred) if cred.uid() == own_uid || cred.uid() == 0 => None,
+                Ok(cred) => Some(format!(
+                    "permission denied: uid {} is not the server's (uid {own_uid}) or root",
+                    cred.uid()
+                )),
+                Err(e) => Some(format!("permission denied: no peer credentials ({e})")),
+            };
+            let permit = match (refusal, slots.clone().try_acquire_owned()) {
+                (None, Ok(permit)) => permit,
+                (refusal, _) => {
+                    let detail = refusal.unwrap_or_else(|| {
+                        format!(
+                            "too many control connections (at most {} at once)",
+                            limits.max_connections
+                        )
+                    });
+                    tracing::warn!(%detail, "control connection refused");
+                    // Best effort and never blocking: the refusal costs one write at most.
+                    let _ = stream.try_write(reply_line(&ControlReply { ok: false, detail }).as_bytes());
+                    continue;
+                }
+            };
+            let control = control.clone();
+            tokio::spawn(async move {
+                let _permit = permit;
+                if let Err(e) = answer(stream, &control, &limits).await {
+                    tracing::warn!(error = %e, "control connection failed");
+                }
+            });
+        }
+    }
+}
+
+/// Binds the control socket at `path` with the default [`ControlLimits`] and serves it for as
+/// long as the task runs; returns only if the socket cannot be opened. Callers that must fail
+/// at start on a bad path use [`ControlSocket::bind`] and [`ControlSocket::serve`] instead.
+pub async fn serve_socket(path: PathBuf, control: EdgeControl) -> std::io::Result<()> {
+    let socket = ControlSocket::bind(path, ControlLimits::default())
+        .await
+        .map_err(std::io::Error::other)?;
+    match socket.serve(control).await {}
+}
+
+fn reply_line(reply: &ControlReply) -> String {
+    // A struct of a bool and a string always serialises.
+    let mut text = serde_json::to_string(reply).unwrap_or_default();
+    text.push('\n');
+    text
+}
+
+async fn answer(
+    stream: UnixStream,
+    control: &EdgeControl,
+    limits: &ControlLimits,
+) -> std::io::Result<()> {
+    use tokio::io::AsyncReadExt;
+    let timed_out = || std::io::Error::new(std::io::ErrorKind::TimedOut, "idle control connection closed");
+    let (read, mut write) = stream.into_split();
+    let mut reader = BufReader::new(read);
+    let mut line = Vec::new();
+    loop {
+        line.clear();
+        let limit = u64::try_from(limits.max_line_len).unwrap_or(u64::MAX).saturating_add(1);
+        let mut limited = (&mut reader).take(limit);
+        let read = limited.read_until(b'\n', &mut line);
+        let n = tokio::time::timeout(limits.idle_timeout, read)
+            .await
+            .map_err(|_| timed_out())??;
+        if n == 0 {
+            return Ok(());
+        }
+        let complete = line.last() == Some(&b'\n');
+        if complete {
+            line.pop();
+        }
+        let (reply, close) = if line.len() > limits.max_line_len {
+            let detail = format!(
+                "request line longer than {} bytes; closing the connection",
+                limits.max_line_len
+            );
+            (ControlReply { ok: false, detail }, true)
+        } else {
+            let reply = match std::str::from_utf8(&line) {
+                Ok(text) => handle_request(control, text),
+                Err(e) => ControlReply {
+                    ok: false,
+                    detail: format!("malformed request: not UTF-8 ({e})"),
+                },
+            };
+            // A last line without newline is answered, then the peer's end of stream closes.
+            (reply, false)
+        };
+        tracing::info!(ok = reply.ok, detail = %reply.detail, "control request");
+        let text = reply_line(&reply);
+        let write_reply = write.write_all(text.as_bytes());
+        tokio::time::timeout(limits.idle_timeout, write_reply)
+            .await
+            .map_err(|_| timed_out())??;
+        if close {
+            return Ok(());
+        }
+    }
 }
 
 /// Sends one request to the server's control socket and waits for the reply (blocking; for
