@@ -277,59 +277,81 @@ impl ControlSocket {
     /// Answers connections for as long as the task runs. A failed `accept` (EMFILE, ENOMEM,
     /// ...) is logged and retried after a growing pause, so the socket neither dies nor spins.
     pub async fn serve(self, control: EdgeControl) -> std::convert::Infallible {
-        let limits = self.limits;
-        let slots = Arc::new(tokio::sync::Semaphore::new(limits.max_connections));
-        let own_uid = nix::unistd::geteuid().as_raw();
-        let mut backoff = limits.accept_backoff_min;
-        loop {
-            let stream = match self.listener.accept().await {
-                Ok((stream, _)) => {
-                    backoff = limits.accept_backoff_min;
-                    stream
-                }
-                Err(e) => {
-                    tracing::warn!(
-                        socket = %self.path.display(),
-                        error = %e,
-                        retry_in_ms = backoff.as_millis(),
-                        "control socket cannot accept; retrying"
-                    );
-                    tokio::time::sleep(backoff).await;
-                    backoff = (backoff * 2).min(limits.accept_backoff_max);
-                    continue;
-                }
-            };
-            let refusal = match stream.peer_cred() {
-                Ok(cred) if cred.uid() == own_uid || cred.uid() == 0 => None,
-                Ok(cred) => Some(format!(
-                    "permission denied: uid {} is not the server's (uid {own_uid}) or root",
-                    cred.uid()
-                )),
-                Err(e) => Some(format!("permission denied: no peer credentials ({e})")),
-            };
-            let permit = match (refusal, slots.clone().try_acquire_owned()) {
-                (None, Ok(permit)) => permit,
-                (refusal, _) => {
-                    let detail = refusal.unwrap_or_else(|| {
-                        format!(
-                            "too many control connections (at most {} at once)",
-                            limits.max_connections
-                        )
-                    });
-                    tracing::warn!(%detail, "control connection refused");
-                    // Best effort and never blocking: the refusal costs one write at most.
-                    let _ = stream.try_write(reply_line(&ControlReply { ok: false, detail }).as_bytes());
-                    continue;
-                }
-            };
-            let control = control.clone();
-            tokio::spawn(async move {
-                let _permit = permit;
-                if let Err(e) = answer(stream, &control, &limits).await {
-                    tracing::warn!(error = %e, "control connection failed");
-                }
-            });
-        }
+        let listener = &self.listener;
+        let accept = move || -> AcceptFuture<'_> {
+            Box::pin(async move { listener.accept().await.map(|(stream, _)| stream) })
+        };
+        accept_loop(accept, &self.path, self.limits, control).await
+    }
+}
+
+type AcceptFuture<'a> =
+    std::pin::Pin<Box<dyn std::future::Future<Output = std::io::Result<UnixStream>> + Send + 'a>>;
+
+/// Why a peer may not use the control socket, if it may not: only the server's own effective
+/// uid and root are allowed.
+fn peer_refusal(peer_uid: Option<u32>, own_uid: u32) -> Option<String> {
+    match peer_uid {
+        Some(uid) if uid == own_uid || uid == 0 => None,
+        Some(uid) => Some(format!(
+            "permission denied: uid {uid} is not the server's (uid {own_uid}) or root"
+        )),
+        None => Some("permission denied: no peer credentials".to_owned()),
+    }
+}
+
+/// The accept loop of [`ControlSocket::serve`], with `accept` standing for the listener.
+async fn accept_loop<'a>(
+    mut accept: impl FnMut() -> AcceptFuture<'a>,
+    path: &Path,
+    limits: ControlLimits,
+    control: EdgeControl,
+) -> std::convert::Infallible {
+    let slots = Arc::new(tokio::sync::Semaphore::new(limits.max_connections));
+    let own_uid = nix::unistd::geteuid().as_raw();
+    let mut backoff = limits.accept_backoff_min;
+    loop {
+        let stream = match accept().await {
+            Ok(stream) => {
+                backoff = limits.accept_backoff_min;
+                stream
+            }
+            Err(e) => {
+                tracing::warn!(
+                    socket = %path.display(),
+                    error = %e,
+                    retry_in_ms = backoff.as_millis(),
+                    "control socket cannot accept; retrying"
+                );
+                tokio::time::sleep(backoff).await;
+                backoff = (backoff * 2).min(limits.accept_backoff_max);
+                continue;
+            }
+        };
+        let peer_uid = stream.peer_cred().ok().map(|cred| cred.uid());
+        let refusal = peer_refusal(peer_uid, own_uid);
+        let permit = match (refusal, slots.clone().try_acquire_owned()) {
+            (None, Ok(permit)) => permit,
+            (refusal, _) => {
+                let detail = refusal.unwrap_or_else(|| {
+                    format!(
+                        "too many control connections (at most {} at once)",
+                        limits.max_connections
+                    )
+                });
+                tracing::warn!(%detail, "control connection refused");
+                // Best effort and never blocking: a refusal costs one write at most.
+                let _ = stream.try_write(reply_line(&ControlReply { ok: false, detail }).as_bytes());
+                continue;
+            }
+        };
+        let control = control.clone();
+        tokio::spawn(async move {
+            let _permit = permit;
+            if let Err(e) = answer(stream, &control, &limits).await {
+                tracing::warn!(error = %e, "control connection failed");
+            }
+        });
     }
 }
 
@@ -484,6 +506,292 @@ mod tests {
         .unwrap();
         assert!(reply.ok);
         assert_eq!(rx.recv().await, Some(Command::StopStaticScan));
+        server.abort();
+    }
+
+    fn test_limits() -> ControlLimits {
+        ControlLimits {
+            max_line_len: 1024,
+            max_connections: 2,
+            idle_timeout: Duration::from_secs(5),
+            accept_backoff_min: Duration::from_millis(1),
+            accept_backoff_max: Duration::from_millis(4),
+        }
+    }
+
+    /// A control socket serving `control` in `dir` with `limits`.
+    async fn start(
+        dir: &Path,
+        control: &EdgeControl,
+        limits: ControlLimits,
+    ) -> (PathBuf, tokio::task::JoinHandle<std::convert::Infallible>) {
+        let socket = ControlSocket::bind(socket_path(dir), limits).await.unwrap();
+        let path = socket.path().to_path_buf();
+        (path, tokio::spawn(socket.serve(control.clone())))
+    }
+
+    /// Sends `bytes`, ends its side, and reads everything the server writes until it closes
+    /// (or 5 s pass). A server that closes with part of the request unread resets the
+    /// connection after its reply: the reply is kept.
+    async fn exchange(path: &Path, bytes: &[u8]) -> String {
+        use tokio::io::AsyncReadExt;
+        let mut stream = UnixStream::connect(path).await.unwrap();
+        stream.write_all(bytes).await.unwrap();
+        stream.shutdown().await.unwrap();
+        let mut reply = Vec::new();
+        let read_all = async {
+            let mut chunk = [0u8; 4096];
+            loop {
+                match stream.read(&mut chunk).await {
+                    Ok(0) => break,
+                    Ok(n) => reply.extend_from_slice(&chunk[..n]),
+                    Err(e) if e.kind() == std::io::ErrorKind::ConnectionReset => break,
+                    Err(e) => panic!("{e}"),
+                }
+            }
+        };
+        tokio::time::timeout(Duration::from_secs(5), read_all)
+            .await
+            .expect("the server neither answered nor closed");
+        String::from_utf8(reply).unwrap()
+    }
+
+    fn stop_line() -> String {
+        "{\"edge\":\"pi\",\"command\":\"StopStaticScan\"}\n".to_owned()
+    }
+
+    #[test]
+    fn an_oversized_command_is_refused_and_never_reaches_the_edge() {
+        let control = EdgeControl::default();
+        let mut rx = control.register("pi");
+        let request = ControlRequest {
+            edge: "pi".into(),
+            command: Command::StartStaticScan {
+                position: "x".repeat(5 * 1024 * 1024),
+                x_m: 1.0,
+                y_m: 2.0,
+                heading_deg: None,
+            },
+        };
+        let reply = handle_request(&control, &serde_json::to_string(&request).unwrap());
+        assert!(!reply.ok, "{reply:?}");
+        assert_eq!(
+            reply.detail,
+            "invalid command: position name of 5242880 bytes: must be 1 to 256 bytes"
+        );
+        // Nothing was queued on the edge's connection, which stays registered and usable.
+        assert!(rx.try_recv().is_err());
+        assert_eq!(control.connected(), ["pi"]);
+        assert!(handle_request(&control, stop_line().trim()).ok);
+        assert_eq!(rx.try_recv().ok(), Some(Command::StopStaticScan));
+        // The same check guards every route, not only the socket.
+        let nan = Command::StartStaticScan {
+            position: "p".into(),
+            x_m: f64::NAN,
+            y_m: 0.0,
+            heading_deg: None,
+        };
+        assert!(matches!(control.send("pi", nan), Err(ControlError::Invalid(_))));
+        assert!(rx.try_recv().is_err());
+    }
+
+    #[tokio::test]
+    async fn the_socket_is_owner_only_whatever_the_umask() {
+        let dir = tempfile::tempdir().unwrap();
+        let (path, server) = start(dir.path(), &EdgeControl::default(), test_limits()).await;
+        use std::os::unix::fs::PermissionsExt;
+        let mode = std::fs::metadata(&path).unwrap().permissions().mode() & 0o777;
+        assert_eq!(mode, SOCKET_MODE);
+        server.abort();
+    }
+
+    #[test]
+    fn only_the_servers_own_uid_and_root_may_connect() {
+        assert_eq!(peer_refusal(Some(1000), 1000), None);
+        assert_eq!(peer_refusal(Some(0), 1000), None);
+        assert_eq!(
+            peer_refusal(Some(1001), 1000).as_deref(),
+            Some("permission denied: uid 1001 is not the server's (uid 1000) or root")
+        );
+        assert!(peer_refusal(None, 1000).is_some());
+    }
+
+    #[tokio::test]
+    async fn a_path_longer_than_sun_path_is_an_error_naming_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let deep = dir.path().join("d".repeat(120));
+        let err = ControlSocket::bind(socket_path(&deep), test_limits())
+            .await
+            .unwrap_err();
+        let text = err.to_string();
+        assert!(matches!(err, SocketError::PathTooLong { max: 107, .. }), "{text}");
+        assert!(text.contains(&socket_path(&deep).display().to_string()), "{text}");
+        assert!(text.contains("107 bytes"), "{text}");
+    }
+
+    #[tokio::test]
+    async fn a_live_socket_is_not_stolen_by_a_second_server() {
+        let dir = tempfile::tempdir().unwrap();
+        let (_path, server) = start(dir.path(), &EdgeControl::default(), test_limits()).await;
+        let err = ControlSocket::bind(socket_path(dir.path()), test_limits())
+            .await
+            .unwrap_err();
+        assert!(matches!(err, SocketError::InUse { .. }), "{err}");
+        server.abort();
+    }
+
+    #[tokio::test]
+    async fn accept_errors_are_retried_and_the_socket_keeps_serving() {
+        let dir = tempfile::tempdir().unwrap();
+        let socket = ControlSocket::bind(socket_path(dir.path()), test_limits())
+            .await
+            .unwrap();
+        let path = socket.path().to_path_buf();
+        let control = EdgeControl::default();
+        let mut rx = control.register("pi");
+        let failures = Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let counted = failures.clone();
+        let server = tokio::spawn(async move {
+            let listener = &socket.listener;
+            let accept = move || -> AcceptFuture<'_> {
+                let counted = counted.clone();
+                Box::pin(async move {
+                    // Three EMFILEs, as when the process is out of file descriptors.
+                    if counted.fetch_add(1, std::sync::atomic::Ordering::SeqCst) < 3 {
+                        return Err(std::io::Error::from_raw_os_error(24));
+                    }
+                    listener.accept().await.map(|(stream, _)| stream)
+                })
+            };
+            accept_loop(accept, &socket.path, socket.limits, control).await
+        });
+        let reply = exchange_one(&path, &stop_line()).await;
+        assert!(reply.starts_with("{\"ok\":true"), "{reply}");
+        assert_eq!(rx.recv().await, Some(Command::StopStaticScan));
+        assert!(failures.load(std::sync::atomic::Ordering::SeqCst) >= 4);
+        assert!(!server.is_finished());
+        server.abort();
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_persistent_accept_error_backs_off_instead_of_spinning() {
+        let calls = Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let counted = calls.clone();
+        let accept = move || -> AcceptFuture<'static> {
+            counted.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+            Box::pin(async { Err(std::io::Error::from_raw_os_error(24)) })
+        };
+        let limits = ControlLimits {
+            accept_backoff_min: Duration::from_millis(10),
+            accept_backoff_max: Duration::from_millis(1000),
+            ..test_limits()
+        };
+        let looping = accept_loop(accept, Path::new("test.sock"), limits, EdgeControl::default());
+        // Ten seconds of (virtual) time: 10+20+...+640 ms, then one try a second.
+        let _ = tokio::time::timeout(Duration::from_secs(10), looping).await;
+        let calls = calls.load(std::sync::atomic::Ordering::SeqCst);
+        assert!((8..=18).contains(&calls), "{calls} accept calls in 10 s");
+    }
+
+    /// Sends one line and reads one reply line, leaving the connection open.
+    async fn exchange_one(path: &Path, line: &str) -> String {
+        let stream = UnixStream::connect(path).await.unwrap();
+        let (read, mut write) = stream.into_split();
+        write.write_all(line.as_bytes()).await.unwrap();
+        let mut reply = String::new();
+        tokio::time::timeout(
+            Duration::from_secs(5),
+            BufReader::new(read).read_line(&mut reply),
+        )
+        .await
+        .unwrap()
+        .unwrap();
+        reply
+    }
+
+    #[tokio::test]
+    async fn an_overlong_request_line_is_answered_with_an_error_and_closed() {
+        let dir = tempfile::tempdir().unwrap();
+        let control = EdgeControl::default();
+        let mut rx = control.register("pi");
+        let (path, server) = start(dir.path(), &control, test_limits()).await;
+        // 4 KiB without a newline, then a valid request that must not be served.
+        let mut bytes = vec![b'a'; 4096];
+        bytes.extend_from_slice(stop_line().as_bytes());
+        let reply = exchange(&path, &bytes).await;
+        assert_eq!(
+            reply,
+            "{\"ok\":false,\"detail\":\"request line longer than 1024 bytes; closing the connection\"}\n"
+        );
+        assert!(rx.try_recv().is_err());
+        // A line of exactly the limit is read (and refused as JSON, not as too long).
+        let mut exact = vec![b' '; 1024];
+        exact.push(b'\n');
+        let reply = exchange(&path, &exact).await;
+        assert!(reply.contains("malformed request"), "{reply}");
+        server.abort();
+    }
+
+    #[tokio::test]
+    async fn connections_beyond_the_limit_are_refused_until_one_closes() {
+        let dir = tempfile::tempdir().unwrap();
+        let control = EdgeControl::default();
+        let _rx = control.register("pi");
+        let (path, server) = start(dir.path(), &control, test_limits()).await;
+        // Two idle connections take both slots (each answered once, so they are being served).
+        let first = UnixStream::connect(&path).await.unwrap();
+        let second = UnixStream::connect(&path).await.unwrap();
+        for stream in [&first, &second] {
+            stream.writable().await.unwrap();
+        }
+        let mut held = Vec::new();
+        for stream in [first, second] {
+            let (read, mut write) = stream.into_split();
+            write.write_all(stop_line().as_bytes()).await.unwrap();
+            let mut reader = BufReader::new(read);
+            let mut reply = String::new();
+            reader.read_line(&mut reply).await.unwrap();
+            assert!(reply.starts_with("{\"ok\":true"), "{reply}");
+            held.push((reader, write));
+        }
+        let reply = exchange(&path, stop_line().as_bytes()).await;
+        assert_eq!(
+            reply,
+            "{\"ok\":false,\"detail\":\"too many control connections (at most 2 at once)\"}\n"
+        );
+        // Closing one frees its slot.
+        drop(held.pop());
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
+        loop {
+            let reply = exchange(&path, stop_line().as_bytes()).await;
+            if reply.starts_with("{\"ok\":true") {
+                break;
+            }
+            assert!(tokio::time::Instant::now() < deadline, "slot never freed: {reply}");
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        server.abort();
+    }
+
+    #[tokio::test]
+    async fn an_idle_connection_is_closed_after_the_timeout() {
+        use tokio::io::AsyncReadExt;
+        let dir = tempfile::tempdir().unwrap();
+        let limits = ControlLimits {
+            idle_timeout: Duration::from_millis(50),
+            ..test_limits()
+        };
+        let (path, server) = start(dir.path(), &EdgeControl::default(), limits).await;
+        let mut stream = UnixStream::connect(&path).await.unwrap();
+        // Half a request, then silence.
+        stream.write_all(b"{\"edge\":").await.unwrap();
+        let started = std::time::Instant::now();
+        let mut rest = Vec::new();
+        let read = tokio::time::timeout(Duration::from_secs(5), stream.read_to_end(&mut rest))
+            .await
+            .expect("the idle connection was not closed");
+        assert_eq!(read.unwrap(), 0);
+        assert!(started.elapsed() >= Duration::from_millis(40));
         server.abort();
     }
 }
