@@ -1232,4 +1232,110 @@ mod tests {
         );
         assert!(err.to_string().contains("ca.key"));
     }
+
+    fn crl_serials(layout: &Layout) -> Vec<String> {
+        let der = CertificateRevocationListDer::from_pem_file(layout.crl()).unwrap();
+        let (_, crl) = x509_parser::parse_x509_crl(&der).unwrap();
+        crl.iter_revoked_certificates()
+            .map(|r| hex(r.raw_serial()))
+            .collect()
+    }
+
+    fn serial_of(path: &Path) -> String {
+        let der = cert_der(path);
+        let (_, x509) = x509_parser::parse_x509_certificate(&der).unwrap();
+        hex(x509.raw_serial())
+    }
+
+    #[test]
+    fn certificates_expire_after_the_chosen_validity() {
+        let tmp = tempfile::tempdir().unwrap();
+        let now = SystemTime::UNIX_EPOCH + Duration::from_secs(1_800_000_000);
+        let validity = Validity {
+            leaf_days: 30,
+            ca_days: 400,
+        };
+        pair_with(&request(tmp.path(), "pi-01"), validity, now).unwrap();
+        let layout = Layout::new(tmp.path());
+        let not_after = |path: &Path| {
+            let der = cert_der(path);
+            let (_, x509) = x509_parser::parse_x509_certificate(&der).unwrap();
+            (
+                x509.validity().not_before.timestamp(),
+                x509.validity().not_after.timestamp(),
+            )
+        };
+        let start_1975 = 157_766_400;
+        assert_eq!(not_after(&layout.edge_cert("pi-01")), (start_1975, 1_800_000_000 + 30 * 86_400));
+        assert_eq!(not_after(&layout.server_cert()), (start_1975, 1_800_000_000 + 30 * 86_400));
+        assert_eq!(not_after(&layout.ca_cert()), (start_1975, 1_800_000_000 + 400 * 86_400));
+        for days in [0, Validity::MAX_DAYS + 1] {
+            let bad = Validity {
+                leaf_days: days,
+                ..validity
+            };
+            let err = pair_with(&request(tmp.path(), "pi-02"), bad, now).unwrap_err();
+            assert!(matches!(err, PkiError::BadValidity { .. }), "{err}");
+        }
+    }
+
+    #[test]
+    fn revocation_lists_every_serial_issued_to_the_edge_and_only_those() {
+        let tmp = tempfile::tempdir().unwrap();
+        let layout = Layout::new(tmp.path());
+        pair(&request(tmp.path(), "pi-01")).unwrap();
+        pair(&request(tmp.path(), "pi-02")).unwrap();
+        assert!(crl_serials(&layout).is_empty(), "a fresh CA's list is empty");
+        let first = serial_of(&layout.edge_cert("pi-01"));
+        let mut forced = request(tmp.path(), "pi-01");
+        forced.force = true;
+        let out = pair(&forced).unwrap();
+        assert_eq!(out.revoked, [first.clone()]);
+        let second = serial_of(&layout.edge_cert("pi-01"));
+        assert_ne!(first, second);
+        assert_eq!(crl_serials(&layout), [first.clone()]);
+
+        let out = revoke(tmp.path(), "pi-01", SystemTime::now()).unwrap();
+        assert_eq!(out.revoked, [second.clone()]);
+        assert_eq!(crl_serials(&layout), [first, second]);
+        // Nothing left to revoke; pi-02 never listed.
+        assert!(revoke(tmp.path(), "pi-01", SystemTime::now()).unwrap().revoked.is_empty());
+        assert!(!crl_serials(&layout).contains(&serial_of(&layout.edge_cert("pi-02"))));
+        let ledger = fs::read_to_string(layout.issued()).unwrap();
+        assert_eq!(ledger.lines().filter(|l| l.contains("\tedge\tpi-01\t")).count(), 2);
+        assert!(matches!(
+            revoke(tmp.path(), "pi-09", SystemTime::now()),
+            Err(PkiError::UnknownEdge { .. })
+        ));
+        assert!(matches!(
+            renew(tmp.path(), "pi-09", Validity::default(), SystemTime::now()),
+            Err(PkiError::UnknownEdge { .. })
+        ));
+    }
+
+    #[test]
+    fn a_bundle_from_before_the_ledger_is_still_revoked() {
+        let tmp = tempfile::tempdir().unwrap();
+        let layout = Layout::new(tmp.path());
+        pair(&request(tmp.path(), "pi-01")).unwrap();
+        let serial = serial_of(&layout.edge_cert("pi-01"));
+        fs::remove_file(layout.issued()).unwrap();
+        fs::remove_file(layout.crl()).unwrap();
+        assert_eq!(revoke(tmp.path(), "pi-01", SystemTime::now()).unwrap().revoked, [serial.clone()]);
+        assert_eq!(crl_serials(&layout), [serial]);
+    }
+
+    #[test]
+    fn a_ca_key_readable_by_others_is_refused() {
+        let tmp = tempfile::tempdir().unwrap();
+        let layout = Layout::new(tmp.path());
+        pair(&request(tmp.path(), "pi-01")).unwrap();
+        fs::set_permissions(layout.ca_key(), fs::Permissions::from_mode(0o644)).unwrap();
+        let err = pair(&request(tmp.path(), "pi-02")).unwrap_err();
+        assert!(matches!(err, PkiError::Key(PemError::KeyTooOpen { mode: 0o644, .. })), "{err}");
+        assert!(err.to_string().contains("ca.key"), "{err}");
+        assert!(!layout.edge_dir("pi-02").exists());
+        let err = revoke(tmp.path(), "pi-01", SystemTime::now()).unwrap_err();
+        assert!(matches!(err, PkiError::Key(_)), "{err}");
+    }
 }

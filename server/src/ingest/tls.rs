@@ -392,4 +392,33 @@ mod tests {
     fn fs_copy(from: &Path, to: &Path) {
         std::fs::copy(from, to).unwrap();
     }
+
+    #[test]
+    fn a_server_key_readable_by_others_is_refused() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = paired("pi-01");
+        let key = Layout::new(dir.path()).server_key();
+        std::fs::set_permissions(&key, std::fs::Permissions::from_mode(0o640)).unwrap();
+        let err = server_config(dir.path()).unwrap_err();
+        assert!(
+            matches!(err, TlsError::Pem(PemError::KeyTooOpen { mode: 0o640, .. })),
+            "{err}"
+        );
+        assert!(err.to_string().contains("server.key"), "{err}");
+    }
+
+    #[test]
+    fn a_revocation_list_of_another_ca_is_refused_and_the_old_one_kept() {
+        let a = paired("pi-01");
+        let b = paired("pi-01");
+        let (_config, verifier) = reloadable_server_config(a.path()).unwrap();
+        fs_copy(&Layout::new(b.path()).crl(), &Layout::new(a.path()).crl());
+        let err = verifier.reload().unwrap_err();
+        assert!(matches!(err, TlsError::BadCrl { .. }), "{err}");
+        assert!(err.to_string().contains("not by the CA"), "{err}");
+        assert!(server_config(a.path()).is_err());
+        // Without a list at all, nothing is revoked (a PKI from before revocation).
+        std::fs::remove_file(Layout::new(a.path()).crl()).unwrap();
+        assert_eq!(verifier.reload().unwrap(), CrlStatus::Absent);
+    }
 }
