@@ -395,3 +395,98 @@ async fn an_expired_certificate_is_refused() {
     renew(pki.path(), "pi-old", Validity::default(), std::time::SystemTime::now()).unwrap();
     assert_eq!(attempt(pki.path(), "pi-old", addr, &mut seen).await, Ok("pi-old".into()));
 }
+
+/// Whether a handshake with `edge`'s bundle is refused by a running `scan3d serve`: the
+/// refusal (alert code) arrives as a close right after `connect()`; an accepted edge's
+/// connection stays open (the daemon waits for its stream).
+async fn daemon_refusal(pki: &Path, edge: &str, addr: SocketAddr) -> Option<u64> {
+    let endpoint = client(client_config(pki, Some((pki, edge))));
+    let connecting = endpoint.connect(addr, "localhost").unwrap();
+    let conn = match tokio::time::timeout(LIMIT, connecting).await.unwrap() {
+        Ok(conn) => conn,
+        Err(e) => return Some(close_code(&e)),
+    };
+    let refused = match tokio::time::timeout(Duration::from_millis(500), conn.closed()).await {
+        Ok(e) => Some(close_code(&e)),
+        Err(_) => None,
+    };
+    conn.close(0u32.into(), b"done");
+    refused
+}
+
+/// Reads the daemon's stderr on a thread; lines arrive on the channel.
+fn stderr_lines(child: &mut std::process::Child) -> std::sync::mpsc::Receiver<String> {
+    use std::io::BufRead;
+    let stderr = child.stderr.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in std::io::BufReader::new(stderr).lines() {
+            let Ok(line) = line else { break };
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    rx
+}
+
+fn wait_for(lines: &std::sync::mpsc::Receiver<String>, needle: &str) -> String {
+    let deadline = std::time::Instant::now() + LIMIT;
+    loop {
+        let left = deadline.saturating_duration_since(std::time::Instant::now());
+        match lines.recv_timeout(left) {
+            Ok(line) if line.contains(needle) => return line,
+            Ok(_) => {}
+            Err(e) => panic!("no log line with {needle:?}: {e}"),
+        }
+    }
+}
+
+#[tokio::test]
+async fn sighup_makes_a_running_server_refuse_a_revoked_edge() {
+    let tmp = tempfile::tempdir().unwrap();
+    let pki = tmp.path().join("pki");
+    paired(&pki, "pi-01");
+    paired(&pki, "pi-02");
+    let port = std::net::UdpSocket::bind((Ipv4Addr::LOCALHOST, 0))
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let config = tmp.path().join("server.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "listen = \"127.0.0.1:{port}\"\npki_dir = {:?}\ndata_dir = {:?}\n",
+            pki.display().to_string(),
+            tmp.path().join("data").display().to_string()
+        ),
+    )
+    .unwrap();
+    let mut daemon = std::process::Command::new(env!("CARGO_BIN_EXE_scan3d"))
+        .args(["serve", "--config", config.to_str().unwrap()])
+        .env("RUST_LOG", "info")
+        .env("NO_COLOR", "1")
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let lines = stderr_lines(&mut daemon);
+    wait_for(&lines, "scan3d server ready");
+    let addr = SocketAddr::from((Ipv4Addr::LOCALHOST, port));
+    assert_eq!(daemon_refusal(&pki, "pi-01", addr).await, None);
+
+    revoke(&pki, "pi-01", std::time::SystemTime::now()).unwrap();
+    let pid = nix::unistd::Pid::from_raw(i32::try_from(daemon.id()).unwrap());
+    nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGHUP).unwrap();
+    let reloaded = wait_for(&lines, "revocation list reloaded");
+    assert!(reloaded.contains("revoked: 1"), "{reloaded}");
+    assert_eq!(
+        daemon_refusal(&pki, "pi-01", addr).await,
+        Some(crypto_code(ALERT_CERTIFICATE_REVOKED))
+    );
+    assert_eq!(daemon_refusal(&pki, "pi-02", addr).await, None);
+
+    nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGTERM).unwrap();
+    let status = daemon.wait().unwrap();
+    assert!(status.success(), "{status}");
+}
