@@ -607,7 +607,10 @@ mod tests {
     #[test]
     fn ordinary_commands_are_valid() {
         assert_eq!(start("door", 1.0, Some(90.0)).validate(), Ok(()));
-        assert_eq!(start(&"p".repeat(MAX_POSITION_NAME_LEN), -1e6, None).validate(), Ok(()));
+        assert_eq!(
+            start(&"p".repeat(MAX_POSITION_NAME_LEN), -1e6, None).validate(),
+            Ok(())
+        );
         assert_eq!(Command::StopStaticScan.validate(), Ok(()));
         let speed = |hz| Command::SetMotorSpeed {
             sensor: SensorId::SWEEP,
@@ -639,9 +642,15 @@ mod tests {
             "position name of 5242880 bytes: must be 1 to 256 bytes"
         );
         let err = start(&"y".repeat(MAX_POSITION_NAME_LEN + 1), 1.0, None).validate();
-        assert!(matches!(err, Err(InvalidCommand::PositionNameLength { len: 257, .. })));
+        assert!(matches!(
+            err,
+            Err(InvalidCommand::PositionNameLength { len: 257, .. })
+        ));
         let err = start("", 1.0, None).validate();
-        assert!(matches!(err, Err(InvalidCommand::PositionNameLength { len: 0, .. })));
+        assert!(matches!(
+            err,
+            Err(InvalidCommand::PositionNameLength { len: 0, .. })
+        ));
     }
 
     #[test]

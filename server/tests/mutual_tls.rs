@@ -13,7 +13,9 @@ use quinn::ConnectionError;
 use rustls::pki_types::pem::PemObject;
 use rustls::pki_types::{CertificateDer, PrivateKeyDer};
 use scan3d_server::ingest::pki::{Layout, PairRequest, Validity, pair, pair_with, renew, revoke};
-use scan3d_server::ingest::tls::{CrlStatus, edge_identity, reloadable_server_config, server_config};
+use scan3d_server::ingest::tls::{
+    CrlStatus, edge_identity, reloadable_server_config, server_config,
+};
 
 const LIMIT: Duration = Duration::from_secs(10);
 
@@ -313,12 +315,18 @@ async fn a_revoked_certificate_is_refused_at_the_handshake_after_a_reload() {
     paired(pki.path(), "pi-02");
     let (config, verifier) = reloadable_server_config(pki.path()).unwrap();
     let (addr, mut seen) = serve_many(config);
-    assert_eq!(attempt(pki.path(), "pi-01", addr, &mut seen).await, Ok("pi-01".into()));
+    assert_eq!(
+        attempt(pki.path(), "pi-01", addr, &mut seen).await,
+        Ok("pi-01".into())
+    );
 
     let outcome = revoke(pki.path(), "pi-01", std::time::SystemTime::now()).unwrap();
     assert_eq!(outcome.revoked.len(), 1);
     // Until the server reloads the list, nothing changes (documented).
-    assert_eq!(attempt(pki.path(), "pi-01", addr, &mut seen).await, Ok("pi-01".into()));
+    assert_eq!(
+        attempt(pki.path(), "pi-01", addr, &mut seen).await,
+        Ok("pi-01".into())
+    );
 
     assert_eq!(verifier.reload().unwrap(), CrlStatus::Loaded { revoked: 1 });
     assert_eq!(
@@ -326,7 +334,10 @@ async fn a_revoked_certificate_is_refused_at_the_handshake_after_a_reload() {
         Err(crypto_code(ALERT_CERTIFICATE_REVOKED))
     );
     // Another edge of the same CA is unaffected.
-    assert_eq!(attempt(pki.path(), "pi-02", addr, &mut seen).await, Ok("pi-02".into()));
+    assert_eq!(
+        attempt(pki.path(), "pi-02", addr, &mut seen).await,
+        Ok("pi-02".into())
+    );
 }
 
 #[tokio::test]
@@ -347,7 +358,10 @@ async fn a_renewed_bundle_connects_and_the_old_one_is_refused() {
     .unwrap();
     assert_eq!(outcome.revoked.len(), 1);
     verifier.reload().unwrap();
-    assert_eq!(attempt(pki.path(), "pi-01", addr, &mut seen).await, Ok("pi-01".into()));
+    assert_eq!(
+        attempt(pki.path(), "pi-01", addr, &mut seen).await,
+        Ok("pi-01".into())
+    );
     assert_eq!(
         attempt(old.path(), "pi-01", addr, &mut seen).await,
         Err(crypto_code(ALERT_CERTIFICATE_REVOKED))
@@ -369,7 +383,10 @@ async fn a_renewed_bundle_connects_and_the_old_one_is_refused() {
         attempt(older.path(), "pi-01", addr, &mut seen).await,
         Err(crypto_code(ALERT_CERTIFICATE_REVOKED))
     );
-    assert_eq!(attempt(pki.path(), "pi-01", addr, &mut seen).await, Ok("pi-01".into()));
+    assert_eq!(
+        attempt(pki.path(), "pi-01", addr, &mut seen).await,
+        Ok("pi-01".into())
+    );
 }
 
 #[tokio::test]
@@ -377,8 +394,7 @@ async fn an_expired_certificate_is_refused() {
     let pki = tempfile::tempdir().unwrap();
     // CA and server certificate issued now; only the edge's certificate is old.
     paired(pki.path(), "pi-now");
-    let three_years_ago =
-        std::time::SystemTime::now() - Duration::from_secs(3 * 365 * 86_400);
+    let three_years_ago = std::time::SystemTime::now() - Duration::from_secs(3 * 365 * 86_400);
     let request = PairRequest {
         dir: pki.path().to_path_buf(),
         edge: "pi-old".into(),
@@ -392,8 +408,17 @@ async fn an_expired_certificate_is_refused() {
         Err(crypto_code(ALERT_CERTIFICATE_EXPIRED))
     );
     // A fresh certificate of the same (still valid) CA is accepted.
-    renew(pki.path(), "pi-old", Validity::default(), std::time::SystemTime::now()).unwrap();
-    assert_eq!(attempt(pki.path(), "pi-old", addr, &mut seen).await, Ok("pi-old".into()));
+    renew(
+        pki.path(),
+        "pi-old",
+        Validity::default(),
+        std::time::SystemTime::now(),
+    )
+    .unwrap();
+    assert_eq!(
+        attempt(pki.path(), "pi-old", addr, &mut seen).await,
+        Ok("pi-old".into())
+    );
 }
 
 /// Whether a handshake with `edge`'s bundle is refused by a running `scan3d serve`: the

@@ -18,7 +18,10 @@ fn scan3d(args: &[&str]) -> Output {
 /// The error line: the last line of stderr, which must be the only line starting `scan3d:`.
 fn error_line(out: &Output) -> String {
     let stderr = String::from_utf8_lossy(&out.stderr);
-    let lines: Vec<&str> = stderr.lines().filter(|l| l.starts_with("scan3d: ")).collect();
+    let lines: Vec<&str> = stderr
+        .lines()
+        .filter(|l| l.starts_with("scan3d: "))
+        .collect();
     assert_eq!(lines.len(), 1, "{stderr}");
     lines[0].to_owned()
 }

@@ -145,7 +145,13 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let key = dir.path().join("k.key");
         std::fs::write(&key, "-----BEGIN PRIVATE KEY-----\n").unwrap();
-        for (mode, ok) in [(0o600, true), (0o400, true), (0o640, false), (0o604, false), (0o620, false)] {
+        for (mode, ok) in [
+            (0o600, true),
+            (0o400, true),
+            (0o640, false),
+            (0o604, false),
+            (0o620, false),
+        ] {
             std::fs::set_permissions(&key, std::fs::Permissions::from_mode(mode)).unwrap();
             let result = check_key_mode(&key);
             assert_eq!(result.is_ok(), ok, "{mode:o}: {result:?}");

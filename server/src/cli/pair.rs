@@ -200,24 +200,41 @@ mod tests {
         ])
         .unwrap();
         assert!(forced.contains("edge bundle replaced"), "{forced}");
-        assert!(forced.contains("revoked the earlier certificate"), "{forced}");
+        assert!(
+            forced.contains("revoked the earlier certificate"),
+            "{forced}"
+        );
 
         let renewed = run(&["scan3d", "pair", "--dir", &dir, "--renew", "pi-02"]).unwrap();
         assert!(renewed.contains("edge bundle replaced"), "{renewed}");
-        assert!(renewed.contains("revoked the earlier certificate"), "{renewed}");
+        assert!(
+            renewed.contains("revoked the earlier certificate"),
+            "{renewed}"
+        );
         let revoked = run(&["scan3d", "pair", "--dir", &dir, "--revoke", "pi-02"]).unwrap();
-        assert!(revoked.starts_with("revoked \"pi-02\": serial "), "{revoked}");
+        assert!(
+            revoked.starts_with("revoked \"pi-02\": serial "),
+            "{revoked}"
+        );
         let again = run(&["scan3d", "pair", "--dir", &dir, "--revoke", "pi-02"]).unwrap();
-        assert!(again.starts_with("every certificate of \"pi-02\" was already revoked"), "{again}");
+        assert!(
+            again.starts_with("every certificate of \"pi-02\" was already revoked"),
+            "{again}"
+        );
         let unknown = run(&["scan3d", "pair", "--dir", &dir, "--revoke", "nobody"]).unwrap_err();
-        assert!(unknown.to_string().contains("no certificate was issued"), "{unknown}");
+        assert!(
+            unknown.to_string().contains("no certificate was issued"),
+            "{unknown}"
+        );
     }
 
     #[test]
     fn dir_and_exactly_one_action_are_required() {
         assert!(Cli::try_parse_from(["scan3d", "pair", "--edge", "pi-01"]).is_err());
         assert!(Cli::try_parse_from(["scan3d", "pair", "--dir", "/tmp/x"]).is_err());
-        let both = ["scan3d", "pair", "--dir", "/x", "--edge", "a", "--revoke", "a"];
+        let both = [
+            "scan3d", "pair", "--dir", "/x", "--edge", "a", "--revoke", "a",
+        ];
         assert!(Cli::try_parse_from(both).is_err());
         let forced_revoke = ["scan3d", "pair", "--dir", "/x", "--revoke", "a", "--force"];
         assert!(Cli::try_parse_from(forced_revoke).is_err());

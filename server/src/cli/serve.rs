@@ -105,7 +105,9 @@ fn serve(config_path: &Path) -> anyhow::Result<()> {
 fn log_reload(outcomes: &[(PathBuf, Result<tls::CrlStatus, tls::TlsError>)]) {
     for (pki, outcome) in outcomes {
         match outcome {
-            Ok(status) => tracing::info!(pki = %pki.display(), ?status, "SIGHUP: revocation list reloaded"),
+            Ok(status) => {
+                tracing::info!(pki = %pki.display(), ?status, "SIGHUP: revocation list reloaded")
+            }
             Err(e) => tracing::error!(
                 pki = %pki.display(),
                 error = %e,

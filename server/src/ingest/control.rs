@@ -341,7 +341,8 @@ async fn accept_loop<'a>(
                 });
                 tracing::warn!(%detail, "control connection refused");
                 // Best effort and never blocking: a refusal costs one write at most.
-                let _ = stream.try_write(reply_line(&ControlReply { ok: false, detail }).as_bytes());
+                let _ =
+                    stream.try_write(reply_line(&ControlReply { ok: false, detail }).as_bytes());
                 continue;
             }
         };
@@ -378,13 +379,20 @@ async fn answer(
     limits: &ControlLimits,
 ) -> std::io::Result<()> {
     use tokio::io::AsyncReadExt;
-    let timed_out = || std::io::Error::new(std::io::ErrorKind::TimedOut, "idle control connection closed");
+    let timed_out = || {
+        std::io::Error::new(
+            std::io::ErrorKind::TimedOut,
+            "idle control connection closed",
+        )
+    };
     let (read, mut write) = stream.into_split();
     let mut reader = BufReader::new(read);
     let mut line = Vec::new();
     loop {
         line.clear();
-        let limit = u64::try_from(limits.max_line_len).unwrap_or(u64::MAX).saturating_add(1);
+        let limit = u64::try_from(limits.max_line_len)
+            .unwrap_or(u64::MAX)
+            .saturating_add(1);
         let mut limited = (&mut reader).take(limit);
         let read = limited.read_until(b'\n', &mut line);
         let n = tokio::time::timeout(limits.idle_timeout, read)
@@ -591,7 +599,10 @@ mod tests {
             y_m: 0.0,
             heading_deg: None,
         };
-        assert!(matches!(control.send("pi", nan), Err(ControlError::Invalid(_))));
+        assert!(matches!(
+            control.send("pi", nan),
+            Err(ControlError::Invalid(_))
+        ));
         assert!(rx.try_recv().is_err());
     }
 
@@ -624,8 +635,14 @@ mod tests {
             .await
             .unwrap_err();
         let text = err.to_string();
-        assert!(matches!(err, SocketError::PathTooLong { max: 107, .. }), "{text}");
-        assert!(text.contains(&socket_path(&deep).display().to_string()), "{text}");
+        assert!(
+            matches!(err, SocketError::PathTooLong { max: 107, .. }),
+            "{text}"
+        );
+        assert!(
+            text.contains(&socket_path(&deep).display().to_string()),
+            "{text}"
+        );
         assert!(text.contains("107 bytes"), "{text}");
     }
 
@@ -686,7 +703,12 @@ mod tests {
             accept_backoff_max: Duration::from_millis(1000),
             ..test_limits()
         };
-        let looping = accept_loop(accept, Path::new("test.sock"), limits, EdgeControl::default());
+        let looping = accept_loop(
+            accept,
+            Path::new("test.sock"),
+            limits,
+            EdgeControl::default(),
+        );
         // Ten seconds of (virtual) time: 10+20+...+640 ms, then one try a second.
         let _ = tokio::time::timeout(Duration::from_secs(10), looping).await;
         let calls = calls.load(std::sync::atomic::Ordering::SeqCst);
@@ -767,7 +789,10 @@ mod tests {
             if reply.starts_with("{\"ok\":true") {
                 break;
             }
-            assert!(tokio::time::Instant::now() < deadline, "slot never freed: {reply}");
+            assert!(
+                tokio::time::Instant::now() < deadline,
+                "slot never freed: {reply}"
+            );
             tokio::time::sleep(Duration::from_millis(5)).await;
         }
         server.abort();

@@ -525,7 +525,10 @@ impl Ledger {
             }
             let bad = || PkiError::BadFile {
                 path: path.clone(),
-                reason: format!("line {}: expected serial, kind, name, expiry, revocation", number + 1),
+                reason: format!(
+                    "line {}: expected serial, kind, name, expiry, revocation",
+                    number + 1
+                ),
             };
             let fields: Vec<&str> = line.split('\t').collect();
             let [serial, kind, name, not_after, revoked] = fields[..] else {
@@ -625,7 +628,7 @@ fn issued_from_der(
         reason: format!("unparsable certificate: {e}"),
     })?;
     Ok(Issued {
-        serial: hex(&x509.raw_serial()),
+        serial: hex(x509.raw_serial()),
         kind,
         name: name.to_owned(),
         not_after: x509.validity().not_after.timestamp(),
@@ -647,7 +650,7 @@ fn hex(bytes: &[u8]) -> String {
 }
 
 fn unhex(text: &str) -> Option<Vec<u8>> {
-    if text.len() % 2 != 0 {
+    if !text.len().is_multiple_of(2) {
         return None;
     }
     (0..text.len())
@@ -840,7 +843,12 @@ fn write_server_cert(
         CERT_MODE,
         true,
     )?;
-    issued_from_der(cert.der(), IssuedKind::Server, "server", &layout.server_cert())
+    issued_from_der(
+        cert.der(),
+        IssuedKind::Server,
+        "server",
+        &layout.server_cert(),
+    )
 }
 
 fn write_edge_bundle(
@@ -1266,9 +1274,18 @@ mod tests {
             )
         };
         let start_1975 = 157_766_400;
-        assert_eq!(not_after(&layout.edge_cert("pi-01")), (start_1975, 1_800_000_000 + 30 * 86_400));
-        assert_eq!(not_after(&layout.server_cert()), (start_1975, 1_800_000_000 + 30 * 86_400));
-        assert_eq!(not_after(&layout.ca_cert()), (start_1975, 1_800_000_000 + 400 * 86_400));
+        assert_eq!(
+            not_after(&layout.edge_cert("pi-01")),
+            (start_1975, 1_800_000_000 + 30 * 86_400)
+        );
+        assert_eq!(
+            not_after(&layout.server_cert()),
+            (start_1975, 1_800_000_000 + 30 * 86_400)
+        );
+        assert_eq!(
+            not_after(&layout.ca_cert()),
+            (start_1975, 1_800_000_000 + 400 * 86_400)
+        );
         for days in [0, Validity::MAX_DAYS + 1] {
             let bad = Validity {
                 leaf_days: days,
@@ -1285,24 +1302,38 @@ mod tests {
         let layout = Layout::new(tmp.path());
         pair(&request(tmp.path(), "pi-01")).unwrap();
         pair(&request(tmp.path(), "pi-02")).unwrap();
-        assert!(crl_serials(&layout).is_empty(), "a fresh CA's list is empty");
+        assert!(
+            crl_serials(&layout).is_empty(),
+            "a fresh CA's list is empty"
+        );
         let first = serial_of(&layout.edge_cert("pi-01"));
         let mut forced = request(tmp.path(), "pi-01");
         forced.force = true;
         let out = pair(&forced).unwrap();
-        assert_eq!(out.revoked, [first.clone()]);
+        assert_eq!(out.revoked, std::slice::from_ref(&first));
         let second = serial_of(&layout.edge_cert("pi-01"));
         assert_ne!(first, second);
-        assert_eq!(crl_serials(&layout), [first.clone()]);
+        assert_eq!(crl_serials(&layout), std::slice::from_ref(&first));
 
         let out = revoke(tmp.path(), "pi-01", SystemTime::now()).unwrap();
-        assert_eq!(out.revoked, [second.clone()]);
+        assert_eq!(out.revoked, std::slice::from_ref(&second));
         assert_eq!(crl_serials(&layout), [first, second]);
         // Nothing left to revoke; pi-02 never listed.
-        assert!(revoke(tmp.path(), "pi-01", SystemTime::now()).unwrap().revoked.is_empty());
+        assert!(
+            revoke(tmp.path(), "pi-01", SystemTime::now())
+                .unwrap()
+                .revoked
+                .is_empty()
+        );
         assert!(!crl_serials(&layout).contains(&serial_of(&layout.edge_cert("pi-02"))));
         let ledger = fs::read_to_string(layout.issued()).unwrap();
-        assert_eq!(ledger.lines().filter(|l| l.contains("\tedge\tpi-01\t")).count(), 2);
+        assert_eq!(
+            ledger
+                .lines()
+                .filter(|l| l.contains("\tedge\tpi-01\t"))
+                .count(),
+            2
+        );
         assert!(matches!(
             revoke(tmp.path(), "pi-09", SystemTime::now()),
             Err(PkiError::UnknownEdge { .. })
@@ -1321,7 +1352,12 @@ mod tests {
         let serial = serial_of(&layout.edge_cert("pi-01"));
         fs::remove_file(layout.issued()).unwrap();
         fs::remove_file(layout.crl()).unwrap();
-        assert_eq!(revoke(tmp.path(), "pi-01", SystemTime::now()).unwrap().revoked, [serial.clone()]);
+        assert_eq!(
+            revoke(tmp.path(), "pi-01", SystemTime::now())
+                .unwrap()
+                .revoked,
+            std::slice::from_ref(&serial)
+        );
         assert_eq!(crl_serials(&layout), [serial]);
     }
 
@@ -1332,7 +1368,10 @@ mod tests {
         pair(&request(tmp.path(), "pi-01")).unwrap();
         fs::set_permissions(layout.ca_key(), fs::Permissions::from_mode(0o644)).unwrap();
         let err = pair(&request(tmp.path(), "pi-02")).unwrap_err();
-        assert!(matches!(err, PkiError::Key(PemError::KeyTooOpen { mode: 0o644, .. })), "{err}");
+        assert!(
+            matches!(err, PkiError::Key(PemError::KeyTooOpen { mode: 0o644, .. })),
+            "{err}"
+        );
         assert!(err.to_string().contains("ca.key"), "{err}");
         assert!(!layout.edge_dir("pi-02").exists());
         let err = revoke(tmp.path(), "pi-01", SystemTime::now()).unwrap_err();
