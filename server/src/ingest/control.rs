@@ -447,9 +447,22 @@ pub fn request(path: &Path, request: &ControlRequest) -> anyhow::Result<ControlR
     stream.set_read_timeout(Some(std::time::Duration::from_secs(10)))?;
     let mut line = serde_json::to_string(request)?;
     line.push('\n');
-    stream.write_all(line.as_bytes())?;
+    // A server that refuses a request before reading all of it (too long) answers and closes:
+    // the write then fails, but its answer is there to read and says why.
+    let written = stream.write_all(line.as_bytes());
     let mut answer = String::new();
-    std::io::BufReader::new(&stream).read_line(&mut answer)?;
+    let read = std::io::BufReader::new(&stream).read_line(&mut answer);
+    match (read, written) {
+        (Ok(n), _) if n > 0 => {}
+        (_, Err(e)) => anyhow::bail!("control socket {}: {e}", path.display()),
+        (Err(e), Ok(())) => anyhow::bail!("control socket {}: {e}", path.display()),
+        (Ok(_), Ok(())) => {
+            anyhow::bail!(
+                "control socket {}: closed without an answer",
+                path.display()
+            )
+        }
+    }
     serde_json::from_str(&answer)
         .map_err(|e| anyhow::anyhow!("unreadable answer from the server ({e}): {answer:?}"))
 }
