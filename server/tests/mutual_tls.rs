@@ -352,6 +352,7 @@ async fn a_renewed_bundle_connects_and_the_old_one_is_refused() {
     let outcome = renew(
         pki.path(),
         "pi-01",
+        &[],
         Validity::default(),
         std::time::SystemTime::now(),
     )
@@ -411,6 +412,7 @@ async fn an_expired_certificate_is_refused() {
     renew(
         pki.path(),
         "pi-old",
+        &[],
         Validity::default(),
         std::time::SystemTime::now(),
     )

@@ -27,8 +27,9 @@ pub struct PairArgs {
     #[arg(long, value_name = "NAME")]
     pub edge: Option<String>,
     /// Issue a fresh bundle (new key, new serial, new validity) for an edge paired before,
-    /// and revoke its earlier certificates.
-    #[arg(long, value_name = "NAME", conflicts_with_all = ["force", "server_names"])]
+    /// and revoke its earlier certificates. With `--server-name`, renew the server
+    /// certificate too.
+    #[arg(long, value_name = "NAME", conflicts_with = "force")]
     pub renew: Option<String>,
     /// Revoke every certificate issued to this edge (written to `DIR/crl.pem`).
     #[arg(long, value_name = "NAME", conflicts_with_all = ["force", "server_names", "validity_days", "ca_validity_days"])]
@@ -76,7 +77,10 @@ pub fn run(args: &PairArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         return Ok(());
     }
     let (outcome, name) = match (&args.renew, &args.edge) {
-        (Some(name), _) => (pki::renew(&args.dir, name, validity, now)?, name),
+        (Some(name), _) => (
+            pki::renew(&args.dir, name, &args.server_names, validity, now)?,
+            name,
+        ),
         (None, Some(name)) => {
             let request = PairRequest {
                 dir: args.dir.clone(),
@@ -210,6 +214,22 @@ mod tests {
         assert!(
             renewed.contains("revoked the earlier certificate"),
             "{renewed}"
+        );
+        let with_server = run(&[
+            "scan3d",
+            "pair",
+            "--dir",
+            &dir,
+            "--renew",
+            "pi-02",
+            "--server-name",
+            "newhost",
+        ])
+        .unwrap();
+        assert!(
+            with_server.contains("server certificate replaced")
+                && with_server.contains("for newhost"),
+            "{with_server}"
         );
         let revoked = run(&["scan3d", "pair", "--dir", &dir, "--revoke", "pi-02"]).unwrap();
         assert!(

@@ -404,10 +404,12 @@ pub fn pair_with(
 
 /// Issues a fresh bundle (new key, new serial, validity from `now`) for an edge that was paired
 /// before, and revokes its earlier certificates. The server keeps accepting the old certificate
-/// until it reloads the list (SIGHUP), which leaves time to install the new bundle.
+/// until it reloads the list (SIGHUP), which leaves time to install the new bundle. Non-empty
+/// `server_names` also renew the server certificate, for exactly those names.
 pub fn renew(
     dir: &Path,
     edge: &str,
+    server_names: &[String],
     validity: Validity,
     now: SystemTime,
 ) -> Result<PairOutcome, PkiError> {
@@ -427,7 +429,7 @@ pub fn renew(
     let req = PairRequest {
         dir: dir.to_path_buf(),
         edge: edge.to_owned(),
-        server_names: vec![],
+        server_names: server_names.to_vec(),
         force: true,
     };
     pair_with(&req, validity, now)
@@ -1339,7 +1341,13 @@ mod tests {
             Err(PkiError::UnknownEdge { .. })
         ));
         assert!(matches!(
-            renew(tmp.path(), "pi-09", Validity::default(), SystemTime::now()),
+            renew(
+                tmp.path(),
+                "pi-09",
+                &[],
+                Validity::default(),
+                SystemTime::now()
+            ),
             Err(PkiError::UnknownEdge { .. })
         ));
     }
