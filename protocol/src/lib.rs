@@ -85,10 +85,11 @@ pub use codec::{
 };
 pub use frame::{Body, Direction, Frame};
 pub use types::{
-    Ack, Command, DeviceStatus, Heartbeat, Hello, ImuSample, LidarRevolution, MountInfo,
-    RevolutionSample, SampleTimeError, SensorId, SensorInfo, StaticScan, StaticScanEnd,
-    StaticScanOutcome, StaticScanProblem, StaticScanSamples, StaticScanStart, StaticScanWarning,
-    StatusEvent, StepperState, TaggedSweepSample, TimePing, TimePong,
+    Ack, Command, DeviceStatus, Heartbeat, Hello, ImuSample, InvalidCommand, LidarRevolution,
+    MAX_MOTOR_SPEED_HZ, MAX_POSITION_NAME_LEN, MountInfo, RevolutionSample, SampleTimeError,
+    SensorId, SensorInfo, StaticScan, StaticScanEnd, StaticScanOutcome, StaticScanProblem,
+    StaticScanSamples, StaticScanStart, StaticScanWarning, StatusEvent, StepperState,
+    TaggedSweepSample, TimePing, TimePong,
 };
 pub use version::{IncompatibleVersion, PROTOCOL_VERSION, check_compatible};
 

@@ -337,6 +337,110 @@ pub enum Command {
     },
 }
 
+/// Longest [`Command::StartStaticScan`] position name, in bytes (UTF-8). The name travels in
+/// every [`StaticScanStart`] and ends up in file names and tables, so it is meant to be short
+/// (`"p1"`, `"door"`); 256 bytes leaves room for descriptive names.
+pub const MAX_POSITION_NAME_LEN: usize = 256;
+
+/// Fastest lidar rotation rate a [`Command::SetMotorSpeed`] may ask for, Hz. The RPLidar A1/A2
+/// turns at 5–15 Hz and the Sweep at 1–10 Hz; anything far above is a typo.
+pub const MAX_MOTOR_SPEED_HZ: f32 = 100.0;
+
+/// Why a [`Command`] cannot be sent to an edge ([`Command::validate`]).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum InvalidCommand {
+    /// The position name is empty or longer than [`MAX_POSITION_NAME_LEN`] bytes.
+    #[error("position name of {len} bytes: must be 1 to {max} bytes")]
+    PositionNameLength {
+        /// The name's length in bytes.
+        len: usize,
+        /// [`MAX_POSITION_NAME_LEN`].
+        max: usize,
+    },
+    /// The position name contains a control character (newline, NUL, …).
+    #[error("position name {name:?} contains a control character")]
+    PositionNameControl {
+        /// The rejected name.
+        name: String,
+    },
+    /// A coordinate or angle is NaN or infinite.
+    #[error("{field} = {value} is not a finite number")]
+    NotFinite {
+        /// Which field.
+        field: &'static str,
+        /// Its value.
+        value: f64,
+    },
+    /// A motor speed outside `(0, MAX_MOTOR_SPEED_HZ]`.
+    #[error("motor speed {hz} Hz is outside (0, {max}] Hz")]
+    MotorSpeed {
+        /// The requested rate.
+        hz: f32,
+        /// [`MAX_MOTOR_SPEED_HZ`].
+        max: f32,
+    },
+    /// The command's frame would not fit in [`crate::MAX_FRAME_LEN`].
+    #[error("the command does not fit in a frame: {0}")]
+    Frame(crate::EncodeError),
+}
+
+impl Command {
+    /// Checks that the command is one an edge can act on and that its frame can be encoded, so
+    /// nothing invalid ever reaches a connection: a position name of 1 to
+    /// [`MAX_POSITION_NAME_LEN`] bytes without control characters, finite coordinates and
+    /// heading, a motor speed in `(0, MAX_MOTOR_SPEED_HZ]`, and a frame (with the largest
+    /// session id and sequence number) within [`crate::MAX_FRAME_LEN`].
+    pub fn validate(&self) -> Result<(), InvalidCommand> {
+        let finite = |field: &'static str, value: f64| {
+            if value.is_finite() {
+                Ok(())
+            } else {
+                Err(InvalidCommand::NotFinite { field, value })
+            }
+        };
+        match self {
+            Command::StartStaticScan {
+                position,
+                x_m,
+                y_m,
+                heading_deg,
+            } => {
+                if position.is_empty() || position.len() > MAX_POSITION_NAME_LEN {
+                    return Err(InvalidCommand::PositionNameLength {
+                        len: position.len(),
+                        max: MAX_POSITION_NAME_LEN,
+                    });
+                }
+                if position.chars().any(char::is_control) {
+                    return Err(InvalidCommand::PositionNameControl {
+                        name: position.clone(),
+                    });
+                }
+                finite("x_m", *x_m)?;
+                finite("y_m", *y_m)?;
+                if let Some(heading) = heading_deg {
+                    finite("heading_deg", *heading)?;
+                }
+            }
+            Command::StopStaticScan => {}
+            Command::SetMotorSpeed { hz, .. } => {
+                if !(hz.is_finite() && *hz > 0.0 && *hz <= MAX_MOTOR_SPEED_HZ) {
+                    return Err(InvalidCommand::MotorSpeed {
+                        hz: *hz,
+                        max: MAX_MOTOR_SPEED_HZ,
+                    });
+                }
+            }
+        }
+        // The limits above keep every command far below the frame limit; encoding the largest
+        // possible frame keeps that true if a field is added without a limit.
+        let frame = crate::Frame::new(u64::MAX, u64::MAX, self.clone());
+        crate::encode(&frame)
+            .map(drop)
+            .map_err(InvalidCommand::Frame)
+    }
+}
+
 /// A static 3D scan's messages (the paper's §III-A): the edge turns the Sweep on the stepper,
 /// one step per revolution while the beam is blocked, and tags every sample with the turntable
 /// yaw φ it was taken at, so the server can apply eq. (1) without any other stream.
@@ -485,4 +589,86 @@ pub struct StaticScanEnd {
     pub late_steps: u64,
     /// Failed steps.
     pub failed_steps: u64,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn start(position: &str, x_m: f64, heading_deg: Option<f64>) -> Command {
+        Command::StartStaticScan {
+            position: position.to_owned(),
+            x_m,
+            y_m: 2.0,
+            heading_deg,
+        }
+    }
+
+    #[test]
+    fn ordinary_commands_are_valid() {
+        assert_eq!(start("door", 1.0, Some(90.0)).validate(), Ok(()));
+        assert_eq!(
+            start(&"p".repeat(MAX_POSITION_NAME_LEN), -1e6, None).validate(),
+            Ok(())
+        );
+        assert_eq!(Command::StopStaticScan.validate(), Ok(()));
+        let speed = |hz| Command::SetMotorSpeed {
+            sensor: SensorId::SWEEP,
+            hz,
+        };
+        assert_eq!(speed(5.0).validate(), Ok(()));
+        assert_eq!(speed(MAX_MOTOR_SPEED_HZ).validate(), Ok(()));
+        for hz in [0.0, -1.0, f32::NAN, f32::INFINITY, MAX_MOTOR_SPEED_HZ * 2.0] {
+            assert!(
+                matches!(speed(hz).validate(), Err(InvalidCommand::MotorSpeed { .. })),
+                "{hz}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_five_mebibyte_position_name_is_refused_before_encoding() {
+        let huge = "x".repeat(5 * 1024 * 1024);
+        let err = start(&huge, 1.0, None).validate().unwrap_err();
+        assert_eq!(
+            err,
+            InvalidCommand::PositionNameLength {
+                len: 5 * 1024 * 1024,
+                max: MAX_POSITION_NAME_LEN
+            }
+        );
+        assert_eq!(
+            err.to_string(),
+            "position name of 5242880 bytes: must be 1 to 256 bytes"
+        );
+        let err = start(&"y".repeat(MAX_POSITION_NAME_LEN + 1), 1.0, None).validate();
+        assert!(matches!(
+            err,
+            Err(InvalidCommand::PositionNameLength { len: 257, .. })
+        ));
+        let err = start("", 1.0, None).validate();
+        assert!(matches!(
+            err,
+            Err(InvalidCommand::PositionNameLength { len: 0, .. })
+        ));
+    }
+
+    #[test]
+    fn control_characters_and_non_finite_numbers_are_refused() {
+        assert!(matches!(
+            start("a\nb", 1.0, None).validate(),
+            Err(InvalidCommand::PositionNameControl { .. })
+        ));
+        assert!(matches!(
+            start("a", f64::NAN, None).validate(),
+            Err(InvalidCommand::NotFinite { field: "x_m", .. })
+        ));
+        assert!(matches!(
+            start("a", 1.0, Some(f64::NEG_INFINITY)).validate(),
+            Err(InvalidCommand::NotFinite {
+                field: "heading_deg",
+                ..
+            })
+        ));
+    }
 }

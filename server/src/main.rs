@@ -12,7 +12,8 @@ fn main() -> ExitCode {
     match execute(cli, &mut stdout) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("scan3d: {e:#}");
+            let error: &(dyn std::error::Error + 'static) = e.as_ref();
+            eprintln!("scan3d: {}", scan3d_service::report::error_chain(error));
             ExitCode::FAILURE
         }
     }

@@ -47,13 +47,35 @@ pub enum PemError {
         /// The file.
         path: PathBuf,
     },
+    /// A private key file that users other than its owner may read or write.
+    #[error(
+        "{}: private key is accessible to other users (mode {mode:04o}); restrict it with `chmod 600 {}`",
+        path.display(), path.display()
+    )]
+    KeyTooOpen {
+        /// The key file.
+        path: PathBuf,
+        /// Its permission bits.
+        mode: u32,
+    },
+    /// The key file's metadata could not be read.
+    #[error("{}: {source}", path.display())]
+    Metadata {
+        /// The key file.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
 }
 
 impl PemError {
     /// The file concerned.
     pub fn path(&self) -> &Path {
         match self {
-            Self::Read { path, .. } | Self::NoCertificate { path } => path,
+            Self::Read { path, .. }
+            | Self::NoCertificate { path }
+            | Self::KeyTooOpen { path, .. }
+            | Self::Metadata { path, .. } => path,
         }
     }
 }
@@ -84,9 +106,66 @@ pub fn read_key(path: &Path) -> Result<PrivateKeyDer<'static>, PemError> {
     })
 }
 
+/// Refuses a private key file that its group or other users may access (any of the mode bits
+/// `0o077`), like ssh does: such a key must be considered leaked. `scan3d pair` writes keys
+/// `0600`. Symbolic links are followed (the key is the file they point to).
+pub fn check_key_mode(path: &Path) -> Result<(), PemError> {
+    use std::os::unix::fs::PermissionsExt;
+    let mode = std::fs::metadata(path)
+        .map_err(|source| PemError::Metadata {
+            path: path.to_path_buf(),
+            source,
+        })?
+        .permissions()
+        .mode()
+        & 0o7777;
+    if mode & 0o077 != 0 {
+        return Err(PemError::KeyTooOpen {
+            path: path.to_path_buf(),
+            mode,
+        });
+    }
+    Ok(())
+}
+
+/// The private key in a PEM file, after [`check_key_mode`].
+pub fn read_private_key(path: &Path) -> Result<PrivateKeyDer<'static>, PemError> {
+    check_key_mode(path)?;
+    read_key(path)
+}
+
 #[cfg(test)]
 mod tests {
+    use std::os::unix::fs::PermissionsExt;
+
     use super::*;
+
+    #[test]
+    fn group_or_world_accessible_keys_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let key = dir.path().join("k.key");
+        std::fs::write(&key, "-----BEGIN PRIVATE KEY-----\n").unwrap();
+        for (mode, ok) in [
+            (0o600, true),
+            (0o400, true),
+            (0o640, false),
+            (0o604, false),
+            (0o620, false),
+        ] {
+            std::fs::set_permissions(&key, std::fs::Permissions::from_mode(mode)).unwrap();
+            let result = check_key_mode(&key);
+            assert_eq!(result.is_ok(), ok, "{mode:o}: {result:?}");
+            if let Err(e) = result {
+                assert!(matches!(e, PemError::KeyTooOpen { mode: m, .. } if m == mode));
+                assert!(e.to_string().contains("chmod 600"), "{e}");
+                assert!(e.to_string().contains("k.key"), "{e}");
+            }
+        }
+        assert!(matches!(
+            check_key_mode(&dir.path().join("missing.key")),
+            Err(PemError::Metadata { .. })
+        ));
+    }
 
     #[test]
     fn missing_and_empty_files_name_the_file() {

@@ -30,7 +30,7 @@ pub struct Cli {
 /// `scan3d` subcommands.
 #[derive(Debug, Subcommand)]
 pub enum Command {
-    /// Create the CA (first time), a server certificate and an edge bundle.
+    /// Create the CA (first time), a server certificate and an edge bundle; renew or revoke one.
     Pair(pair::PairArgs),
     /// Run the server daemon: accept edges over QUIC and record their sessions.
     Serve(serve::ServeArgs),

@@ -1,37 +1,101 @@
-//! `scan3d pair`: create the CA (first time), the server certificate and an edge bundle.
+//! `scan3d pair`: create the CA (first time), the server certificate and an edge bundle;
+//! renew or revoke an edge's certificate.
+//!
+//! Keep `ca.key` off the server host: pair on the operator's machine (or bring the key back
+//! from offline storage only to pair, renew or revoke) and copy `ca.pem`, `crl.pem` and
+//! `server/` to the server. The server never reads `ca.key`.
 
 use std::io::Write;
 use std::path::PathBuf;
+use std::time::SystemTime;
 
-use crate::ingest::pki::{self, PairRequest, Provenance};
+use crate::ingest::pki::{self, PairOutcome, PairRequest, Provenance, Validity};
 
 /// Options of `scan3d pair`.
 #[derive(Debug, clap::Args)]
+#[command(
+    group(clap::ArgGroup::new("action").required(true).args(["edge", "renew", "revoke"])),
+    after_help = "Keep DIR/ca.key off the server host: the server needs only ca.pem, crl.pem and \
+                  server/. Revocations and renewals take effect when the server reloads: \
+                  `systemctl reload scan3d-server` (SIGHUP) or a restart."
+)]
 pub struct PairArgs {
     /// PKI directory (created if missing; see `DIR/ca.pem`, `DIR/server/`, `DIR/edges/`).
     #[arg(long, value_name = "DIR")]
     pub dir: PathBuf,
     /// Name of the edge to pair: its certificate CN and its name on the server.
     #[arg(long, value_name = "NAME")]
-    pub edge: String,
+    pub edge: Option<String>,
+    /// Issue a fresh bundle (new key, new serial, new validity) for an edge paired before,
+    /// and revoke its earlier certificates. With `--server-name`, renew the server
+    /// certificate too.
+    #[arg(long, value_name = "NAME", conflicts_with = "force")]
+    pub renew: Option<String>,
+    /// Revoke every certificate issued to this edge (written to `DIR/crl.pem`).
+    #[arg(long, value_name = "NAME", conflicts_with_all = ["force", "server_names", "validity_days", "ca_validity_days"])]
+    pub revoke: Option<String>,
     /// Host name or IP the edges use to reach the server (repeatable). Given: the server
     /// certificate is re-issued for exactly these names. Omitted: the existing server
     /// certificate is kept, or one for `localhost` and `127.0.0.1` is created.
     #[arg(long = "server-name", value_name = "HOST")]
     pub server_names: Vec<String>,
-    /// Issue a new bundle even if this edge already has one.
+    /// Issue a new bundle even if this edge already has one; its earlier certificates are
+    /// revoked.
     #[arg(long)]
     pub force: bool,
+    /// Validity of the edge and server certificates issued by this run, in days.
+    #[arg(long, value_name = "DAYS", default_value_t = Validity::default().leaf_days)]
+    pub validity_days: u32,
+    /// Validity of the CA, in days, when this run creates it.
+    #[arg(long, value_name = "DAYS", default_value_t = Validity::default().ca_days)]
+    pub ca_validity_days: u32,
 }
 
-/// Runs `scan3d pair`: pairs the edge and prints what was created and the next step.
+/// Runs `scan3d pair`: pairs, renews or revokes, and prints what was done and the next step.
 pub fn run(args: &PairArgs, out: &mut dyn Write) -> anyhow::Result<()> {
-    let outcome = pki::pair(&PairRequest {
-        dir: args.dir.clone(),
-        edge: args.edge.clone(),
-        server_names: args.server_names.clone(),
-        force: args.force,
-    })?;
+    let now = SystemTime::now();
+    let validity = Validity {
+        leaf_days: args.validity_days,
+        ca_days: args.ca_validity_days,
+    };
+    if let Some(name) = &args.revoke {
+        let outcome = pki::revoke(&args.dir, name, now)?;
+        if outcome.revoked.is_empty() {
+            writeln!(out, "every certificate of {name:?} was already revoked")?;
+        } else {
+            writeln!(
+                out,
+                "revoked {name:?}: serial {}",
+                outcome.revoked.join(", serial ")
+            )?;
+        }
+        writeln!(
+            out,
+            "revocation list: {}\nnext: copy it to the server's pki_dir if the server has its own copy, then reload the server (`systemctl reload scan3d-server`, or SIGHUP)",
+            outcome.crl.display()
+        )?;
+        return Ok(());
+    }
+    let (outcome, name) = match (&args.renew, &args.edge) {
+        (Some(name), _) => (
+            pki::renew(&args.dir, name, &args.server_names, validity, now)?,
+            name,
+        ),
+        (None, Some(name)) => {
+            let request = PairRequest {
+                dir: args.dir.clone(),
+                edge: name.clone(),
+                server_names: args.server_names.clone(),
+                force: args.force,
+            };
+            (pki::pair_with(&request, validity, now)?, name)
+        }
+        (None, None) => anyhow::bail!("one of --edge, --renew or --revoke is required"),
+    };
+    print_outcome(&outcome, name, out)
+}
+
+fn print_outcome(outcome: &PairOutcome, name: &str, out: &mut dyn Write) -> anyhow::Result<()> {
     let verb = |p: Provenance| match p {
         Provenance::Created => "created",
         Provenance::Replaced => "replaced",
@@ -55,9 +119,16 @@ pub fn run(args: &PairArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         out,
         "edge bundle {} for {:?}: {}",
         verb(outcome.edge),
-        args.edge,
+        name,
         outcome.edge_dir.display()
     )?;
+    if !outcome.revoked.is_empty() {
+        writeln!(
+            out,
+            "revoked the earlier certificate(s) of {name:?}: serial {}; they stop working when the server reloads (`systemctl reload scan3d-server`, or SIGHUP)",
+            outcome.revoked.join(", serial ")
+        )?;
+    }
     if outcome.server == Provenance::Replaced {
         writeln!(
             out,
@@ -73,6 +144,11 @@ pub fn run(args: &PairArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         out,
         "the edge must connect with one of the server names above: {}",
         outcome.server_names.join(", ")
+    )?;
+    writeln!(
+        out,
+        "keep {} off the server host; the server needs only ca.pem, crl.pem and server/",
+        outcome.ca_key.display()
     )?;
     Ok(())
 }
@@ -128,11 +204,60 @@ mod tests {
         ])
         .unwrap();
         assert!(forced.contains("edge bundle replaced"), "{forced}");
+        assert!(
+            forced.contains("revoked the earlier certificate"),
+            "{forced}"
+        );
+
+        let renewed = run(&["scan3d", "pair", "--dir", &dir, "--renew", "pi-02"]).unwrap();
+        assert!(renewed.contains("edge bundle replaced"), "{renewed}");
+        assert!(
+            renewed.contains("revoked the earlier certificate"),
+            "{renewed}"
+        );
+        let with_server = run(&[
+            "scan3d",
+            "pair",
+            "--dir",
+            &dir,
+            "--renew",
+            "pi-02",
+            "--server-name",
+            "newhost",
+        ])
+        .unwrap();
+        assert!(
+            with_server.contains("server certificate replaced")
+                && with_server.contains("for newhost"),
+            "{with_server}"
+        );
+        let revoked = run(&["scan3d", "pair", "--dir", &dir, "--revoke", "pi-02"]).unwrap();
+        assert!(
+            revoked.starts_with("revoked \"pi-02\": serial "),
+            "{revoked}"
+        );
+        let again = run(&["scan3d", "pair", "--dir", &dir, "--revoke", "pi-02"]).unwrap();
+        assert!(
+            again.starts_with("every certificate of \"pi-02\" was already revoked"),
+            "{again}"
+        );
+        let unknown = run(&["scan3d", "pair", "--dir", &dir, "--revoke", "nobody"]).unwrap_err();
+        assert!(
+            unknown.to_string().contains("no certificate was issued"),
+            "{unknown}"
+        );
     }
 
     #[test]
-    fn dir_and_edge_are_required() {
+    fn dir_and_exactly_one_action_are_required() {
         assert!(Cli::try_parse_from(["scan3d", "pair", "--edge", "pi-01"]).is_err());
         assert!(Cli::try_parse_from(["scan3d", "pair", "--dir", "/tmp/x"]).is_err());
+        let both = [
+            "scan3d", "pair", "--dir", "/x", "--edge", "a", "--revoke", "a",
+        ];
+        assert!(Cli::try_parse_from(both).is_err());
+        let forced_revoke = ["scan3d", "pair", "--dir", "/x", "--revoke", "a", "--force"];
+        assert!(Cli::try_parse_from(forced_revoke).is_err());
+        assert!(Cli::try_parse_from(["scan3d", "pair", "--dir", "/x", "--renew", "a"]).is_ok());
     }
 }

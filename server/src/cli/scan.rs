@@ -97,12 +97,17 @@ impl ScanArgs {
 
 /// Runs `scan3d scan`.
 pub fn run(args: &ScanArgs, out: &mut dyn Write) -> anyhow::Result<()> {
+    let command = args.command();
+    // The server checks too; checking here gives the reason without a round trip.
+    command
+        .validate()
+        .map_err(|e| anyhow::anyhow!("invalid command: {e}"))?;
     let socket = socket_path(&args.data.resolve()?);
     let reply = request(
         &socket,
         &ControlRequest {
             edge: args.edge.clone(),
-            command: args.command(),
+            command,
         },
     )?;
     if !reply.ok {
@@ -141,5 +146,29 @@ mod tests {
             Err("\"x\" is not a finite number".to_string())
         );
         assert!("1,nan".parse::<At>().is_err());
+    }
+
+    #[test]
+    fn an_invalid_command_is_refused_before_the_server_is_asked() {
+        use clap::Parser;
+        let long = "p".repeat(300);
+        let cli = crate::cli::Cli::try_parse_from([
+            "scan3d",
+            "scan",
+            "--edge",
+            "pi",
+            "--at",
+            "1,2",
+            "--name",
+            &long,
+            "--data-dir",
+            "/nonexistent/scan3d-data",
+        ])
+        .unwrap();
+        let err = crate::cli::execute(cli, &mut Vec::new()).unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "invalid command: position name of 300 bytes: must be 1 to 256 bytes"
+        );
     }
 }

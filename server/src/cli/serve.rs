@@ -1,14 +1,19 @@
 //! `scan3d serve --config server.toml`: the server daemon. Records every edge's frames and
 //! acknowledges them once durable; takes operator commands on `data_dir/control.sock`
-//! (`scan3d scan`); SIGTERM commits, closes every recording and exits 0.
+//! (`scan3d scan`); SIGHUP re-reads the certificate revocation list (`pki_dir/crl.pem`);
+//! SIGTERM commits, closes every recording and exits 0. If the control socket cannot be
+//! opened the daemon does not start, and if its task ever ends the daemon exits non-zero
+//! (systemd restarts it) rather than run on without it.
 
 use std::path::{Path, PathBuf};
 
+use anyhow::Context;
 use scan3d_service::daemon::{self, NotifyState};
 
 use crate::config::ServerConfig;
-use crate::ingest::control::{serve_socket, socket_path};
+use crate::ingest::control::{ControlLimits, ControlSocket, socket_path};
 use crate::ingest::server::{IngestConfig, IngestServer};
+use crate::ingest::tls;
 
 /// Options of `scan3d serve`.
 #[derive(Debug, clap::Args)]
@@ -42,22 +47,43 @@ fn serve(config_path: &Path) -> anyhow::Result<()> {
         .enable_all()
         .build()?;
     runtime.block_on(async {
+        std::fs::create_dir_all(&config.data_dir)
+            .with_context(|| format!("data_dir {}", config.data_dir.display()))?;
         let server = IngestServer::bind(IngestConfig::from(&config))?;
-        std::fs::create_dir_all(&config.data_dir)?;
-        let control = tokio::spawn(serve_socket(
-            socket_path(&config.data_dir),
-            server.control(),
-        ));
+        let socket =
+            ControlSocket::bind(socket_path(&config.data_dir), ControlLimits::default()).await?;
+        let mut control = tokio::spawn(socket.serve(server.control()));
+        // Installed before READY: SIGHUP's default action would kill the daemon.
+        let mut hangup =
+            tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup())
+                .context("cannot install the SIGHUP handler")?;
+        let reloader = tokio::spawn(async move {
+            while hangup.recv().await.is_some() {
+                log_reload(&tls::reload_revocation_lists());
+            }
+        });
         tracing::info!(listen = %server.local_addr()?, data_dir = %config.data_dir.display(), "scan3d server ready");
         daemon::notify(&[NotifyState::Ready]);
         let watchdog = tokio::spawn(daemon::watchdog());
+        let mut control_ended = None;
         let stats = server
             .run(None, async {
-                daemon::wait_for_termination().await;
+                tokio::select! {
+                    () = daemon::wait_for_termination() => {}
+                    ended = &mut control => {
+                        let why = match ended {
+                            Err(e) => e.to_string(),
+                            Ok(never) => match never {},
+                        };
+                        tracing::error!(error = %why, "the control socket task ended; stopping");
+                        control_ended = Some(why);
+                    }
+                }
                 daemon::notify(&[NotifyState::Stopping]);
             })
             .await;
         watchdog.abort();
+        reloader.abort();
         control.abort();
         let _ = std::fs::remove_file(socket_path(&config.data_dir));
         tracing::info!(
@@ -68,6 +94,25 @@ fn serve(config_path: &Path) -> anyhow::Result<()> {
             rejected = stats.rejected,
             "scan3d server stopped"
         );
-        Ok(())
+        match control_ended {
+            Some(why) => anyhow::bail!("the control socket task ended ({why})"),
+            None => Ok(()),
+        }
     })
+}
+
+/// Logs the outcome of a SIGHUP reload of the revocation lists.
+fn log_reload(outcomes: &[(PathBuf, Result<tls::CrlStatus, tls::TlsError>)]) {
+    for (pki, outcome) in outcomes {
+        match outcome {
+            Ok(status) => {
+                tracing::info!(pki = %pki.display(), ?status, "SIGHUP: revocation list reloaded")
+            }
+            Err(e) => tracing::error!(
+                pki = %pki.display(),
+                error = %e,
+                "SIGHUP: revocation list not reloaded; the previous one stays in force"
+            ),
+        }
+    }
 }

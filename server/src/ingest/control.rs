@@ -14,8 +14,9 @@
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
+use std::time::Duration;
 
-use scan3d_protocol::Command;
+use scan3d_protocol::{Command, InvalidCommand};
 use serde::{Deserialize, Serialize};
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::net::{UnixListener, UnixStream};
@@ -27,7 +28,7 @@ pub fn socket_path(data_dir: &Path) -> PathBuf {
 }
 
 /// Why a command could not be routed.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum ControlError {
     /// No live connection of that edge.
     #[error("edge {edge:?} is not connected (connected: {connected})")]
@@ -37,6 +38,9 @@ pub enum ControlError {
         /// The edges that are, comma-separated (or "none").
         connected: String,
     },
+    /// The command is not one an edge can be sent ([`Command::validate`]).
+    #[error("invalid command: {0}")]
+    Invalid(#[from] InvalidCommand),
 }
 
 /// Routes commands to the edges connected to an ingest server; cheap to clone.
@@ -77,8 +81,11 @@ impl EdgeControl {
         names
     }
 
-    /// Queues `command` on `edge`'s connection (sent with the next outgoing frames).
+    /// Queues `command` on `edge`'s connection (sent with the next outgoing frames). The
+    /// command is validated first ([`Command::validate`]): this is the only way commands reach
+    /// a connection, so a connection never holds one it cannot encode.
     pub fn send(&self, edge: &str, command: Command) -> Result<(), ControlError> {
+        command.validate()?;
         let sent = self
             .lock()
             .get(edge)
@@ -144,36 +151,287 @@ pub fn handle_request(control: &EdgeControl, line: &str) -> ControlReply {
     }
 }
 
-/// Serves the control socket at `path` until the task is dropped. A stale socket file left by
-/// a crashed server is replaced.
-pub async fn serve_socket(path: PathBuf, control: EdgeControl) -> std::io::Result<()> {
-    if path.exists() && UnixStream::connect(&path).await.is_err() {
-        std::fs::remove_file(&path)?;
+/// Longest control socket path: `sun_path` holds 108 bytes on Linux, one of them the
+/// terminating NUL.
+pub const MAX_SOCKET_PATH_LEN: usize = 107;
+
+/// Permissions of the control socket: owner only. Connecting needs write permission, so this
+/// and the peer check ([`ControlSocket`]) both say "the server's own user (or root)".
+pub const SOCKET_MODE: u32 = 0o600;
+
+/// Bounds on what the control socket accepts, so a local client cannot make it hold memory,
+/// tasks or file descriptors for ever.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ControlLimits {
+    /// Longest request line, newline excluded; a longer one is answered with an error and the
+    /// connection closed.
+    pub max_line_len: usize,
+    /// Connections served at once; a further one is answered with an error and closed.
+    pub max_connections: usize,
+    /// A connection that sends no complete request (or does not take its reply) for this long
+    /// is closed.
+    pub idle_timeout: Duration,
+    /// First pause after a failed `accept` (e.g. EMFILE); doubled on each further failure.
+    pub accept_backoff_min: Duration,
+    /// Longest pause after a failed `accept`.
+    pub accept_backoff_max: Duration,
+}
+
+impl Default for ControlLimits {
+    /// 64 KiB lines (a request is a few hundred bytes), 16 connections, 30 s idle, accept
+    /// retries after 10 ms up to 1 s.
+    fn default() -> Self {
+        ControlLimits {
+            max_line_len: 64 * 1024,
+            max_connections: 16,
+            idle_timeout: Duration::from_secs(30),
+            accept_backoff_min: Duration::from_millis(10),
+            accept_backoff_max: Duration::from_secs(1),
+        }
     }
-    let listener = UnixListener::bind(&path)?;
-    tracing::info!(socket = %path.display(), "control socket ready");
+}
+
+/// Why the control socket could not be opened.
+#[derive(Debug, thiserror::Error)]
+pub enum SocketError {
+    /// The path does not fit in `sun_path`.
+    #[error(
+        "control socket path {} is {len} bytes, longer than the {max} bytes a Unix socket path may have; choose a shorter data_dir",
+        path.display()
+    )]
+    PathTooLong {
+        /// The socket path.
+        path: PathBuf,
+        /// Its length in bytes.
+        len: usize,
+        /// [`MAX_SOCKET_PATH_LEN`].
+        max: usize,
+    },
+    /// Another server already listens on the path.
+    #[error("control socket {}: another server is already listening on it", path.display())]
+    InUse {
+        /// The socket path.
+        path: PathBuf,
+    },
+    /// Removing a stale socket, binding or setting the mode failed.
+    #[error("control socket {}: {source}", path.display())]
+    Io {
+        /// The socket path.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+}
+
+/// The bound control socket; [`ControlSocket::serve`] answers its connections.
+///
+/// Who may connect: the socket file is [`SOCKET_MODE`] (set explicitly, whatever the umask),
+/// and every connection's peer credentials (`SO_PEERCRED`) must be the server's own effective
+/// uid or root; anyone else is answered with an error and disconnected.
+#[derive(Debug)]
+pub struct ControlSocket {
+    listener: UnixListener,
+    path: PathBuf,
+    limits: ControlLimits,
+}
+
+impl ControlSocket {
+    /// Binds the socket at `path`, replacing a stale socket file left by a crashed server
+    /// (but never one a live server answers on).
+    pub async fn bind(path: PathBuf, limits: ControlLimits) -> Result<Self, SocketError> {
+        use std::os::unix::fs::PermissionsExt;
+        let len = path.as_os_str().len();
+        if len > MAX_SOCKET_PATH_LEN {
+            return Err(SocketError::PathTooLong {
+                path,
+                len,
+                max: MAX_SOCKET_PATH_LEN,
+            });
+        }
+        let io_err = |path: &Path| {
+            let path = path.to_path_buf();
+            move |source| SocketError::Io { path, source }
+        };
+        if std::fs::symlink_metadata(&path).is_ok() {
+            if UnixStream::connect(&path).await.is_ok() {
+                return Err(SocketError::InUse { path });
+            }
+            std::fs::remove_file(&path).map_err(io_err(&path))?;
+        }
+        let listener = UnixListener::bind(&path).map_err(io_err(&path))?;
+        std::fs::set_permissions(&path, std::fs::Permissions::from_mode(SOCKET_MODE))
+            .map_err(io_err(&path))?;
+        tracing::info!(socket = %path.display(), "control socket ready");
+        Ok(ControlSocket {
+            listener,
+            path,
+            limits,
+        })
+    }
+
+    /// The socket's path.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Answers connections for as long as the task runs. A failed `accept` (EMFILE, ENOMEM,
+    /// ...) is logged and retried after a growing pause, so the socket neither dies nor spins.
+    pub async fn serve(self, control: EdgeControl) -> std::convert::Infallible {
+        let listener = &self.listener;
+        let accept = move || -> AcceptFuture<'_> {
+            Box::pin(async move { listener.accept().await.map(|(stream, _)| stream) })
+        };
+        accept_loop(accept, &self.path, self.limits, control).await
+    }
+}
+
+type AcceptFuture<'a> =
+    std::pin::Pin<Box<dyn std::future::Future<Output = std::io::Result<UnixStream>> + Send + 'a>>;
+
+/// Why a peer may not use the control socket, if it may not: only the server's own effective
+/// uid and root are allowed.
+fn peer_refusal(peer_uid: Option<u32>, own_uid: u32) -> Option<String> {
+    match peer_uid {
+        Some(uid) if uid == own_uid || uid == 0 => None,
+        Some(uid) => Some(format!(
+            "permission denied: uid {uid} is not the server's (uid {own_uid}) or root"
+        )),
+        None => Some("permission denied: no peer credentials".to_owned()),
+    }
+}
+
+/// The accept loop of [`ControlSocket::serve`], with `accept` standing for the listener.
+async fn accept_loop<'a>(
+    mut accept: impl FnMut() -> AcceptFuture<'a>,
+    path: &Path,
+    limits: ControlLimits,
+    control: EdgeControl,
+) -> std::convert::Infallible {
+    let slots = Arc::new(tokio::sync::Semaphore::new(limits.max_connections));
+    let own_uid = nix::unistd::geteuid().as_raw();
+    let mut backoff = limits.accept_backoff_min;
     loop {
-        let (stream, _) = listener.accept().await?;
+        let stream = match accept().await {
+            Ok(stream) => {
+                backoff = limits.accept_backoff_min;
+                stream
+            }
+            Err(e) => {
+                tracing::warn!(
+                    socket = %path.display(),
+                    error = %e,
+                    retry_in_ms = backoff.as_millis(),
+                    "control socket cannot accept; retrying"
+                );
+                tokio::time::sleep(backoff).await;
+                backoff = (backoff * 2).min(limits.accept_backoff_max);
+                continue;
+            }
+        };
+        let peer_uid = stream.peer_cred().ok().map(|cred| cred.uid());
+        let refusal = peer_refusal(peer_uid, own_uid);
+        let permit = match (refusal, slots.clone().try_acquire_owned()) {
+            (None, Ok(permit)) => permit,
+            (refusal, _) => {
+                let detail = refusal.unwrap_or_else(|| {
+                    format!(
+                        "too many control connections (at most {} at once)",
+                        limits.max_connections
+                    )
+                });
+                tracing::warn!(%detail, "control connection refused");
+                // Best effort and never blocking: a refusal costs one write at most.
+                let _ =
+                    stream.try_write(reply_line(&ControlReply { ok: false, detail }).as_bytes());
+                continue;
+            }
+        };
         let control = control.clone();
         tokio::spawn(async move {
-            if let Err(e) = answer(stream, &control).await {
+            let _permit = permit;
+            if let Err(e) = answer(stream, &control, &limits).await {
                 tracing::warn!(error = %e, "control connection failed");
             }
         });
     }
 }
 
-async fn answer(stream: UnixStream, control: &EdgeControl) -> std::io::Result<()> {
+/// Binds the control socket at `path` with the default [`ControlLimits`] and serves it for as
+/// long as the task runs; returns only if the socket cannot be opened. Callers that must fail
+/// at start on a bad path use [`ControlSocket::bind`] and [`ControlSocket::serve`] instead.
+pub async fn serve_socket(path: PathBuf, control: EdgeControl) -> std::io::Result<()> {
+    let socket = ControlSocket::bind(path, ControlLimits::default())
+        .await
+        .map_err(std::io::Error::other)?;
+    match socket.serve(control).await {}
+}
+
+fn reply_line(reply: &ControlReply) -> String {
+    // A struct of a bool and a string always serialises.
+    let mut text = serde_json::to_string(reply).unwrap_or_default();
+    text.push('\n');
+    text
+}
+
+async fn answer(
+    stream: UnixStream,
+    control: &EdgeControl,
+    limits: &ControlLimits,
+) -> std::io::Result<()> {
+    use tokio::io::AsyncReadExt;
+    let timed_out = || {
+        std::io::Error::new(
+            std::io::ErrorKind::TimedOut,
+            "idle control connection closed",
+        )
+    };
     let (read, mut write) = stream.into_split();
-    let mut lines = BufReader::new(read).lines();
-    while let Some(line) = lines.next_line().await? {
-        let reply = handle_request(control, &line);
+    let mut reader = BufReader::new(read);
+    let mut line = Vec::new();
+    loop {
+        line.clear();
+        let limit = u64::try_from(limits.max_line_len)
+            .unwrap_or(u64::MAX)
+            .saturating_add(1);
+        let mut limited = (&mut reader).take(limit);
+        let read = limited.read_until(b'\n', &mut line);
+        let n = tokio::time::timeout(limits.idle_timeout, read)
+            .await
+            .map_err(|_| timed_out())??;
+        if n == 0 {
+            return Ok(());
+        }
+        let complete = line.last() == Some(&b'\n');
+        if complete {
+            line.pop();
+        }
+        let (reply, close) = if line.len() > limits.max_line_len {
+            let detail = format!(
+                "request line longer than {} bytes; closing the connection",
+                limits.max_line_len
+            );
+            (ControlReply { ok: false, detail }, true)
+        } else {
+            let reply = match std::str::from_utf8(&line) {
+                Ok(text) => handle_request(control, text),
+                Err(e) => ControlReply {
+                    ok: false,
+                    detail: format!("malformed request: not UTF-8 ({e})"),
+                },
+            };
+            // A last line without newline is answered, then the peer's end of stream closes.
+            (reply, false)
+        };
         tracing::info!(ok = reply.ok, detail = %reply.detail, "control request");
-        let mut text = serde_json::to_string(&reply).map_err(std::io::Error::other)?;
-        text.push('\n');
-        write.write_all(text.as_bytes()).await?;
+        let text = reply_line(&reply);
+        let write_reply = write.write_all(text.as_bytes());
+        tokio::time::timeout(limits.idle_timeout, write_reply)
+            .await
+            .map_err(|_| timed_out())??;
+        if close {
+            return Ok(());
+        }
     }
-    Ok(())
 }
 
 /// Sends one request to the server's control socket and waits for the reply (blocking; for
@@ -189,9 +447,22 @@ pub fn request(path: &Path, request: &ControlRequest) -> anyhow::Result<ControlR
     stream.set_read_timeout(Some(std::time::Duration::from_secs(10)))?;
     let mut line = serde_json::to_string(request)?;
     line.push('\n');
-    stream.write_all(line.as_bytes())?;
+    // A server that refuses a request before reading all of it (too long) answers and closes:
+    // the write then fails, but its answer is there to read and says why.
+    let written = stream.write_all(line.as_bytes());
     let mut answer = String::new();
-    std::io::BufReader::new(&stream).read_line(&mut answer)?;
+    let read = std::io::BufReader::new(&stream).read_line(&mut answer);
+    match (read, written) {
+        (Ok(n), _) if n > 0 => {}
+        (_, Err(e)) => anyhow::bail!("control socket {}: {e}", path.display()),
+        (Err(e), Ok(())) => anyhow::bail!("control socket {}: {e}", path.display()),
+        (Ok(_), Ok(())) => {
+            anyhow::bail!(
+                "control socket {}: closed without an answer",
+                path.display()
+            )
+        }
+    }
     serde_json::from_str(&answer)
         .map_err(|e| anyhow::anyhow!("unreadable answer from the server ({e}): {answer:?}"))
 }
@@ -256,6 +527,309 @@ mod tests {
         .unwrap();
         assert!(reply.ok);
         assert_eq!(rx.recv().await, Some(Command::StopStaticScan));
+        server.abort();
+    }
+
+    fn test_limits() -> ControlLimits {
+        ControlLimits {
+            max_line_len: 1024,
+            max_connections: 2,
+            idle_timeout: Duration::from_secs(5),
+            accept_backoff_min: Duration::from_millis(1),
+            accept_backoff_max: Duration::from_millis(4),
+        }
+    }
+
+    /// A control socket serving `control` in `dir` with `limits`.
+    async fn start(
+        dir: &Path,
+        control: &EdgeControl,
+        limits: ControlLimits,
+    ) -> (PathBuf, tokio::task::JoinHandle<std::convert::Infallible>) {
+        let socket = ControlSocket::bind(socket_path(dir), limits).await.unwrap();
+        let path = socket.path().to_path_buf();
+        (path, tokio::spawn(socket.serve(control.clone())))
+    }
+
+    /// Sends `bytes`, ends its side, and reads everything the server writes until it closes
+    /// (or 5 s pass). A server that closes with part of the request unread resets the
+    /// connection after its reply: the reply is kept.
+    async fn exchange(path: &Path, bytes: &[u8]) -> String {
+        use tokio::io::AsyncReadExt;
+        let mut stream = UnixStream::connect(path).await.unwrap();
+        stream.write_all(bytes).await.unwrap();
+        stream.shutdown().await.unwrap();
+        let mut reply = Vec::new();
+        let read_all = async {
+            let mut chunk = [0u8; 4096];
+            loop {
+                match stream.read(&mut chunk).await {
+                    Ok(0) => break,
+                    Ok(n) => reply.extend_from_slice(&chunk[..n]),
+                    Err(e) if e.kind() == std::io::ErrorKind::ConnectionReset => break,
+                    Err(e) => panic!("{e}"),
+                }
+            }
+        };
+        tokio::time::timeout(Duration::from_secs(5), read_all)
+            .await
+            .expect("the server neither answered nor closed");
+        String::from_utf8(reply).unwrap()
+    }
+
+    fn stop_line() -> String {
+        "{\"edge\":\"pi\",\"command\":\"StopStaticScan\"}\n".to_owned()
+    }
+
+    #[test]
+    fn an_oversized_command_is_refused_and_never_reaches_the_edge() {
+        let control = EdgeControl::default();
+        let mut rx = control.register("pi");
+        let request = ControlRequest {
+            edge: "pi".into(),
+            command: Command::StartStaticScan {
+                position: "x".repeat(5 * 1024 * 1024),
+                x_m: 1.0,
+                y_m: 2.0,
+                heading_deg: None,
+            },
+        };
+        let reply = handle_request(&control, &serde_json::to_string(&request).unwrap());
+        assert!(!reply.ok, "{reply:?}");
+        assert_eq!(
+            reply.detail,
+            "invalid command: position name of 5242880 bytes: must be 1 to 256 bytes"
+        );
+        // Nothing was queued on the edge's connection, which stays registered and usable.
+        assert!(rx.try_recv().is_err());
+        assert_eq!(control.connected(), ["pi"]);
+        assert!(handle_request(&control, stop_line().trim()).ok);
+        assert_eq!(rx.try_recv().ok(), Some(Command::StopStaticScan));
+        // The same check guards every route, not only the socket.
+        let nan = Command::StartStaticScan {
+            position: "p".into(),
+            x_m: f64::NAN,
+            y_m: 0.0,
+            heading_deg: None,
+        };
+        assert!(matches!(
+            control.send("pi", nan),
+            Err(ControlError::Invalid(_))
+        ));
+        assert!(rx.try_recv().is_err());
+    }
+
+    #[tokio::test]
+    async fn the_socket_is_owner_only_whatever_the_umask() {
+        let dir = tempfile::tempdir().unwrap();
+        let (path, server) = start(dir.path(), &EdgeControl::default(), test_limits()).await;
+        use std::os::unix::fs::PermissionsExt;
+        let mode = std::fs::metadata(&path).unwrap().permissions().mode() & 0o777;
+        assert_eq!(mode, SOCKET_MODE);
+        server.abort();
+    }
+
+    #[test]
+    fn only_the_servers_own_uid_and_root_may_connect() {
+        assert_eq!(peer_refusal(Some(1000), 1000), None);
+        assert_eq!(peer_refusal(Some(0), 1000), None);
+        assert_eq!(
+            peer_refusal(Some(1001), 1000).as_deref(),
+            Some("permission denied: uid 1001 is not the server's (uid 1000) or root")
+        );
+        assert!(peer_refusal(None, 1000).is_some());
+    }
+
+    #[tokio::test]
+    async fn a_path_longer_than_sun_path_is_an_error_naming_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let deep = dir.path().join("d".repeat(120));
+        let err = ControlSocket::bind(socket_path(&deep), test_limits())
+            .await
+            .unwrap_err();
+        let text = err.to_string();
+        assert!(
+            matches!(err, SocketError::PathTooLong { max: 107, .. }),
+            "{text}"
+        );
+        assert!(
+            text.contains(&socket_path(&deep).display().to_string()),
+            "{text}"
+        );
+        assert!(text.contains("107 bytes"), "{text}");
+    }
+
+    #[tokio::test]
+    async fn a_live_socket_is_not_stolen_by_a_second_server() {
+        let dir = tempfile::tempdir().unwrap();
+        let (_path, server) = start(dir.path(), &EdgeControl::default(), test_limits()).await;
+        let err = ControlSocket::bind(socket_path(dir.path()), test_limits())
+            .await
+            .unwrap_err();
+        assert!(matches!(err, SocketError::InUse { .. }), "{err}");
+        server.abort();
+    }
+
+    #[tokio::test]
+    async fn accept_errors_are_retried_and_the_socket_keeps_serving() {
+        let dir = tempfile::tempdir().unwrap();
+        let socket = ControlSocket::bind(socket_path(dir.path()), test_limits())
+            .await
+            .unwrap();
+        let path = socket.path().to_path_buf();
+        let control = EdgeControl::default();
+        let mut rx = control.register("pi");
+        let failures = Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let counted = failures.clone();
+        let server = tokio::spawn(async move {
+            let listener = &socket.listener;
+            let accept = move || -> AcceptFuture<'_> {
+                let counted = counted.clone();
+                Box::pin(async move {
+                    // Three EMFILEs, as when the process is out of file descriptors.
+                    if counted.fetch_add(1, std::sync::atomic::Ordering::SeqCst) < 3 {
+                        return Err(std::io::Error::from_raw_os_error(24));
+                    }
+                    listener.accept().await.map(|(stream, _)| stream)
+                })
+            };
+            accept_loop(accept, &socket.path, socket.limits, control).await
+        });
+        let reply = exchange_one(&path, &stop_line()).await;
+        assert!(reply.starts_with("{\"ok\":true"), "{reply}");
+        assert_eq!(rx.recv().await, Some(Command::StopStaticScan));
+        assert!(failures.load(std::sync::atomic::Ordering::SeqCst) >= 4);
+        assert!(!server.is_finished());
+        server.abort();
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_persistent_accept_error_backs_off_instead_of_spinning() {
+        let calls = Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let counted = calls.clone();
+        let accept = move || -> AcceptFuture<'static> {
+            counted.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+            Box::pin(async { Err(std::io::Error::from_raw_os_error(24)) })
+        };
+        let limits = ControlLimits {
+            accept_backoff_min: Duration::from_millis(10),
+            accept_backoff_max: Duration::from_millis(1000),
+            ..test_limits()
+        };
+        let looping = accept_loop(
+            accept,
+            Path::new("test.sock"),
+            limits,
+            EdgeControl::default(),
+        );
+        // Ten seconds of (virtual) time: 10+20+...+640 ms, then one try a second.
+        let _ = tokio::time::timeout(Duration::from_secs(10), looping).await;
+        let calls = calls.load(std::sync::atomic::Ordering::SeqCst);
+        assert!((8..=18).contains(&calls), "{calls} accept calls in 10 s");
+    }
+
+    /// Sends one line and reads one reply line, leaving the connection open.
+    async fn exchange_one(path: &Path, line: &str) -> String {
+        let stream = UnixStream::connect(path).await.unwrap();
+        let (read, mut write) = stream.into_split();
+        write.write_all(line.as_bytes()).await.unwrap();
+        let mut reply = String::new();
+        tokio::time::timeout(
+            Duration::from_secs(5),
+            BufReader::new(read).read_line(&mut reply),
+        )
+        .await
+        .unwrap()
+        .unwrap();
+        reply
+    }
+
+    #[tokio::test]
+    async fn an_overlong_request_line_is_answered_with_an_error_and_closed() {
+        let dir = tempfile::tempdir().unwrap();
+        let control = EdgeControl::default();
+        let mut rx = control.register("pi");
+        let (path, server) = start(dir.path(), &control, test_limits()).await;
+        // 4 KiB without a newline, then a valid request that must not be served.
+        let mut bytes = vec![b'a'; 4096];
+        bytes.extend_from_slice(stop_line().as_bytes());
+        let reply = exchange(&path, &bytes).await;
+        assert_eq!(
+            reply,
+            "{\"ok\":false,\"detail\":\"request line longer than 1024 bytes; closing the connection\"}\n"
+        );
+        assert!(rx.try_recv().is_err());
+        // A line of exactly the limit is read (and refused as JSON, not as too long).
+        let mut exact = vec![b' '; 1024];
+        exact.push(b'\n');
+        let reply = exchange(&path, &exact).await;
+        assert!(reply.contains("malformed request"), "{reply}");
+        server.abort();
+    }
+
+    #[tokio::test]
+    async fn connections_beyond_the_limit_are_refused_until_one_closes() {
+        let dir = tempfile::tempdir().unwrap();
+        let control = EdgeControl::default();
+        let _rx = control.register("pi");
+        let (path, server) = start(dir.path(), &control, test_limits()).await;
+        // Two idle connections take both slots (each answered once, so they are being served).
+        let first = UnixStream::connect(&path).await.unwrap();
+        let second = UnixStream::connect(&path).await.unwrap();
+        for stream in [&first, &second] {
+            stream.writable().await.unwrap();
+        }
+        let mut held = Vec::new();
+        for stream in [first, second] {
+            let (read, mut write) = stream.into_split();
+            write.write_all(stop_line().as_bytes()).await.unwrap();
+            let mut reader = BufReader::new(read);
+            let mut reply = String::new();
+            reader.read_line(&mut reply).await.unwrap();
+            assert!(reply.starts_with("{\"ok\":true"), "{reply}");
+            held.push((reader, write));
+        }
+        let reply = exchange(&path, stop_line().as_bytes()).await;
+        assert_eq!(
+            reply,
+            "{\"ok\":false,\"detail\":\"too many control connections (at most 2 at once)\"}\n"
+        );
+        // Closing one frees its slot.
+        drop(held.pop());
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
+        loop {
+            let reply = exchange(&path, stop_line().as_bytes()).await;
+            if reply.starts_with("{\"ok\":true") {
+                break;
+            }
+            assert!(
+                tokio::time::Instant::now() < deadline,
+                "slot never freed: {reply}"
+            );
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        server.abort();
+    }
+
+    #[tokio::test]
+    async fn an_idle_connection_is_closed_after_the_timeout() {
+        use tokio::io::AsyncReadExt;
+        let dir = tempfile::tempdir().unwrap();
+        let limits = ControlLimits {
+            idle_timeout: Duration::from_millis(50),
+            ..test_limits()
+        };
+        let (path, server) = start(dir.path(), &EdgeControl::default(), limits).await;
+        let mut stream = UnixStream::connect(&path).await.unwrap();
+        // Half a request, then silence.
+        stream.write_all(b"{\"edge\":").await.unwrap();
+        let started = std::time::Instant::now();
+        let mut rest = Vec::new();
+        let read = tokio::time::timeout(Duration::from_secs(5), stream.read_to_end(&mut rest))
+            .await
+            .expect("the idle connection was not closed");
+        assert_eq!(read.unwrap(), 0);
+        assert!(started.elapsed() >= Duration::from_millis(40));
         server.abort();
     }
 }

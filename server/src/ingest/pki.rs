@@ -5,7 +5,9 @@
 //!
 //! ```text
 //! DIR/ca.pem                  CA certificate (created on first use, never overwritten)
-//! DIR/ca.key                  CA private key (PKCS#8 PEM)
+//! DIR/ca.key                  CA private key (PKCS#8 PEM); keep it off the server host
+//! DIR/crl.pem                 revocation list signed by the CA (X.509 CRL, PEM)
+//! DIR/issued.tsv              every certificate issued: serial, kind, name, expiry, revocation
 //! DIR/server/server.pem       server certificate; SANs = the server's host names / IPs
 //! DIR/server/server.key       server private key
 //! DIR/edges/NAME/edge.pem     edge certificate, CN = NAME (also a DNS SAN), EKU clientAuth
@@ -13,29 +15,42 @@
 //! DIR/edges/NAME/ca.pem       copy of DIR/ca.pem, so the bundle is self-contained
 //! ```
 //!
-//! `DIR/edges/NAME` is the bundle to copy to the Pi. The server loads `DIR/ca.pem` and
-//! `DIR/server/*` (see [`super::tls::server_config`]) and trusts any client certificate the CA
-//! signed; the certificate's CN becomes the edge's identity.
+//! `DIR/edges/NAME` is the bundle to copy to the Pi. The server loads `DIR/ca.pem`,
+//! `DIR/crl.pem` and `DIR/server/*` (see [`super::tls::server_config`]) and trusts any client
+//! certificate the CA signed and did not revoke; the certificate's CN becomes the edge's
+//! identity. The server never needs `ca.key`: pair on the operator's machine (or keep `ca.key`
+//! offline and bring it back only to pair, renew or revoke), then copy `ca.pem`, `crl.pem`
+//! and `server/` to the server host.
 //!
-//! Keys are ECDSA P-256. Certificates use rcgen's validity window (1975 to 4096): the Pi has no
-//! real-time clock, so certificates must not depend on the date. There is no revocation; to
-//! retire every credential, move the whole directory away and pair again. Replacing an edge
-//! bundle with `force` issues a new key, but the old certificate stays valid (same CA, same
-//! name). Files are written to a temporary name and then moved into place, so a crash never
-//! leaves a half-written key.
+//! Keys are ECDSA P-256. Validity: certificates start on 1975-01-01 (the Pi has no real-time
+//! clock and may run with a date far in the past until NTP answers) and end
+//! [`Validity::leaf_days`] (default 2 years) after issue for edge and server certificates,
+//! [`Validity::ca_days`] (default 10 years) for the CA. The server, which has a clock, refuses
+//! expired edge certificates; the edge cannot reliably refuse an expired server certificate
+//! before its clock is set.
+//!
+//! Revocation is by serial number: [`revoke`] marks every unrevoked certificate issued to an
+//! edge name in `issued.tsv` and re-signs `crl.pem`. Re-issuing an edge's bundle ([`pair`] with
+//! `force`, or [`renew`]) revokes the certificates it had before, so a copied-away old key
+//! stops working. The server reads the list at start and on SIGHUP. Files are written to a
+//! temporary name and then moved into place, so a crash never leaves a half-written key.
 
 use std::fs::{self, DirBuilder, File, OpenOptions};
 use std::io::{self, Write};
 use std::net::IpAddr;
 use std::os::unix::fs::{DirBuilderExt, OpenOptionsExt};
 use std::path::{Path, PathBuf};
+use std::time::{Duration, SystemTime};
 
 use rcgen::{
-    BasicConstraints, CertificateParams, DistinguishedName, DnType, ExtendedKeyUsagePurpose, IsCa,
-    Issuer, KeyPair, KeyUsagePurpose,
+    BasicConstraints, CertificateParams, CertificateRevocationListParams, DistinguishedName,
+    DnType, ExtendedKeyUsagePurpose, IsCa, Issuer, KeyIdMethod, KeyPair, KeyUsagePurpose,
+    RevocationReason, RevokedCertParams, SerialNumber,
 };
 use rustls::pki_types::pem::PemObject;
-use rustls::pki_types::{CertificateDer, ServerName};
+use rustls::pki_types::{CertificateDer, CertificateRevocationListDer, ServerName};
+use scan3d_service::link::{PemError, check_key_mode};
+use time::OffsetDateTime;
 
 /// Host names / IPs of the server certificate when none are given.
 pub const DEFAULT_SERVER_NAMES: [&str; 2] = ["localhost", "127.0.0.1"];
@@ -64,6 +79,18 @@ impl Layout {
     /// `DIR/ca.key`.
     pub fn ca_key(&self) -> PathBuf {
         self.root.join("ca.key")
+    }
+    /// `DIR`.
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+    /// `DIR/crl.pem`: the revocation list the server reads.
+    pub fn crl(&self) -> PathBuf {
+        self.root.join("crl.pem")
+    }
+    /// `DIR/issued.tsv`: the ledger of issued certificates.
+    pub fn issued(&self) -> PathBuf {
+        self.root.join("issued.tsv")
     }
     /// `DIR/server`.
     pub fn server_dir(&self) -> PathBuf {
@@ -109,6 +136,30 @@ pub struct PairRequest {
     pub force: bool,
 }
 
+/// How long new certificates are valid.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Validity {
+    /// Edge and server certificates, days from issue.
+    pub leaf_days: u32,
+    /// The CA certificate (when this run creates it), days from creation.
+    pub ca_days: u32,
+}
+
+impl Validity {
+    /// Longest accepted validity, days (100 years).
+    pub const MAX_DAYS: u32 = 36_525;
+}
+
+impl Default for Validity {
+    /// Two years for edge and server certificates, ten for the CA.
+    fn default() -> Self {
+        Validity {
+            leaf_days: 730,
+            ca_days: 3650,
+        }
+    }
+}
+
 /// Whether a file set was made by this run or already there.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Provenance {
@@ -141,6 +192,17 @@ pub struct PairOutcome {
     pub edge: Provenance,
     /// `DIR/edges/NAME`: the directory to copy to the Pi.
     pub edge_dir: PathBuf,
+    /// Serial numbers (hex) of the edge's earlier certificates this run revoked.
+    pub revoked: Vec<String>,
+}
+
+/// What [`revoke`] did.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RevokeOutcome {
+    /// Serial numbers (hex) newly revoked.
+    pub revoked: Vec<String>,
+    /// `DIR/crl.pem`.
+    pub crl: PathBuf,
 }
 
 /// Why pairing failed. Every variant that concerns a file names it.
@@ -162,7 +224,7 @@ pub enum PkiError {
     },
     /// The edge already has a bundle and `force` was not given.
     #[error(
-        "edge bundle {} already exists; pass --force to issue a new one (the old certificate stays valid)",
+        "edge bundle {} already exists; pass --force (or use --renew) to issue a new one and revoke the old certificate",
         dir.display()
     )]
     BundleExists {
@@ -204,6 +266,23 @@ pub enum PkiError {
         /// `ca.key`.
         key: PathBuf,
     },
+    /// Nothing was ever issued to this edge name.
+    #[error("no certificate was issued to edge {name:?} in {}", dir.display())]
+    UnknownEdge {
+        /// The edge name.
+        name: String,
+        /// The PKI directory.
+        dir: PathBuf,
+    },
+    /// A validity of 0 days or more than [`Validity::MAX_DAYS`].
+    #[error("validity of {days} days: must be 1 to {} days", Validity::MAX_DAYS)]
+    BadValidity {
+        /// The requested number of days.
+        days: u32,
+    },
+    /// A private key file is unusable (e.g. readable by other users).
+    #[error("{0}")]
+    Key(PemError),
     /// rcgen could not generate a key or certificate.
     #[error("generating the {what}: {source}")]
     Generate {
@@ -241,10 +320,25 @@ pub fn validate_edge_name(name: &str) -> Result<(), PkiError> {
 }
 
 /// Creates or reuses the CA, (re)creates the server certificate when asked to, and issues the
-/// edge bundle. Nothing is written when the request is invalid or the bundle exists without
-/// `force`.
+/// edge bundle, with the default [`Validity`]. Nothing is written when the request is invalid
+/// or the bundle exists without `force`. With `force`, the edge's earlier certificates are
+/// revoked.
 pub fn pair(req: &PairRequest) -> Result<PairOutcome, PkiError> {
+    pair_with(req, Validity::default(), SystemTime::now())
+}
+
+/// [`pair`] with a chosen validity, as of `now` (tests issue certificates in the past).
+pub fn pair_with(
+    req: &PairRequest,
+    validity: Validity,
+    now: SystemTime,
+) -> Result<PairOutcome, PkiError> {
     validate_edge_name(&req.edge)?;
+    for days in [validity.leaf_days, validity.ca_days] {
+        if days == 0 || days > Validity::MAX_DAYS {
+            return Err(PkiError::BadValidity { days });
+        }
+    }
     let server_names = checked_server_names(&req.server_names)?;
     let layout = Layout::new(&req.dir);
     let edge_dir = layout.edge_dir(&req.edge);
@@ -259,7 +353,8 @@ pub fn pair(req: &PairRequest) -> Result<PairOutcome, PkiError> {
     }
 
     make_dir(&req.dir)?;
-    let (ca, ca_status) = ensure_ca(&layout)?;
+    let (ca, ca_status) = ensure_ca(&layout, validity, now)?;
+    let mut ledger = Ledger::load(&layout)?;
 
     let existing_server = layout.server_cert().exists() && layout.server_key().exists();
     let (server_status, server_names) =
@@ -271,7 +366,8 @@ pub fn pair(req: &PairRequest) -> Result<PairOutcome, PkiError> {
             } else {
                 server_names
             };
-            write_server_cert(&layout, &ca, &names)?;
+            let issued = write_server_cert(&layout, &ca, &names, validity, now)?;
+            ledger.entries.push(issued);
             let status = if existing_server {
                 Provenance::Replaced
             } else {
@@ -280,7 +376,14 @@ pub fn pair(req: &PairRequest) -> Result<PairOutcome, PkiError> {
             (status, names)
         };
 
-    write_edge_bundle(&layout, &ca, &req.edge)?;
+    // The certificate being replaced, if the ledger does not know it (a PKI from before the
+    // ledger existed), is revoked too.
+    ledger.adopt_bundle(&layout, &req.edge)?;
+    let issued = write_edge_bundle(&layout, &ca, &req.edge, validity, now)?;
+    let revoked = ledger.revoke_edge(&req.edge, now);
+    ledger.entries.push(issued);
+    ledger.save(&layout)?;
+    write_crl(&layout, &ca, &ledger, now)?;
     Ok(PairOutcome {
         ca: ca_status,
         ca_cert: layout.ca_cert(),
@@ -295,7 +398,306 @@ pub fn pair(req: &PairRequest) -> Result<PairOutcome, PkiError> {
             Provenance::Created
         },
         edge_dir,
+        revoked,
     })
+}
+
+/// Issues a fresh bundle (new key, new serial, validity from `now`) for an edge that was paired
+/// before, and revokes its earlier certificates. The server keeps accepting the old certificate
+/// until it reloads the list (SIGHUP), which leaves time to install the new bundle. Non-empty
+/// `server_names` also renew the server certificate, for exactly those names.
+pub fn renew(
+    dir: &Path,
+    edge: &str,
+    server_names: &[String],
+    validity: Validity,
+    now: SystemTime,
+) -> Result<PairOutcome, PkiError> {
+    validate_edge_name(edge)?;
+    let layout = Layout::new(dir);
+    let known = layout.edge_cert(edge).exists()
+        || Ledger::load(&layout)?
+            .entries
+            .iter()
+            .any(|e| e.kind == IssuedKind::Edge && e.name == edge);
+    if !known {
+        return Err(PkiError::UnknownEdge {
+            name: edge.to_owned(),
+            dir: dir.to_path_buf(),
+        });
+    }
+    let req = PairRequest {
+        dir: dir.to_path_buf(),
+        edge: edge.to_owned(),
+        server_names: server_names.to_vec(),
+        force: true,
+    };
+    pair_with(&req, validity, now)
+}
+
+/// Revokes every certificate issued to edge `name` that is not revoked yet and re-signs
+/// `DIR/crl.pem`; the server refuses them from its next reload (SIGHUP) or start. The bundle
+/// files stay where they are (they are useless now).
+pub fn revoke(dir: &Path, name: &str, now: SystemTime) -> Result<RevokeOutcome, PkiError> {
+    validate_edge_name(name)?;
+    let layout = Layout::new(dir);
+    let ca = load_ca(&layout.ca_cert(), &layout.ca_key())?;
+    let mut ledger = Ledger::load(&layout)?;
+    ledger.adopt_bundle(&layout, name)?;
+    if !ledger
+        .entries
+        .iter()
+        .any(|e| e.kind == IssuedKind::Edge && e.name == name)
+    {
+        return Err(PkiError::UnknownEdge {
+            name: name.to_owned(),
+            dir: dir.to_path_buf(),
+        });
+    }
+    let revoked = ledger.revoke_edge(name, now);
+    ledger.save(&layout)?;
+    write_crl(&layout, &ca, &ledger, now)?;
+    Ok(RevokeOutcome {
+        revoked,
+        crl: layout.crl(),
+    })
+}
+
+/// Checks that `crl` (DER) is a CRL issued by the CA certificate at `ca_path` and returns how
+/// many certificates it revokes. (webpki checks its signature at each handshake.)
+pub fn check_crl(crl: &CertificateRevocationListDer<'_>, ca_path: &Path) -> Result<usize, String> {
+    let (_, list) = x509_parser::parse_x509_crl(crl).map_err(|e| format!("not a CRL: {e}"))?;
+    let ca_der = CertificateDer::from_pem_file(ca_path)
+        .map_err(|e| format!("{}: {e}", ca_path.display()))?;
+    let (_, ca) = x509_parser::parse_x509_certificate(&ca_der)
+        .map_err(|e| format!("{}: {e}", ca_path.display()))?;
+    if list.issuer().as_raw() != ca.subject().as_raw() {
+        return Err(format!(
+            "issued by {}, not by the CA {} ({})",
+            list.issuer(),
+            ca.subject(),
+            ca_path.display()
+        ));
+    }
+    Ok(list.iter_revoked_certificates().count())
+}
+
+/// What a ledger line is about.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum IssuedKind {
+    Edge,
+    Server,
+}
+
+/// One issued certificate in `issued.tsv`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+struct Issued {
+    /// Serial number, lower-case hex.
+    serial: String,
+    kind: IssuedKind,
+    /// The edge name, or `server`.
+    name: String,
+    /// Expiry, Unix seconds.
+    not_after: i64,
+    /// Revocation time, Unix seconds.
+    revoked: Option<i64>,
+}
+
+/// `DIR/issued.tsv`: one line per certificate issued, tab-separated:
+/// `serial  kind  name  not_after_unix  revoked_unix|-`.
+#[derive(Debug, Default)]
+struct Ledger {
+    entries: Vec<Issued>,
+}
+
+impl Ledger {
+    const HEADER: &'static str = "# serial\tkind\tname\tnot_after_unix\trevoked_unix\n";
+
+    fn load(layout: &Layout) -> Result<Self, PkiError> {
+        let path = layout.issued();
+        let text = match fs::read_to_string(&path) {
+            Ok(text) => text,
+            Err(e) if e.kind() == io::ErrorKind::NotFound => return Ok(Ledger::default()),
+            Err(source) => return Err(PkiError::Io { path, source }),
+        };
+        let mut entries = Vec::new();
+        for (number, line) in text.lines().enumerate() {
+            if line.starts_with('#') || line.trim().is_empty() {
+                continue;
+            }
+            let bad = || PkiError::BadFile {
+                path: path.clone(),
+                reason: format!(
+                    "line {}: expected serial, kind, name, expiry, revocation",
+                    number + 1
+                ),
+            };
+            let fields: Vec<&str> = line.split('\t').collect();
+            let [serial, kind, name, not_after, revoked] = fields[..] else {
+                return Err(bad());
+            };
+            entries.push(Issued {
+                serial: serial.to_owned(),
+                kind: match kind {
+                    "edge" => IssuedKind::Edge,
+                    "server" => IssuedKind::Server,
+                    _ => return Err(bad()),
+                },
+                name: name.to_owned(),
+                not_after: not_after.parse().map_err(|_| bad())?,
+                revoked: match revoked {
+                    "-" => None,
+                    t => Some(t.parse().map_err(|_| bad())?),
+                },
+            });
+        }
+        Ok(Ledger { entries })
+    }
+
+    fn save(&self, layout: &Layout) -> Result<(), PkiError> {
+        let mut text = String::from(Self::HEADER);
+        for e in &self.entries {
+            let kind = match e.kind {
+                IssuedKind::Edge => "edge",
+                IssuedKind::Server => "server",
+            };
+            let revoked = e.revoked.map_or_else(|| "-".to_owned(), |t| t.to_string());
+            text.push_str(&format!(
+                "{}\t{kind}\t{}\t{}\t{revoked}\n",
+                e.serial, e.name, e.not_after
+            ));
+        }
+        write_file(&layout.issued(), text.as_bytes(), CERT_MODE, true)
+    }
+
+    /// Records the certificate in `name`'s bundle if the ledger does not know its serial.
+    fn adopt_bundle(&mut self, layout: &Layout, name: &str) -> Result<(), PkiError> {
+        let path = layout.edge_cert(name);
+        if !path.exists() {
+            return Ok(());
+        }
+        let issued = issued_from_file(&path, IssuedKind::Edge, name)?;
+        if !self.entries.iter().any(|e| e.serial == issued.serial) {
+            self.entries.push(issued);
+        }
+        Ok(())
+    }
+
+    /// Marks every unrevoked certificate of edge `name` revoked at `now`; returns their serials.
+    fn revoke_edge(&mut self, name: &str, now: SystemTime) -> Vec<String> {
+        let at = unix_seconds(now);
+        self.entries
+            .iter_mut()
+            .filter(|e| e.kind == IssuedKind::Edge && e.name == name && e.revoked.is_none())
+            .map(|e| {
+                e.revoked = Some(at);
+                e.serial.clone()
+            })
+            .collect()
+    }
+}
+
+fn unix_seconds(t: SystemTime) -> i64 {
+    match t.duration_since(SystemTime::UNIX_EPOCH) {
+        Ok(d) => i64::try_from(d.as_secs()).unwrap_or(i64::MAX),
+        Err(e) => i64::try_from(e.duration().as_secs()).map_or(i64::MIN, |s| -s),
+    }
+}
+
+fn datetime(t: SystemTime) -> OffsetDateTime {
+    OffsetDateTime::from(t)
+}
+
+/// `now + days`, as the certificate's notAfter.
+fn expiry(now: SystemTime, days: u32) -> OffsetDateTime {
+    datetime(now + Duration::from_secs(u64::from(days) * 86_400))
+}
+
+/// Certificates start in 1975 (see the module docs: the Pi's clock may be far behind).
+fn not_before() -> OffsetDateTime {
+    rcgen::date_time_ymd(1975, 1, 1)
+}
+
+/// The ledger line of a signed certificate.
+fn issued_from_der(
+    der: &[u8],
+    kind: IssuedKind,
+    name: &str,
+    path: &Path,
+) -> Result<Issued, PkiError> {
+    let (_, x509) = x509_parser::parse_x509_certificate(der).map_err(|e| PkiError::BadFile {
+        path: path.to_path_buf(),
+        reason: format!("unparsable certificate: {e}"),
+    })?;
+    Ok(Issued {
+        serial: hex(x509.raw_serial()),
+        kind,
+        name: name.to_owned(),
+        not_after: x509.validity().not_after.timestamp(),
+        revoked: None,
+    })
+}
+
+fn issued_from_file(path: &Path, kind: IssuedKind, name: &str) -> Result<Issued, PkiError> {
+    let pem = read_to_string(path)?;
+    let der = CertificateDer::from_pem_slice(pem.as_bytes()).map_err(|e| PkiError::BadFile {
+        path: path.to_path_buf(),
+        reason: format!("no PEM certificate: {e}"),
+    })?;
+    issued_from_der(&der, kind, name, path)
+}
+
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+fn unhex(text: &str) -> Option<Vec<u8>> {
+    if !text.len().is_multiple_of(2) {
+        return None;
+    }
+    (0..text.len())
+        .step_by(2)
+        .map(|i| u8::from_str_radix(text.get(i..i + 2)?, 16).ok())
+        .collect()
+}
+
+/// Signs `DIR/crl.pem` listing every revoked serial of the ledger. Its number is the issue time
+/// in nanoseconds (increasing from one list to the next); its next update is set ten years out
+/// and not enforced by the server (the list is replaced whenever something is revoked).
+fn write_crl(layout: &Layout, ca: &Ca, ledger: &Ledger, now: SystemTime) -> Result<(), PkiError> {
+    let gen_err = |source| PkiError::Generate {
+        what: "revocation list",
+        source,
+    };
+    let mut revoked_certs = Vec::new();
+    for e in ledger.entries.iter() {
+        let Some(at) = e.revoked else { continue };
+        let serial = unhex(&e.serial).ok_or_else(|| PkiError::BadFile {
+            path: layout.issued(),
+            reason: format!("serial {:?} is not hex", e.serial),
+        })?;
+        revoked_certs.push(RevokedCertParams {
+            serial_number: SerialNumber::from_slice(&serial),
+            revocation_time: OffsetDateTime::from_unix_timestamp(at)
+                .unwrap_or(OffsetDateTime::UNIX_EPOCH),
+            reason_code: Some(RevocationReason::Superseded),
+            invalidity_date: None,
+        });
+    }
+    let nanos = now
+        .duration_since(SystemTime::UNIX_EPOCH)
+        .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX));
+    let params = CertificateRevocationListParams {
+        this_update: datetime(now),
+        next_update: expiry(now, 3650),
+        crl_number: SerialNumber::from(nanos),
+        issuing_distribution_point: None,
+        revoked_certs,
+        key_identifier_method: KeyIdMethod::Sha256,
+    };
+    let crl = params.signed_by(&ca.issuer).map_err(gen_err)?;
+    let pem = crl.pem().map_err(gen_err)?;
+    write_file(&layout.crl(), pem.as_bytes(), CERT_MODE, true)
 }
 
 /// The loaded CA: its certificate (PEM, copied into bundles) and the issuer that signs leaves.
@@ -317,11 +719,18 @@ fn checked_server_names(names: &[String]) -> Result<Vec<String>, PkiError> {
     Ok(out)
 }
 
-fn ensure_ca(layout: &Layout) -> Result<(Ca, Provenance), PkiError> {
+fn ensure_ca(
+    layout: &Layout,
+    validity: Validity,
+    now: SystemTime,
+) -> Result<(Ca, Provenance), PkiError> {
     let (cert_path, key_path) = (layout.ca_cert(), layout.ca_key());
     match (cert_path.exists(), key_path.exists()) {
         (true, true) => Ok((load_ca(&cert_path, &key_path)?, Provenance::Reused)),
-        (false, false) => Ok((create_ca(&cert_path, &key_path)?, Provenance::Created)),
+        (false, false) => Ok((
+            create_ca(&cert_path, &key_path, validity, now)?,
+            Provenance::Created,
+        )),
         (true, false) => Err(PkiError::IncompleteCa {
             present: cert_path,
             missing: key_path,
@@ -333,10 +742,17 @@ fn ensure_ca(layout: &Layout) -> Result<(Ca, Provenance), PkiError> {
     }
 }
 
-fn create_ca(cert_path: &Path, key_path: &Path) -> Result<Ca, PkiError> {
+fn create_ca(
+    cert_path: &Path,
+    key_path: &Path,
+    validity: Validity,
+    now: SystemTime,
+) -> Result<Ca, PkiError> {
     let gen_err = |source| PkiError::Generate { what: "CA", source };
     let key = KeyPair::generate().map_err(gen_err)?;
     let mut params = CertificateParams::default();
+    params.not_before = not_before();
+    params.not_after = expiry(now, validity.ca_days);
     // A CN unique to this CA (derived from its key), so a certificate from another scan3d CA
     // is reported as "unknown issuer" rather than as a bad signature.
     let key_id = params.key_identifier(&key);
@@ -358,6 +774,7 @@ fn create_ca(cert_path: &Path, key_path: &Path) -> Result<Ca, PkiError> {
 }
 
 fn load_ca(cert_path: &Path, key_path: &Path) -> Result<Ca, PkiError> {
+    check_key_mode(key_path).map_err(PkiError::Key)?;
     let cert_pem = read_to_string(cert_path)?;
     let key_pem = read_to_string(key_path)?;
     let key = KeyPair::from_pem(&key_pem).map_err(|e| PkiError::BadFile {
@@ -392,7 +809,13 @@ fn load_ca(cert_path: &Path, key_path: &Path) -> Result<Ca, PkiError> {
     Ok(Ca { cert_pem, issuer })
 }
 
-fn write_server_cert(layout: &Layout, ca: &Ca, names: &[String]) -> Result<(), PkiError> {
+fn write_server_cert(
+    layout: &Layout,
+    ca: &Ca,
+    names: &[String],
+    validity: Validity,
+    now: SystemTime,
+) -> Result<Issued, PkiError> {
     let gen_err = |source| PkiError::Generate {
         what: "server certificate",
         source,
@@ -403,6 +826,8 @@ fn write_server_cert(layout: &Layout, ca: &Ca, names: &[String]) -> Result<(), P
     dn.push(DnType::OrganizationName, "scan3d");
     dn.push(DnType::CommonName, "scan3d server");
     params.distinguished_name = dn;
+    params.not_before = not_before();
+    params.not_after = expiry(now, validity.leaf_days);
     params.extended_key_usages = vec![ExtendedKeyUsagePurpose::ServerAuth];
     params.key_usages = vec![KeyUsagePurpose::DigitalSignature];
     params.use_authority_key_identifier_extension = true;
@@ -419,10 +844,22 @@ fn write_server_cert(layout: &Layout, ca: &Ca, names: &[String]) -> Result<(), P
         cert.pem().as_bytes(),
         CERT_MODE,
         true,
+    )?;
+    issued_from_der(
+        cert.der(),
+        IssuedKind::Server,
+        "server",
+        &layout.server_cert(),
     )
 }
 
-fn write_edge_bundle(layout: &Layout, ca: &Ca, name: &str) -> Result<(), PkiError> {
+fn write_edge_bundle(
+    layout: &Layout,
+    ca: &Ca,
+    name: &str,
+    validity: Validity,
+    now: SystemTime,
+) -> Result<Issued, PkiError> {
     let gen_err = |source| PkiError::Generate {
         what: "edge certificate",
         source,
@@ -433,6 +870,8 @@ fn write_edge_bundle(layout: &Layout, ca: &Ca, name: &str) -> Result<(), PkiErro
     dn.push(DnType::OrganizationName, "scan3d");
     dn.push(DnType::CommonName, name);
     params.distinguished_name = dn;
+    params.not_before = not_before();
+    params.not_after = expiry(now, validity.leaf_days);
     params.extended_key_usages = vec![ExtendedKeyUsagePurpose::ClientAuth];
     params.key_usages = vec![KeyUsagePurpose::DigitalSignature];
     params.use_authority_key_identifier_extension = true;
@@ -455,7 +894,8 @@ fn write_edge_bundle(layout: &Layout, ca: &Ca, name: &str) -> Result<(), PkiErro
         ca.cert_pem.as_bytes(),
         CERT_MODE,
         true,
-    )
+    )?;
+    issued_from_der(cert.der(), IssuedKind::Edge, name, &layout.edge_cert(name))
 }
 
 /// The DNS and IP SANs of a certificate file, as text.
@@ -801,5 +1241,148 @@ mod tests {
             "{err}"
         );
         assert!(err.to_string().contains("ca.key"));
+    }
+
+    fn crl_serials(layout: &Layout) -> Vec<String> {
+        let der = CertificateRevocationListDer::from_pem_file(layout.crl()).unwrap();
+        let (_, crl) = x509_parser::parse_x509_crl(&der).unwrap();
+        crl.iter_revoked_certificates()
+            .map(|r| hex(r.raw_serial()))
+            .collect()
+    }
+
+    fn serial_of(path: &Path) -> String {
+        let der = cert_der(path);
+        let (_, x509) = x509_parser::parse_x509_certificate(&der).unwrap();
+        hex(x509.raw_serial())
+    }
+
+    #[test]
+    fn certificates_expire_after_the_chosen_validity() {
+        let tmp = tempfile::tempdir().unwrap();
+        let now = SystemTime::UNIX_EPOCH + Duration::from_secs(1_800_000_000);
+        let validity = Validity {
+            leaf_days: 30,
+            ca_days: 400,
+        };
+        pair_with(&request(tmp.path(), "pi-01"), validity, now).unwrap();
+        let layout = Layout::new(tmp.path());
+        let not_after = |path: &Path| {
+            let der = cert_der(path);
+            let (_, x509) = x509_parser::parse_x509_certificate(&der).unwrap();
+            (
+                x509.validity().not_before.timestamp(),
+                x509.validity().not_after.timestamp(),
+            )
+        };
+        let start_1975 = 157_766_400;
+        assert_eq!(
+            not_after(&layout.edge_cert("pi-01")),
+            (start_1975, 1_800_000_000 + 30 * 86_400)
+        );
+        assert_eq!(
+            not_after(&layout.server_cert()),
+            (start_1975, 1_800_000_000 + 30 * 86_400)
+        );
+        assert_eq!(
+            not_after(&layout.ca_cert()),
+            (start_1975, 1_800_000_000 + 400 * 86_400)
+        );
+        for days in [0, Validity::MAX_DAYS + 1] {
+            let bad = Validity {
+                leaf_days: days,
+                ..validity
+            };
+            let err = pair_with(&request(tmp.path(), "pi-02"), bad, now).unwrap_err();
+            assert!(matches!(err, PkiError::BadValidity { .. }), "{err}");
+        }
+    }
+
+    #[test]
+    fn revocation_lists_every_serial_issued_to_the_edge_and_only_those() {
+        let tmp = tempfile::tempdir().unwrap();
+        let layout = Layout::new(tmp.path());
+        pair(&request(tmp.path(), "pi-01")).unwrap();
+        pair(&request(tmp.path(), "pi-02")).unwrap();
+        assert!(
+            crl_serials(&layout).is_empty(),
+            "a fresh CA's list is empty"
+        );
+        let first = serial_of(&layout.edge_cert("pi-01"));
+        let mut forced = request(tmp.path(), "pi-01");
+        forced.force = true;
+        let out = pair(&forced).unwrap();
+        assert_eq!(out.revoked, std::slice::from_ref(&first));
+        let second = serial_of(&layout.edge_cert("pi-01"));
+        assert_ne!(first, second);
+        assert_eq!(crl_serials(&layout), std::slice::from_ref(&first));
+
+        let out = revoke(tmp.path(), "pi-01", SystemTime::now()).unwrap();
+        assert_eq!(out.revoked, std::slice::from_ref(&second));
+        assert_eq!(crl_serials(&layout), [first, second]);
+        // Nothing left to revoke; pi-02 never listed.
+        assert!(
+            revoke(tmp.path(), "pi-01", SystemTime::now())
+                .unwrap()
+                .revoked
+                .is_empty()
+        );
+        assert!(!crl_serials(&layout).contains(&serial_of(&layout.edge_cert("pi-02"))));
+        let ledger = fs::read_to_string(layout.issued()).unwrap();
+        assert_eq!(
+            ledger
+                .lines()
+                .filter(|l| l.contains("\tedge\tpi-01\t"))
+                .count(),
+            2
+        );
+        assert!(matches!(
+            revoke(tmp.path(), "pi-09", SystemTime::now()),
+            Err(PkiError::UnknownEdge { .. })
+        ));
+        assert!(matches!(
+            renew(
+                tmp.path(),
+                "pi-09",
+                &[],
+                Validity::default(),
+                SystemTime::now()
+            ),
+            Err(PkiError::UnknownEdge { .. })
+        ));
+    }
+
+    #[test]
+    fn a_bundle_from_before_the_ledger_is_still_revoked() {
+        let tmp = tempfile::tempdir().unwrap();
+        let layout = Layout::new(tmp.path());
+        pair(&request(tmp.path(), "pi-01")).unwrap();
+        let serial = serial_of(&layout.edge_cert("pi-01"));
+        fs::remove_file(layout.issued()).unwrap();
+        fs::remove_file(layout.crl()).unwrap();
+        assert_eq!(
+            revoke(tmp.path(), "pi-01", SystemTime::now())
+                .unwrap()
+                .revoked,
+            std::slice::from_ref(&serial)
+        );
+        assert_eq!(crl_serials(&layout), [serial]);
+    }
+
+    #[test]
+    fn a_ca_key_readable_by_others_is_refused() {
+        let tmp = tempfile::tempdir().unwrap();
+        let layout = Layout::new(tmp.path());
+        pair(&request(tmp.path(), "pi-01")).unwrap();
+        fs::set_permissions(layout.ca_key(), fs::Permissions::from_mode(0o644)).unwrap();
+        let err = pair(&request(tmp.path(), "pi-02")).unwrap_err();
+        assert!(
+            matches!(err, PkiError::Key(PemError::KeyTooOpen { mode: 0o644, .. })),
+            "{err}"
+        );
+        assert!(err.to_string().contains("ca.key"), "{err}");
+        assert!(!layout.edge_dir("pi-02").exists());
+        let err = revoke(tmp.path(), "pi-01", SystemTime::now()).unwrap_err();
+        assert!(matches!(err, PkiError::Key(_)), "{err}");
     }
 }
