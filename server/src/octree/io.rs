@@ -116,9 +116,14 @@ pub(crate) fn parse_header<'a>(
         None => return Err(OctreeError::BadHeader("no id".into())),
     }
     let res = Resolution::new(res.ok_or_else(|| OctreeError::BadHeader("no res".into()))?)?;
+    let size = size.unwrap_or(0);
+    // Node indices (subtree ends) are u32 in `Octree`.
+    if size > u64::from(u32::MAX) {
+        return Err(OctreeError::TooManyNodes(size));
+    }
     Ok((
         Header {
-            size: size.unwrap_or(0),
+            size,
             res,
         },
         &bytes[p.min(bytes.len())..],

@@ -78,6 +78,9 @@ pub enum OctreeError {
         /// Nodes actually read (so far, if larger).
         read: u64,
     },
+    /// The header's node count exceeds what the flat tree arrays index (u32).
+    #[error("header says {0} nodes, more than a tree can hold (2^32 - 1)")]
+    TooManyNodes(u64),
     /// A node below depth 16 claims children.
     #[error("tree deeper than 16 levels")]
     TooDeep,
