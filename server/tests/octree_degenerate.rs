@@ -204,3 +204,15 @@ fn any_mix_of_tiny_huge_subnormal_infinite_and_nan_coordinates_finishes_identica
     // The generator does reach the case under test.
     assert!(degenerate > 20, "only {degenerate} degenerate rays generated");
 }
+
+#[test]
+fn the_default_kernel_follows_scan3d_octree_kernel() {
+    // CI runs the golden tests once with SCAN3D_OCTREE_KERNEL=scalar and once without.
+    let want = match std::env::var(scan3d_server::octree::KERNEL_ENV).as_deref() {
+        Ok("scalar") => Kernel::Scalar,
+        _ => Kernel::Avx2,
+    };
+    assert_eq!(Kernel::from_env(), want);
+    let map = VoxelMap::new(Resolution::new(0.1).unwrap(), SensorModel::default());
+    assert_eq!(map.kernel(), want);
+}
