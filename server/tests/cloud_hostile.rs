@@ -184,7 +184,10 @@ fn as_flat_points(r: Result<FlatCloud, impl std::fmt::Debug>) -> Option<usize> {
 fn hostile_pcd_and_ply_header_numbers_give_errors_or_clouds_within_the_bytes_present() {
     for enc in [Encoding::Ascii, Encoding::Binary] {
         let base = pcd(enc);
-        for (what, m) in header_mutants(&base, b"DATA ").into_iter().chain(truncations(&base)) {
+        for (what, m) in header_mutants(&base, b"DATA ")
+            .into_iter()
+            .chain(truncations(&base))
+        {
             let n = as_flat_points(bounded(&format!("pcd {enc:?} {what}"), &m, parse_pcd));
             // A cloud read from lying numbers still holds no more points than bytes.
             assert!(n.is_none_or(|n| n <= m.len()), "pcd {enc:?} {what}");
@@ -271,7 +274,8 @@ fn hostile_graph_counts_give_errors_within_the_bytes_present() {
     // One node with two points, then no edges (the format of graph.rs's tests).
     let vec3 = |out: &mut Vec<u8>, v: [f64; 3]| {
         out.extend_from_slice(&3i32.to_le_bytes());
-        v.iter().for_each(|x| out.extend_from_slice(&x.to_le_bytes()));
+        v.iter()
+            .for_each(|x| out.extend_from_slice(&x.to_le_bytes()));
     };
     let mut g = 1u32.to_le_bytes().to_vec();
     g.extend_from_slice(&2u32.to_le_bytes());
@@ -315,8 +319,15 @@ fn a_pcd_size_times_count_that_wraps_is_an_error_naming_the_field() {
         ("2305843009213693951", "y", 4, 1),
     ] {
         for data in ["binary", "ascii"] {
-            let mut f = pcd_header("x pad y z", "4 8 4 4", "F F F F", &format!("1 {count} 1 1"), "1", data)
-                .into_bytes();
+            let mut f = pcd_header(
+                "x pad y z",
+                "4 8 4 4",
+                "F F F F",
+                &format!("1 {count} 1 1"),
+                "1",
+                data,
+            )
+            .into_bytes();
             f.extend_from_slice(&[0u8; 64]);
             let e = bounded("wrapping pcd", &f, parse_pcd).unwrap_err();
             assert_eq!(
@@ -335,8 +346,15 @@ fn a_pcd_size_times_count_that_wraps_is_an_error_naming_the_field() {
 
 #[test]
 fn an_ascii_pcd_with_a_count_of_a_trillion_is_refused_without_allocating_for_it() {
-    let mut f = pcd_header("x y z h", "4 4 4 4", "F F F F", "1 1 1 1000000000000", "1", "ascii")
-        .into_bytes();
+    let mut f = pcd_header(
+        "x y z h",
+        "4 4 4 4",
+        "F F F F",
+        "1 1 1 1000000000000",
+        "1",
+        "ascii",
+    )
+    .into_bytes();
     f.extend_from_slice(b"1 2 3 4\n");
     let e = bounded("trillion", &f, parse_pcd).unwrap_err();
     assert!(
@@ -347,8 +365,10 @@ fn an_ascii_pcd_with_a_count_of_a_trillion_is_refused_without_allocating_for_it(
 
 #[test]
 fn pcd_header_limits_zero_sizes_and_truncated_bodies_are_typed_errors() {
-    let e = parse_pcd(b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 4294967296\nHEIGHT 4294967296\nDATA ascii\n")
-        .unwrap_err();
+    let e = parse_pcd(
+        b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 4294967296\nHEIGHT 4294967296\nDATA ascii\n",
+    )
+    .unwrap_err();
     assert_eq!(
         e,
         PcdError::PointCountOverflow {
@@ -389,8 +409,14 @@ fn pcd_header_limits_zero_sizes_and_truncated_bodies_are_typed_errors() {
             ..
         })
     ));
-    let ascii = pcd_header("x y z", "4 4 4", "F F F", "1 1 1", "18446744073709551615", "ascii")
-        + "1 2 3\n";
+    let ascii = pcd_header(
+        "x y z",
+        "4 4 4",
+        "F F F",
+        "1 1 1",
+        "18446744073709551615",
+        "ascii",
+    ) + "1 2 3\n";
     assert_eq!(
         bounded("ascii u64::MAX points", ascii.as_bytes(), parse_pcd).unwrap_err(),
         PcdError::MissingPoints {

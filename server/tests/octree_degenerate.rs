@@ -58,7 +58,11 @@ fn a_near_zero_ray_is_skipped_and_counted_and_its_endpoint_still_hit_with_either
             let ko = r.coord_to_key([0.0; 3]).unwrap();
             assert_ne!(ke, ko, "the end lies in another voxel");
             assert_eq!(map.log_odds(ke), Some(map.model().hit));
-            assert_eq!(map.log_odds(ko), None, "no ray cast, origin voxel untouched");
+            assert_eq!(
+                map.log_odds(ko),
+                None,
+                "no ray cast, origin voxel untouched"
+            );
             assert_eq!(map.num_voxels(), 1);
             assert_eq!(map.totals().degenerate_rays, 1);
         }
@@ -80,7 +84,11 @@ fn degenerate_rays_among_ordinary_ones_leave_the_ordinary_rays_as_they_were() {
             ]
         })
         .collect();
-    let tiny = [[-1e-30f32, -1e-30, 0.0], [-1e-25, 0.0, -1e-24], [-1e-40, 0.0, 0.0]];
+    let tiny = [
+        [-1e-30f32, -1e-30, 0.0],
+        [-1e-25, 0.0, -1e-24],
+        [-1e-40, 0.0, 0.0],
+    ];
     let mut mixed = ordinary.clone();
     for (n, at) in [0usize, 5, 6, 7, 13, 22].into_iter().enumerate() {
         mixed.insert(at, tiny[n % tiny.len()]);
@@ -202,7 +210,10 @@ fn any_mix_of_tiny_huge_subnormal_infinite_and_nan_coordinates_finishes_identica
         }
     }
     // The generator does reach the case under test.
-    assert!(degenerate > 20, "only {degenerate} degenerate rays generated");
+    assert!(
+        degenerate > 20,
+        "only {degenerate} degenerate rays generated"
+    );
 }
 
 #[test]

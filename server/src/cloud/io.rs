@@ -99,10 +99,7 @@ impl FlatCloud {
     ///   (PCL's default, written by every PCL tool whatever the sensor was) yields to
     ///   `default_origin` when one is given.
     /// - No origin: one scan from `default_origin`, or [`OriginError::Missing`].
-    pub fn into_scans(
-        self,
-        default_origin: Option<[f64; 3]>,
-    ) -> Result<LoadedScans, OriginError> {
+    pub fn into_scans(self, default_origin: Option<[f64; 3]>) -> Result<LoadedScans, OriginError> {
         let total = self.points.len() as u64;
         let scans = self.into_finite_scans(default_origin)?;
         let kept: u64 = scans.iter().map(|s| s.points.len() as u64).sum();

@@ -355,13 +355,12 @@ fn parse_header(bytes: &[u8]) -> Result<Header, PcdError> {
             });
         }
         (Some(p), _) => p,
-        (None, Some(w)) => {
-            w.checked_mul(height_or_1)
-                .ok_or(PcdError::PointCountOverflow {
-                    width: w,
-                    height: height_or_1,
-                })?
-        }
+        (None, Some(w)) => w
+            .checked_mul(height_or_1)
+            .ok_or(PcdError::PointCountOverflow {
+                width: w,
+                height: height_or_1,
+            })?,
         (None, None) => return Err(PcdError::MissingKey("POINTS")),
     };
     Ok(Header {

@@ -121,13 +121,7 @@ pub(crate) fn parse_header<'a>(
     if size > u64::from(u32::MAX) {
         return Err(OctreeError::TooManyNodes(size));
     }
-    Ok((
-        Header {
-            size,
-            res,
-        },
-        &bytes[p.min(bytes.len())..],
-    ))
+    Ok((Header { size, res }, &bytes[p.min(bytes.len())..]))
 }
 
 /// Child mask (bit i: child i exists) of a `.bt` record's eight 2-bit codes.

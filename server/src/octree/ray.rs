@@ -892,9 +892,7 @@ mod tests {
                 };
                 for (kernel, (half, shift)) in [Kernel::Scalar, Kernel::Avx2]
                     .into_iter()
-                    .flat_map(|k| {
-                        [(50u32, 0i64), (3, 0), (2, 5), (1, 40_000)].map(|w| (k, w))
-                    })
+                    .flat_map(|k| [(50u32, 0i64), (3, 0), (2, 5), (1, 40_000)].map(|w| (k, w)))
                 {
                     let b = ko.0.map(|a| i64::from(a >> 2) + shift - i64::from(half));
                     let lo = b.map(|c| c.clamp(0, 1 << 14) as u64 + (BIAS >> 2));

@@ -187,8 +187,9 @@ impl Scratch {
         // Each field is a u16 key plus the bias, give or take the one step a ray may take
         // beyond the key range: the brick and bit extraction below rely on it.
         debug_assert!(
-            (0..3).all(|i| (k >> (21 * i)) & FIELD >= BIAS - 1
-                && (k >> (21 * i)) & FIELD <= BIAS + 65_536),
+            (0..3)
+                .all(|i| (k >> (21 * i)) & FIELD >= BIAS - 1
+                    && (k >> (21 * i)) & FIELD <= BIAS + 65_536),
             "packed key {k:#x} has a field outside the biased key range"
         );
         // Window-relative brick coordinates; a field below the window wraps to a huge value.
@@ -864,13 +865,25 @@ mod tests {
         pts[10] = [0.0, f32::NAN, 0.0];
         pts[15] = [0.0, 0.0, -f32::INFINITY];
         pts[36] = [0.0, -5000.0, 0.0];
-        let (mut a, mut b) = (map(0.1), map(0.1));
-        let sa = a.insert_point_cloud(&pts, [0.3, -0.2, 0.1], -1.0);
-        let sb = b.insert_point_cloud(&pts, [0.3, -0.2, 0.1], 1e30);
-        assert_eq!((sa.out_of_bounds, sa.skipped_nonfinite), (2, 2));
-        assert_eq!(sa, sb);
-        assert!(a.num_voxels() > 100);
-        assert_eq!(a.to_octree().to_bt_bytes(), b.to_octree().to_bt_bytes());
+        let mut bytes = Vec::new();
+        for kernel in [Kernel::Scalar, Kernel::Avx2] {
+            let new = || {
+                VoxelMap::with_kernel(
+                    Resolution::new(0.1).unwrap(),
+                    SensorModel::default(),
+                    kernel,
+                )
+            };
+            let (mut a, mut b) = (new(), new());
+            let sa = a.insert_point_cloud(&pts, [0.3, -0.2, 0.1], -1.0);
+            let sb = b.insert_point_cloud(&pts, [0.3, -0.2, 0.1], 1e30);
+            assert_eq!((sa.out_of_bounds, sa.skipped_nonfinite), (2, 2));
+            assert_eq!(sa, sb);
+            assert!(a.num_voxels() > 100);
+            assert_eq!(a.to_octree().to_bt_bytes(), b.to_octree().to_bt_bytes());
+            bytes.push(a.to_octree().to_ot_bytes());
+        }
+        assert_eq!(bytes[0], bytes[1], "scalar and AVX2 kernels differ");
     }
 
     #[test]
