@@ -131,7 +131,7 @@ fn header_mutants(file: &[u8], header_end: &[u8]) -> Vec<(String, Vec<u8>)> {
         let word = token.trim_end();
         if !word.is_empty() && word.bytes().all(|b| b.is_ascii_digit()) {
             for h in HOSTILE {
-                let mut m = head[..at].as_bytes().to_vec();
+                let mut m = head.as_bytes()[..at].to_vec();
                 m.extend_from_slice(h.as_bytes());
                 m.extend_from_slice(&head.as_bytes()[at + word.len()..]);
                 m.extend_from_slice(body);

@@ -161,8 +161,8 @@ impl Rng {
             1.0,
         ];
         let v = AWKWARD[(self.next() % AWKWARD.len() as u64) as usize];
-        let v = if self.next() % 3 == 0 { v * scale } else { v };
-        if self.next() % 2 == 0 { -v } else { v }
+        let v = if self.next().is_multiple_of(3) { v * scale } else { v };
+        if self.next().is_multiple_of(2) { -v } else { v }
     }
 }
 

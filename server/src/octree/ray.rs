@@ -4,7 +4,7 @@
 //! **Degenerate rays (a deviation from OctoMap).** A ray whose origin and end keys differ but
 //! whose f32 length `(float)sqrt((double)(x²+y²+z²))` is 0 (the squares underflow, e.g. from
 //! (0,0,0) to (−1e-30, −1e-30, 0)) or infinite (they overflow, possible only at resolutions
-//! above ~5e14 m) has no usable direction: OctoMap 1.9.7 fails an assertion there, and with
+//! above ~1.6e14 m) has no usable direction: OctoMap 1.9.7 fails an assertion there, and with
 //! `-DNDEBUG` its loop never ends. Every kernel here refuses such a ray before stepping it, as
 //! if `computeRayKeys` had returned false: none of its keys (not even the origin voxel's) is
 //! marked, the endpoint still gets its hit like any point whose ray cannot be cast, and
