@@ -4,7 +4,7 @@
 use std::io::Write;
 use std::path::PathBuf;
 
-use super::map::{TreeFormat, load_cloud, read_tree, write_tree};
+use super::map::{TreeFormat, load_cloud, read_tree, report_dropped, write_tree};
 use crate::cloud::io::{self, CloudFormat};
 
 /// Options of `scan3d convert`.
@@ -47,7 +47,9 @@ pub fn run(args: &ConvertArgs, out: &mut dyn Write) -> anyhow::Result<()> {
             args.output.display()
         );
     }
-    let scans = load_cloud(&args.input, args.origin)?;
+    let cloud = load_cloud(&args.input, args.origin)?;
+    report_dropped(&cloud, out)?;
+    let scans = cloud.scans;
     io::save(&args.output, &scans)?;
     let points: usize = scans.iter().map(|s| s.points.len()).sum();
     writeln!(

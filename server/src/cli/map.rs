@@ -13,7 +13,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::cloud::OriginScan;
 use crate::cloud::filter::{Filter, apply_all};
-use crate::cloud::io;
+use crate::cloud::io::{self, LoadedScans};
 use crate::octree::{InsertStats, Octree, Resolution, SensorModel, VoxelMap, read_graph};
 
 /// A point `x,y,z` on the command line (clap value parser).
@@ -106,8 +106,9 @@ impl MapArgs {
 }
 
 /// Loads any cloud the CLI accepts, with sensor origins: `.graph` through OctoMap's pose
-/// transform, `.scans`/`.ply`/`.pcd` through [`crate::cloud::io`].
-pub fn load_cloud(path: &Path, origin: Option<[f64; 3]>) -> anyhow::Result<Vec<OriginScan>> {
+/// transform, `.scans`/`.ply`/`.pcd` through [`crate::cloud::io`], with the count of points
+/// the reader dropped for non-finite values.
+pub fn load_cloud(path: &Path, origin: Option<[f64; 3]>) -> anyhow::Result<LoadedScans> {
     let is_graph = path
         .extension()
         .and_then(|e| e.to_str())
@@ -115,10 +116,26 @@ pub fn load_cloud(path: &Path, origin: Option<[f64; 3]>) -> anyhow::Result<Vec<O
     if is_graph {
         let bytes =
             std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
-        read_graph(&bytes).with_context(|| format!("{}", path.display()))
+        let scans = read_graph(&bytes).with_context(|| format!("{}", path.display()))?;
+        Ok(LoadedScans {
+            scans,
+            dropped_nonfinite: 0,
+        })
     } else {
-        Ok(io::load(path, origin)?)
+        Ok(io::load_counted(path, origin)?)
     }
+}
+
+/// Prints the reader's count of dropped non-finite points, if any.
+pub fn report_dropped(loaded: &LoadedScans, out: &mut dyn Write) -> std::io::Result<()> {
+    if loaded.dropped_nonfinite > 0 {
+        writeln!(
+            out,
+            "dropped {} points with NaN or infinite coordinates or origins while reading",
+            loaded.dropped_nonfinite
+        )?;
+    }
+    Ok(())
 }
 
 /// Which octree format a path names.
@@ -200,14 +217,16 @@ pub fn run(args: &MapArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         anyhow::bail!("{}: a map must end in .bt or .ot", args.out.display());
     }
     Resolution::new(args.res)?;
-    let mut scans = load_cloud(&args.input, args.origin)?;
-    let loaded: usize = scans.iter().map(|s| s.points.len()).sum();
+    let cloud = load_cloud(&args.input, args.origin)?;
+    let loaded: usize = cloud.scans.iter().map(|s| s.points.len()).sum();
     writeln!(
         out,
         "{}: {} scans, {loaded} points",
         args.input.display(),
-        scans.len()
+        cloud.scans.len()
     )?;
+    report_dropped(&cloud, out)?;
+    let mut scans = cloud.scans;
     if !args.filters.is_empty() {
         scans = apply_all(&args.filters, scans)?;
         let kept: usize = scans.iter().map(|s| s.points.len()).sum();
@@ -220,6 +239,13 @@ pub fn run(args: &MapArgs, out: &mut dyn Write) -> anyhow::Result<()> {
             out,
             "skipped {} points with NaN or infinite coordinates",
             stats.skipped_nonfinite
+        )?;
+    }
+    if stats.degenerate_rays > 0 {
+        writeln!(
+            out,
+            "skipped {} rays of zero or infinite f32 length (their endpoints still count as hits)",
+            stats.degenerate_rays
         )?;
     }
     if stats.out_of_bounds > 0 {

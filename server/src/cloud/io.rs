@@ -45,6 +45,17 @@ pub struct FlatCloud {
     pub origins: Origins,
 }
 
+/// Scans read from a cloud, and how many of the file's points did not make it into them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LoadedScans {
+    /// The scans, in file order.
+    pub scans: Vec<OriginScan>,
+    /// Points dropped because a coordinate or their origin was NaN or infinite (PCL marks
+    /// "no return" with NaN in organised clouds). `.scans` files keep such points (the octree
+    /// skips and counts them), so this is 0 for them.
+    pub dropped_nonfinite: u64,
+}
+
 /// Why a flat cloud could not be turned into scans.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum OriginError {
@@ -78,8 +89,8 @@ impl FlatCloud {
         }
     }
 
-    /// Groups the points into scans, dropping points with a non-finite coordinate or origin
-    /// (PCL marks "no return" with NaN in organised clouds).
+    /// Groups the points into scans, dropping (and counting) points with a non-finite
+    /// coordinate or origin (PCL marks "no return" with NaN in organised clouds).
     ///
     /// - Per-point origins: each maximal run of consecutive points with bit-identical origins
     ///   becomes one scan, in file order (so [`FlatCloud::from_scans`] round-trips, except
@@ -88,7 +99,17 @@ impl FlatCloud {
     ///   (PCL's default, written by every PCL tool whatever the sensor was) yields to
     ///   `default_origin` when one is given.
     /// - No origin: one scan from `default_origin`, or [`OriginError::Missing`].
-    pub fn into_scans(
+    pub fn into_scans(self, default_origin: Option<[f64; 3]>) -> Result<LoadedScans, OriginError> {
+        let total = self.points.len() as u64;
+        let scans = self.into_finite_scans(default_origin)?;
+        let kept: u64 = scans.iter().map(|s| s.points.len() as u64).sum();
+        Ok(LoadedScans {
+            scans,
+            dropped_nonfinite: total - kept,
+        })
+    }
+
+    fn into_finite_scans(
         self,
         default_origin: Option<[f64; 3]>,
     ) -> Result<Vec<OriginScan>, OriginError> {
@@ -224,11 +245,20 @@ fn format_of(path: &Path) -> Result<CloudFormat, CloudIoError> {
 
 /// Loads a cloud with its sensor origins. `default_origin` is used for PLY/PCD files that do
 /// not carry origins (and overrides a PCD's all-zero default `VIEWPOINT`); `.scans` always
-/// carries its own. Points with non-finite coordinates are dropped.
+/// carries its own. PLY/PCD points with non-finite coordinates are dropped; [`load_counted`]
+/// says how many.
 pub fn load(
     path: &Path,
     default_origin: Option<[f64; 3]>,
 ) -> Result<Vec<OriginScan>, CloudIoError> {
+    load_counted(path, default_origin).map(|l| l.scans)
+}
+
+/// [`load`], with the number of points dropped for non-finite coordinates or origins.
+pub fn load_counted(
+    path: &Path,
+    default_origin: Option<[f64; 3]>,
+) -> Result<LoadedScans, CloudIoError> {
     let format = format_of(path)?;
     let bytes = std::fs::read(path).map_err(|reason| CloudIoError::Io {
         path: path.to_owned(),
@@ -238,6 +268,10 @@ pub fn load(
     let flat = match format {
         CloudFormat::Scans => {
             return scans_file::parse_scans(&bytes)
+                .map(|scans| LoadedScans {
+                    scans,
+                    dropped_nonfinite: 0,
+                })
                 .map_err(|reason| CloudIoError::Scans { path: p(), reason });
         }
         CloudFormat::Ply => {
@@ -300,7 +334,7 @@ mod tests {
             flat.origins,
             Origins::PerPoint(vec![[1.0, 2.0, 0.5], [1.0, 2.0, 0.5], [-4.0, 0.25, 1.0]])
         );
-        assert_eq!(flat.into_scans(None).unwrap(), two_scans());
+        assert_eq!(flat.into_scans(None).unwrap().scans, two_scans());
     }
 
     #[test]
@@ -313,8 +347,9 @@ mod tests {
         assert_eq!(unknown.clone().into_scans(None), Err(OriginError::Missing));
         assert!(OriginError::Missing.to_string().contains("--origin"));
         let got = unknown.into_scans(Some([0.0, 0.0, 2.0])).unwrap();
+        assert_eq!(got.dropped_nonfinite, 1);
         assert_eq!(
-            got,
+            got.scans,
             vec![OriginScan {
                 origin: [0.0, 0.0, 2.0],
                 points: vec![[1.0, 1.0, 1.0]] // NaN point dropped
@@ -325,11 +360,11 @@ mod tests {
             origins: Origins::Viewpoint([0.0; 3]),
         };
         assert_eq!(
-            zero_vp.clone().into_scans(None).unwrap()[0].origin,
+            zero_vp.clone().into_scans(None).unwrap().scans[0].origin,
             [0.0; 3]
         );
         assert_eq!(
-            zero_vp.into_scans(Some([5.0, 0.0, 0.0])).unwrap()[0].origin,
+            zero_vp.into_scans(Some([5.0, 0.0, 0.0])).unwrap().scans[0].origin,
             [5.0, 0.0, 0.0]
         );
         let vp = FlatCloud {
@@ -337,7 +372,7 @@ mod tests {
             origins: Origins::Viewpoint([1.0, 0.0, 0.0]),
         };
         assert_eq!(
-            vp.into_scans(Some([5.0, 0.0, 0.0])).unwrap()[0].origin,
+            vp.into_scans(Some([5.0, 0.0, 0.0])).unwrap().scans[0].origin,
             [1.0, 0.0, 0.0]
         );
         let bad = FlatCloud {
@@ -350,6 +385,35 @@ mod tests {
                 origins: 0,
                 points: 1
             })
+        );
+    }
+
+    #[test]
+    fn nonfinite_points_and_origins_are_dropped_and_counted() {
+        let flat = FlatCloud {
+            points: vec![
+                [1.0, 0.0, 0.0],
+                [f32::NAN, 0.0, 0.0],
+                [2.0, 0.0, 0.0],
+                [0.0, f32::NEG_INFINITY, 0.0],
+                [3.0, 0.0, 0.0],
+            ],
+            origins: Origins::PerPoint(vec![
+                [0.0; 3],
+                [0.0; 3],
+                [0.0, f64::NAN, 0.0],
+                [0.0; 3],
+                [0.0; 3],
+            ]),
+        };
+        let got = flat.into_scans(None).unwrap();
+        assert_eq!(got.dropped_nonfinite, 3);
+        assert_eq!(
+            got.scans,
+            vec![OriginScan {
+                origin: [0.0; 3],
+                points: vec![[1.0, 0.0, 0.0], [3.0, 0.0, 0.0]]
+            }]
         );
     }
 

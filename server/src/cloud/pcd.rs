@@ -12,11 +12,19 @@
 //! it to the points), and a file with neither has no origin. The writer uses `VIEWPOINT`
 //! (exact, printed in f64 shortest form) when every point shares one origin, and `vp_*` fields
 //! otherwise.
+//!
+//! **Hostile headers.** Every number from the header is checked before it sizes anything: at
+//! most [`MAX_FIELDS`] fields, `SIZE × COUNT` and their sum per point in checked arithmetic
+//! (an overflow names the field), `WIDTH × HEIGHT` checked, and every allocation bounded by
+//! the body bytes actually present, so a lying header costs an error, not memory.
 
 use std::io::{self, Write};
 
 use super::OriginScan;
 use super::io::{Encoding, FlatCloud, Origins};
+
+/// Most `FIELDS` a header may declare (PCL's largest point types have a few dozen).
+pub const MAX_FIELDS: usize = 4096;
 
 /// Why a PCD byte stream could not be read.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -65,6 +73,32 @@ pub enum PcdError {
         ty: String,
         /// Its SIZE.
         size: usize,
+    },
+    /// More than [`MAX_FIELDS`] fields.
+    #[error("PCD header declares {fields} fields, more than {max}")]
+    TooManyFields {
+        /// Number of `FIELDS`.
+        fields: usize,
+        /// [`MAX_FIELDS`].
+        max: usize,
+    },
+    /// A field's `SIZE × COUNT`, or the point size it adds up to, does not fit a `usize`.
+    #[error("PCD point size overflows at field {field:?} (SIZE {size} × COUNT {count})")]
+    RecordTooLarge {
+        /// The field.
+        field: String,
+        /// Its SIZE.
+        size: usize,
+        /// Its COUNT.
+        count: usize,
+    },
+    /// `WIDTH × HEIGHT` (without `POINTS`) does not fit a `u64`.
+    #[error("PCD WIDTH × HEIGHT = {width} × {height} overflows")]
+    PointCountOverflow {
+        /// WIDTH.
+        width: u64,
+        /// HEIGHT.
+        height: u64,
     },
     /// `x`, `y` or `z` is absent (or has `COUNT` other than 1).
     #[error("PCD has no single-valued field {0:?}")]
@@ -273,6 +307,12 @@ fn parse_header(bytes: &[u8]) -> Result<Header, PcdError> {
         }
     };
     let names = names.ok_or(PcdError::MissingKey("FIELDS"))?;
+    if names.len() > MAX_FIELDS {
+        return Err(PcdError::TooManyFields {
+            fields: names.len(),
+            max: MAX_FIELDS,
+        });
+    }
     let sizes = sizes.ok_or(PcdError::MissingKey("SIZE"))?;
     let types = types.ok_or(PcdError::MissingKey("TYPE"))?;
     let counts = counts.unwrap_or_else(|| vec![1; names.len()]);
@@ -315,7 +355,12 @@ fn parse_header(bytes: &[u8]) -> Result<Header, PcdError> {
             });
         }
         (Some(p), _) => p,
-        (None, Some(w)) => w.saturating_mul(height_or_1),
+        (None, Some(w)) => w
+            .checked_mul(height_or_1)
+            .ok_or(PcdError::PointCountOverflow {
+                width: w,
+                height: height_or_1,
+            })?,
         (None, None) => return Err(PcdError::MissingKey("POINTS")),
     };
     Ok(Header {
@@ -328,24 +373,39 @@ fn parse_header(bytes: &[u8]) -> Result<Header, PcdError> {
     })
 }
 
-/// Position of the wanted single-valued fields: (value index in a record, type) for
-/// x, y, z, vp_x, vp_y, vp_z, where "value index" counts COUNT-expanded values.
+/// Position of the wanted single-valued fields: (byte offset, value index in a record, type)
+/// for x, y, z, vp_x, vp_y, vp_z, where "value index" counts COUNT-expanded values; and the
+/// size of a point in bytes and in values.
 struct Layout {
     slots: [Option<(usize, usize, Ty)>; 6],
     has_origin: bool,
+    /// Bytes per binary point: the sum of `SIZE × COUNT` (checked).
+    record: usize,
+    /// Values per ASCII point: the sum of `COUNT` (at most `record`, as every SIZE is >= 1).
+    values: usize,
 }
 
 fn layout(fields: &[Field]) -> Result<Layout, PcdError> {
     const NAMES: [&str; 6] = ["x", "y", "z", "vp_x", "vp_y", "vp_z"];
     let mut slots = [None; 6];
-    let (mut byte, mut value) = (0, 0);
+    let (mut byte, mut value) = (0usize, 0usize);
     for f in fields {
         if let Some(slot) = NAMES.iter().position(|n| *n == f.name)
             && f.count == 1
         {
             slots[slot] = Some((byte, value, f.ty));
         }
-        byte += f.size * f.count;
+        let too_large = || PcdError::RecordTooLarge {
+            field: f.name.clone(),
+            size: f.size,
+            count: f.count,
+        };
+        byte = f
+            .size
+            .checked_mul(f.count)
+            .and_then(|b| byte.checked_add(b))
+            .ok_or_else(too_large)?;
+        // SIZE >= 1 (`Ty::from_header`), so `value <= byte` cannot overflow.
         value += f.count;
     }
     for (slot, name) in slots.iter().zip(["x", "y", "z"]) {
@@ -360,6 +420,8 @@ fn layout(fields: &[Field]) -> Result<Layout, PcdError> {
     Ok(Layout {
         slots,
         has_origin: origin_count == 3,
+        record: byte,
+        values: value,
     })
 }
 
@@ -383,7 +445,7 @@ pub fn parse_pcd(bytes: &[u8]) -> Result<FlatCloud, PcdError> {
 type Decoded = (Vec<[f32; 3]>, Option<Vec<[f64; 3]>>);
 
 fn parse_binary(body: &[u8], header: &Header, layout: &Layout) -> Result<Decoded, PcdError> {
-    let record: usize = header.fields.iter().map(|f| f.size * f.count).sum();
+    let record = layout.record;
     let needed = header.points.checked_mul(record as u64);
     if needed.is_none_or(|n| n > body.len() as u64) {
         return Err(PcdError::Truncated {
@@ -418,7 +480,7 @@ fn parse_binary(body: &[u8], header: &Header, layout: &Layout) -> Result<Decoded
 }
 
 fn parse_ascii(body: &[u8], header: &Header, layout: &Layout) -> Result<Decoded, PcdError> {
-    let values_per_point: usize = header.fields.iter().map(|f| f.count).sum();
+    let values_per_point = layout.values;
     // Each point line holds at least "x y z" plus a newline: six bytes.
     let capacity = header.points.min(body.len() as u64 / 6) as usize;
     let mut points = Vec::with_capacity(capacity);
@@ -428,7 +490,9 @@ fn parse_ascii(body: &[u8], header: &Header, layout: &Layout) -> Result<Decoded,
         .enumerate()
         .map(|(i, l)| (header.header_lines + i + 1, l))
         .filter(|(_, l)| !l.iter().all(u8::is_ascii_whitespace));
-    let mut tokens = Vec::with_capacity(values_per_point);
+    // Not sized by the header: a lying COUNT must not allocate (a line's tokens are bounded
+    // by its bytes).
+    let mut tokens = Vec::new();
     for read in 0..header.points {
         let Some((line, raw)) = lines.next() else {
             return Err(PcdError::MissingPoints {
@@ -649,7 +713,7 @@ mod tests {
                 let mut bytes = Vec::new();
                 write_pcd_scans(&mut bytes, &scans, enc).unwrap();
                 let flat = parse_pcd(&bytes).unwrap();
-                assert_eq!(flat.into_scans(None).unwrap(), scans, "{enc:?}");
+                assert_eq!(flat.into_scans(None).unwrap().scans, scans, "{enc:?}");
             }
         }
     }

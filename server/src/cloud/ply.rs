@@ -445,9 +445,17 @@ fn parse_binary_body(
         if el.properties.is_empty() {
             continue; // zero-byte records
         }
-        // Every record takes at least one byte per property: cap the allocation by what is left.
+        // Every record takes at least its scalars and list lengths: cap the allocation by what
+        // is left, whatever count the header claims.
+        let min_record: u64 = el
+            .properties
+            .iter()
+            .map(|(_, p)| match *p {
+                Property::Scalar(ty) | Property::List { count: ty, .. } => ty.size() as u64,
+            })
+            .sum();
         let remaining = (bytes.len() - pos) as u64;
-        let capacity = el.count.min(remaining / el.properties.len() as u64) as usize;
+        let capacity = el.count.min(remaining / min_record.max(1)) as usize;
         let mut out = is_vertex.then(|| Sink::new(layout, capacity));
         let mut values = [0.0f64; 6];
         for record in 0..el.count {

@@ -116,13 +116,12 @@ pub(crate) fn parse_header<'a>(
         None => return Err(OctreeError::BadHeader("no id".into())),
     }
     let res = Resolution::new(res.ok_or_else(|| OctreeError::BadHeader("no res".into()))?)?;
-    Ok((
-        Header {
-            size: size.unwrap_or(0),
-            res,
-        },
-        &bytes[p.min(bytes.len())..],
-    ))
+    let size = size.unwrap_or(0);
+    // Node indices (subtree ends) are u32 in `Octree`.
+    if size > u64::from(u32::MAX) {
+        return Err(OctreeError::TooManyNodes(size));
+    }
+    Ok((Header { size, res }, &bytes[p.min(bytes.len())..]))
 }
 
 /// Child mask (bit i: child i exists) of a `.bt` record's eight 2-bit codes.

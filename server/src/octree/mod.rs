@@ -7,6 +7,12 @@
 //! a dense window, and the [`Octree`] (flat preorder arrays) is derived only when a file is
 //! written or a tree query is needed.
 //!
+//! **One deviation from OctoMap:** a ray whose f32 length is 0 or not finite although its end
+//! is in another voxel (e.g. from (0,0,0) to (−1e-30, −1e-30, 0)) is skipped and counted in
+//! [`InsertStats::degenerate_rays`]; OctoMap asserts there (and hangs with `-DNDEBUG`). See
+//! the `ray` module docs. Insertion has a scalar and an AVX2 [`Kernel`] giving the same
+//! keys; `SCAN3D_OCTREE_KERNEL=scalar` forces the scalar one.
+//!
 //! ```no_run
 //! # use scan3d_server::octree::*;
 //! # fn main() -> Result<(), OctreeError> {
@@ -34,7 +40,7 @@ pub use io::format_resolution;
 pub(crate) use io::{BT_MAGIC, Header, OT_MAGIC, parse_header};
 pub use key::{KEY_CENTER, Key, Resolution, TREE_DEPTH};
 pub use model::{SensorModel, logodds};
-pub use ray::ray_keys;
+pub use ray::{KERNEL_ENV, Kernel, ray_keys};
 pub use tree::{Leaf, Leaves, Octree};
 pub(crate) use voxels::U64Hasher;
 pub use voxels::{InsertStats, VoxelMap};
@@ -72,6 +78,9 @@ pub enum OctreeError {
         /// Nodes actually read (so far, if larger).
         read: u64,
     },
+    /// The header's node count exceeds what the flat tree arrays index (u32).
+    #[error("header says {0} nodes, more than a tree can hold (2^32 - 1)")]
+    TooManyNodes(u64),
     /// A node below depth 16 claims children.
     #[error("tree deeper than 16 levels")]
     TooDeep,

@@ -1,13 +1,98 @@
 //! OctoMap's exact ray stepping (`computeRayKeys`, research/octomap.md §3): a 3D DDA over
 //! voxel keys in OctoMap's f32/f64 mix, origin voxel included, end voxel excluded, ties to z then y.
+//!
+//! **Degenerate rays (a deviation from OctoMap).** A ray whose origin and end keys differ but
+//! whose f32 length `(float)sqrt((double)(x²+y²+z²))` is 0 (the squares underflow, e.g. from
+//! (0,0,0) to (−1e-30, −1e-30, 0)) or infinite (they overflow, possible only at resolutions
+//! above ~1.6e14 m) has no usable direction: OctoMap 1.9.7 fails an assertion there, and with
+//! `-DNDEBUG` its loop never ends. Every kernel here refuses such a ray before stepping it, as
+//! if `computeRayKeys` had returned false: none of its keys (not even the origin voxel's) is
+//! marked, the endpoint still gets its hit like any point whose ray cannot be cast, and
+//! insertion counts it ([`crate::octree::InsertStats::degenerate_rays`]). No ray with a finite
+//! positive length is affected, so maps stay byte-identical to OctoMap's wherever OctoMap
+//! finishes.
+//!
+//! **Kernels.** With AVX2 (x86-64), rays are stepped four per vector; otherwise in scalar
+//! pairs. [`Kernel`] picks one explicitly (tests and CI run both on the same machine);
+//! `SCAN3D_OCTREE_KERNEL=scalar` forces the scalar kernels process-wide.
 
 use std::hint::select_unpredictable;
+use std::sync::OnceLock;
 
 use super::key::{Key, Resolution};
 
+/// Which implementation of the insertion kernels (ray stepping, and point-to-key conversion
+/// without a max range) runs. Both give exactly the same keys.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Kernel {
+    /// Portable scalar code (rays stepped in interleaved pairs).
+    Scalar,
+    /// Four rays (or points) per AVX2 vector where the CPU has AVX2 (checked at each
+    /// insertion); the scalar kernels elsewhere.
+    Avx2,
+}
+
+/// The environment variable that forces the scalar kernels (`SCAN3D_OCTREE_KERNEL=scalar`).
+pub const KERNEL_ENV: &str = "SCAN3D_OCTREE_KERNEL";
+
+impl Kernel {
+    /// The process default: [`Kernel::Scalar`] if `SCAN3D_OCTREE_KERNEL=scalar`, else
+    /// [`Kernel::Avx2`] (`avx2` or `auto` say so explicitly). The variable is read once; any
+    /// other value is reported with a warning and ignored.
+    pub fn from_env() -> Self {
+        static KERNEL: OnceLock<Kernel> = OnceLock::new();
+        *KERNEL.get_or_init(|| match std::env::var(KERNEL_ENV) {
+            Ok(v) if v.eq_ignore_ascii_case("scalar") => Kernel::Scalar,
+            Ok(v) if v.eq_ignore_ascii_case("avx2") || v.eq_ignore_ascii_case("auto") => {
+                Kernel::Avx2
+            }
+            Err(std::env::VarError::NotPresent) => Kernel::Avx2,
+            Ok(v) => {
+                tracing::warn!("{KERNEL_ENV}={v:?} is not scalar, avx2 or auto: using auto");
+                Kernel::Avx2
+            }
+            Err(std::env::VarError::NotUnicode(v)) => {
+                tracing::warn!("{KERNEL_ENV}={v:?} is not scalar, avx2 or auto: using auto");
+                Kernel::Avx2
+            }
+        })
+    }
+
+    /// Whether this choice runs the AVX2 kernels on this CPU.
+    #[inline]
+    pub(crate) fn uses_avx2(self) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        if self == Kernel::Avx2 {
+            return std::arch::is_x86_feature_detected!("avx2");
+        }
+        false
+    }
+}
+
+impl Default for Kernel {
+    /// [`Kernel::from_env`].
+    fn default() -> Self {
+        Self::from_env()
+    }
+}
+
+/// The f32 length `computeRayKeys` divides by (`Vector3::norm()`: squares summed in f32, sqrt
+/// in f64, cast to float), or `None` when it is 0 or not finite: a degenerate ray (module docs).
+#[inline(always)]
+pub(crate) fn ray_length(origin: [f32; 3], end: [f32; 3]) -> Option<f32> {
+    let d = [end[0] - origin[0], end[1] - origin[1], end[2] - origin[2]];
+    let length = f64::from(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt() as f32;
+    (length > 0.0 && length < f32::INFINITY).then_some(length)
+}
+
+/// A ray [`RayStepper::new`] refused: its keys differ but its f32 length is 0 or not finite.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct DegenerateRay;
+
 /// Visits the keys of the ray from `origin` to `end` in order, as `computeRayKeys` would push
-/// them. Returns `false` (visiting nothing) when either point is outside the key range; an
-/// origin and end in the same voxel give `true` and no keys.
+/// them. Returns `false` (visiting nothing) when either point is outside the key range, or
+/// when the ray is degenerate (module docs; OctoMap asserts there); an origin and end in the
+/// same voxel give `true` and no keys.
 #[inline]
 pub fn ray_keys(
     res: &Resolution,
@@ -44,8 +129,7 @@ pub(crate) fn ray_packed(
     else {
         return false;
     };
-    ray_packed_keyed(res, origin, key_origin, end, key_end, visit);
-    true
+    ray_packed_keyed(res, origin, key_origin, end, key_end, visit).is_ok()
 }
 
 /// The stepping of [`ray_packed`] once both keys are known to be in range.
@@ -57,14 +141,15 @@ pub(crate) fn ray_packed_keyed(
     end: [f32; 3],
     key_end: Key,
     mut visit: impl FnMut(u64),
-) {
-    let Some(mut ray) = RayStepper::new(res, origin, key_origin, end, key_end) else {
-        return;
+) -> Result<(), DegenerateRay> {
+    let Some(mut ray) = RayStepper::new(res, origin, key_origin, end, key_end)? else {
+        return Ok(());
     };
     visit(pack(key_origin));
     while let Some(k) = ray.step() {
         visit(k);
     }
+    Ok(())
 }
 
 /// One ray of OctoMap's stepping loop as a resumable state, so that several rays can be
@@ -79,11 +164,24 @@ pub(crate) struct RayStepper {
     k: u64,
     end: u64,
     length: f64,
+    /// Steps taken, to catch a ray that would never end (debug builds only).
+    #[cfg(debug_assertions)]
+    steps: u32,
 }
 
+/// More steps than any ray between two in-range keys takes: each step moves one key field by
+/// one towards the end voxel (at most 65 535 per axis), plus one past it per axis at the stop
+/// rule. Debug builds assert it in both kernels, so a ray that cannot end fails loudly.
+pub(crate) const MAX_RAY_STEPS: u32 = 3 * 65_536 + 3;
+
 impl RayStepper {
-    /// The per-ray constants of `computeRayKeys` (steps 4 and 5), or `None` when the origin
-    /// and end keys are equal (an empty ray).
+    /// The per-ray constants of `computeRayKeys` (steps 4 and 5), `Ok(None)` when the origin
+    /// and end keys are equal (an empty ray), or [`DegenerateRay`] when the keys differ but
+    /// the f32 length is 0 or not finite (no direction: OctoMap's loop would never end).
+    ///
+    /// With a finite positive length every `tDelta` is at least `res / (1 + ε)` (each
+    /// `|dir[i]| <= 1 + ε`) and each step advances a smallest `tMax`, so the loop ends after
+    /// about `3 · length / res` steps at most.
     #[inline(always)]
     pub(crate) fn new(
         res: &Resolution,
@@ -91,13 +189,12 @@ impl RayStepper {
         key_origin: Key,
         end: [f32; 3],
         key_end: Key,
-    ) -> Option<Self> {
+    ) -> Result<Option<Self>, DegenerateRay> {
         if key_origin == key_end {
-            return None;
+            return Ok(None);
         }
+        let length = ray_length(origin, end).ok_or(DegenerateRay)?;
         let d = [end[0] - origin[0], end[1] - origin[1], end[2] - origin[2]];
-        // Vector3::norm(): squares summed in f32, sqrt in f64, then cast to float.
-        let length = f64::from(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt() as f32;
         let dir = [d[0] / length, d[1] / length, d[2] / length];
 
         let r = res.meters();
@@ -122,14 +219,16 @@ impl RayStepper {
             // one add and the end test one compare; keys wrap to u16 like OctoMap's on unpack.
             inc[i] = (i64::from(step) << (21 * i)) as u64;
         }
-        Some(Self {
+        Ok(Some(Self {
             t,
             d: dt,
             inc,
             k: pack(key_origin),
             end: pack(key_end),
             length: f64::from(length),
-        })
+            #[cfg(debug_assertions)]
+            steps: 0,
+        }))
     }
 
     /// One iteration of the loop: the next key, or `None` when the ray is done (it reached
@@ -137,6 +236,11 @@ impl RayStepper {
     /// (ties: z, then y).
     #[inline(always)]
     pub(crate) fn step(&mut self) -> Option<u64> {
+        #[cfg(debug_assertions)]
+        {
+            self.steps += 1;
+            debug_assert!(self.steps <= MAX_RAY_STEPS, "a ray that does not end");
+        }
         let [t0, t1, t2] = self.t;
         let x_lt_y = t0 < t1;
         let cx = x_lt_y & (t0 < t2);
@@ -176,28 +280,35 @@ pub(crate) trait FreeMarks {
 }
 
 /// Marks free every key of the rays from `origin` to each of `ends` (end point and its key)
-/// after the origin key, which the caller marks. With AVX2, rays go four at a time, one per
-/// lane, from setup to end, and each lane gathers its marks per brick before writing them
-/// (a ray crosses several voxels of a brick in a row); otherwise rays step in scalar pairs.
-/// Both mark exactly the keys of `computeRayKeys` ([`RayStepper::step`]).
+/// after the origin key, which the caller marks. With [`Kernel::Avx2`] on an AVX2 CPU, rays
+/// go four at a time, one per lane, from setup to end, and each lane gathers its marks per
+/// brick before writing them (a ray crosses several voxels of a brick in a row); otherwise
+/// rays step in scalar pairs. Both mark exactly the keys of `computeRayKeys`
+/// ([`RayStepper::step`]) and skip degenerate rays; returns how many were skipped.
 #[inline]
 pub(crate) fn mark_free(
+    kernel: Kernel,
     res: &Resolution,
     origin: [f32; 3],
     key_origin: Key,
     ends: impl Iterator<Item = ([f32; 3], Key)>,
     marks: &mut impl FreeMarks,
-) {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2 (checked just above), the only requirement of
+) -> u64 {
+    if kernel.uses_avx2() {
+        // SAFETY: `uses_avx2` checked that the CPU supports AVX2, the only requirement of
         // `avx2::mark_free`'s `#[target_feature]`.
-        unsafe { avx2::mark_free(res, origin, key_origin, ends, marks) };
-        return;
+        #[cfg(target_arch = "x86_64")]
+        return unsafe { avx2::mark_free(res, origin, key_origin, ends, marks) };
     }
-    let rays =
-        ends.filter_map(|(end, key_end)| RayStepper::new(res, origin, key_origin, end, key_end));
+    let mut degenerate = 0;
+    let rays = ends.filter_map(|(end, key_end)| {
+        RayStepper::new(res, origin, key_origin, end, key_end)
+            .inspect_err(|_| degenerate += 1)
+            .ok()
+            .flatten()
+    });
     step_rays_pairs(rays, |_, k| marks.mark_key(k));
+    degenerate
 }
 
 /// Steps every ray of `rays` and calls `visit(n, key)` with the ray's position `n` in `rays`
@@ -297,6 +408,13 @@ mod avx2 {
         /// store each, so the only serial dependency is the count. Needs `n <= PENDING - 4`.
         #[target_feature(enable = "avx2")]
         fn push(&mut self, cell: __m256i, bits: __m256i, lanes: u32) {
+            debug_assert!(lanes < 16, "lane mask {lanes:#x} has more than 4 lanes");
+            // Otherwise the checked slices below are None and the marks would be lost.
+            debug_assert!(
+                self.n + 4 <= PENDING,
+                "pending buffer not drained: {} of {PENDING}",
+                self.n
+            );
             let p = COMPRESS[(lanes & 15) as usize];
             let idx = _mm256_setr_epi32(p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]);
             let n = self.n;
@@ -317,12 +435,21 @@ mod avx2 {
         }
 
         fn drain(&mut self, marks: &mut impl FreeMarks) {
+            let (_, [dx, dy, dz]) = marks.window();
+            let cells = u64::from(dx) * u64::from(dy) * u64::from(dz);
             for (&c, &b) in self.cell.iter().zip(&self.bits).take(self.n) {
+                // Only lanes inside the window (with marks) are pushed: the vector cell index
+                // (32-bit multiplies) must then be a cell of the window.
+                debug_assert!(c < cells, "cell {c} outside a window of {cells} cells");
+                debug_assert!(b != 0, "a pending entry without marks");
                 marks.mark_cell(c as u32, b);
             }
             self.n = 0;
         }
     }
+
+    // The unaligned stores of `Pending::push` write four u64s: 32 bytes, one __m256i.
+    const _: () = assert!(size_of::<[u64; 4]>() == size_of::<__m256i>());
 
     #[target_feature(enable = "avx2")]
     pub(super) fn mark_free(
@@ -331,8 +458,9 @@ mod avx2 {
         key_origin: Key,
         ends: impl Iterator<Item = ([f32; 3], Key)>,
         marks: &mut impl FreeMarks,
-    ) {
+    ) -> u64 {
         let mut ends = ends;
+        let mut degenerate = 0u64;
         // Per-axis setup constants shared by all rays (computeRayKeys step 5): the origin
         // voxel's borders on either side, `keyToCoord + (float)(±res/2)`, minus the origin.
         let r = res.meters();
@@ -351,6 +479,17 @@ mod avx2 {
         let k0 = _mm256_set1_epi64x(pack(key_origin) as i64);
 
         let (lo, dim) = marks.window();
+        // The cell index `x + dx (y + dy z)` is computed with 32-bit multiplies (mul_epu32) and
+        // stored as u32: the window must have fewer than 2^32 cells, and its brick fields must
+        // be those of packed keys (each 21-bit field, bias included, shifted down by 2).
+        debug_assert!(
+            dim.iter().map(|&d| u64::from(d)).product::<u64>() < 1 << 32,
+            "window {dim:?} too large for u32 cells"
+        );
+        debug_assert!(
+            lo & !(PACKED_BRICK as u64) == 0,
+            "window origin {lo:#x} is not in packed brick fields"
+        );
         let lo = _mm256_set1_epi64x(lo as i64);
         let [dx, dy, dz] = dim.map(|d| _mm256_set1_epi64x(i64::from(d)));
         let brick = _mm256_set1_epi64x(PACKED_BRICK);
@@ -397,6 +536,17 @@ mod avx2 {
             );
             let length = _mm256_cvtps_pd(_mm256_cvtpd_ps(_mm256_sqrt_pd(_mm256_cvtps_pd(len2))));
             let length32 = _mm256_cvtpd_ps(length);
+            // Degenerate rays (f32 length 0 or infinite, `ray_length`) would never end: their
+            // lanes start dead and are counted. NaN cannot occur (finite coordinates).
+            let usable = _mm_movemask_ps(_mm_and_ps(
+                _mm_cmpgt_ps(length32, _mm_setzero_ps()),
+                _mm_cmplt_ps(length32, _mm_set1_ps(f32::INFINITY)),
+            )) as u32;
+            degenerate += u64::from((live & !usable).count_ones());
+            live &= usable;
+            if live == 0 {
+                continue;
+            }
             let mut t = [max; 3];
             let mut dt = [max; 3];
             let mut inc = [zero; 3];
@@ -429,7 +579,14 @@ mod avx2 {
             // Per lane: the window cell being gathered and its marks so far (0: none).
             let mut cur_cell = _mm256_set1_epi64x(-1);
             let mut cur_bits = zero;
+            #[cfg(debug_assertions)]
+            let mut steps = 0u32;
             loop {
+                #[cfg(debug_assertions)]
+                {
+                    steps += 1;
+                    debug_assert!(steps <= super::MAX_RAY_STEPS, "a ray that does not end");
+                }
                 // RayStepper::step in every lane: the axis of the smallest t (ties: z, then y).
                 let c01 = _mm256_cmp_pd::<_CMP_LT_OQ>(t0, t1);
                 let cx = _mm256_and_pd(c01, _mm256_cmp_pd::<_CMP_LT_OQ>(t0, t2));
@@ -522,6 +679,7 @@ mod avx2 {
             }
         }
         pending.drain(marks);
+        degenerate
     }
 }
 
@@ -634,7 +792,7 @@ mod tests {
         for &e in ends {
             match (ko, r.coord_to_key(e)) {
                 (Some(ko), Some(ke)) => {
-                    let s = RayStepper::new(r, origin, ko, e, ke);
+                    let s = RayStepper::new(r, origin, ko, e, ke).expect("not degenerate");
                     out.push(Some(if s.is_some() { vec![ko] } else { vec![] }));
                     if let Some(s) = s {
                         which.push(out.len() - 1);
@@ -732,7 +890,10 @@ mod tests {
                 let Some(ko) = r.coord_to_key(origin) else {
                     continue;
                 };
-                for (half, shift) in [(50u32, 0i64), (3, 0), (2, 5), (1, 40_000)] {
+                for (kernel, (half, shift)) in [Kernel::Scalar, Kernel::Avx2]
+                    .into_iter()
+                    .flat_map(|k| [(50u32, 0i64), (3, 0), (2, 5), (1, 40_000)].map(|w| (k, w)))
+                {
                     let b = ko.0.map(|a| i64::from(a >> 2) + shift - i64::from(half));
                     let lo = b.map(|c| c.clamp(0, 1 << 14) as u64 + (BIAS >> 2));
                     let mut sink = TestMarks {
@@ -742,13 +903,13 @@ mod tests {
                         keys: Vec::new(),
                     };
                     let keyed = ends.iter().filter_map(|&e| Some((e, r.coord_to_key(e)?)));
-                    mark_free(&r, origin, ko, keyed, &mut sink);
+                    assert_eq!(mark_free(kernel, &r, origin, ko, keyed, &mut sink), 0);
                     sink.keys.sort_unstable();
                     sink.keys.dedup();
                     // Window cells fit u32 as in `voxels` (at most 2^20 cells).
                     assert!(
                         sink.keys == all,
-                        "res {res}: window ±{half} shifted {shift}: {} keys marked, {} expected, first difference {:?}",
+                        "res {res}, {kernel:?}: window ±{half} shifted {shift}: {} keys marked, {} expected, first difference {:?}",
                         sink.keys.len(),
                         all.len(),
                         sink.keys.iter().zip(&all).find(|(a, b)| a != b)

@@ -13,7 +13,7 @@ use std::hash::{BuildHasherDefault, Hasher};
 
 use super::key::{Key, Resolution, morton3};
 use super::model::SensorModel;
-use super::ray::{BIAS, FIELD, FreeMarks, mark_free, pack, unpack};
+use super::ray::{BIAS, FIELD, FreeMarks, Kernel, mark_free, pack, ray_length, unpack};
 use super::tree::{Octree, TreeBuilder};
 use crate::cloud::OriginScan;
 
@@ -184,6 +184,14 @@ impl Scratch {
     /// All free marks of a scan must come before its occupied marks.
     #[inline(always)]
     fn mark(&mut self, k: u64, occ: usize) {
+        // Each field is a u16 key plus the bias, give or take the one step a ray may take
+        // beyond the key range: the brick and bit extraction below rely on it.
+        debug_assert!(
+            (0..3)
+                .all(|i| (k >> (21 * i)) & FIELD >= BIAS - 1
+                    && (k >> (21 * i)) & FIELD <= BIAS + 65_536),
+            "packed key {k:#x} has a field outside the biased key range"
+        );
         // Window-relative brick coordinates; a field below the window wraps to a huge value.
         let r = ((k >> BRICK_SHIFT) & PACKED_BRICK).wrapping_sub(self.lo_packed);
         let (x, y, z) = (r & 0x1f_ffff, (r >> 21) & 0x1f_ffff, r >> 42);
@@ -232,6 +240,11 @@ impl FreeMarks for Scratch {
 
     #[inline]
     fn mark_cell(&mut self, cell: u32, bits: u64) {
+        debug_assert!(
+            u64::from(cell) < self.dim.iter().map(|&d| u64::from(d)).product::<u64>(),
+            "cell {cell} outside the window {:?}",
+            self.dim
+        );
         if let Some(w) = self.window.get_mut(cell as usize) {
             if w[0] == 0 {
                 self.touched.push(cell);
@@ -257,6 +270,10 @@ pub struct InsertStats {
     pub out_of_bounds: u64,
     /// Points beyond the max range (free space up to the cut, no hit).
     pub max_range: u64,
+    /// Rays skipped because their f32 length is 0 or not finite although their end lies in
+    /// another voxel than the origin (no free space marked; the endpoint still gets its hit).
+    /// OctoMap fails an assertion or loops for ever on them (`ray` module docs).
+    pub degenerate_rays: u64,
 }
 
 impl InsertStats {
@@ -265,6 +282,7 @@ impl InsertStats {
         self.skipped_nonfinite += o.skipped_nonfinite;
         self.out_of_bounds += o.out_of_bounds;
         self.max_range += o.max_range;
+        self.degenerate_rays += o.degenerate_rays;
     }
 }
 
@@ -277,6 +295,7 @@ pub struct VoxelMap {
     index: BrickMap,
     scratch: Scratch,
     totals: InsertStats,
+    kernel: Kernel,
 }
 
 impl std::fmt::Debug for VoxelMap {
@@ -285,13 +304,19 @@ impl std::fmt::Debug for VoxelMap {
             .field("resolution", &self.res.meters())
             .field("blocks", &self.blocks.len())
             .field("totals", &self.totals)
+            .field("kernel", &self.kernel)
             .finish()
     }
 }
 
 impl VoxelMap {
-    /// An empty map.
+    /// An empty map, inserting with the process's default [`Kernel`] ([`Kernel::from_env`]).
     pub fn new(res: Resolution, model: SensorModel) -> Self {
+        Self::with_kernel(res, model, Kernel::from_env())
+    }
+
+    /// An empty map inserting with `kernel` (the results are the same; tests compare them).
+    pub fn with_kernel(res: Resolution, model: SensorModel, kernel: Kernel) -> Self {
         Self {
             res,
             model,
@@ -299,7 +324,13 @@ impl VoxelMap {
             index: BrickMap::default(),
             scratch: Scratch::default(),
             totals: InsertStats::default(),
+            kernel,
         }
+    }
+
+    /// The kernel insertions use.
+    pub fn kernel(&self) -> Kernel {
+        self.kernel
     }
 
     /// The voxel size and key conversions.
@@ -383,7 +414,8 @@ impl VoxelMap {
     /// Inserts points seen from `origin` (all world frame). Per scan each voxel gets one update:
     /// a hit if some point ends in it, else a miss if some ray crosses it (origin voxel
     /// included, end voxel excluded). Points beyond `max_range` (if `>= 0`) free space up to
-    /// the cut and make no hit. Non-finite points are skipped and counted.
+    /// the cut and make no hit. Non-finite points are skipped and counted; so are degenerate
+    /// rays (see [`InsertStats::degenerate_rays`]).
     pub fn insert_point_cloud(
         &mut self,
         points: &[[f32; 3]],
@@ -410,13 +442,13 @@ impl VoxelMap {
             grow(&mut lo, &mut hi, k);
         }
         #[cfg(target_arch = "x86_64")]
-        let fast = max_range < 0.0 && std::arch::is_x86_feature_detected!("avx2");
+        let fast = max_range < 0.0 && self.kernel.uses_avx2();
         let mut i = 0;
         while i < points.len() {
             #[cfg(target_arch = "x86_64")]
             if fast {
-                // SAFETY: the CPU supports AVX2 (checked above), the only requirement of
-                // `avx2::unlimited_ends`'s `#[target_feature]`.
+                // SAFETY: the CPU supports AVX2 (`uses_avx2` checked it), the only requirement
+                // of `avx2::unlimited_ends`'s `#[target_feature]`.
                 i += unsafe {
                     avx2::unlimited_ends(
                         &res,
@@ -443,7 +475,14 @@ impl VoxelMap {
             let center = origin_key.map_or(lo, |k| k.0.map(|a| u32::from(a >> BRICK_SHIFT)));
             self.scratch.set_window(lo, hi, center);
             if let Some(key_origin) = origin_key {
-                mark_rays(&mut self.scratch, &res, origin, key_origin, &ends);
+                stats.degenerate_rays = mark_rays(
+                    self.kernel,
+                    &mut self.scratch,
+                    &res,
+                    origin,
+                    key_origin,
+                    &ends,
+                );
             }
             for &(_, key_end, hit) in &ends {
                 if hit {
@@ -654,6 +693,8 @@ mod avx2 {
                 keys[a] = lanes(k);
             }
             for (l, p) in g.iter().enumerate() {
+                // In range (checked above), so each key fits its u16.
+                debug_assert!(keys.iter().all(|k| k[l] <= 0xffff), "key {keys:?} lane {l}");
                 let k = Key([keys[0][l] as u16, keys[1][l] as u16, keys[2][l] as u16]);
                 ends.push((*p, k, true));
             }
@@ -670,25 +711,31 @@ mod avx2 {
     }
 }
 
-/// Marks the free keys of all rays from `origin` to `ends` (origin voxel included once).
+/// Marks the free keys of all rays from `origin` to `ends` (origin voxel included once, if
+/// some ray is cast); returns the number of degenerate rays skipped.
 fn mark_rays(
+    kernel: Kernel,
     scratch: &mut Scratch,
     res: &Resolution,
     origin: [f32; 3],
     key_origin: Key,
     ends: &[([f32; 3], Key, bool)],
-) {
-    if ends.iter().all(|e| e.1 == key_origin) {
-        return;
+) -> u64 {
+    // Usually decided by the first end. A degenerate ray marks nothing, not even the origin.
+    if ends
+        .iter()
+        .any(|e| e.1 != key_origin && ray_length(origin, e.0).is_some())
+    {
+        scratch.mark(pack(key_origin), 0);
     }
-    scratch.mark(pack(key_origin), 0);
     mark_free(
+        kernel,
         res,
         origin,
         key_origin,
         ends.iter().map(|e| (e.0, e.1)),
         scratch,
-    );
+    )
 }
 
 /// Applies `delta` to the voxels of `bits` in block `b`: the early abort for known voxels,
@@ -818,13 +865,25 @@ mod tests {
         pts[10] = [0.0, f32::NAN, 0.0];
         pts[15] = [0.0, 0.0, -f32::INFINITY];
         pts[36] = [0.0, -5000.0, 0.0];
-        let (mut a, mut b) = (map(0.1), map(0.1));
-        let sa = a.insert_point_cloud(&pts, [0.3, -0.2, 0.1], -1.0);
-        let sb = b.insert_point_cloud(&pts, [0.3, -0.2, 0.1], 1e30);
-        assert_eq!((sa.out_of_bounds, sa.skipped_nonfinite), (2, 2));
-        assert_eq!(sa, sb);
-        assert!(a.num_voxels() > 100);
-        assert_eq!(a.to_octree().to_bt_bytes(), b.to_octree().to_bt_bytes());
+        let mut bytes = Vec::new();
+        for kernel in [Kernel::Scalar, Kernel::Avx2] {
+            let new = || {
+                VoxelMap::with_kernel(
+                    Resolution::new(0.1).unwrap(),
+                    SensorModel::default(),
+                    kernel,
+                )
+            };
+            let (mut a, mut b) = (new(), new());
+            let sa = a.insert_point_cloud(&pts, [0.3, -0.2, 0.1], -1.0);
+            let sb = b.insert_point_cloud(&pts, [0.3, -0.2, 0.1], 1e30);
+            assert_eq!((sa.out_of_bounds, sa.skipped_nonfinite), (2, 2));
+            assert_eq!(sa, sb);
+            assert!(a.num_voxels() > 100);
+            assert_eq!(a.to_octree().to_bt_bytes(), b.to_octree().to_bt_bytes());
+            bytes.push(a.to_octree().to_ot_bytes());
+        }
+        assert_eq!(bytes[0], bytes[1], "scalar and AVX2 kernels differ");
     }
 
     #[test]
