@@ -13,7 +13,7 @@ use std::sync::Arc;
 
 use quinn::crypto::rustls::{NoInitialCipherSuite, QuicClientConfig};
 use rustls::RootCertStore;
-use scan3d_service::link::{PemError, read_certs, read_key, transport_config};
+use scan3d_service::link::{PemError, read_certs, read_private_key, transport_config};
 
 /// The edge certificate in a bundle.
 pub const BUNDLE_CERT: &str = "edge.pem";
@@ -77,7 +77,8 @@ pub fn client_config(bundle_dir: &Path) -> Result<quinn::ClientConfig, TlsError>
         })?;
     }
     let chain = read_certs(&cert_path)?;
-    let key = read_key(&key_path)?;
+    // A key others can read is refused, as ssh does: the bundle's key is the edge's identity.
+    let key = read_private_key(&key_path)?;
     let provider = Arc::new(rustls::crypto::ring::default_provider());
     let mut tls = rustls::ClientConfig::builder_with_provider(provider)
         .with_protocol_versions(&[&rustls::version::TLS13])
@@ -158,9 +159,16 @@ mod tests {
     fn write_bundle(pki: &TestPki) -> tempfile::TempDir {
         let dir = tempfile::tempdir().unwrap();
         std::fs::write(dir.path().join(BUNDLE_CERT), &pki.edge_pem).unwrap();
-        std::fs::write(dir.path().join(BUNDLE_KEY), &pki.edge_key_pem).unwrap();
+        write_key(&dir.path().join(BUNDLE_KEY), &pki.edge_key_pem);
         std::fs::write(dir.path().join(BUNDLE_CA), &pki.ca_pem).unwrap();
         dir
+    }
+
+    /// Writes a private key readable by its owner only, as `scan3d pair` does.
+    fn write_key(path: &Path, pem: &str) {
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::write(path, pem).unwrap();
+        std::fs::set_permissions(path, std::fs::Permissions::from_mode(0o600)).unwrap();
     }
 
     /// A quinn server on 127.0.0.1 requiring client certificates from `pki`'s CA.
@@ -386,7 +394,27 @@ mod tests {
                 "{msg}"
             );
             std::fs::write(&path, saved).unwrap();
+            if file == BUNDLE_KEY {
+                use std::os::unix::fs::PermissionsExt;
+                std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o600)).unwrap();
+            }
         }
+        assert!(client_config(bundle.path()).is_ok());
+    }
+
+    #[test]
+    fn a_bundle_key_readable_by_others_is_refused_with_the_fix() {
+        use std::os::unix::fs::PermissionsExt;
+        let pki = test_pki("test CA");
+        let bundle = write_bundle(&pki);
+        let key = bundle.path().join(BUNDLE_KEY);
+        std::fs::set_permissions(&key, std::fs::Permissions::from_mode(0o644)).unwrap();
+        let err = client_config(bundle.path()).unwrap_err();
+        assert!(
+            matches!(&err, TlsError::Pem(PemError::KeyTooOpen { path, .. }) if *path == key),
+            "{err}"
+        );
+        std::fs::set_permissions(&key, std::fs::Permissions::from_mode(0o600)).unwrap();
         assert!(client_config(bundle.path()).is_ok());
     }
 
@@ -395,7 +423,7 @@ mod tests {
         let pki = test_pki("test CA");
         let other = test_pki("test CA");
         let bundle = write_bundle(&pki);
-        std::fs::write(bundle.path().join(BUNDLE_KEY), &other.edge_key_pem).unwrap();
+        write_key(&bundle.path().join(BUNDLE_KEY), &other.edge_key_pem);
         let err = client_config(bundle.path()).unwrap_err();
         assert!(matches!(err, TlsError::CertKey { .. }), "{err}");
     }
