@@ -161,7 +161,11 @@ impl Rng {
             1.0,
         ];
         let v = AWKWARD[(self.next() % AWKWARD.len() as u64) as usize];
-        let v = if self.next().is_multiple_of(3) { v * scale } else { v };
+        let v = if self.next().is_multiple_of(3) {
+            v * scale
+        } else {
+            v
+        };
         if self.next().is_multiple_of(2) { -v } else { v }
     }
 }
