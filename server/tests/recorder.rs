@@ -10,7 +10,7 @@ use scan3d_protocol::{
     SensorInfo, StatusEvent, StepperState, TimePong, encode,
 };
 use scan3d_server::ingest::recorder::{
-    Appended, RecorderError, SessionRecorder, list_sessions, read_session,
+    Appended, RecorderError, SessionRecorder, list_sessions, read_session, visit_session,
 };
 
 const EDGE: &str = "trolley-pi";
@@ -345,6 +345,73 @@ fn commit_acknowledges_only_the_contiguous_prefix() {
     append(&mut rec, &hb(6), T0);
     assert_eq!(rec.commit().expect("commit"), Some(7));
     rec.close().expect("close");
+}
+
+#[test]
+fn durable_ranges_list_every_durable_seq_including_those_past_a_gap() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let hb = |seq: u64| Frame::new(SESSION, seq, Heartbeat { sent_ns: seq });
+    let mut rec = SessionRecorder::open(tmp.path(), EDGE, SESSION).expect("open");
+    assert!(rec.durable_ranges().is_empty());
+    for seq in [1, 2, 4, 5, 6, 9] {
+        append(&mut rec, &hb(seq), T0);
+    }
+    assert!(rec.durable_ranges().is_empty(), "nothing committed yet");
+    rec.commit().expect("commit");
+    assert_eq!(rec.durable_ranges(), vec![1..=2, 4..=6, 9..=9]);
+    append(&mut rec, &hb(0), T0);
+    append(&mut rec, &hb(3), T0);
+    rec.commit().expect("commit");
+    assert_eq!(rec.durable_ranges(), vec![0..=6, 9..=9]);
+    rec.close().expect("close");
+    let rec = SessionRecorder::open(tmp.path(), EDGE, SESSION).expect("reopen");
+    assert_eq!(rec.durable_ranges(), vec![0..=6, 9..=9], "after a restart");
+}
+
+#[test]
+fn an_undecodable_frame_is_recorded_raw_acknowledged_and_its_seq_is_a_duplicate_afterwards() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let hb = |seq: u64| Frame::new(SESSION, seq, Heartbeat { sent_ns: seq });
+    let garbage = b"S3DP\x01\x00\x00\x00\x03\x00\xff\xff\xff".to_vec();
+    let mut rec = SessionRecorder::open(tmp.path(), EDGE, SESSION).expect("open");
+    append(&mut rec, &hb(0), T0);
+    assert_eq!(
+        rec.append_undecodable(1, &garbage, "malformed payload", T0 + 1)
+            .expect("undecodable"),
+        Appended::Buffered
+    );
+    append(&mut rec, &hb(2), T0 + 2);
+    assert_eq!(
+        rec.append_undecodable(1, &garbage, "again", T0 + 3)
+            .expect("resend"),
+        Appended::Duplicate
+    );
+    assert_eq!(append(&mut rec, &hb(1), T0), Appended::Duplicate);
+    assert_eq!(rec.commit().expect("commit"), Some(2), "acks move past it");
+    rec.close().expect("close");
+
+    let mut rec = SessionRecorder::open(tmp.path(), EDGE, SESSION).expect("reopen");
+    assert_eq!(rec.durable_ranges(), vec![0..=2]);
+    assert_eq!(
+        rec.append_undecodable(1, &garbage, "after restart", T0 + 4)
+            .expect("resend"),
+        Appended::Duplicate
+    );
+    assert_eq!(append(&mut rec, &hb(1), T0), Appended::Duplicate);
+    rec.close().expect("close");
+
+    let dir = session_path(tmp.path());
+    let mut visited = Vec::new();
+    visit_session(&dir, |r| {
+        visited.push(r.frame.seq);
+        Ok(())
+    })
+    .expect("visit does not fail on undecodable records");
+    assert_eq!(visited, vec![0, 2]);
+    let sessions = list_sessions(tmp.path()).expect("list");
+    assert_eq!(sessions[0].frames, 2);
+    assert_eq!(sessions[0].undecodable_frames, 1);
+    assert_eq!(sessions[0].skipped_messages, 0);
 }
 
 /// Copies `file` to a fresh session directory cut at `len` bytes.

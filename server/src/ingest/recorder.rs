@@ -49,6 +49,14 @@
 //! | `/scan3d/ack` | [`Body::Ack`] from the edge (it takes an edge sequence number too) | log time |
 //! | `/scan3d/command` | [`Body::Command`] the server sent ([`SessionRecorder::append_command`]) | log time |
 //! | `/scan3d/static_scan` | [`Body::StaticScan`]: start (position, step, mount), tagged samples, warnings, end | `t_ns` |
+//! | `/scan3d/undecodable` | a frame the server could not decode ([`SessionRecorder::append_undecodable`]); encoding `scan3d-undecodable`, see below | log time |
+//!
+//! A frame the server cannot decode (or will not record as what it claims to be) is kept rather
+//! than skipped, so that its sequence number counts as recorded and acknowledgements move past
+//! it: channel `/scan3d/undecodable`, message encoding `scan3d-undecodable`, message data
+//! `"S3DU"`, the full `seq` (u64 LE), the reason's length (u16 LE), the reason (UTF-8, at most
+//! [`UNDECODABLE_REASON_LIMIT`] bytes) and then the raw bytes as received. The readers count
+//! these ([`SessionSummary::undecodable_frames`]) and do not hand them to frame visitors.
 //!
 //! # Sequence numbers
 //!
@@ -60,6 +68,7 @@
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::fs::{self, File, OpenOptions};
 use std::io::{self, BufReader, BufWriter, Read, Write};
+use std::ops::RangeInclusive;
 use std::path::{Path, PathBuf};
 
 use mcap::records::{MessageHeader, Metadata};
@@ -76,6 +85,20 @@ pub const PROFILE: &str = "scan3d";
 
 /// Name of the metadata record at the start of every file.
 pub const SESSION_METADATA: &str = "scan3d-session";
+
+/// Topic of frames recorded with [`SessionRecorder::append_undecodable`].
+pub const UNDECODABLE_TOPIC: &str = "/scan3d/undecodable";
+
+/// Message encoding of [`UNDECODABLE_TOPIC`] (layout in the module documentation).
+pub const UNDECODABLE_ENCODING: &str = "scan3d-undecodable";
+
+/// First bytes of an undecodable-frame message, so it is recognised even when the chunk that
+/// declared its channel is damaged.
+const UNDECODABLE_MAGIC: [u8; 4] = *b"S3DU";
+
+/// Longest reason kept with an undecodable frame, in bytes (longer ones are cut at a character
+/// boundary): the reason is for people, the raw bytes are the evidence.
+pub const UNDECODABLE_REASON_LIMIT: usize = 1024;
 
 /// Largest record the readers accept (a chunk is at most ~1 MiB plus one 4 MiB frame), so a
 /// corrupt length field cannot make them allocate gigabytes.
@@ -247,11 +270,76 @@ impl SeqSet {
     fn prefix(&self) -> Option<u64> {
         self.top
     }
+
+    /// Every member as sorted, disjoint, non-adjacent inclusive ranges (the prefix first).
+    fn ranges(&self) -> Vec<RangeInclusive<u64>> {
+        let mut out: Vec<RangeInclusive<u64>> = Vec::new();
+        if let Some(top) = self.top {
+            out.push(0..=top);
+        }
+        for &seq in &self.above {
+            match out.last_mut() {
+                Some(last) if last.end().checked_add(1) == Some(seq) => {
+                    *last = *last.start()..=seq;
+                }
+                _ => out.push(seq..=seq),
+            }
+        }
+        out
+    }
 }
 
 /// Deduplication key of a recorded frame: edge frames and server commands number separately.
 fn dedup_key(frame: &Frame) -> (u64, bool) {
     (frame.session_id, matches!(frame.body, Body::Command(_)))
+}
+
+/// The message data of an undecodable frame (see the module documentation).
+fn undecodable_message(seq: u64, reason: &str, raw: &[u8]) -> Vec<u8> {
+    let mut cut = reason.len().min(UNDECODABLE_REASON_LIMIT);
+    while !reason.is_char_boundary(cut) {
+        cut -= 1;
+    }
+    let reason = &reason.as_bytes()[..cut];
+    let mut data = Vec::with_capacity(UNDECODABLE_MAGIC.len() + 10 + reason.len() + raw.len());
+    data.extend_from_slice(&UNDECODABLE_MAGIC);
+    data.extend_from_slice(&seq.to_le_bytes());
+    // `cut` <= UNDECODABLE_REASON_LIMIT < 2^16.
+    data.extend_from_slice(&(reason.len() as u16).to_le_bytes());
+    data.extend_from_slice(reason);
+    data.extend_from_slice(raw);
+    data
+}
+
+/// Parses [`undecodable_message`]'s layout; `None` if `data` does not have it.
+fn parse_undecodable(log_time_ns: u64, data: &[u8]) -> Option<UndecodableFrame> {
+    let rest = data.strip_prefix(&UNDECODABLE_MAGIC)?;
+    let (seq, rest) = rest.split_first_chunk::<8>()?;
+    let (len, rest) = rest.split_first_chunk::<2>()?;
+    let len = usize::from(u16::from_le_bytes(*len));
+    if len > UNDECODABLE_REASON_LIMIT || len > rest.len() {
+        return None;
+    }
+    let (reason, raw) = rest.split_at(len);
+    Some(UndecodableFrame {
+        log_time_ns,
+        seq: u64::from_le_bytes(*seq),
+        reason: String::from_utf8_lossy(reason).into_owned(),
+        raw: raw.to_vec(),
+    })
+}
+
+/// A frame recorded with [`SessionRecorder::append_undecodable`], read back.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct UndecodableFrame {
+    /// Server receive time, ns since the UNIX epoch.
+    pub log_time_ns: u64,
+    /// The edge sequence number it was recorded under.
+    pub seq: u64,
+    /// Why the server could not decode it.
+    pub reason: String,
+    /// The bytes as received.
+    pub raw: Vec<u8>,
 }
 
 /// One frame read back from a recording.
@@ -286,6 +374,9 @@ pub struct SessionSummary {
     pub frames_per_topic: BTreeMap<String, u64>,
     /// Messages that are not decodable `scan3d-frame`s (skipped).
     pub skipped_messages: u64,
+    /// Frames the server received but could not decode, recorded raw on
+    /// [`UNDECODABLE_TOPIC`] (each seq once; not counted in `frames`).
+    pub undecodable_frames: u64,
     /// Earliest server receive time (ns since the UNIX epoch), if any frame.
     pub first_log_time_ns: Option<u64>,
     /// Latest server receive time (ns since the UNIX epoch), if any frame.
@@ -327,7 +418,7 @@ fn session_files(dir: &Path) -> Result<Vec<(u64, PathBuf)>, RecorderError> {
 /// at the first damaged or missing record (a file cut short by a crash).
 fn scan_file(
     path: &Path,
-    visit: &mut dyn FnMut(RecordedFrame) -> Result<(), RecorderError>,
+    visit: &mut dyn FnMut(Item) -> Result<(), RecorderError>,
 ) -> Result<FileScan, RecorderError> {
     let file = File::open(path).map_err(RecorderError::io(path))?;
     let options = LinearReaderOptions::default()
@@ -349,17 +440,26 @@ fn scan_file(
                 reader.notify_read(read);
             }
             Ok(mcap::sans_io::MessageReadEvent::Message(message)) => {
+                if message.channel.message_encoding == UNDECODABLE_ENCODING {
+                    match parse_undecodable(message.log_time, &message.data) {
+                        Some(undecodable) => visit(Item::Undecodable(undecodable))?,
+                        None => scan.skipped += 1,
+                    }
+                    continue;
+                }
                 if message.channel.message_encoding != MESSAGE_ENCODING {
                     scan.skipped += 1;
                     continue;
                 }
                 match decode(&message.data) {
-                    Ok((frame, used)) if used == message.data.len() => visit(RecordedFrame {
-                        topic: message.channel.topic.clone(),
-                        log_time_ns: message.log_time,
-                        raw: message.data.into_owned(),
-                        frame,
-                    })?,
+                    Ok((frame, used)) if used == message.data.len() => {
+                        visit(Item::Frame(RecordedFrame {
+                            topic: message.channel.topic.clone(),
+                            log_time_ns: message.log_time,
+                            raw: message.data.into_owned(),
+                            frame,
+                        }))?
+                    }
                     Ok(_) => {
                         tracing::warn!(path = %path.display(), "message with bytes after its frame skipped");
                         scan.skipped += 1;
@@ -388,12 +488,22 @@ struct DirScan {
     bytes: u64,
 }
 
+/// One record read back from a session file.
+#[derive(Debug)]
+enum Item {
+    Frame(RecordedFrame),
+    Undecodable(UndecodableFrame),
+}
+
+/// Visits every item of the session's files, each frame `(session, direction, seq)` and each
+/// undecodable seq once.
 fn visit_files(
     dir: &Path,
-    visit: &mut dyn FnMut(RecordedFrame) -> Result<(), RecorderError>,
+    visit: &mut dyn FnMut(Item) -> Result<(), RecorderError>,
 ) -> Result<DirScan, RecorderError> {
     let files = session_files(dir)?;
     let mut seen: HashMap<(u64, bool), SeqSet> = HashMap::new();
+    let mut undecodable_seen = SeqSet::default();
     let mut out = DirScan {
         files: files.len(),
         incomplete_files: 0,
@@ -402,16 +512,15 @@ fn visit_files(
     };
     for (_, path) in &files {
         out.bytes += fs::metadata(path).map_err(RecorderError::io(path))?.len();
-        let scan = scan_file(path, &mut |recorded| {
-            if seen
-                .entry(dedup_key(&recorded.frame))
-                .or_default()
-                .insert(recorded.frame.seq)
-            {
-                visit(recorded)
-            } else {
-                Ok(())
-            }
+        let scan = scan_file(path, &mut |item| {
+            let first = match &item {
+                Item::Frame(recorded) => seen
+                    .entry(dedup_key(&recorded.frame))
+                    .or_default()
+                    .insert(recorded.frame.seq),
+                Item::Undecodable(undecodable) => undecodable_seen.insert(undecodable.seq),
+            };
+            if first { visit(item) } else { Ok(()) }
         })?;
         if !scan.complete {
             out.incomplete_files += 1;
@@ -428,7 +537,11 @@ pub fn visit_session(
     session_dir: &Path,
     mut visit: impl FnMut(RecordedFrame) -> Result<(), RecorderError>,
 ) -> Result<(), RecorderError> {
-    visit_files(session_dir, &mut visit).map(|_| ())
+    visit_files(session_dir, &mut |item| match item {
+        Item::Frame(recorded) => visit(recorded),
+        Item::Undecodable(_) => Ok(()),
+    })
+    .map(|_| ())
 }
 
 /// All frames of a session directory in recording order, duplicates removed (see
@@ -457,11 +570,19 @@ pub fn summarize_session(
         frames: 0,
         frames_per_topic: BTreeMap::new(),
         skipped_messages: 0,
+        undecodable_frames: 0,
         first_log_time_ns: None,
         last_log_time_ns: None,
         bytes: 0,
     };
-    let scan = visit_files(session_dir, &mut |recorded| {
+    let scan = visit_files(session_dir, &mut |item| {
+        let recorded = match item {
+            Item::Frame(recorded) => recorded,
+            Item::Undecodable(_) => {
+                summary.undecodable_frames += 1;
+                return Ok(());
+            }
+        };
         summary.frames += 1;
         *summary.frames_per_topic.entry(recorded.topic).or_default() += 1;
         let t = recorded.log_time_ns;
@@ -608,12 +729,18 @@ impl SessionRecorder {
 
         let mut seen = SeqSet::default();
         let mut commands = SeqSet::default();
-        visit_files(&dir, &mut |recorded| {
-            if recorded.frame.session_id == session_id {
-                if matches!(recorded.frame.body, Body::Command(_)) {
-                    commands.insert(recorded.frame.seq);
-                } else {
-                    seen.insert(recorded.frame.seq);
+        visit_files(&dir, &mut |item| {
+            match item {
+                Item::Frame(recorded) if recorded.frame.session_id == session_id => {
+                    if matches!(recorded.frame.body, Body::Command(_)) {
+                        commands.insert(recorded.frame.seq);
+                    } else {
+                        seen.insert(recorded.frame.seq);
+                    }
+                }
+                Item::Frame(_) => {}
+                Item::Undecodable(undecodable) => {
+                    seen.insert(undecodable.seq);
                 }
             }
             Ok(())
@@ -709,6 +836,14 @@ impl SessionRecorder {
         self.durable.prefix()
     }
 
+    /// Every edge seq durable as of the last commit, as sorted, disjoint, non-adjacent inclusive
+    /// ranges (the contiguous prefix first, when frame 0 is durable): what to acknowledge with
+    /// `Ack::Range`s when there are gaps. Undecodable frames
+    /// ([`append_undecodable`](Self::append_undecodable)) count as durable.
+    pub fn durable_ranges(&self) -> Vec<RangeInclusive<u64>> {
+        self.durable.ranges()
+    }
+
     /// Number of edge frames buffered since the last commit.
     pub fn pending(&self) -> usize {
         self.pending.len()
@@ -736,6 +871,42 @@ impl SessionRecorder {
         self.write(raw, frame, receive_time_ns)?;
         self.seen.insert(frame.seq);
         self.pending.push(frame.seq);
+        Ok(Appended::Buffered)
+    }
+
+    /// Records an edge → server frame that cannot be decoded (or must not be recorded as what
+    /// it claims, e.g. a misdirected body) under the edge sequence number `seq`: `raw` are the
+    /// bytes as received, `reason` says why (cut to [`UNDECODABLE_REASON_LIMIT`] bytes),
+    /// `log_time_ns` is the server's receive time. It is written on [`UNDECODABLE_TOPIC`] and
+    /// `seq` counts as recorded: durable (acknowledgeable) after the next commit, and a later
+    /// frame with the same seq is a [`Appended::Duplicate`]. Returns `Duplicate` (and writes
+    /// nothing) if `seq` is already recorded.
+    pub fn append_undecodable(
+        &mut self,
+        seq: u64,
+        raw: &[u8],
+        reason: &str,
+        log_time_ns: u64,
+    ) -> Result<Appended, RecorderError> {
+        if self.failed {
+            return Err(RecorderError::Failed(self.path.clone()));
+        }
+        if self.seen.contains(seq) {
+            return Ok(Appended::Duplicate);
+        }
+        let channel_id = self.channel(UNDECODABLE_TOPIC, UNDECODABLE_ENCODING, BTreeMap::new())?;
+        let header = MessageHeader {
+            channel_id,
+            sequence: seq as u32,
+            log_time: log_time_ns,
+            publish_time: log_time_ns,
+        };
+        let data = undecodable_message(seq, reason, raw);
+        let written = self.writer.write_to_known_channel(&header, &data);
+        self.mcap_result(written)?;
+        self.dirty = true;
+        self.seen.insert(seq);
+        self.pending.push(seq);
         Ok(Appended::Buffered)
     }
 
@@ -785,12 +956,7 @@ impl SessionRecorder {
                 if let Body::Revolution(rev) = &frame.body {
                     metadata.insert("sensor".to_string(), rev.sensor.to_string());
                 }
-                let id = self
-                    .writer
-                    .add_channel(0, &topic, MESSAGE_ENCODING, &metadata);
-                let id = self.mcap_result(id)?;
-                self.channels.insert(topic, id);
-                id
+                self.channel(&topic, MESSAGE_ENCODING, metadata)?
             }
         };
         let header = MessageHeader {
@@ -804,6 +970,22 @@ impl SessionRecorder {
         self.mcap_result(written)?;
         self.dirty = true;
         Ok(())
+    }
+
+    /// The channel id of `topic`, adding the channel on first use.
+    fn channel(
+        &mut self,
+        topic: &str,
+        encoding: &str,
+        metadata: BTreeMap<String, String>,
+    ) -> Result<u16, RecorderError> {
+        if let Some(&id) = self.channels.get(topic) {
+            return Ok(id);
+        }
+        let id = self.writer.add_channel(0, topic, encoding, &metadata);
+        let id = self.mcap_result(id)?;
+        self.channels.insert(topic.to_string(), id);
+        Ok(id)
     }
 
     /// Marks the recorder failed on an MCAP error.
@@ -885,6 +1067,44 @@ mod tests {
         assert!(set.insert(4));
         assert_eq!(set.prefix(), Some(5));
         assert!(set.above.is_empty());
+    }
+
+    #[test]
+    fn seq_set_ranges_merge_runs_and_start_with_the_prefix() {
+        let mut set = SeqSet::default();
+        assert!(set.ranges().is_empty());
+        for seq in [3, 4, 7, 9, 10, 11] {
+            set.insert(seq);
+        }
+        assert_eq!(set.ranges(), vec![3..=4, 7..=7, 9..=11]);
+        for seq in [0, 1] {
+            set.insert(seq);
+        }
+        assert_eq!(set.ranges(), vec![0..=1, 3..=4, 7..=7, 9..=11]);
+        set.insert(2);
+        assert_eq!(set.ranges(), vec![0..=4, 7..=7, 9..=11]);
+    }
+
+    #[test]
+    fn undecodable_messages_round_trip_and_cut_long_reasons_at_a_char_boundary() {
+        let data = undecodable_message(u64::MAX - 3, "bad", b"\x00\x01");
+        let back = parse_undecodable(7, &data).expect("parse");
+        assert_eq!(
+            back,
+            UndecodableFrame {
+                log_time_ns: 7,
+                seq: u64::MAX - 3,
+                reason: "bad".into(),
+                raw: vec![0, 1],
+            }
+        );
+        let long = "é".repeat(UNDECODABLE_REASON_LIMIT);
+        let back = parse_undecodable(0, &undecodable_message(1, &long, b"x")).expect("parse");
+        assert!(back.reason.len() <= UNDECODABLE_REASON_LIMIT);
+        assert_eq!(back.reason.len() % 2, 0, "no half character");
+        assert_eq!(back.raw, b"x");
+        assert!(parse_undecodable(0, b"S3DP....").is_none());
+        assert!(parse_undecodable(0, &data[..10]).is_none());
     }
 
     #[test]
