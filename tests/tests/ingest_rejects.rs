@@ -5,7 +5,9 @@
 //! - handshakes that never complete do not keep a paired edge out, and an authenticated
 //!   connection that opens no stream is dropped;
 //! - a second connection under a connected edge name replaces a silent old one and is refused
-//!   while the old one is alive.
+//!   while the old one is alive;
+//! - an idle session recording is closed and reopened when its frames come back; an edge that
+//!   buffers more than its limit is committed (and acknowledged) early.
 
 use std::net::{SocketAddr, UdpSocket};
 use std::path::{Path, PathBuf};
@@ -18,7 +20,8 @@ use scan3d_edge::uplink::spool::SpoolConfig;
 use scan3d_edge::uplink::tls::client_config;
 use scan3d_hw_sim::rig::{self, ServerThread};
 use scan3d_protocol::{
-    Ack, Body, Command, Frame, FrameReader, HEADER_LEN, Heartbeat, MAGIC, PROTOCOL_VERSION, encode,
+    Ack, Body, Command, Frame, FrameReader, HEADER_LEN, Heartbeat, LidarRevolution, MAGIC,
+    PROTOCOL_VERSION, SensorId, encode,
 };
 use scan3d_server::ingest::recorder::{session_dir, summarize_session};
 use scan3d_server::ingest::server::{IngestConfig, close_code};
@@ -444,4 +447,67 @@ fn a_second_live_device_under_a_connected_name_is_refused_and_the_first_keeps_re
     let stats = site.server.stop();
     assert_eq!((stats.duplicate_names, stats.replaced), (1, 0), "{stats:?}");
     assert_eq!((stats.connections, stats.frames), (1, 2), "{stats:?}");
+}
+
+#[test]
+fn an_idle_session_is_closed_and_reopened_when_its_frames_come_back() {
+    let site = start_server_with(|config| {
+        config.limits.session_idle_timeout = Duration::from_millis(300);
+    });
+    let session = 0x1d1e;
+    site.runtime.block_on(async {
+        let mut client = connect(site.server.addr(), &site.bundle).await;
+        assert!(client.heartbeat_is_acknowledged(session, 0).await);
+        tokio::time::sleep(Duration::from_secs(1)).await;
+        // A resend of seq 0 (a duplicate) and a new frame: acknowledged by the reopened
+        // recording.
+        client.acks.clear();
+        client.send_heartbeat(session, 0).await;
+        client.send_heartbeat(session, 1).await;
+        assert!(
+            client.acknowledged(session, &[0, 1]).await,
+            "{:?}",
+            client.acks
+        );
+    });
+    let stats = site.server.stop();
+    assert!(stats.sessions_idle_closed >= 1, "{stats:?}");
+    assert_eq!((stats.frames, stats.duplicates), (2, 1), "{stats:?}");
+    let dir = session_dir(&site.dir.path().join("data"), rig::EDGE_NAME, session);
+    let frames = scan3d_server::ingest::recorder::read_session(&dir).expect("recording");
+    assert_eq!(
+        frames.iter().map(|f| f.frame.seq).collect::<Vec<_>>(),
+        vec![0, 1]
+    );
+}
+
+#[test]
+fn an_edge_over_its_buffer_limit_is_committed_and_acknowledged_before_the_commit_interval() {
+    let site = start_server_with(|config| {
+        config.commit_interval = Duration::from_secs(60);
+        config.limits.max_buffered_bytes_per_edge = 32 * 1024;
+    });
+    let session = 0xb1f;
+    let revolution = |seq: u64| {
+        let mut rev = LidarRevolution::new(SensorId::RPLIDAR, 0, 200_000_000);
+        for i in 0..2000u32 {
+            rev.push(i as f32 * 0.18, 3.0, 40, u64::from(i) * 100_000)
+                .expect("sample time");
+        }
+        encode(&Frame::new(session, seq, rev)).expect("encode")
+    };
+    site.runtime.block_on(async {
+        let mut client = connect(site.server.addr(), &site.bundle).await;
+        // ~26 KB each: the second takes the edge past 32 KiB.
+        for seq in 0..2 {
+            client.send.write_all(&revolution(seq)).await.expect("write");
+        }
+        assert!(
+            client.acknowledged(session, &[0, 1]).await,
+            "{:?}",
+            client.acks
+        );
+    });
+    let stats = site.server.stop();
+    assert_eq!(stats.early_commits, 1, "{stats:?}");
 }
