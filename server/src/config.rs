@@ -188,7 +188,11 @@ mod tests {
         assert_eq!(config.commit_interval_ms, 100);
         assert_eq!(config.time_sync_interval_ms, 1000);
         assert_eq!(config.max_connections, 16);
-        assert_eq!(config, ServerConfig::default(), "the example shows the defaults");
+        assert_eq!(
+            config,
+            ServerConfig::default(),
+            "the example shows the defaults"
+        );
     }
 
     #[test]
@@ -225,7 +229,10 @@ mod tests {
 
     #[test]
     fn the_default_ingest_limits_are_the_servers() {
-        assert_eq!(ServerConfig::default().ingest_limits(), IngestLimits::default());
+        assert_eq!(
+            ServerConfig::default().ingest_limits(),
+            IngestLimits::default()
+        );
     }
 
     #[test]
@@ -264,7 +271,10 @@ mod tests {
             "retry_above_handshakes = -1",
         ] {
             let message = parse(&format!("\n{text}\n")).unwrap_err().to_string();
-            assert!(message.starts_with("server.toml: line 2:"), "{text}: {message}");
+            assert!(
+                message.starts_with("server.toml: line 2:"),
+                "{text}: {message}"
+            );
         }
     }
 

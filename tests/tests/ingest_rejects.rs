@@ -236,7 +236,11 @@ fn a_frame_that_does_not_decode_is_recorded_raw_and_every_frame_after_it_acknowl
     assert_eq!((stats.frames, stats.undecodable), (5, 1), "{stats:?}");
     let dir = session_dir(&site.dir.path().join("data"), rig::EDGE_NAME, session);
     let summary = summarize_session(rig::EDGE_NAME, session, &dir).expect("summary");
-    assert_eq!((summary.frames, summary.undecodable_frames), (5, 1), "{summary:?}");
+    assert_eq!(
+        (summary.frames, summary.undecodable_frames),
+        (5, 1),
+        "{summary:?}"
+    );
 }
 
 #[test]
@@ -359,7 +363,10 @@ async fn bare_initial(server: SocketAddr, bundle: &Path) -> BareInitial {
     })
     .await
     .expect("read");
-    assert!(first.len() >= 1200, "a client Initial is padded to 1200 bytes");
+    assert!(
+        first.len() >= 1200,
+        "a client Initial is padded to 1200 bytes"
+    );
     upstream.send_to(&first, server).expect("forward");
     BareInitial {
         _endpoint: endpoint,
@@ -501,7 +508,11 @@ fn an_edge_over_its_buffer_limit_is_committed_and_acknowledged_before_the_commit
         // ~26 KB each: two take the edge past 32 KiB. (The commit interval's first tick may
         // commit seq 0 alone, if it comes after it: then seq 2 is the one over the limit.)
         for seq in 0..3 {
-            client.send.write_all(&revolution(seq)).await.expect("write");
+            client
+                .send
+                .write_all(&revolution(seq))
+                .await
+                .expect("write");
         }
         assert!(
             client.acknowledged(session, &[0, 1]).await,

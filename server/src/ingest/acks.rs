@@ -246,12 +246,18 @@ mod tests {
         assert_eq!(sent.len(), 51);
         assert_eq!(sent[0], Ack::UpTo { seq: 0 });
         assert_eq!(sent[1], Ack::Range { first: 2, last: 2 });
-        assert_eq!(sent[50], Ack::Range {
-            first: 100,
-            last: 100
-        });
+        assert_eq!(
+            sent[50],
+            Ack::Range {
+                first: 100,
+                last: 100
+            }
+        );
         for seq in (0..=100).step_by(2) {
-            assert!(sent.iter().any(|a| a.covers(seq)), "{seq} never acknowledged");
+            assert!(
+                sent.iter().any(|a| a.covers(seq)),
+                "{seq} never acknowledged"
+            );
         }
         for seq in (1..100).step_by(2) {
             assert!(!sent.iter().any(|a| a.covers(seq)), "{seq} is not durable");

@@ -781,7 +781,12 @@ impl EdgeConnection {
     /// A frame that cannot be recorded as what it claims to be (`misdirected`: a server → edge
     /// body; otherwise: a payload that does not decode). Recorded raw and acknowledged when its
     /// session and seq can be read, so it leaves no gap; counted and logged either way.
-    fn on_undecodable(&mut self, raw: &[u8], reason: &str, misdirected: bool) -> Result<(), String> {
+    fn on_undecodable(
+        &mut self,
+        raw: &[u8],
+        reason: &str,
+        misdirected: bool,
+    ) -> Result<(), String> {
         let Some((session_id, seq)) = raw.get(HEADER_LEN..).and_then(decode_ids) else {
             tracing::warn!(edge = %self.edge, bytes = raw.len(), %reason,
                 "dropped a frame whose session and seq cannot be read (it cannot be acknowledged)");
@@ -812,7 +817,10 @@ impl EdgeConnection {
 
     fn on_frame(&mut self, frame: Frame, raw: &[u8]) -> Result<(), String> {
         if frame.body.direction() == Direction::ServerToEdge {
-            let reason = format!("a {} body, which only the server sends", body_name(&frame.body));
+            let reason = format!(
+                "a {} body, which only the server sends",
+                body_name(&frame.body)
+            );
             return self.on_undecodable(raw, &reason, true);
         }
         let session_id = frame.session_id;
@@ -929,8 +937,12 @@ impl EdgeConnection {
             return Ok(());
         };
         self.buffered -= open.buffered.min(self.buffered);
-        let committed =
-            commit_session(session_id, &mut open, &mut self.sent_seq, &mut self.outgoing);
+        let committed = commit_session(
+            session_id,
+            &mut open,
+            &mut self.sent_seq,
+            &mut self.outgoing,
+        );
         let closed = block(|| open.recorder.close());
         self.shared.recorder_closed();
         self.time_sync.remove(&session_id);
