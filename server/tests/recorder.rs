@@ -10,7 +10,8 @@ use scan3d_protocol::{
     SensorInfo, StatusEvent, StepperState, TimePong, encode,
 };
 use scan3d_server::ingest::recorder::{
-    Appended, RecorderError, SessionRecorder, list_sessions, read_session, visit_session,
+    Appended, CHUNKS_PER_FILE, RecorderError, SessionRecorder, list_sessions, read_session,
+    visit_session,
 };
 
 const EDGE: &str = "trolley-pi";
@@ -998,5 +999,40 @@ fn a_full_disk_fails_open_and_commit_as_storage_errors_without_leaving_empty_fil
     fs::remove_file(&filler).expect("rm filler");
     let rec = SessionRecorder::open(&data_dir, EDGE, SESSION).expect("open after the disk emptied");
     assert_eq!(rec.durable_ranges(), vec![0..=0]);
+    rec.close().expect("close");
+}
+
+#[test]
+fn a_long_recording_continues_in_a_new_file_so_the_writer_index_stays_bounded() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let hb = |seq: u64| Frame::new(SESSION, seq, Heartbeat { sent_ns: seq });
+    let mut rec = SessionRecorder::open(tmp.path(), EDGE, SESSION).expect("open");
+    let dir = session_path(tmp.path());
+    let commits = CHUNKS_PER_FILE + 5;
+    for seq in 0..commits {
+        append(&mut rec, &hb(seq), T0 + seq);
+        assert_eq!(rec.commit().expect("commit"), Some(seq));
+        let expected = if seq + 1 < CHUNKS_PER_FILE {
+            "0000.mcap"
+        } else {
+            "0001.mcap"
+        };
+        assert_eq!(rec.path(), dir.join(expected), "after commit {seq}");
+    }
+    // The first file is finished (a summary) and indexed as soon as the recorder leaves it.
+    let bytes = fs::read(dir.join("0000.mcap")).expect("read");
+    let summary = mcap::Summary::read(&bytes)
+        .expect("parse")
+        .expect("summary");
+    assert_eq!(summary.chunk_indexes.len() as u64, CHUNKS_PER_FILE);
+    let index = fs::read_to_string(dir.join("recorded.idx")).expect("index");
+    assert!(index.contains("\nfile 0 "), "{index}");
+    rec.close().expect("close");
+    assert_eq!(seqs(&dir), (0..commits).collect::<Vec<_>>());
+    let sessions = list_sessions(tmp.path()).expect("list");
+    assert_eq!((sessions[0].files, sessions[0].incomplete_files), (2, 0));
+    let rec = SessionRecorder::open(tmp.path(), EDGE, SESSION).expect("reopen");
+    assert_eq!(rec.durable_ranges(), vec![0..=commits - 1]);
+    assert_eq!(rec.path(), dir.join("0002.mcap"));
     rec.close().expect("close");
 }
