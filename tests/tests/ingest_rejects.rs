@@ -178,7 +178,8 @@ fn bad_frames_close_the_connection_cleanly_and_the_server_keeps_serving() {
         // Another protocol version: refused by the header alone.
         let mut client = connect(addr, bundle).await;
         client.send.write_all(&header(2, 1)).await.expect("write");
-        client.send.write_all(&[0]).await.expect("write");
+        // The server may have closed the connection on the header alone already.
+        let _ = client.send.write_all(&[0]).await;
         let (code, reason) = client.closed_by_server().await;
         assert_eq!(code, u64::from(close_code::PROTOCOL_ERROR));
         assert!(reason.contains("version"), "{reason}");
