@@ -524,3 +524,36 @@ fn an_edge_over_its_buffer_limit_is_committed_and_acknowledged_before_the_commit
     let stats = site.server.stop();
     assert_eq!(stats.early_commits, 1, "{stats:?}");
 }
+
+#[test]
+fn after_a_reconnect_the_server_acknowledges_again_what_it_already_holds() {
+    let site = start_server();
+    let session = 0x00ac_0001;
+    site.runtime.block_on(async {
+        let mut first = connect(site.server.addr(), &site.bundle).await;
+        // Seq 1 is missing: 2 and 3 can only be acknowledged as a range.
+        for seq in [0, 2, 3] {
+            first.send_heartbeat(session, seq).await;
+        }
+        assert!(
+            first.acknowledged(session, &[0, 2, 3]).await,
+            "{:?}",
+            first.acks
+        );
+        first.connection.close(0u32.into(), b"edge going away");
+        first._endpoint.wait_idle().await;
+        // The edge did not see those acks (say), so it resends 2 and 3 on a new connection.
+        let mut second = connect(site.server.addr(), &site.bundle).await;
+        for seq in [2, 3] {
+            second.send_heartbeat(session, seq).await;
+        }
+        assert!(
+            second.acknowledged(session, &[2, 3]).await,
+            "{:?}",
+            second.acks
+        );
+        assert!(!second.acks.iter().any(|(_, ack)| ack.covers(1)));
+    });
+    let stats = site.server.stop();
+    assert_eq!((stats.frames, stats.duplicates), (3, 2), "{stats:?}");
+}
