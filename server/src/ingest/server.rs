@@ -844,6 +844,13 @@ impl EdgeConnection {
                 });
             }
         }
+        if let Some(previous) = self.current_session
+            && previous != session_id
+            && !self.sessions.contains_key(&previous)
+        {
+            // Its recording was closed while it was current; nothing will be sent to it now.
+            self.sent_seq.remove(&previous);
+        }
         self.current_session = Some(session_id);
         let open = self.session(session_id)?;
         match open.recorder.append(raw, &frame, now) {
