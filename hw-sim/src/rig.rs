@@ -169,6 +169,7 @@ pub fn ingest_config(pki_dir: &Path, data_dir: &Path, port: u16) -> IngestConfig
         commit_interval: Duration::from_millis(50),
         time_sync_interval: Duration::from_millis(500),
         max_connections: 8,
+        limits: Default::default(),
     }
 }
 

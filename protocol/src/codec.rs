@@ -199,6 +199,19 @@ pub fn decode(buf: &[u8]) -> Result<(Frame, usize), DecodeError> {
     decode_payload(payload).map(|frame| (frame, total))
 }
 
+/// The `(session_id, seq)` at the start of a frame payload (the bytes after the header), or
+/// `None` if not even they can be read.
+///
+/// postcard writes a [`Frame`]'s fields in order, `session_id` and `seq` first, each as a
+/// varint, so a payload whose body does not decode (a newer body type, corrupted bytes) still
+/// tells which frame it was: the server records such a frame raw and acknowledges it, rather
+/// than leave a gap that the edge would resend for ever.
+pub fn decode_ids(payload: &[u8]) -> Option<(u64, u64)> {
+    postcard::take_from_bytes::<(u64, u64)>(payload)
+        .ok()
+        .map(|(ids, _)| ids)
+}
+
 /// Reassembles frames from a byte stream delivered in arbitrary chunks.
 ///
 /// Push bytes as they arrive, then call [`FrameReader::next_frame`] until it returns `Ok(None)`.
@@ -242,5 +255,35 @@ impl FrameReader {
     /// Number of received bytes not yet returned as frames or skipped.
     pub fn buffered(&self) -> usize {
         self.buf.len() - self.start
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::{Frame, Heartbeat};
+
+    #[test]
+    fn ids_are_read_from_a_payload_whose_body_does_not_decode() {
+        let frame = Frame::new(0x5eed_0000_0000_0001, 300, Heartbeat { sent_ns: 9 });
+        let bytes = encode(&frame).unwrap();
+        let mut payload = bytes[HEADER_LEN..].to_vec();
+        assert_eq!(decode_ids(&payload), Some((0x5eed_0000_0000_0001, 300)));
+        // Replace the body with an unknown variant tag: the frame no longer decodes, the ids do.
+        let body_at = payload.len() - 2;
+        payload.truncate(body_at);
+        payload.push(0x7f);
+        assert!(decode_payload(&payload).is_err());
+        assert_eq!(decode_ids(&payload), Some((0x5eed_0000_0000_0001, 300)));
+    }
+
+    #[test]
+    fn ids_that_are_cut_short_or_overlong_are_not_read() {
+        assert_eq!(decode_ids(&[]), None);
+        // session 1, then a varint for seq that never ends.
+        assert_eq!(decode_ids(&[0x01, 0xff, 0xff]), None);
+        // Eleven continuation bytes: more than a u64 varint can have.
+        assert_eq!(decode_ids(&[0xff; 11]), None);
+        assert_eq!(decode_ids(&[0x01, 0x02]), Some((1, 2)));
     }
 }

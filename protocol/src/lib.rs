@@ -81,7 +81,7 @@ mod version;
 
 pub use codec::{
     DecodeError, EncodeError, FrameHeader, FrameReader, HEADER_LEN, MAGIC, MAX_FRAME_LEN, decode,
-    decode_header, encode,
+    decode_header, decode_ids, encode,
 };
 pub use frame::{Body, Direction, Frame};
 pub use types::{

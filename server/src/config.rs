@@ -10,6 +10,8 @@ use std::time::Duration;
 
 use serde::{Deserialize, Deserializer};
 
+use crate::ingest::server::IngestLimits;
+
 /// The whole `server.toml`.
 #[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -30,6 +32,34 @@ pub struct ServerConfig {
     /// Edges connected at once; further connections are refused.
     #[serde(deserialize_with = "positive_usize")]
     pub max_connections: usize,
+
+    // What unauthenticated peers and each edge may cost (see `IngestLimits`).
+    /// TLS handshakes in progress at once; further connection attempts are refused.
+    #[serde(deserialize_with = "positive_usize")]
+    pub max_handshakes: usize,
+    /// With more handshakes than this in progress, peers must validate their address with a
+    /// QUIC Retry first (0: always).
+    pub retry_above_handshakes: usize,
+    /// A TLS handshake not finished after this long (ms) is dropped.
+    #[serde(deserialize_with = "positive_u64")]
+    pub handshake_timeout_ms: u64,
+    /// An authenticated edge that opens no stream within this long (ms) is disconnected.
+    #[serde(deserialize_with = "positive_u64")]
+    pub first_stream_timeout_ms: u64,
+    /// Session recordings open at once per edge; the least recently used one is closed to
+    /// open another.
+    #[serde(deserialize_with = "positive_usize")]
+    pub max_sessions_per_edge: usize,
+    /// A session recording without frames for this long (ms) is closed.
+    #[serde(deserialize_with = "positive_u64")]
+    pub session_idle_timeout_ms: u64,
+    /// Frame data (MiB, 1–4096) an edge may have waiting for a commit; more commits early.
+    #[serde(deserialize_with = "buffer_mib")]
+    pub max_buffered_mib_per_edge: u64,
+    /// A new connection under a connected edge name replaces the old connection once that has
+    /// received nothing for this long (ms); until then the new one is refused.
+    #[serde(deserialize_with = "positive_u64")]
+    pub replace_after_silence_ms: u64,
 }
 
 impl Default for ServerConfig {
@@ -41,8 +71,31 @@ impl Default for ServerConfig {
             commit_interval_ms: 100,
             time_sync_interval_ms: 1000,
             max_connections: 16,
+            max_handshakes: 64,
+            retry_above_handshakes: 8,
+            handshake_timeout_ms: 5000,
+            first_stream_timeout_ms: 10_000,
+            max_sessions_per_edge: 8,
+            session_idle_timeout_ms: 60_000,
+            max_buffered_mib_per_edge: 16,
+            replace_after_silence_ms: 5000,
         }
     }
+}
+
+/// The largest [`ServerConfig::max_buffered_mib_per_edge`]: 4 GiB, so `MiB << 20` cannot wrap.
+const MAX_BUFFER_MIB: u64 = 4096;
+
+/// Accepts 1..=[`MAX_BUFFER_MIB`].
+fn buffer_mib<'de, D: Deserializer<'de>>(deserializer: D) -> Result<u64, D::Error> {
+    let value = u64::deserialize(deserializer)?;
+    if value == 0 || value > MAX_BUFFER_MIB {
+        return Err(serde::de::Error::invalid_value(
+            serde::de::Unexpected::Unsigned(value),
+            &"a number of MiB from 1 to 4096",
+        ));
+    }
+    Ok(value)
 }
 
 /// Rejects 0 (an interval of 0 ms would spin; the error carries the key's place in the file).
@@ -92,6 +145,22 @@ impl ServerConfig {
         Duration::from_millis(self.time_sync_interval_ms)
     }
 
+    /// The ingest limits these keys give.
+    pub fn ingest_limits(&self) -> IngestLimits {
+        IngestLimits {
+            max_handshakes: self.max_handshakes,
+            retry_above_handshakes: self.retry_above_handshakes,
+            handshake_timeout: Duration::from_millis(self.handshake_timeout_ms),
+            first_stream_timeout: Duration::from_millis(self.first_stream_timeout_ms),
+            max_sessions_per_edge: self.max_sessions_per_edge,
+            session_idle_timeout: Duration::from_millis(self.session_idle_timeout_ms),
+            // At most 4096 MiB (checked when parsed), so this neither wraps nor truncates.
+            max_buffered_bytes_per_edge: usize::try_from(self.max_buffered_mib_per_edge << 20)
+                .unwrap_or(usize::MAX),
+            replace_after_silence: Duration::from_millis(self.replace_after_silence_ms),
+        }
+    }
+
     /// Where the recordings live: `data_dir/sessions`.
     pub fn sessions_dir(&self) -> PathBuf {
         self.data_dir.join("sessions")
@@ -119,6 +188,11 @@ mod tests {
         assert_eq!(config.commit_interval_ms, 100);
         assert_eq!(config.time_sync_interval_ms, 1000);
         assert_eq!(config.max_connections, 16);
+        assert_eq!(
+            config,
+            ServerConfig::default(),
+            "the example shows the defaults"
+        );
     }
 
     #[test]
@@ -148,8 +222,60 @@ mod tests {
                 commit_interval_ms: 250,
                 time_sync_interval_ms: 500,
                 max_connections: 2,
+                ..ServerConfig::default()
             }
         );
+    }
+
+    #[test]
+    fn the_default_ingest_limits_are_the_servers() {
+        assert_eq!(
+            ServerConfig::default().ingest_limits(),
+            IngestLimits::default()
+        );
+    }
+
+    #[test]
+    fn every_ingest_limit_is_read() {
+        let text = "max_handshakes = 10\nretry_above_handshakes = 0\nhandshake_timeout_ms = 700\n\
+                    first_stream_timeout_ms = 800\nmax_sessions_per_edge = 3\n\
+                    session_idle_timeout_ms = 900\nmax_buffered_mib_per_edge = 2\n\
+                    replace_after_silence_ms = 1100\n";
+        let limits = parse(text).unwrap().ingest_limits();
+        assert_eq!(
+            limits,
+            IngestLimits {
+                max_handshakes: 10,
+                retry_above_handshakes: 0,
+                handshake_timeout: Duration::from_millis(700),
+                first_stream_timeout: Duration::from_millis(800),
+                max_sessions_per_edge: 3,
+                session_idle_timeout: Duration::from_millis(900),
+                max_buffered_bytes_per_edge: 2 << 20,
+                replace_after_silence: Duration::from_millis(1100),
+            }
+        );
+    }
+
+    #[test]
+    fn zero_or_oversized_ingest_limits_are_refused_with_their_line() {
+        for text in [
+            "max_handshakes = 0",
+            "handshake_timeout_ms = 0",
+            "first_stream_timeout_ms = 0",
+            "max_sessions_per_edge = 0",
+            "session_idle_timeout_ms = 0",
+            "max_buffered_mib_per_edge = 0",
+            "max_buffered_mib_per_edge = 17592186044416",
+            "replace_after_silence_ms = 0",
+            "retry_above_handshakes = -1",
+        ] {
+            let message = parse(&format!("\n{text}\n")).unwrap_err().to_string();
+            assert!(
+                message.starts_with("server.toml: line 2:"),
+                "{text}: {message}"
+            );
+        }
     }
 
     #[test]

@@ -10,7 +10,8 @@ use scan3d_protocol::{
     SensorInfo, StatusEvent, StepperState, TimePong, encode,
 };
 use scan3d_server::ingest::recorder::{
-    Appended, RecorderError, SessionRecorder, list_sessions, read_session,
+    Appended, CHUNKS_PER_FILE, RecorderError, SessionRecorder, list_sessions, read_session,
+    visit_session,
 };
 
 const EDGE: &str = "trolley-pi";
@@ -347,6 +348,75 @@ fn commit_acknowledges_only_the_contiguous_prefix() {
     rec.close().expect("close");
 }
 
+#[test]
+fn durable_ranges_list_every_durable_seq_including_those_past_a_gap() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let hb = |seq: u64| Frame::new(SESSION, seq, Heartbeat { sent_ns: seq });
+    let mut rec = SessionRecorder::open(tmp.path(), EDGE, SESSION).expect("open");
+    assert!(rec.durable_ranges().is_empty());
+    for seq in [1, 2, 4, 5, 6, 9] {
+        append(&mut rec, &hb(seq), T0);
+    }
+    assert!(rec.durable_ranges().is_empty(), "nothing committed yet");
+    rec.commit().expect("commit");
+    assert_eq!(rec.durable_ranges(), vec![1..=2, 4..=6, 9..=9]);
+    append(&mut rec, &hb(0), T0);
+    append(&mut rec, &hb(3), T0);
+    rec.commit().expect("commit");
+    assert_eq!(rec.durable_ranges(), vec![0..=6, 9..=9]);
+    rec.close().expect("close");
+    let rec = SessionRecorder::open(tmp.path(), EDGE, SESSION).expect("reopen");
+    assert_eq!(rec.durable_ranges(), vec![0..=6, 9..=9], "after a restart");
+}
+
+#[test]
+fn an_undecodable_frame_is_recorded_raw_acknowledged_and_its_seq_is_a_duplicate_afterwards() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let hb = |seq: u64| Frame::new(SESSION, seq, Heartbeat { sent_ns: seq });
+    let garbage = b"S3DP\x01\x00\x00\x00\x03\x00\xff\xff\xff".to_vec();
+    let mut rec = SessionRecorder::open(tmp.path(), EDGE, SESSION).expect("open");
+    append(&mut rec, &hb(0), T0);
+    assert_eq!(
+        rec.append_undecodable(1, &garbage, "malformed payload", T0 + 1)
+            .expect("undecodable"),
+        Appended::Buffered
+    );
+    append(&mut rec, &hb(2), T0 + 2);
+    assert_eq!(
+        rec.append_undecodable(1, &garbage, "again", T0 + 3)
+            .expect("resend"),
+        Appended::Duplicate
+    );
+    assert_eq!(append(&mut rec, &hb(1), T0), Appended::Duplicate);
+    assert_eq!(rec.commit().expect("commit"), Some(2), "acks move past it");
+    rec.close().expect("close");
+
+    let mut rec = SessionRecorder::open(tmp.path(), EDGE, SESSION).expect("reopen");
+    assert_eq!(rec.durable_ranges(), vec![0..=2]);
+    assert_eq!(
+        rec.append_undecodable(1, &garbage, "after restart", T0 + 4)
+            .expect("resend"),
+        Appended::Duplicate
+    );
+    assert_eq!(append(&mut rec, &hb(1), T0), Appended::Duplicate);
+    rec.close().expect("close");
+
+    let dir = session_path(tmp.path());
+    let mut visited = Vec::new();
+    let report = visit_session(&dir, |r| {
+        visited.push(r.frame.seq);
+        Ok(())
+    })
+    .expect("visit does not fail on undecodable records");
+    assert_eq!(report.undecodable_frames, 1);
+    assert!(report.losses.is_empty() && report.missing_seqs.is_empty());
+    assert_eq!(visited, vec![0, 2]);
+    let sessions = list_sessions(tmp.path()).expect("list");
+    assert_eq!(sessions[0].frames, 2);
+    assert_eq!(sessions[0].undecodable_frames, 1);
+    assert_eq!(sessions[0].skipped_messages, 0);
+}
+
 /// Copies `file` to a fresh session directory cut at `len` bytes.
 fn truncated_copy(file: &Path, len: u64) -> (tempfile::TempDir, PathBuf) {
     let tmp = tempfile::tempdir().expect("tempdir");
@@ -509,4 +579,460 @@ fn refuses_foreign_sessions_misdirected_bodies_and_unsafe_edge_names() {
             Err(RecorderError::InvalidEdgeName(_))
         ));
     }
+}
+
+/// Frames per chunk in `chunked_session`: it commits after every `PER_CHUNK` frames.
+const PER_CHUNK: u64 = 5;
+
+/// Records `chunks * PER_CHUNK` revolutions, one chunk per commit, and closes the file. The
+/// sweep channel is first used in chunk `sweep_from` (its channel record lives there); from
+/// then on rplidar and sweep alternate. Returns the file and its chunk index (offset, length),
+/// in file order.
+fn chunked_session(data_dir: &Path, chunks: u64, sweep_from: u64) -> (PathBuf, Vec<(u64, u64)>) {
+    let mut rec = SessionRecorder::open(data_dir, EDGE, SESSION).expect("open");
+    for seq in 0..chunks * PER_CHUNK {
+        let sensor = if seq >= sweep_from * PER_CHUNK && seq % 2 == 1 {
+            SensorId::SWEEP
+        } else {
+            SensorId::RPLIDAR
+        };
+        let f = Frame::new(SESSION, seq, revolution(sensor, seq * 1000, 200, seq));
+        append(&mut rec, &f, T0 + seq);
+        if seq % PER_CHUNK == PER_CHUNK - 1 {
+            rec.commit().expect("commit");
+        }
+    }
+    let path = rec.path().to_path_buf();
+    rec.close().expect("close");
+    let bytes = fs::read(&path).expect("read");
+    let summary = mcap::Summary::read(&bytes)
+        .expect("summary")
+        .expect("closed file has a summary");
+    let mut chunks: Vec<(u64, u64)> = summary
+        .chunk_indexes
+        .iter()
+        .map(|c| (c.chunk_start_offset, c.chunk_length))
+        .collect();
+    chunks.sort();
+    (path, chunks)
+}
+
+/// The chunk (its position in `chunks`) that holds byte `offset`.
+fn chunk_holding(chunks: &[(u64, u64)], offset: u64) -> usize {
+    chunks
+        .iter()
+        .position(|&(start, len)| (start..start + len).contains(&offset))
+        .expect("offset inside a chunk")
+}
+
+fn flip_bit(path: &Path, offset: u64, bit: u8) {
+    let mut bytes = fs::read(path).expect("read");
+    bytes[usize::try_from(offset).expect("offset fits")] ^= 1 << bit;
+    fs::write(path, bytes).expect("write");
+}
+
+#[test]
+fn a_flipped_bit_in_one_chunk_loses_exactly_that_chunk_and_the_rest_is_read() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (path, chunks) = chunked_session(tmp.path(), 12, 3);
+    let len = fs::metadata(&path).expect("stat").len();
+    // The chunk at a quarter of the file, which also declares the sweep channel.
+    let damaged = chunk_holding(&chunks, len / 4);
+    assert_eq!(
+        damaged, 3,
+        "the quarter mark falls in chunk 3 (test layout)"
+    );
+    let (start, chunk_len) = chunks[damaged];
+    flip_bit(&path, start + chunk_len / 2, 3);
+
+    let dir = session_path(tmp.path());
+    let (frames, report) =
+        scan3d_server::ingest::recorder::read_session_report(&dir).expect("read");
+    let lost = damaged as u64 * PER_CHUNK..=damaged as u64 * PER_CHUNK + PER_CHUNK - 1;
+    let expected: Vec<u64> = (0..12 * PER_CHUNK).filter(|s| !lost.contains(s)).collect();
+    assert_eq!(
+        frames.iter().map(|f| f.frame.seq).collect::<Vec<_>>(),
+        expected,
+        "every frame of the other chunks"
+    );
+    for f in &frames {
+        let want = if f.frame.seq % 2 == 1 && f.frame.seq >= 3 * PER_CHUNK {
+            "/scan3d/lidar/sweep"
+        } else {
+            "/scan3d/lidar/rplidar"
+        };
+        assert_eq!(
+            f.topic, want,
+            "seq {}: topic known without its channel record",
+            f.frame.seq
+        );
+        assert_eq!(f.raw, encode(&f.frame).expect("encode"));
+    }
+    assert_eq!(report.losses.len(), 1, "{:?}", report.losses);
+    let loss = &report.losses[0];
+    assert_eq!(loss.file, path);
+    assert_eq!((loss.start, loss.end), (start, start + chunk_len));
+    assert_eq!(loss.chunks, 1);
+    assert_eq!(loss.messages, Some(PER_CHUNK));
+    assert!(
+        loss.reason.contains("CRC") || loss.reason.contains("lz4"),
+        "{}",
+        loss.reason
+    );
+    assert_eq!(report.missing_seqs, vec![lost.clone()]);
+    assert_eq!(report.incomplete_files, 0, "damage is not a crash");
+
+    // The strict reader refuses, naming the file and the loss.
+    let err = read_session(&dir).expect_err("damaged");
+    let text = err.to_string();
+    assert!(matches!(err, RecorderError::Damaged { .. }));
+    assert!(
+        text.contains("0000.mcap") && text.contains("5 messages lost"),
+        "{text}"
+    );
+    assert!(text.contains("edge seqs missing: 15..=19"), "{text}");
+    let sessions = list_sessions(tmp.path()).expect("list");
+    assert_eq!(sessions[0].frames, 11 * PER_CHUNK);
+    assert_eq!(sessions[0].losses, report.losses);
+
+    // The session index, written at close, still counts the damaged frames as recorded (they
+    // were acknowledged; the edge no longer has them). Without it, a reopen reads the files:
+    // what the damage took is not recorded any more, and a resend records it again.
+    fs::remove_file(dir.join("recorded.idx")).expect("rm index");
+    let mut rec = SessionRecorder::open(tmp.path(), EDGE, SESSION).expect("reopen");
+    assert_eq!(rec.durable_ranges(), vec![0..=14, 20..=59]);
+    let again = Frame::new(SESSION, 15, Heartbeat { sent_ns: 15 });
+    assert_eq!(append(&mut rec, &again, T0), Appended::Buffered);
+    rec.close().expect("close");
+}
+
+#[test]
+fn a_corrupt_chunk_length_is_skipped_up_to_the_next_chunk_that_validates() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (path, chunks) = chunked_session(tmp.path(), 8, 0);
+    let (start, _) = chunks[2];
+    // Bit 44 of the record length (its 6th byte): far past the end of the file.
+    flip_bit(&path, start + 1 + 5, 4);
+    let dir = session_path(tmp.path());
+    let (frames, report) =
+        scan3d_server::ingest::recorder::read_session_report(&dir).expect("read");
+    let expected: Vec<u64> = (0..8 * PER_CHUNK)
+        .filter(|s| !(2 * PER_CHUNK..3 * PER_CHUNK).contains(s))
+        .collect();
+    assert_eq!(
+        frames.iter().map(|f| f.frame.seq).collect::<Vec<_>>(),
+        expected
+    );
+    assert_eq!(report.losses.len(), 1, "{:?}", report.losses);
+    let loss = &report.losses[0];
+    assert_eq!(
+        (loss.start, loss.end),
+        (start, chunks[3].0),
+        "up to the next chunk"
+    );
+    assert_eq!(loss.chunks, 1);
+    assert_eq!(
+        loss.messages, None,
+        "the stretch's message index is not trusted"
+    );
+    assert_eq!(report.missing_seqs, vec![10..=14]);
+}
+
+#[test]
+fn a_torn_tail_is_a_crash_not_a_loss() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (path, chunks) = chunked_session(tmp.path(), 4, 0);
+    let (start, len) = chunks[3];
+    let (copy, dir) = truncated_copy(&path, start + len / 2);
+    let (frames, report) =
+        scan3d_server::ingest::recorder::read_session_report(&dir).expect("read");
+    assert_eq!(frames.len() as u64, 3 * PER_CHUNK);
+    assert!(report.losses.is_empty(), "{:?}", report.losses);
+    assert_eq!(report.incomplete_files, 1);
+    assert_eq!(
+        seqs(&dir).len() as u64,
+        3 * PER_CHUNK,
+        "strict read succeeds"
+    );
+    drop(copy);
+}
+
+/// Runs the built `scan3d` binary; (exit success, stdout, stderr).
+fn scan3d(args: &[&std::ffi::OsStr]) -> (bool, String, String) {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_scan3d"))
+        .args(args)
+        .env("RUST_LOG", "warn")
+        .output()
+        .expect("run scan3d");
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+#[test]
+fn offline_commands_fail_on_a_damaged_recording_unless_lenient() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (path, chunks) = chunked_session(tmp.path(), 12, 3);
+    let (start, len) = chunks[3];
+    flip_bit(&path, start + len / 2, 0);
+    let data_dir = tmp.path().as_os_str();
+    let dir = session_path(tmp.path());
+    let dir = dir.as_os_str();
+    let os = std::ffi::OsStr::new;
+
+    let (ok, stdout, stderr) = scan3d(&[os("sessions"), os("--data-dir"), data_dir]);
+    assert!(!ok, "sessions must fail: {stdout}");
+    let last = stderr.lines().last().unwrap_or_default();
+    assert!(last.starts_with("scan3d: "), "{stderr}");
+    assert!(
+        last.contains(path.to_str().expect("utf-8")) && last.contains("5 messages lost"),
+        "one line naming the file and the loss: {stderr}"
+    );
+    assert!(
+        stdout.contains("1 damaged"),
+        "the table still shows it: {stdout}"
+    );
+    let (ok, stdout, _) = scan3d(&[os("sessions"), os("--data-dir"), data_dir, os("--lenient")]);
+    assert!(ok);
+    assert!(stdout.contains(" 55 "), "55 frames read: {stdout}");
+
+    let (ok, _, stderr) = scan3d(&[os("replay"), dir]);
+    assert!(!ok);
+    assert!(stderr.contains("5 messages lost"), "{stderr}");
+    let (ok, stdout, _) = scan3d(&[os("replay"), dir, os("--lenient")]);
+    assert!(ok);
+    assert!(stdout.contains("replayed 55 frames"), "{stdout}");
+
+    // assemble: the damage stops it first; leniently it gets as far as finding no static scan.
+    let out = tmp.path().join("cloud.ply");
+    let (ok, _, stderr) = scan3d(&[os("assemble"), dir, os("--out"), out.as_os_str()]);
+    assert!(!ok);
+    assert!(stderr.contains("5 messages lost"), "{stderr}");
+    let (ok, _, stderr) = scan3d(&[
+        os("assemble"),
+        dir,
+        os("--out"),
+        out.as_os_str(),
+        os("--lenient"),
+    ]);
+    assert!(!ok);
+    let last = stderr.lines().last().unwrap_or_default();
+    assert!(
+        last.contains("no static scan"),
+        "went on past the damage: {stderr}"
+    );
+}
+
+#[test]
+fn reopening_trusts_the_index_of_closed_files_instead_of_reading_them() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (path, chunks) = chunked_session(tmp.path(), 4, 0);
+    // Garble a chunk without changing the file's length: a reopen that read the file would
+    // lose its seqs; one that trusts the index does not.
+    let (start, len) = chunks[1];
+    flip_bit(&path, start + len / 2, 1);
+    let rec = SessionRecorder::open(tmp.path(), EDGE, SESSION).expect("reopen");
+    assert_eq!(rec.durable_ranges(), vec![0..=19], "from the index");
+    assert_eq!(rec.path(), session_path(tmp.path()).join("0001.mcap"));
+    rec.close().expect("close");
+    let index = fs::read_to_string(session_path(tmp.path()).join("recorded.idx")).expect("index");
+    assert!(
+        index.contains("\nfile 0 ") && index.contains("\nfile 1 "),
+        "{index}"
+    );
+    assert!(index.contains("\nedge 0-19\n"), "{index}");
+}
+
+#[test]
+fn an_index_that_no_longer_matches_the_files_is_ignored() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (path, chunks) = chunked_session(tmp.path(), 4, 0);
+    let dir = session_path(tmp.path());
+    // A torn or corrupt index: every file is read instead.
+    let index_path = dir.join("recorded.idx");
+    let good = fs::read(&index_path).expect("index");
+    let mut bad = good.clone();
+    let at = bad.len() - 12;
+    bad[at] ^= 1;
+    fs::write(&index_path, &bad).expect("write");
+    let rec = SessionRecorder::open(tmp.path(), EDGE, SESSION).expect("reopen");
+    assert_eq!(rec.durable_ranges(), vec![0..=19]);
+    drop(rec);
+
+    // A file shorter than the index says (cut after chunk 1): the index is not trusted.
+    fs::remove_file(dir.join("0001.mcap")).expect("rm");
+    fs::write(&index_path, &good).expect("restore index");
+    let bytes = fs::read(&path).expect("read");
+    let (start, _) = chunks[2];
+    fs::write(&path, &bytes[..usize::try_from(start).expect("fits")]).expect("cut");
+    let rec = SessionRecorder::open(tmp.path(), EDGE, SESSION).expect("reopen");
+    assert_eq!(
+        rec.durable_ranges(),
+        vec![0..=9],
+        "what the file still holds"
+    );
+    rec.close().expect("close");
+}
+
+#[test]
+fn a_crashed_run_is_read_once_then_indexed() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let hb = |seq: u64| Frame::new(SESSION, seq, Heartbeat { sent_ns: seq });
+    let mut rec = SessionRecorder::open(tmp.path(), EDGE, SESSION).expect("open");
+    for seq in 0..3 {
+        append(&mut rec, &hb(seq), T0);
+    }
+    rec.commit().expect("commit");
+    std::mem::forget(rec); // A crash: no close, no index.
+    let dir = session_path(tmp.path());
+    assert!(!dir.join("recorded.idx").exists());
+    let rec = SessionRecorder::open(tmp.path(), EDGE, SESSION).expect("reopen");
+    assert_eq!(
+        rec.durable_ranges(),
+        vec![0..=2],
+        "read from the crashed file"
+    );
+    let index = fs::read_to_string(dir.join("recorded.idx")).expect("indexed at open");
+    assert!(
+        index.contains("\nfile 0 ") && index.contains("\nedge 0-2\n"),
+        "{index}"
+    );
+    drop(rec);
+}
+
+/// A tiny tmpfs mounted over a fresh directory, unmounted on drop.
+struct TinyDisk(tempfile::TempDir);
+
+impl TinyDisk {
+    fn mount(size: &str) -> TinyDisk {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let status = std::process::Command::new("mount")
+            .args(["-t", "tmpfs", "-o", &format!("size={size}"), "tmpfs"])
+            .arg(dir.path())
+            .status()
+            .expect("run mount");
+        assert!(
+            status.success(),
+            "this test needs to mount a tmpfs (run as root, or in a user namespace with `unshare -rm`)"
+        );
+        TinyDisk(dir)
+    }
+
+    /// Writes a filler file until the disk is full.
+    fn fill(&self) -> PathBuf {
+        let path = self.0.path().join("filler");
+        let mut file = fs::File::create(&path).expect("filler");
+        let block = vec![0u8; 4096];
+        loop {
+            match std::io::Write::write(&mut file, &block) {
+                Ok(0) => break,
+                Ok(_) => {}
+                Err(e) => {
+                    assert_eq!(e.raw_os_error(), Some(28), "ENOSPC expected: {e}");
+                    break;
+                }
+            }
+        }
+        path
+    }
+}
+
+impl Drop for TinyDisk {
+    fn drop(&mut self) {
+        let _ = std::process::Command::new("umount")
+            .arg(self.0.path())
+            .status();
+    }
+}
+
+#[test]
+fn a_full_disk_fails_open_and_commit_as_storage_errors_without_leaving_empty_files() {
+    let disk = TinyDisk::mount("512k");
+    let data_dir = disk.0.path().join("data");
+    let hb = |seq: u64| Frame::new(SESSION, seq, Heartbeat { sent_ns: seq });
+    let mut rec = SessionRecorder::open(&data_dir, EDGE, SESSION).expect("open");
+    append(&mut rec, &hb(0), T0);
+    rec.commit().expect("commit");
+    rec.close().expect("close");
+    let dir = session_path(&data_dir);
+    let listing = || {
+        let mut names: Vec<String> = fs::read_dir(&dir)
+            .expect("ls")
+            .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+            .collect();
+        names.sort();
+        names
+    };
+    let before = listing();
+    assert_eq!(before, vec!["0000.mcap", "recorded.idx"]);
+
+    let filler = disk.fill();
+    for attempt in 0..3 {
+        let err = SessionRecorder::open(&data_dir, EDGE, SESSION).expect_err("disk full");
+        assert!(err.is_storage(), "attempt {attempt}: {err}");
+        assert_eq!(listing(), before, "attempt {attempt}: nothing left behind");
+    }
+    assert!(!RecorderError::InvalidEdgeName("x".into()).is_storage());
+
+    // Room for a new file, not for what is appended to it.
+    fs::remove_file(&filler).expect("rm filler");
+    let mut rec = SessionRecorder::open(&data_dir, EDGE, SESSION).expect("open with room");
+    let filler = disk.fill();
+    for seq in 1..40 {
+        let f = Frame::new(SESSION, seq, revolution(SensorId::RPLIDAR, seq, 2000, seq));
+        let raw = encode(&f).expect("encode");
+        if let Err(e) = rec.append(&raw, &f, T0) {
+            assert!(e.is_storage(), "{e}");
+            break;
+        }
+    }
+    let err = rec.commit().expect_err("disk full");
+    assert!(err.is_storage(), "{err}");
+    assert_eq!(
+        rec.durable_ranges(),
+        vec![0..=0],
+        "nothing new acknowledged"
+    );
+    drop(rec);
+    fs::remove_file(&filler).expect("rm filler");
+    let rec = SessionRecorder::open(&data_dir, EDGE, SESSION).expect("open after the disk emptied");
+    assert_eq!(rec.durable_ranges(), vec![0..=0]);
+    rec.close().expect("close");
+}
+
+#[test]
+fn a_long_recording_continues_in_a_new_file_so_the_writer_index_stays_bounded() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let hb = |seq: u64| Frame::new(SESSION, seq, Heartbeat { sent_ns: seq });
+    let mut rec = SessionRecorder::open(tmp.path(), EDGE, SESSION).expect("open");
+    let dir = session_path(tmp.path());
+    let commits = CHUNKS_PER_FILE + 5;
+    for seq in 0..commits {
+        append(&mut rec, &hb(seq), T0 + seq);
+        assert_eq!(rec.commit().expect("commit"), Some(seq));
+        let expected = if seq + 1 < CHUNKS_PER_FILE {
+            "0000.mcap"
+        } else {
+            "0001.mcap"
+        };
+        assert_eq!(rec.path(), dir.join(expected), "after commit {seq}");
+    }
+    // The first file is finished (a summary) and indexed as soon as the recorder leaves it.
+    let bytes = fs::read(dir.join("0000.mcap")).expect("read");
+    let summary = mcap::Summary::read(&bytes)
+        .expect("parse")
+        .expect("summary");
+    assert_eq!(summary.chunk_indexes.len() as u64, CHUNKS_PER_FILE);
+    let index = fs::read_to_string(dir.join("recorded.idx")).expect("index");
+    assert!(index.contains("\nfile 0 "), "{index}");
+    rec.close().expect("close");
+    assert_eq!(seqs(&dir), (0..commits).collect::<Vec<_>>());
+    let sessions = list_sessions(tmp.path()).expect("list");
+    assert_eq!((sessions[0].files, sessions[0].incomplete_files), (2, 0));
+    let rec = SessionRecorder::open(tmp.path(), EDGE, SESSION).expect("reopen");
+    assert_eq!(rec.durable_ranges(), vec![0..=commits - 1]);
+    assert_eq!(rec.path(), dir.join("0002.mcap"));
+    rec.close().expect("close");
 }

@@ -1,27 +1,50 @@
-//! The ingest server facing bad input from an authenticated edge: frames of another protocol
-//! version or over the size limit end that connection cleanly with a reason; a malformed
-//! payload is skipped and the connection stays usable; the server keeps serving throughout.
+//! The ingest server facing bad input and bad peers, over real QUIC on loopback:
+//! - frames of another protocol version or over the size limit end that connection cleanly
+//!   with a reason; a payload that does not decode, or a server → edge body, is recorded raw
+//!   and acknowledged, so it leaves no gap; a gap itself does not stop acknowledgements;
+//! - handshakes that never complete do not keep a paired edge out, and an authenticated
+//!   connection that opens no stream is dropped;
+//! - a second connection under a connected edge name replaces a silent old one and is refused
+//!   while the old one is alive;
+//! - an idle session recording is closed and reopened when its frames come back; an edge that
+//!   buffers more than its limit is committed (and acknowledged) early.
 
-use std::net::SocketAddr;
+use std::net::{SocketAddr, UdpSocket};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Duration;
 
+use scan3d_edge::clock::{ScaledClock, SharedClock};
+use scan3d_edge::uplink::client::{Uplink, UplinkConfig};
+use scan3d_edge::uplink::spool::SpoolConfig;
 use scan3d_edge::uplink::tls::client_config;
 use scan3d_hw_sim::rig::{self, ServerThread};
-use scan3d_protocol::{Ack, Body, Frame, FrameReader, HEADER_LEN, Heartbeat, MAGIC, encode};
-use scan3d_server::ingest::server::close_code;
+use scan3d_protocol::{
+    Ack, Body, Command, Frame, FrameReader, HEADER_LEN, Heartbeat, LidarRevolution, MAGIC,
+    PROTOCOL_VERSION, SensorId, encode,
+};
+use scan3d_server::ingest::recorder::{session_dir, summarize_session};
+use scan3d_server::ingest::server::{IngestConfig, close_code};
 
 struct Client {
     _endpoint: quinn::Endpoint,
     connection: quinn::Connection,
     send: quinn::SendStream,
     recv: quinn::RecvStream,
+    reader: FrameReader,
+    /// Every ack received so far, with its session.
+    acks: Vec<(u64, Ack)>,
 }
 
-async fn connect(server: SocketAddr, bundle: &Path) -> Client {
+fn client_endpoint(bundle: &Path) -> quinn::Endpoint {
     let mut endpoint =
         quinn::Endpoint::client(SocketAddr::from(([127, 0, 0, 1], 0))).expect("endpoint");
     endpoint.set_default_client_config(client_config(bundle).expect("bundle"));
+    endpoint
+}
+
+async fn connect(server: SocketAddr, bundle: &Path) -> Client {
+    let endpoint = client_endpoint(bundle);
     let connection = endpoint
         .connect(server, "localhost")
         .expect("connect")
@@ -33,33 +56,46 @@ async fn connect(server: SocketAddr, bundle: &Path) -> Client {
         connection,
         send,
         recv,
+        reader: FrameReader::new(),
+        acks: Vec::new(),
     }
 }
 
 impl Client {
-    /// Sends one valid heartbeat and waits for the server's acknowledgement of it.
-    async fn heartbeat_is_acknowledged(&mut self, session_id: u64, seq: u64) -> bool {
+    async fn send_heartbeat(&mut self, session_id: u64, seq: u64) {
         let frame = encode(&Frame::new(session_id, seq, Heartbeat { sent_ns: 1 })).expect("encode");
-        if self.send.write_all(&frame).await.is_err() {
-            return false;
-        }
-        let mut reader = FrameReader::new();
+        self.send.write_all(&frame).await.expect("write");
+    }
+
+    /// Waits (at most 5 s) until every seq in `seqs` of `session_id` is covered by an ack.
+    async fn acknowledged(&mut self, session_id: u64, seqs: &[u64]) -> bool {
         let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
-        while tokio::time::Instant::now() < deadline {
+        loop {
+            let covered = |seq: &u64| {
+                self.acks
+                    .iter()
+                    .any(|(session, ack)| *session == session_id && ack.covers(*seq))
+            };
+            if seqs.iter().all(covered) {
+                return true;
+            }
             let chunk = tokio::time::timeout_at(deadline, self.recv.read_chunk(4096, true)).await;
             let Ok(Ok(Some(chunk))) = chunk else {
                 return false;
             };
-            reader.push(&chunk.bytes);
-            while let Ok(Some(frame)) = reader.next_frame() {
-                if let Body::Ack(Ack::UpTo { seq: acked }) = frame.body
-                    && acked >= seq
-                {
-                    return true;
+            self.reader.push(&chunk.bytes);
+            while let Ok(Some(frame)) = self.reader.next_frame() {
+                if let Body::Ack(ack) = frame.body {
+                    self.acks.push((frame.session_id, ack));
                 }
             }
         }
-        false
+    }
+
+    /// Sends one valid heartbeat and waits for the server's acknowledgement of it.
+    async fn heartbeat_is_acknowledged(&mut self, session_id: u64, seq: u64) -> bool {
+        self.send_heartbeat(session_id, seq).await;
+        self.acknowledged(session_id, &[seq]).await
     }
 
     /// Waits for the server to close the connection; returns (application code, reason).
@@ -85,40 +121,71 @@ fn header(version: u16, payload_len: u32) -> Vec<u8> {
     bytes
 }
 
-/// A paired temporary installation with the server running, and a runtime for test clients.
-fn start_server() -> (
-    tempfile::TempDir,
-    PathBuf,
-    ServerThread,
-    tokio::runtime::Runtime,
-) {
+/// A frame with a valid header whose payload starts with `session_id` and `seq` (varints) and
+/// then carries body tag 127, which no version has.
+fn undecodable_frame(session_id: u64, seq: u64) -> Vec<u8> {
+    let mut payload = Vec::new();
+    for mut value in [session_id, seq] {
+        while value >= 0x80 {
+            payload.push((value as u8) | 0x80);
+            value >>= 7;
+        }
+        payload.push(value as u8);
+    }
+    payload.extend_from_slice(&[0x7f, 0x01, 0x02]);
+    let mut frame = header(PROTOCOL_VERSION, payload.len() as u32);
+    frame.extend_from_slice(&payload);
+    frame
+}
+
+struct Site {
+    dir: tempfile::TempDir,
+    bundle: PathBuf,
+    server: ServerThread,
+    runtime: tokio::runtime::Runtime,
+}
+
+/// A paired temporary installation with the server running (its configuration tuned by
+/// `tune`), and a runtime for test clients.
+fn start_server_with(tune: impl FnOnce(&mut IngestConfig)) -> Site {
     let dir = tempfile::tempdir().expect("temp dir");
     let pki = dir.path().join("pki");
     let bundle = rig::pair_certificates(&pki).expect("pairing");
-    let server =
-        ServerThread::start(rig::ingest_config(&pki, &dir.path().join("data"), 0)).expect("server");
+    let mut config = rig::ingest_config(&pki, &dir.path().join("data"), 0);
+    tune(&mut config);
+    let server = ServerThread::start(config).expect("server");
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
         .expect("runtime");
-    (dir, bundle, server, runtime)
+    Site {
+        dir,
+        bundle,
+        server,
+        runtime,
+    }
+}
+
+fn start_server() -> Site {
+    start_server_with(|_| {})
 }
 
 #[test]
 fn bad_frames_close_the_connection_cleanly_and_the_server_keeps_serving() {
-    let (_dir, bundle, server, runtime) = start_server();
-    let addr = server.addr();
-    runtime.block_on(async {
+    let site = start_server();
+    let (addr, bundle) = (site.server.addr(), &site.bundle);
+    site.runtime.block_on(async {
         // Another protocol version: refused by the header alone.
-        let mut client = connect(addr, &bundle).await;
+        let mut client = connect(addr, bundle).await;
         client.send.write_all(&header(2, 1)).await.expect("write");
-        client.send.write_all(&[0]).await.expect("write");
+        // The server may have closed the connection on the header alone already.
+        let _ = client.send.write_all(&[0]).await;
         let (code, reason) = client.closed_by_server().await;
         assert_eq!(code, u64::from(close_code::PROTOCOL_ERROR));
         assert!(reason.contains("version"), "{reason}");
 
         // Over the size limit: refused as soon as the header arrives, nothing buffered.
-        let mut client = connect(addr, &bundle).await;
+        let mut client = connect(addr, bundle).await;
         client
             .send
             .write_all(&header(1, 5 << 20))
@@ -128,8 +195,9 @@ fn bad_frames_close_the_connection_cleanly_and_the_server_keeps_serving() {
         assert_eq!(code, u64::from(close_code::PROTOCOL_ERROR));
         assert!(reason.contains("exceeds the maximum"), "{reason}");
 
-        // A good header with a garbage payload is skipped; the connection stays usable.
-        let mut client = connect(addr, &bundle).await;
+        // A good header with a payload from which not even the seq can be read: dropped and
+        // counted (nothing to acknowledge); the connection stays usable.
+        let mut client = connect(addr, bundle).await;
         let mut garbage = header(1, 3);
         garbage.extend_from_slice(&[0xff, 0xff, 0xff]);
         client.send.write_all(&garbage).await.expect("write");
@@ -138,32 +206,354 @@ fn bad_frames_close_the_connection_cleanly_and_the_server_keeps_serving() {
             "the connection did not survive a malformed frame"
         );
     });
-    let stats = server.stop();
-    assert_eq!(stats.rejected, 3, "{stats:?}");
+    let stats = site.server.stop();
+    assert_eq!(stats.rejected, 2, "{stats:?}");
+    assert_eq!(stats.unidentified, 1, "{stats:?}");
     assert_eq!(stats.frames, 1, "{stats:?}");
 }
 
 #[test]
-fn a_reconnecting_edge_replaces_its_old_connection() {
-    let (dir, bundle, server, runtime) = start_server();
-    let addr = server.addr();
-    runtime.block_on(async {
-        let mut old = connect(addr, &bundle).await;
-        assert!(old.heartbeat_is_acknowledged(7, 0).await);
-        // The edge comes back on a new connection before the server noticed the old one die.
-        let mut new = connect(addr, &bundle).await;
-        assert!(new.heartbeat_is_acknowledged(7, 1).await);
-        let (code, reason) = old.closed_by_server().await;
-        assert_eq!(code, u64::from(close_code::DONE));
-        assert!(reason.contains("replaced"), "{reason}");
+fn a_frame_that_does_not_decode_is_recorded_raw_and_every_frame_after_it_acknowledged() {
+    let site = start_server();
+    let session = 0x00ba_d001;
+    site.runtime.block_on(async {
+        let mut client = connect(site.server.addr(), &site.bundle).await;
+        client.send_heartbeat(session, 0).await;
+        client
+            .send
+            .write_all(&undecodable_frame(session, 1))
+            .await
+            .expect("write");
+        for seq in 2..=5 {
+            client.send_heartbeat(session, seq).await;
+        }
+        assert!(
+            client.acknowledged(session, &[0, 1, 2, 3, 4, 5]).await,
+            "acks received: {:?}",
+            client.acks
+        );
     });
-    let stats = server.stop();
+    let stats = site.server.stop();
+    assert_eq!((stats.frames, stats.undecodable), (5, 1), "{stats:?}");
+    let dir = session_dir(&site.dir.path().join("data"), rig::EDGE_NAME, session);
+    let summary = summarize_session(rig::EDGE_NAME, session, &dir).expect("summary");
+    assert_eq!(
+        (summary.frames, summary.undecodable_frames),
+        (5, 1),
+        "{summary:?}"
+    );
+}
+
+#[test]
+fn a_gap_in_the_sequence_numbers_does_not_stop_acknowledgements() {
+    let site = start_server();
+    let session = 0x0000_9a90;
+    site.runtime.block_on(async {
+        let mut client = connect(site.server.addr(), &site.bundle).await;
+        // Seq 2 never comes (e.g. lost with a torn spool record on the edge).
+        for seq in [0, 1, 3, 4, 5] {
+            client.send_heartbeat(session, seq).await;
+        }
+        assert!(
+            client.acknowledged(session, &[0, 1, 3, 4, 5]).await,
+            "acks received: {:?}",
+            client.acks
+        );
+        assert!(
+            !client.acks.iter().any(|(_, ack)| ack.covers(2)),
+            "seq 2 was acknowledged without being recorded: {:?}",
+            client.acks
+        );
+    });
+    site.server.stop();
+}
+
+/// The edge's real uplink sends a server → edge body at seq 1 (a misdirected frame), then
+/// ordinary frames: the server records and acknowledges it like any other, so the spool drains.
+#[test]
+fn a_misdirected_frame_at_seq_1_does_not_keep_the_edge_spool_from_draining() {
+    let site = start_server();
+    let spool = site.dir.path().join("spool");
+    let clock: SharedClock = Arc::new(ScaledClock::new(1.0));
+    let session = 0x05e9_0001;
+    let config = UplinkConfig::new(
+        site.server.addr().to_string(),
+        "localhost".into(),
+        client_config(&site.bundle).expect("bundle"),
+        SpoolConfig::new(&spool),
+    );
+    let (uplink, handle, _commands) = Uplink::new(config, clock, session).expect("uplink");
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    let running = site.runtime.spawn(uplink.run(stopped));
+    assert_eq!(handle.submit(Heartbeat { sent_ns: 1 }).expect("submit"), 0);
+    assert_eq!(handle.submit(Command::StopStaticScan).expect("submit"), 1);
+    for _ in 2..20 {
+        handle.submit(Heartbeat { sent_ns: 2 }).expect("submit");
+    }
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    while handle.pending() > 0 && std::time::Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let pending = handle.pending();
+    let _ = stop.send(true);
+    let uplink_stats = site.runtime.block_on(running).expect("uplink task");
+    assert_eq!(pending, 0, "frames left in the spool: {uplink_stats:?}");
+    let stats = site.server.stop();
+    // 19 frames and the time-sync pongs the edge sent meanwhile.
+    assert!(stats.frames >= 19, "{stats:?}");
+    assert_eq!(stats.misdirected, 1, "{stats:?}");
+}
+
+#[test]
+fn an_authenticated_edge_that_opens_no_stream_is_dropped() {
+    let site = start_server_with(|config| {
+        config.limits.first_stream_timeout = Duration::from_millis(300);
+    });
+    site.runtime.block_on(async {
+        let endpoint = client_endpoint(&site.bundle);
+        let connection = endpoint
+            .connect(site.server.addr(), "localhost")
+            .expect("connect")
+            .await
+            .expect("handshake");
+        let closed = tokio::time::timeout(Duration::from_secs(5), connection.closed())
+            .await
+            .expect("the server closes an idle connection");
+        match closed {
+            quinn::ConnectionError::ApplicationClosed(close) => {
+                assert_eq!(
+                    close.error_code.into_inner(),
+                    u64::from(close_code::PROTOCOL_ERROR)
+                );
+                let reason = String::from_utf8_lossy(&close.reason).into_owned();
+                assert!(reason.contains("no stream"), "{reason}");
+            }
+            other => panic!("expected an application close, got {other}"),
+        }
+    });
+    let stats = site.server.stop();
+    assert_eq!((stats.connections, stats.no_stream), (1, 1), "{stats:?}");
+}
+
+/// A peer that sends one valid QUIC Initial (from its own UDP address) and never anything else:
+/// a quinn client talks to a black hole that passes its first datagram on to the server and
+/// drops everything else, both ways.
+struct BareInitial {
+    _endpoint: quinn::Endpoint,
+    /// The server's answers arrive here and are never read.
+    _upstream: UdpSocket,
+}
+
+async fn bare_initial(server: SocketAddr, bundle: &Path) -> BareInitial {
+    let hole = UdpSocket::bind("127.0.0.1:0").expect("udp");
+    hole.set_read_timeout(Some(Duration::from_secs(5)))
+        .expect("timeout");
+    let upstream = UdpSocket::bind("127.0.0.1:0").expect("udp");
+    let endpoint = client_endpoint(bundle);
+    let connecting = endpoint
+        .connect(hole.local_addr().expect("addr"), "localhost")
+        .expect("connect");
+    tokio::spawn(async move {
+        let _ = connecting.await;
+    });
+    let first = tokio::task::spawn_blocking(move || {
+        let mut datagram = vec![0; 65_535];
+        let (len, _) = hole.recv_from(&mut datagram).expect("the client's Initial");
+        datagram.truncate(len);
+        datagram
+    })
+    .await
+    .expect("read");
+    assert!(
+        first.len() >= 1200,
+        "a client Initial is padded to 1200 bytes"
+    );
+    upstream.send_to(&first, server).expect("forward");
+    BareInitial {
+        _endpoint: endpoint,
+        _upstream: upstream,
+    }
+}
+
+#[test]
+fn handshakes_that_never_complete_do_not_keep_a_paired_edge_out() {
+    let site = start_server_with(|config| {
+        config.max_connections = 2;
+        config.limits.retry_above_handshakes = 4;
+        config.limits.handshake_timeout = Duration::from_secs(1);
+    });
+    let addr = site.server.addr();
+    site.runtime.block_on(async {
+        let mut bad = Vec::new();
+        for _ in 0..6 {
+            bad.push(bare_initial(addr, &site.bundle).await);
+        }
+        // Let the server take all six in.
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        let started = tokio::time::Instant::now();
+        let mut edge = tokio::time::timeout(Duration::from_secs(3), connect(addr, &site.bundle))
+            .await
+            .expect("the edge connects while the bare Initials hang");
+        assert!(edge.heartbeat_is_acknowledged(0xed9e, 0).await);
+        assert!(started.elapsed() < Duration::from_secs(3));
+        // The stalled handshakes time out; the edge stays connected and acknowledged.
+        tokio::time::sleep(Duration::from_millis(1500)).await;
+        assert!(edge.heartbeat_is_acknowledged(0xed9e, 1).await);
+        drop(bad);
+    });
+    let stats = site.server.stop();
+    assert_eq!(stats.connections, 1, "{stats:?}");
+    // Four Initials got a handshake (then timed out); the other two and the edge, arriving
+    // with four handshakes in progress, had to validate their address first.
+    assert_eq!(stats.handshake_timeouts, 4, "{stats:?}");
+    assert_eq!(stats.address_validations, 3, "{stats:?}");
+}
+
+#[test]
+fn a_reconnecting_edge_replaces_its_old_connection_once_that_is_silent() {
+    let site = start_server_with(|config| {
+        config.limits.replace_after_silence = Duration::from_millis(800);
+    });
+    let relay = scan3d_tests::relay::UdpRelay::start(site.server.addr()).expect("relay");
+    let session = 7;
+    site.runtime.block_on(async {
+        let mut old = connect(relay.local_addr(), &site.bundle).await;
+        assert!(old.heartbeat_is_acknowledged(session, 0).await);
+        // The old path dies without the server noticing (no close reaches it); the edge comes
+        // back on a new connection from another address.
+        relay.cut();
+        tokio::time::sleep(Duration::from_millis(1200)).await;
+        let mut new = connect(site.server.addr(), &site.bundle).await;
+        assert!(new.heartbeat_is_acknowledged(session, 1).await);
+    });
+    let stats = site.server.stop();
+    assert_eq!((stats.replaced, stats.duplicate_names), (1, 0), "{stats:?}");
     assert_eq!((stats.frames, stats.duplicates), (2, 0), "{stats:?}");
-    let data = dir.path().join("data");
-    let session = scan3d_server::ingest::recorder::session_dir(&data, rig::EDGE_NAME, 7);
-    let frames = scan3d_server::ingest::recorder::read_session(&session).expect("recording");
+    let dir = session_dir(&site.dir.path().join("data"), rig::EDGE_NAME, session);
+    let frames = scan3d_server::ingest::recorder::read_session(&dir).expect("recording");
     assert_eq!(
         frames.iter().map(|f| f.frame.seq).collect::<Vec<_>>(),
         vec![0, 1]
     );
+    relay.shutdown();
+}
+
+#[test]
+fn a_second_live_device_under_a_connected_name_is_refused_and_the_first_keeps_recording() {
+    let site = start_server();
+    site.runtime.block_on(async {
+        let mut first = connect(site.server.addr(), &site.bundle).await;
+        assert!(first.heartbeat_is_acknowledged(1, 0).await);
+        // Same certificate, another device: its connection is refused, not the first one's.
+        let mut twin = connect(site.server.addr(), &site.bundle).await;
+        twin.send_heartbeat(2, 0).await;
+        let (code, reason) = twin.closed_by_server().await;
+        assert_eq!(code, u64::from(close_code::DUPLICATE_EDGE), "{reason}");
+        assert!(first.heartbeat_is_acknowledged(1, 1).await);
+        assert!(first.connection.close_reason().is_none());
+    });
+    let stats = site.server.stop();
+    assert_eq!((stats.duplicate_names, stats.replaced), (1, 0), "{stats:?}");
+    assert_eq!((stats.connections, stats.frames), (1, 2), "{stats:?}");
+}
+
+#[test]
+fn an_idle_session_is_closed_and_reopened_when_its_frames_come_back() {
+    let site = start_server_with(|config| {
+        config.limits.session_idle_timeout = Duration::from_millis(300);
+    });
+    let session = 0x1d1e;
+    site.runtime.block_on(async {
+        let mut client = connect(site.server.addr(), &site.bundle).await;
+        assert!(client.heartbeat_is_acknowledged(session, 0).await);
+        tokio::time::sleep(Duration::from_secs(1)).await;
+        // A resend of seq 0 (a duplicate) and a new frame: acknowledged by the reopened
+        // recording.
+        client.acks.clear();
+        client.send_heartbeat(session, 0).await;
+        client.send_heartbeat(session, 1).await;
+        assert!(
+            client.acknowledged(session, &[0, 1]).await,
+            "{:?}",
+            client.acks
+        );
+    });
+    let stats = site.server.stop();
+    assert!(stats.sessions_idle_closed >= 1, "{stats:?}");
+    assert_eq!((stats.frames, stats.duplicates), (2, 1), "{stats:?}");
+    let dir = session_dir(&site.dir.path().join("data"), rig::EDGE_NAME, session);
+    let frames = scan3d_server::ingest::recorder::read_session(&dir).expect("recording");
+    assert_eq!(
+        frames.iter().map(|f| f.frame.seq).collect::<Vec<_>>(),
+        vec![0, 1]
+    );
+}
+
+#[test]
+fn an_edge_over_its_buffer_limit_is_committed_and_acknowledged_before_the_commit_interval() {
+    let site = start_server_with(|config| {
+        config.commit_interval = Duration::from_secs(60);
+        config.limits.max_buffered_bytes_per_edge = 32 * 1024;
+    });
+    let session = 0xb1f;
+    let revolution = |seq: u64| {
+        let mut rev = LidarRevolution::new(SensorId::RPLIDAR, 0, 200_000_000);
+        for i in 0..2000u32 {
+            rev.push(i as f32 * 0.18, 3.0, 40, u64::from(i) * 100_000)
+                .expect("sample time");
+        }
+        encode(&Frame::new(session, seq, rev)).expect("encode")
+    };
+    site.runtime.block_on(async {
+        let mut client = connect(site.server.addr(), &site.bundle).await;
+        // ~26 KB each: two take the edge past 32 KiB. (The commit interval's first tick may
+        // commit seq 0 alone, if it comes after it: then seq 2 is the one over the limit.)
+        for seq in 0..3 {
+            client
+                .send
+                .write_all(&revolution(seq))
+                .await
+                .expect("write");
+        }
+        assert!(
+            client.acknowledged(session, &[0, 1]).await,
+            "{:?}",
+            client.acks
+        );
+    });
+    let stats = site.server.stop();
+    assert_eq!(stats.early_commits, 1, "{stats:?}");
+}
+
+#[test]
+fn after_a_reconnect_the_server_acknowledges_again_what_it_already_holds() {
+    let site = start_server();
+    let session = 0x00ac_0001;
+    site.runtime.block_on(async {
+        let mut first = connect(site.server.addr(), &site.bundle).await;
+        // Seq 1 is missing: 2 and 3 can only be acknowledged as a range.
+        for seq in [0, 2, 3] {
+            first.send_heartbeat(session, seq).await;
+        }
+        assert!(
+            first.acknowledged(session, &[0, 2, 3]).await,
+            "{:?}",
+            first.acks
+        );
+        first.connection.close(0u32.into(), b"edge going away");
+        first._endpoint.wait_idle().await;
+        // The edge did not see those acks (say), so it resends 2 and 3 on a new connection.
+        let mut second = connect(site.server.addr(), &site.bundle).await;
+        for seq in [2, 3] {
+            second.send_heartbeat(session, seq).await;
+        }
+        assert!(
+            second.acknowledged(session, &[2, 3]).await,
+            "{:?}",
+            second.acks
+        );
+        assert!(!second.acks.iter().any(|(_, ack)| ack.covers(1)));
+    });
+    let stats = site.server.stop();
+    assert_eq!((stats.frames, stats.duplicates), (3, 2), "{stats:?}");
 }

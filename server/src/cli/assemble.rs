@@ -13,7 +13,7 @@ use anyhow::Context;
 use crate::cloud::OriginScan;
 use crate::cloud::assembly::{AssembledScan, StaticScanAssembler, cut_range};
 use crate::cloud::io;
-use crate::ingest::recorder::read_session;
+use crate::ingest::recorder::read_session_checked;
 
 /// Options of `scan3d assemble`.
 #[derive(Debug, clap::Args)]
@@ -30,12 +30,24 @@ pub struct AssembleArgs {
     /// Drop points farther than this from their sensor origin, metres.
     #[arg(long)]
     pub max_range: Option<f64>,
+    /// Go on with the readable rest of a damaged recording (with a warning) instead of failing.
+    #[arg(long)]
+    pub lenient: bool,
 }
 
-/// The scans of a session directory, assembled.
+/// The scans of a session directory, assembled; fails if part of the recording is damaged.
 pub fn assemble_session(session_dir: &std::path::Path) -> anyhow::Result<Vec<AssembledScan>> {
-    let frames = read_session(session_dir)
-        .with_context(|| format!("cannot read {}", session_dir.display()))?;
+    assemble_session_checked(session_dir, false)
+}
+
+/// The scans of a session directory, assembled; with `lenient`, from what is readable of a
+/// damaged recording (see [`read_session_checked`]).
+pub fn assemble_session_checked(
+    session_dir: &std::path::Path,
+    lenient: bool,
+) -> anyhow::Result<Vec<AssembledScan>> {
+    let frames = read_session_checked(session_dir, lenient)
+        .context("cannot assemble the session (--lenient assembles what is readable)")?;
     let mut assembler = StaticScanAssembler::new();
     for recorded in &frames {
         assembler.on_body(&recorded.frame.body);
@@ -62,7 +74,7 @@ pub fn run(args: &AssembleArgs, out: &mut dyn Write) -> anyhow::Result<()> {
     let mut scans: Vec<AssembledScan> = Vec::new();
     for dir in &args.session_dirs {
         scans.extend(
-            assemble_session(dir)?
+            assemble_session_checked(dir, args.lenient)?
                 .into_iter()
                 .filter(|s| args.positions.is_empty() || args.positions.contains(&s.position.name)),
         );

@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 
 use crate::cloud::scans::ScanCollector;
-use crate::ingest::recorder::read_session;
+use crate::ingest::recorder::read_session_checked;
 
 /// Options of `scan3d replay`.
 #[derive(Debug, clap::Args)]
@@ -21,12 +21,15 @@ pub struct ReplayArgs {
     /// Replay at the recorded pace instead of as fast as possible.
     #[arg(long)]
     pub realtime: bool,
+    /// Go on with the readable rest of a damaged recording (with a warning) instead of failing.
+    #[arg(long)]
+    pub lenient: bool,
 }
 
 /// Runs `scan3d replay`.
 pub fn run(args: &ReplayArgs, out: &mut dyn Write) -> anyhow::Result<()> {
-    let frames = read_session(&args.session_dir)
-        .with_context(|| format!("cannot read {}", args.session_dir.display()))?;
+    let frames = read_session_checked(&args.session_dir, args.lenient)
+        .context("cannot replay the session (--lenient replays what is readable)")?;
     let mut collector = ScanCollector::new();
     let started = Instant::now();
     let first_log_time = frames.first().map_or(0, |f| f.log_time_ns);

@@ -32,6 +32,7 @@ impl From<&ServerConfig> for IngestConfig {
             commit_interval: config.commit_interval(),
             time_sync_interval: config.time_sync_interval(),
             max_connections: config.max_connections,
+            limits: config.ingest_limits(),
         }
     }
 }

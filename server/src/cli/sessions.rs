@@ -6,7 +6,7 @@ use std::io::Write;
 use anyhow::Context;
 
 use super::DataDirArgs;
-use crate::ingest::recorder::{SessionSummary, list_sessions};
+use crate::ingest::recorder::{SessionReport, SessionSummary, list_sessions};
 
 /// Options of `scan3d sessions`.
 #[derive(Debug, clap::Args)]
@@ -17,6 +17,9 @@ pub struct SessionsArgs {
     /// Print one JSON object per session instead of a table.
     #[arg(long)]
     pub json: bool,
+    /// Exit 0 even when a recording is damaged (the damage is still listed and warned about).
+    #[arg(long)]
+    pub lenient: bool,
 }
 
 /// Lidar revolutions per sensor, from the `/scan3d/lidar/<sensor>` topic counts.
@@ -47,6 +50,9 @@ fn json_line(summary: &SessionSummary) -> serde_json::Value {
         "frames_per_topic": summary.frames_per_topic,
         "revolutions": revolutions(summary).into_iter().collect::<std::collections::BTreeMap<_, _>>(),
         "skipped_messages": summary.skipped_messages,
+        "undecodable_frames": summary.undecodable_frames,
+        "losses": summary.losses,
+        "missing_seqs": summary.missing_seqs,
         "first_log_time_ns": summary.first_log_time_ns,
         "last_log_time_ns": summary.last_log_time_ns,
         "duration_s": duration_s(summary),
@@ -59,8 +65,38 @@ pub fn run(args: &SessionsArgs, out: &mut dyn Write) -> anyhow::Result<()> {
     let data_dir = args.data.resolve()?;
     let sessions = list_sessions(&data_dir)
         .with_context(|| format!("cannot list sessions under {}", data_dir.display()))?;
+    print(args, &data_dir, &sessions, out)?;
+    let damaged: Vec<String> = sessions.iter().filter_map(loss_line).collect();
+    if damaged.is_empty() {
+        return Ok(());
+    }
+    let line = damaged.join("; ");
+    if args.lenient {
+        tracing::warn!("recordings damaged: {line}");
+        return Ok(());
+    }
+    anyhow::bail!("recordings damaged (--lenient to list anyway): {line}")
+}
+
+/// What a session lost, in one line (see [`SessionReport::loss_line`]).
+fn loss_line(summary: &SessionSummary) -> Option<String> {
+    SessionReport {
+        losses: summary.losses.clone(),
+        missing_seqs: summary.missing_seqs.clone(),
+        ..SessionReport::default()
+    }
+    .loss_line()
+}
+
+/// The table (or JSON lines) of `scan3d sessions`.
+fn print(
+    args: &SessionsArgs,
+    data_dir: &std::path::Path,
+    sessions: &[SessionSummary],
+    out: &mut dyn Write,
+) -> anyhow::Result<()> {
     if args.json {
-        for summary in &sessions {
+        for summary in sessions {
             writeln!(out, "{}", json_line(summary))?;
         }
         return Ok(());
@@ -81,10 +117,17 @@ pub fn run(args: &SessionsArgs, out: &mut dyn Write) -> anyhow::Result<()> {
                 .map(|(sensor, n)| format!("{sensor}={n}"))
                 .collect::<Vec<_>>()
                 .join(" ");
-            let files = if s.incomplete_files > 0 {
-                format!("{} ({} cut short)", s.files, s.incomplete_files)
-            } else {
+            let mut notes = Vec::new();
+            if s.incomplete_files > 0 {
+                notes.push(format!("{} cut short", s.incomplete_files));
+            }
+            if !s.losses.is_empty() {
+                notes.push(format!("{} damaged", s.losses.len()));
+            }
+            let files = if notes.is_empty() {
                 s.files.to_string()
+            } else {
+                format!("{} ({})", s.files, notes.join(", "))
             };
             [
                 s.edge.clone(),
@@ -166,6 +209,7 @@ mod tests {
                 config: PathBuf::from("/nonexistent/server.toml"),
             },
             json: false,
+            lenient: false,
         };
         run(&args, &mut out).expect("run");
         let text = String::from_utf8(out).expect("utf8");
@@ -192,6 +236,7 @@ mod tests {
                 config: PathBuf::from("/nonexistent/server.toml"),
             },
             json: true,
+            lenient: false,
         };
         run(&args, &mut out).expect("run");
         let text = String::from_utf8(out).expect("utf8");
@@ -216,6 +261,7 @@ mod tests {
                 config: PathBuf::from("/nonexistent/server.toml"),
             },
             json: false,
+            lenient: false,
         };
         run(&args, &mut out).expect("run");
         let text = String::from_utf8(out).expect("utf8");

@@ -5,8 +5,10 @@
 //! - [`recorder`]: MCAP session recordings, acknowledged only once durable.
 //! - [`timesync`]: NTP-style offset / round-trip estimates per edge.
 //! - [`server`]: the endpoint, one task per edge connection.
+//! - [`acks`]: which acknowledgements to send, from what is durable and what was acknowledged.
 //! - [`control`]: operator commands to connected edges, and the local control socket.
 
+pub mod acks;
 pub mod control;
 pub mod pki;
 pub mod recorder;

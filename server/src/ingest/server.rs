@@ -7,11 +7,34 @@
 //! - learns the edge's name from its client certificate (a connection without a valid one
 //!   never gets here: the TLS handshake refuses it);
 //! - appends each frame to its session's [`SessionRecorder`], ignoring duplicates (resends);
-//! - every `commit_interval` finishes the MCAP chunk, fsyncs, and acknowledges the durable
-//!   prefix of each session: a frame is acknowledged only once it is on disk;
+//! - every `commit_interval` finishes the MCAP chunk, fsyncs, and acknowledges what became
+//!   durable in each session, as ranges ([`AckPlan`]): a frame is acknowledged only once it is
+//!   on disk, and a gap in the sequence numbers does not stop the acknowledgement of later ones;
 //! - every `time_sync_interval` pings the edge and keeps NTP-style offset estimates;
 //! - rejects frames it cannot use (bad magic, unknown protocol version, over the size limit)
-//!   with a logged reason and closes the connection cleanly; malformed payloads are skipped.
+//!   with a logged reason and closes the connection cleanly. A frame whose header is fine but
+//!   whose payload does not decode, or that carries a server → edge body, is recorded raw
+//!   ([`SessionRecorder::append_undecodable`]), acknowledged and reported, when its session and
+//!   seq can be read ([`decode_ids`]); otherwise it is counted and logged.
+//!
+//! # What a peer can cost ([`IngestLimits`])
+//!
+//! - Unauthenticated peers: at most `max_handshakes` handshakes in progress, each for at most
+//!   `handshake_timeout`; above `retry_above_handshakes` in progress, a peer must first prove
+//!   its address with a QUIC Retry (stateless for the server). Only connections that completed
+//!   the handshake with a valid certificate take one of the `max_connections` slots, so a
+//!   flood of Initials that never complete cannot keep a paired edge out.
+//! - An authenticated edge that opens no stream within `first_stream_timeout` is dropped.
+//! - Per edge connection, at most `max_sessions_per_edge` recordings are open (the least
+//!   recently used one is committed, acknowledged and closed to open another; one unused for
+//!   `session_idle_timeout` is closed), and at most `max_buffered_bytes_per_edge` of frames wait
+//!   for a commit (more commits early). Memory and file descriptors per edge are bounded
+//!   whatever session ids it sends.
+//!
+//! # A second connection under a connected name
+//!
+//! See [`claim_slot`]: replace the old connection when it has been silent for
+//! `replace_after_silence`, refuse the new one while the old is demonstrably alive.
 //!
 //! Shutdown follows mini-redis: a `watch` channel tells every task to stop; each commits what
 //! it has, closes its recordings (writing the MCAP summary) and closes its connection.
@@ -20,18 +43,20 @@ use std::collections::HashMap;
 use std::future::Future;
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use scan3d_protocol::{
-    Ack, Body, Command, DecodeError, Direction, Frame, HEADER_LEN, TimePing, decode, decode_header,
-    encode,
+    Body, Command, DecodeError, Direction, Frame, HEADER_LEN, TimePing, decode, decode_header,
+    decode_ids, encode,
 };
-use tokio::sync::{Semaphore, mpsc, watch};
+use tokio::sync::{OwnedSemaphorePermit, Semaphore, mpsc, watch};
 use tokio::task::JoinSet;
 
+use super::acks::AckPlan;
 use super::control::EdgeControl;
-use super::recorder::{Appended, SessionRecorder};
+use super::recorder::{Appended, SessionRecorder, body_name};
 use super::timesync::{Estimate, Exchange, TimeSync};
 use super::tls;
 
@@ -39,12 +64,60 @@ use super::tls;
 pub mod close_code {
     /// Normal close (server shutting down, edge going away).
     pub const DONE: u32 = 0;
-    /// The peer sent bytes that are not scan3d frames, or of another protocol version.
+    /// The peer sent bytes that are not scan3d frames, or of another protocol version, or
+    /// opened no stream in time.
     pub const PROTOCOL_ERROR: u32 = 1;
     /// The server could not record (disk full, permissions): the edge keeps its spool.
     pub const STORAGE_ERROR: u32 = 2;
     /// Too many edges connected.
     pub const BUSY: u32 = 3;
+    /// Another connection under the same edge name is alive (two devices share one
+    /// certificate, or the edge came back before its old connection went quiet): retry later.
+    pub const DUPLICATE_EDGE: u32 = 4;
+}
+
+/// Acks sent per session per commit at most (see [`AckPlan::next_acks`]); the rest follow on
+/// the next commits.
+const MAX_ACKS_PER_COMMIT: usize = 64;
+
+/// What unauthenticated peers and each edge connection may cost; see the module docs.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct IngestLimits {
+    /// TLS handshakes in progress at once; further Initials are refused (`CONNECTION_REFUSED`).
+    pub max_handshakes: usize,
+    /// With more handshakes than this in progress, a peer whose address is not validated gets
+    /// a QUIC Retry first (0: always).
+    pub retry_above_handshakes: usize,
+    /// A handshake not finished by then is dropped.
+    pub handshake_timeout: Duration,
+    /// An authenticated connection that opened no stream by then is closed.
+    pub first_stream_timeout: Duration,
+    /// Session recordings open at once per edge connection.
+    pub max_sessions_per_edge: usize,
+    /// A session recording without frames for this long is committed and closed.
+    pub session_idle_timeout: Duration,
+    /// Frame bytes appended but not yet committed, across one edge's recordings; over it the
+    /// edge's recordings are committed at once.
+    pub max_buffered_bytes_per_edge: usize,
+    /// A new connection under an edge name already connected replaces the old connection if
+    /// the old one received nothing for this long; otherwise the new one is refused.
+    pub replace_after_silence: Duration,
+}
+
+impl Default for IngestLimits {
+    fn default() -> Self {
+        Self {
+            max_handshakes: 64,
+            retry_above_handshakes: 8,
+            handshake_timeout: Duration::from_secs(5),
+            first_stream_timeout: Duration::from_secs(10),
+            max_sessions_per_edge: 8,
+            session_idle_timeout: Duration::from_secs(60),
+            max_buffered_bytes_per_edge: 16 << 20,
+            // Two keep-alive intervals and a margin: a live peer answers keep-alives.
+            replace_after_silence: tls::KEEP_ALIVE_INTERVAL * 2 + Duration::from_secs(1),
+        }
+    }
 }
 
 /// Everything the ingest server needs to run.
@@ -60,8 +133,10 @@ pub struct IngestConfig {
     pub commit_interval: Duration,
     /// How often each edge is pinged for time sync.
     pub time_sync_interval: Duration,
-    /// Edges served at once; more are refused with [`close_code::BUSY`].
+    /// Authenticated edges served at once; more are refused with [`close_code::BUSY`].
     pub max_connections: usize,
+    /// Bounds on handshakes, sessions and buffers.
+    pub limits: IngestLimits,
 }
 
 /// What the server reports while it runs (for the demo, tests and a live view).
@@ -104,16 +179,42 @@ pub enum IngestEvent {
 pub struct IngestStats {
     /// Connections that completed the TLS handshake with a valid client certificate.
     pub connections: u64,
-    /// Connection attempts refused (handshake failed, too many edges).
+    /// Connection attempts refused (handshake failed or timed out, too many handshakes or
+    /// edges, duplicate edge name).
     pub refused: u64,
+    /// Handshakes dropped after [`IngestLimits::handshake_timeout`].
+    pub handshake_timeouts: u64,
+    /// QUIC Retry packets sent to validate a peer's address under load.
+    pub address_validations: u64,
+    /// Authenticated connections closed because they opened no stream in time.
+    pub no_stream: u64,
+    /// Connections that replaced a silent connection under the same edge name.
+    pub replaced: u64,
+    /// Connections refused because the same edge name was connected and alive.
+    pub duplicate_names: u64,
     /// Frames recorded.
     pub frames: u64,
     /// Bytes of frames recorded.
     pub bytes: u64,
     /// Resent frames ignored because they were already recorded.
     pub duplicates: u64,
-    /// Frames skipped as malformed, or connections closed for protocol errors.
+    /// Connections closed for protocol errors (bad magic, version, size).
     pub rejected: u64,
+    /// Frames whose payload did not decode, recorded raw and acknowledged.
+    pub undecodable: u64,
+    /// Frames carrying a server → edge body, recorded raw and acknowledged.
+    pub misdirected: u64,
+    /// Undecodable frames whose session and seq could not even be read: dropped, never
+    /// acknowledged.
+    pub unidentified: u64,
+    /// Recordings closed to make room for another session of the same edge.
+    pub sessions_evicted: u64,
+    /// Recordings closed after [`IngestLimits::session_idle_timeout`] without frames.
+    pub sessions_idle_closed: u64,
+    /// Commits made early because an edge buffered [`IngestLimits::max_buffered_bytes_per_edge`].
+    pub early_commits: u64,
+    /// The most session recordings open at once, all edges together.
+    pub peak_recorders_open: u64,
 }
 
 /// A bound, not yet running, ingest server.
@@ -152,16 +253,18 @@ impl IngestServer {
         events: Option<mpsc::UnboundedSender<IngestEvent>>,
         shutdown: impl Future<Output = ()>,
     ) -> IngestStats {
+        let max_handshakes = self.config.limits.max_handshakes.max(1);
         let shared = Arc::new(Shared {
             config: self.config,
             events,
             stats: Mutex::new(IngestStats::default()),
             edges: Mutex::new(HashMap::new()),
             control: self.control,
-            next_connection_id: std::sync::atomic::AtomicU64::new(0),
+            next_connection_id: AtomicU64::new(0),
+            recorders_open: AtomicUsize::new(0),
         });
         let (stop_tx, stop_rx) = watch::channel(false);
-        let slots = Arc::new(Semaphore::new(shared.config.max_connections.max(1)));
+        let handshakes = Arc::new(Semaphore::new(max_handshakes));
         let mut tasks = JoinSet::new();
         tokio::pin!(shutdown);
         loop {
@@ -169,18 +272,36 @@ impl IngestServer {
                 () = &mut shutdown => break,
                 incoming = self.endpoint.accept() => {
                     let Some(incoming) = incoming else { break };
-                    let Ok(permit) = slots.clone().try_acquire_owned() else {
-                        tracing::warn!(remote = %incoming.remote_address(), "too many edges; refusing");
-                        shared.count(|s| s.refused += 1);
-                        incoming.refuse();
-                        continue;
-                    };
-                    let shared = shared.clone();
-                    let stop = stop_rx.clone();
-                    tasks.spawn(async move {
-                        handle_incoming(incoming, shared, stop).await;
-                        drop(permit);
-                    });
+                    let in_progress = max_handshakes - handshakes.available_permits();
+                    let remote = incoming.remote_address();
+                    match admission(
+                        in_progress,
+                        &shared.config.limits,
+                        incoming.remote_address_validated(),
+                        incoming.may_retry(),
+                    ) {
+                        Admission::Retry => {
+                            tracing::debug!(%remote, in_progress, "validating the address (QUIC retry)");
+                            shared.count(|s| s.address_validations += 1);
+                            if let Err(e) = incoming.retry() {
+                                e.into_incoming().refuse();
+                            }
+                        }
+                        Admission::Refuse => {
+                            tracing::warn!(%remote, in_progress, "too many handshakes in progress; refusing");
+                            shared.count(|s| s.refused += 1);
+                            incoming.refuse();
+                        }
+                        Admission::Handshake => {
+                            let Ok(permit) = handshakes.clone().try_acquire_owned() else {
+                                incoming.refuse();
+                                continue;
+                            };
+                            let shared = shared.clone();
+                            let stop = stop_rx.clone();
+                            tasks.spawn(handle_incoming(incoming, permit, shared, stop));
+                        }
+                    }
                 }
                 Some(_) = tasks.join_next(), if !tasks.is_empty() => {}
             }
@@ -195,24 +316,147 @@ impl IngestServer {
     }
 }
 
+/// What to do with a new QUIC Initial.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Admission {
+    /// Start the TLS handshake (takes one of `max_handshakes`).
+    Handshake,
+    /// Ask the peer to prove its address first (stateless for the server).
+    Retry,
+    /// Refuse: too many handshakes in progress even for validated peers.
+    Refuse,
+}
+
+/// The admission rule for a new Initial, given the handshakes in progress: under load, peers
+/// must validate their address before the server keeps any state for them, and there is a cap
+/// even for validated ones (the handshake timeout frees their places).
+fn admission(
+    in_progress: usize,
+    limits: &IngestLimits,
+    address_validated: bool,
+    may_retry: bool,
+) -> Admission {
+    if !address_validated && may_retry && in_progress >= limits.retry_above_handshakes {
+        Admission::Retry
+    } else if in_progress >= limits.max_handshakes {
+        Admission::Refuse
+    } else {
+        Admission::Handshake
+    }
+}
+
 struct Shared {
     config: IngestConfig,
     events: Option<mpsc::UnboundedSender<IngestEvent>>,
     stats: Mutex<IngestStats>,
-    /// The live connection of each edge. An edge that reconnects before the server noticed
-    /// its old connection die (a short outage) replaces it: the old task closes its
-    /// recordings first, so one session is never written by two tasks at once.
+    /// The live connection of each authenticated edge: one entry per slot of
+    /// `max_connections` (see [`claim_slot`]).
     edges: Mutex<HashMap<String, EdgeSlot>>,
     /// Commands for the edges, routed to their live connection's task.
     control: EdgeControl,
-    next_connection_id: std::sync::atomic::AtomicU64,
+    next_connection_id: AtomicU64,
+    /// Session recordings open now, all edges together.
+    recorders_open: AtomicUsize,
 }
 
 /// An edge's current connection and a way to wait until its task has closed its recordings.
 struct EdgeSlot {
     id: u64,
+    remote: SocketAddr,
     connection: quinn::Connection,
+    liveness: Arc<Liveness>,
     finished: watch::Receiver<bool>,
+}
+
+/// When a connection last received a UDP datagram, sampled by its task (a live peer sends at
+/// least keep-alive acknowledgements every [`tls::KEEP_ALIVE_INTERVAL`]).
+struct Liveness {
+    /// `(datagrams received, when that count was first seen)`.
+    last: Mutex<(u64, Instant)>,
+}
+
+impl Liveness {
+    fn new(connection: &quinn::Connection) -> Self {
+        Self {
+            last: Mutex::new((connection.stats().udp_rx.datagrams, Instant::now())),
+        }
+    }
+
+    /// Notes whether the connection received anything since the last call.
+    fn observe(&self, connection: &quinn::Connection) {
+        let datagrams = connection.stats().udp_rx.datagrams;
+        let mut last = lock(&self.last);
+        if datagrams != last.0 {
+            *last = (datagrams, Instant::now());
+        }
+    }
+
+    /// How long the connection has received nothing (as of the last observation).
+    fn silent_for(&self, connection: &quinn::Connection) -> Duration {
+        self.observe(connection);
+        lock(&self.last).1.elapsed()
+    }
+}
+
+/// The outcome of [`claim_slot`].
+enum Claim {
+    /// The edge was not connected: it has a new slot.
+    New,
+    /// The edge's previous connection was silent: the new one took its slot.
+    Replaces {
+        previous: EdgeSlot,
+        silent_for: Duration,
+    },
+    /// The edge's previous connection is alive: the new one is refused.
+    Duplicate {
+        other: SocketAddr,
+        silent_for: Duration,
+    },
+    /// Every slot is taken by other edges.
+    Busy,
+}
+
+/// Takes a connection slot for `edge`, the rule for a second connection under a name that is
+/// already connected included.
+///
+/// **Replace when the old connection is silent, refuse while it is alive.** An edge that comes
+/// back after an outage the server has not noticed yet (Wi-Fi dropped, NAT rebinding, edge
+/// crashed and restarted) has an old connection that receives nothing any more: after
+/// `replace_after_silence` without a datagram (longer than two keep-alive intervals, which a
+/// live peer would answer) the new connection replaces it, so such an edge waits a few seconds
+/// at most, never until the 10 s idle timeout or for ever. Two live devices with one
+/// certificate both keep their connections busy: the second is refused with
+/// [`close_code::DUPLICATE_EDGE`], so the first keeps recording instead of the two evicting
+/// each other, and every refusal is logged at warn with both addresses and counted
+/// ([`IngestStats::duplicate_names`]). A closed old connection is replaced at once.
+fn claim_slot(shared: &Shared, edge: &str, slot: EdgeSlot) -> Claim {
+    let mut edges = lock(&shared.edges);
+    let connected = edges.len();
+    match edges.get(edge) {
+        Some(old) => {
+            let silent_for = old.liveness.silent_for(&old.connection);
+            let closed = old.connection.close_reason().is_some();
+            if closed || silent_for >= shared.config.limits.replace_after_silence {
+                let previous = edges
+                    .insert(edge.to_owned(), slot)
+                    .expect("the old slot is there");
+                Claim::Replaces {
+                    previous,
+                    silent_for,
+                }
+            } else {
+                Claim::Duplicate {
+                    other: old.remote,
+                    silent_for,
+                }
+            }
+        }
+        None if connected >= shared.config.max_connections.max(1) => Claim::Busy,
+        None => {
+            edges.insert(edge.to_owned(), slot);
+            Claim::New
+        }
+    }
 }
 
 impl Shared {
@@ -225,19 +469,47 @@ impl Shared {
             let _ = events.send(event);
         }
     }
+
+    fn recorder_opened(&self) {
+        let open = self.recorders_open.fetch_add(1, Ordering::Relaxed) + 1;
+        self.count(|s| s.peak_recorders_open = s.peak_recorders_open.max(open as u64));
+    }
+
+    fn recorder_closed(&self) {
+        self.recorders_open.fetch_sub(1, Ordering::Relaxed);
+    }
 }
 
 async fn handle_incoming(
     incoming: quinn::Incoming,
+    handshake: OwnedSemaphorePermit,
     shared: Arc<Shared>,
     stop: watch::Receiver<bool>,
 ) {
     let remote = incoming.remote_address();
-    let connection = match incoming.await {
-        Ok(connection) => connection,
+    let limits = &shared.config.limits;
+    let connecting = match incoming.accept() {
+        Ok(connecting) => connecting,
         Err(e) => {
+            tracing::warn!(%remote, error = %e, "refused a connection");
+            shared.count(|s| s.refused += 1);
+            return;
+        }
+    };
+    // Dropping `connecting` on timeout abandons the handshake (quinn closes it).
+    let connection = match tokio::time::timeout(limits.handshake_timeout, connecting).await {
+        Ok(Ok(connection)) => connection,
+        Ok(Err(e)) => {
             tracing::warn!(%remote, error = %e, "refused a connection (TLS handshake failed)");
             shared.count(|s| s.refused += 1);
+            return;
+        }
+        Err(_) => {
+            tracing::warn!(%remote, timeout = ?limits.handshake_timeout, "handshake not finished in time; dropped");
+            shared.count(|s| {
+                s.refused += 1;
+                s.handshake_timeouts += 1;
+            });
             return;
         }
     };
@@ -250,32 +522,60 @@ async fn handle_incoming(
             return;
         }
     };
+    drop(handshake);
+    let id = shared.next_connection_id.fetch_add(1, Ordering::Relaxed);
+    let (finished_tx, finished) = watch::channel(false);
+    let liveness = Arc::new(Liveness::new(&connection));
+    let slot = EdgeSlot {
+        id,
+        remote,
+        connection: connection.clone(),
+        liveness: liveness.clone(),
+        finished,
+    };
+    match claim_slot(&shared, &edge, slot) {
+        Claim::New => {}
+        Claim::Replaces {
+            mut previous,
+            silent_for,
+        } => {
+            tracing::warn!(%edge, %remote, previous = %previous.remote, ?silent_for,
+                "a new connection of this edge replaces its silent previous one");
+            shared.count(|s| s.replaced += 1);
+            previous.connection.close(
+                close_code::DONE.into(),
+                b"replaced by a newer connection of this edge",
+            );
+            let _ = previous.finished.wait_for(|done| *done).await;
+        }
+        Claim::Duplicate { other, silent_for } => {
+            tracing::warn!(%edge, %remote, connected = %other, ?silent_for,
+                "refused a second connection under a connected edge name (two devices with one certificate, or the old connection is not silent yet)");
+            shared.count(|s| {
+                s.refused += 1;
+                s.duplicate_names += 1;
+            });
+            connection.close(
+                close_code::DUPLICATE_EDGE.into(),
+                b"this edge name is connected from another address",
+            );
+            return;
+        }
+        Claim::Busy => {
+            tracing::warn!(%edge, %remote, max = shared.config.max_connections, "too many edges; refusing");
+            shared.count(|s| s.refused += 1);
+            connection.close(close_code::BUSY.into(), b"too many edges");
+            return;
+        }
+    }
     tracing::info!(%edge, %remote, "edge connected");
     shared.count(|s| s.connections += 1);
     shared.emit(IngestEvent::Connected {
         edge: edge.clone(),
         remote,
     });
-    let id = shared
-        .next_connection_id
-        .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    let (finished_tx, finished) = watch::channel(false);
-    let slot = EdgeSlot {
-        id,
-        connection: connection.clone(),
-        finished,
-    };
-    let previous = lock(&shared.edges).insert(edge.clone(), slot);
-    if let Some(mut previous) = previous {
-        tracing::info!(%edge, "replacing the edge's previous connection");
-        previous.connection.close(
-            close_code::DONE.into(),
-            b"replaced by a newer connection of this edge",
-        );
-        let _ = previous.finished.wait_for(|done| *done).await;
-    }
     let commands = shared.control.register(&edge);
-    let mut session = EdgeConnection::new(edge.clone(), shared.clone());
+    let mut session = EdgeConnection::new(edge.clone(), shared.clone(), liveness);
     let reason = session.serve(&connection, stop, commands).await;
     session.close_all();
     let _ = finished_tx.send(true);
@@ -294,33 +594,51 @@ fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     mutex.lock().unwrap_or_else(|e| e.into_inner())
 }
 
+/// One open session recording of an edge connection.
+struct OpenSession {
+    recorder: SessionRecorder,
+    /// What this connection acknowledged of the session.
+    acks: AckPlan,
+    last_used: Instant,
+    /// Frame bytes appended since the last commit.
+    buffered: usize,
+}
+
 /// What one edge connection keeps.
 struct EdgeConnection {
     edge: String,
     shared: Arc<Shared>,
-    recorders: HashMap<u64, SessionRecorder>,
-    acked: HashMap<u64, u64>,
+    liveness: Arc<Liveness>,
+    /// At most [`IngestLimits::max_sessions_per_edge`].
+    sessions: HashMap<u64, OpenSession>,
+    /// Next server → edge seq per session: kept for the open sessions and the current one.
     sent_seq: HashMap<u64, u64>,
     time_sync: HashMap<u64, TimeSync>,
     /// The most recent session seen on this connection: the one pinged for time sync.
     current_session: Option<u64>,
     buffer: Vec<u8>,
+    /// Sum of the sessions' `buffered`.
+    buffered: usize,
+    /// Frames to send to the edge after the current step.
+    outgoing: Vec<Frame>,
 }
 
 /// Why a connection loop ended, as text for the log.
 type EndReason = String;
 
 impl EdgeConnection {
-    fn new(edge: String, shared: Arc<Shared>) -> Self {
+    fn new(edge: String, shared: Arc<Shared>, liveness: Arc<Liveness>) -> Self {
         Self {
             edge,
             shared,
-            recorders: HashMap::new(),
-            acked: HashMap::new(),
+            liveness,
+            sessions: HashMap::new(),
             sent_seq: HashMap::new(),
             time_sync: HashMap::new(),
             current_session: None,
             buffer: Vec::new(),
+            buffered: 0,
+            outgoing: Vec::new(),
         }
     }
 
@@ -330,10 +648,16 @@ impl EdgeConnection {
         mut stop: watch::Receiver<bool>,
         mut commands: mpsc::UnboundedReceiver<Command>,
     ) -> EndReason {
+        let first_stream_timeout = self.shared.config.limits.first_stream_timeout;
         let (mut send, mut recv) = tokio::select! {
-            streams = connection.accept_bi() => match streams {
-                Ok(streams) => streams,
-                Err(e) => return format!("no stream opened: {e}"),
+            streams = tokio::time::timeout(first_stream_timeout, connection.accept_bi()) => match streams {
+                Ok(Ok(streams)) => streams,
+                Ok(Err(e)) => return format!("no stream opened: {e}"),
+                Err(_) => {
+                    self.shared.count(|s| s.no_stream += 1);
+                    connection.close(close_code::PROTOCOL_ERROR.into(), b"no stream opened in time");
+                    return format!("no stream opened within {first_stream_timeout:?}");
+                }
             },
             _ = stop.changed() => return "server shutting down".into(),
         };
@@ -341,15 +665,18 @@ impl EdgeConnection {
         let mut ping_tick = tokio::time::interval(self.shared.config.time_sync_interval);
         ping_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
-            let mut outgoing = Vec::new();
             let ended = tokio::select! {
                 chunk = recv.read_chunk(64 * 1024, true) => match chunk {
                     Ok(Some(chunk)) => {
                         self.buffer.extend_from_slice(&chunk.bytes);
                         match self.process_buffer() {
                             Ok(()) => None,
-                            Err(reason) => {
+                            Err(Failure::Protocol(reason)) => {
                                 connection.close(close_code::PROTOCOL_ERROR.into(), reason.as_bytes());
+                                Some(reason)
+                            }
+                            Err(Failure::Storage(reason)) => {
+                                connection.close(close_code::STORAGE_ERROR.into(), reason.as_bytes());
                                 Some(reason)
                             }
                         }
@@ -363,20 +690,23 @@ impl EdgeConnection {
                         _ => format!("connection lost: {e}"),
                     }),
                 },
-                _ = commit_tick.tick() => match self.commit(&mut outgoing) {
-                    Ok(()) => None,
-                    Err(reason) => {
-                        connection.close(close_code::STORAGE_ERROR.into(), reason.as_bytes());
-                        Some(reason)
+                _ = commit_tick.tick() => {
+                    self.liveness.observe(connection);
+                    match self.commit().and_then(|()| self.close_idle_sessions()) {
+                        Ok(()) => None,
+                        Err(reason) => {
+                            connection.close(close_code::STORAGE_ERROR.into(), reason.as_bytes());
+                            Some(reason)
+                        }
                     }
-                },
+                }
                 _ = ping_tick.tick() => {
-                    self.ping(&mut outgoing);
+                    self.ping();
                     None
                 }
                 // Commands wait until the edge has said which session it runs.
                 Some(command) = commands.recv(), if self.current_session.is_some() => {
-                    match self.command(command, &mut outgoing) {
+                    match self.command(command) {
                         Ok(()) => None,
                         Err(reason) => {
                             connection.close(close_code::STORAGE_ERROR.into(), reason.as_bytes());
@@ -385,7 +715,8 @@ impl EdgeConnection {
                     }
                 }
                 _ = stop.changed() => {
-                    let _ = self.commit(&mut outgoing);
+                    let _ = self.commit();
+                    let outgoing = std::mem::take(&mut self.outgoing);
                     if let Err(e) = write_frames(&mut send, &outgoing).await {
                         tracing::debug!(edge = %self.edge, error = %e, "final acks not sent");
                     }
@@ -395,19 +726,20 @@ impl EdgeConnection {
             };
             if let Some(reason) = ended {
                 // Whatever was received is made durable even though the edge cannot be told.
-                let _ = self.commit(&mut Vec::new());
+                let _ = self.commit();
                 return reason;
             }
+            let outgoing = std::mem::take(&mut self.outgoing);
             if let Err(e) = write_frames(&mut send, &outgoing).await {
-                let _ = self.commit(&mut Vec::new());
+                let _ = self.commit();
                 return format!("cannot write to the edge: {e}");
             }
         }
     }
 
-    /// Decodes every complete frame in the buffer. `Err` = a protocol error that ends the
-    /// connection (the reason is logged and sent in the close frame).
-    fn process_buffer(&mut self) -> Result<(), String> {
+    /// Decodes every complete frame in the buffer. `Err` ends the connection (the reason is
+    /// logged and sent in the close frame).
+    fn process_buffer(&mut self) -> Result<(), Failure> {
         let mut consumed = 0;
         let result = loop {
             let rest = &self.buffer[consumed..];
@@ -416,24 +748,29 @@ impl EdgeConnection {
                     let raw = rest[..len].to_vec();
                     consumed += len;
                     if let Err(reason) = self.on_frame(frame, &raw) {
-                        break Err(reason);
+                        break Err(Failure::Storage(reason));
                     }
                 }
                 Err(DecodeError::Incomplete { .. }) => break Ok(()),
                 Err(DecodeError::Malformed(detail)) => {
-                    // The header was fine, so its length tells where the next frame starts.
-                    let skip = decode_header(rest)
+                    // The header was fine (and the whole frame is there), so its length tells
+                    // where the next frame starts.
+                    let len = decode_header(rest)
                         .map(|h| HEADER_LEN + h.payload_len as usize)
-                        .unwrap_or(rest.len());
-                    tracing::warn!(edge = %self.edge, %detail, bytes = skip, "skipping a malformed frame");
-                    self.shared.count(|s| s.rejected += 1);
-                    consumed += skip;
+                        .unwrap_or(rest.len())
+                        .min(rest.len());
+                    let raw = rest[..len].to_vec();
+                    consumed += len;
+                    let reason = format!("payload does not decode: {detail}");
+                    if let Err(reason) = self.on_undecodable(&raw, &reason, false) {
+                        break Err(Failure::Storage(reason));
+                    }
                 }
                 Err(fatal) => {
                     self.shared.count(|s| s.rejected += 1);
                     let reason = format!("rejected the stream: {fatal}");
                     tracing::warn!(edge = %self.edge, "{reason}; closing the connection");
-                    break Err(reason);
+                    break Err(Failure::Protocol(reason));
                 }
             }
         };
@@ -441,21 +778,53 @@ impl EdgeConnection {
         result
     }
 
+    /// A frame that cannot be recorded as what it claims to be (`misdirected`: a server → edge
+    /// body; otherwise: a payload that does not decode). Recorded raw and acknowledged when its
+    /// session and seq can be read, so it leaves no gap; counted and logged either way.
+    fn on_undecodable(
+        &mut self,
+        raw: &[u8],
+        reason: &str,
+        misdirected: bool,
+    ) -> Result<(), String> {
+        let Some((session_id, seq)) = raw.get(HEADER_LEN..).and_then(decode_ids) else {
+            tracing::warn!(edge = %self.edge, bytes = raw.len(), %reason,
+                "dropped a frame whose session and seq cannot be read (it cannot be acknowledged)");
+            self.shared.count(|s| s.unidentified += 1);
+            return Ok(());
+        };
+        tracing::warn!(edge = %self.edge, session = format!("{session_id:016x}"), seq, %reason,
+            "recording a frame that cannot be used raw, and acknowledging it");
+        self.shared.count(|s| {
+            if misdirected {
+                s.misdirected += 1;
+            } else {
+                s.undecodable += 1;
+            }
+        });
+        let now = unix_now_ns();
+        let open = self.session(session_id)?;
+        let appended = open
+            .recorder
+            .append_undecodable(seq, raw, reason, now)
+            .map_err(|e| format!("cannot record session {session_id:016x}: {e}"))?;
+        match appended {
+            Appended::Buffered => self.buffered_bytes(session_id, raw.len())?,
+            Appended::Duplicate => self.shared.count(|s| s.duplicates += 1),
+        }
+        Ok(())
+    }
+
     fn on_frame(&mut self, frame: Frame, raw: &[u8]) -> Result<(), String> {
         if frame.body.direction() == Direction::ServerToEdge {
-            tracing::warn!(edge = %self.edge, seq = frame.seq, "ignoring a server-to-edge frame sent by the edge");
-            self.shared.count(|s| s.rejected += 1);
-            return Ok(());
+            let reason = format!(
+                "a {} body, which only the server sends",
+                body_name(&frame.body)
+            );
+            return self.on_undecodable(raw, &reason, true);
         }
         let session_id = frame.session_id;
         let now = unix_now_ns();
-        if !self.recorders.contains_key(&session_id) {
-            let recorder = block(|| {
-                SessionRecorder::open(&self.shared.config.data_dir, &self.edge, session_id)
-            })
-            .map_err(|e| format!("cannot open the recording of session {session_id:016x}: {e}"))?;
-            self.recorders.insert(session_id, recorder);
-        }
         if let Body::TimePong(pong) = &frame.body {
             let exchange = Exchange {
                 t0_ns: pong.t0_ns,
@@ -475,12 +844,16 @@ impl EdgeConnection {
                 });
             }
         }
+        if let Some(previous) = self.current_session
+            && previous != session_id
+            && !self.sessions.contains_key(&previous)
+        {
+            // Its recording was closed while it was current; nothing will be sent to it now.
+            self.sent_seq.remove(&previous);
+        }
         self.current_session = Some(session_id);
-        let recorder = self
-            .recorders
-            .get_mut(&session_id)
-            .ok_or("recorder vanished")?;
-        match recorder.append(raw, &frame, now) {
+        let open = self.session(session_id)?;
+        match open.recorder.append(raw, &frame, now) {
             Ok(Appended::Buffered) => {
                 let bytes = raw.len() as u64;
                 self.shared.count(|s| {
@@ -491,57 +864,142 @@ impl EdgeConnection {
                     edge: self.edge.clone(),
                     frame,
                 });
+                self.buffered_bytes(session_id, raw.len())?;
             }
             // A resend of something already recorded: the next commit acknowledges it again
-            // (every connection starts with nothing acknowledged).
+            // if this connection has not yet (every connection starts with nothing acknowledged).
             Ok(Appended::Duplicate) => self.shared.count(|s| s.duplicates += 1),
             Err(e) => return Err(format!("cannot record session {session_id:016x}: {e}")),
         }
         Ok(())
     }
 
-    /// Makes every session durable and queues acks for what became durable.
-    fn commit(&mut self, outgoing: &mut Vec<Frame>) -> Result<(), String> {
-        for (&session_id, recorder) in &mut self.recorders {
-            let durable = block(|| recorder.commit())
-                .map_err(|e| format!("cannot commit session {session_id:016x}: {e}"))?;
-            let Some(up_to) = durable else { continue };
-            if self
-                .acked
-                .get(&session_id)
-                .is_some_and(|&acked| acked >= up_to)
-            {
-                continue;
+    /// The open recording of `session_id`, opening it (and closing the least recently used
+    /// one if [`IngestLimits::max_sessions_per_edge`] are open) if needed.
+    fn session(&mut self, session_id: u64) -> Result<&mut OpenSession, String> {
+        if !self.sessions.contains_key(&session_id) {
+            let max = self.shared.config.limits.max_sessions_per_edge.max(1);
+            while self.sessions.len() >= max {
+                let Some(lru) = self
+                    .sessions
+                    .iter()
+                    .min_by_key(|(_, open)| open.last_used)
+                    .map(|(&id, _)| id)
+                else {
+                    break;
+                };
+                tracing::debug!(edge = %self.edge, session = format!("{lru:016x}"), "closing the least recently used recording to open another");
+                self.shared.count(|s| s.sessions_evicted += 1);
+                self.close_session(lru)?;
             }
-            self.acked.insert(session_id, up_to);
-            let seq = next_seq(&mut self.sent_seq, session_id);
-            outgoing.push(Frame::new(session_id, seq, Ack::UpTo { seq: up_to }));
+            let recorder = block(|| {
+                SessionRecorder::open(&self.shared.config.data_dir, &self.edge, session_id)
+            })
+            .map_err(|e| format!("cannot open the recording of session {session_id:016x}: {e}"))?;
+            self.shared.recorder_opened();
+            self.sessions.insert(
+                session_id,
+                OpenSession {
+                    recorder,
+                    acks: AckPlan::new(),
+                    last_used: Instant::now(),
+                    buffered: 0,
+                },
+            );
+        }
+        let open = self
+            .sessions
+            .get_mut(&session_id)
+            .ok_or("recorder vanished")?;
+        open.last_used = Instant::now();
+        Ok(open)
+    }
+
+    /// Accounts `bytes` appended to `session_id`; commits every session of the edge when the
+    /// edge's buffered bytes exceed [`IngestLimits::max_buffered_bytes_per_edge`].
+    fn buffered_bytes(&mut self, session_id: u64, bytes: usize) -> Result<(), String> {
+        if let Some(open) = self.sessions.get_mut(&session_id) {
+            open.buffered += bytes;
+        }
+        self.buffered += bytes;
+        if self.buffered > self.shared.config.limits.max_buffered_bytes_per_edge {
+            self.shared.count(|s| s.early_commits += 1);
+            self.commit()?;
+        }
+        Ok(())
+    }
+
+    /// Makes every open session durable and queues acks for what became durable.
+    fn commit(&mut self) -> Result<(), String> {
+        for (&session_id, open) in &mut self.sessions {
+            commit_session(session_id, open, &mut self.sent_seq, &mut self.outgoing)?;
+        }
+        self.buffered = 0;
+        Ok(())
+    }
+
+    /// Commits, acknowledges and closes the recording of `session_id`.
+    fn close_session(&mut self, session_id: u64) -> Result<(), String> {
+        let Some(mut open) = self.sessions.remove(&session_id) else {
+            return Ok(());
+        };
+        self.buffered -= open.buffered.min(self.buffered);
+        let committed = commit_session(
+            session_id,
+            &mut open,
+            &mut self.sent_seq,
+            &mut self.outgoing,
+        );
+        let closed = block(|| open.recorder.close());
+        self.shared.recorder_closed();
+        self.time_sync.remove(&session_id);
+        // Commands only go to the current session, whose numbering must go on.
+        if self.current_session != Some(session_id) {
+            self.sent_seq.remove(&session_id);
+        }
+        committed?;
+        closed.map_err(|e| format!("cannot close session {session_id:016x}: {e}"))?;
+        Ok(())
+    }
+
+    /// Closes the recordings that received nothing for [`IngestLimits::session_idle_timeout`].
+    fn close_idle_sessions(&mut self) -> Result<(), String> {
+        let timeout = self.shared.config.limits.session_idle_timeout;
+        let idle: Vec<u64> = self
+            .sessions
+            .iter()
+            .filter(|(_, open)| open.last_used.elapsed() >= timeout)
+            .map(|(&id, _)| id)
+            .collect();
+        for session_id in idle {
+            tracing::debug!(edge = %self.edge, session = format!("{session_id:016x}"), "closing an idle recording");
+            self.shared.count(|s| s.sessions_idle_closed += 1);
+            self.close_session(session_id)?;
         }
         Ok(())
     }
 
     /// Records a command in the edge's current session and queues it for sending.
-    fn command(&mut self, command: Command, outgoing: &mut Vec<Frame>) -> Result<(), String> {
+    fn command(&mut self, command: Command) -> Result<(), String> {
         let Some(session_id) = self.current_session else {
             return Ok(());
         };
         let seq = next_seq(&mut self.sent_seq, session_id);
         let frame = Frame::new(session_id, seq, command);
         let raw = encode(&frame).map_err(|e| format!("cannot encode a command: {e}"))?;
-        if let Some(recorder) = self.recorders.get_mut(&session_id) {
-            recorder
-                .append_command(&raw, &frame, unix_now_ns())
-                .map_err(|e| format!("cannot record a command: {e}"))?;
-        }
+        let open = self.session(session_id)?;
+        open.recorder
+            .append_command(&raw, &frame, unix_now_ns())
+            .map_err(|e| format!("cannot record a command: {e}"))?;
         tracing::info!(edge = %self.edge, command = ?frame.body, "command sent");
-        outgoing.push(frame);
+        self.outgoing.push(frame);
         Ok(())
     }
 
-    fn ping(&mut self, outgoing: &mut Vec<Frame>) {
+    fn ping(&mut self) {
         if let Some(session_id) = self.current_session {
             let seq = next_seq(&mut self.sent_seq, session_id);
-            outgoing.push(Frame::new(
+            self.outgoing.push(Frame::new(
                 session_id,
                 seq,
                 TimePing {
@@ -552,12 +1010,40 @@ impl EdgeConnection {
     }
 
     fn close_all(&mut self) {
-        for (session_id, recorder) in self.recorders.drain() {
-            if let Err(e) = block(|| recorder.close()) {
+        for (session_id, open) in self.sessions.drain() {
+            if let Err(e) = block(|| open.recorder.close()) {
                 tracing::warn!(edge = %self.edge, session = format!("{session_id:016x}"), error = %e, "closing the recording failed");
             }
+            self.shared.recorder_closed();
         }
+        self.buffered = 0;
     }
+}
+
+/// Why processing received bytes ended the connection.
+enum Failure {
+    /// The bytes are not scan3d frames of this version ([`close_code::PROTOCOL_ERROR`]).
+    Protocol(String),
+    /// Recording failed ([`close_code::STORAGE_ERROR`]: the edge keeps its spool).
+    Storage(String),
+}
+
+/// Commits one session and queues the acks its durable set now calls for.
+fn commit_session(
+    session_id: u64,
+    open: &mut OpenSession,
+    sent_seq: &mut HashMap<u64, u64>,
+    outgoing: &mut Vec<Frame>,
+) -> Result<(), String> {
+    block(|| open.recorder.commit())
+        .map_err(|e| format!("cannot commit session {session_id:016x}: {e}"))?;
+    open.buffered = 0;
+    let durable = open.recorder.durable_ranges();
+    for ack in open.acks.next_acks(&durable, MAX_ACKS_PER_COMMIT) {
+        let seq = next_seq(sent_seq, session_id);
+        outgoing.push(Frame::new(session_id, seq, ack));
+    }
+    Ok(())
 }
 
 fn next_seq(counters: &mut HashMap<u64, u64>, session_id: u64) -> u64 {
@@ -590,4 +1076,35 @@ pub fn unix_now_ns() -> u64 {
         .duration_since(UNIX_EPOCH)
         .map(|d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX))
         .unwrap_or(0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn under_load_unvalidated_peers_get_a_retry_and_validated_ones_a_bounded_handshake() {
+        let limits = IngestLimits {
+            max_handshakes: 4,
+            retry_above_handshakes: 2,
+            ..IngestLimits::default()
+        };
+        // Few handshakes in progress: anyone may start one.
+        assert_eq!(admission(0, &limits, false, true), Admission::Handshake);
+        assert_eq!(admission(1, &limits, false, true), Admission::Handshake);
+        // Above the threshold: prove the address first (stateless), then a handshake.
+        assert_eq!(admission(2, &limits, false, true), Admission::Retry);
+        assert_eq!(admission(2, &limits, true, false), Admission::Handshake);
+        assert_eq!(admission(3, &limits, true, false), Admission::Handshake);
+        // Full: refused even when validated, and a peer that already retried is not asked again.
+        assert_eq!(admission(4, &limits, true, false), Admission::Refuse);
+        assert_eq!(admission(4, &limits, false, false), Admission::Refuse);
+        assert_eq!(admission(9, &limits, false, true), Admission::Retry);
+        // 0: always validate.
+        let always = IngestLimits {
+            retry_above_handshakes: 0,
+            ..limits
+        };
+        assert_eq!(admission(0, &always, false, true), Admission::Retry);
+    }
 }
