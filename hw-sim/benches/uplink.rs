@@ -272,6 +272,7 @@ impl ServerProcess {
                 bytes,
                 duplicates,
                 rejected,
+                ..IngestStats::default()
             },
             recorded,
         })
