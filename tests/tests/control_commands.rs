@@ -136,3 +136,86 @@ fn an_oversized_command_is_refused_and_the_edge_stays_connected() {
     let stats = server.stop();
     assert_eq!(stats.frames, 2, "{stats:?}");
 }
+
+/// Connects to `server` as the paired edge and opens the frame stream.
+async fn connect_edge(
+    server: SocketAddr,
+    bundle: &Path,
+) -> (
+    quinn::Endpoint,
+    quinn::Connection,
+    quinn::SendStream,
+    quinn::RecvStream,
+) {
+    let mut endpoint =
+        quinn::Endpoint::client(SocketAddr::from(([127, 0, 0, 1], 0))).expect("endpoint");
+    endpoint.set_default_client_config(client_config(bundle).expect("bundle"));
+    let connection = endpoint
+        .connect(server, "localhost")
+        .expect("connect")
+        .await
+        .expect("handshake");
+    let (send, recv) = connection.open_bi().await.expect("stream");
+    (endpoint, connection, send, recv)
+}
+
+#[test]
+fn a_command_sent_after_a_reconnect_is_recorded_not_taken_for_a_resend() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let pki = dir.path().join("pki");
+    let bundle = rig::pair_certificates(&pki).expect("pairing");
+    let data = dir.path().join("data");
+    let server = ServerThread::start(rig::ingest_config(&pki, &data, 0)).expect("server");
+    let socket = socket_path(&data);
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .expect("runtime");
+    let positions = ["first", "second"];
+    runtime.block_on(async {
+        // The same exchange on two connections of one session: a heartbeat, its ack, a command.
+        for (seq, position) in positions.into_iter().enumerate() {
+            let seq = seq as u64;
+            let (_endpoint, connection, mut send, mut recv) =
+                connect_edge(server.addr(), &bundle).await;
+            let mut reader = FrameReader::new();
+            let heartbeat = encode(&Frame::new(SESSION, seq, Heartbeat { sent_ns: 1 })).unwrap();
+            send.write_all(&heartbeat).await.expect("write");
+            assert!(receive(&mut recv, &mut reader, acked(seq)).await.is_some());
+            let reply = operator(
+                &socket,
+                Command::StartStaticScan {
+                    position: position.into(),
+                    x_m: 0.0,
+                    y_m: 0.0,
+                    heading_deg: None,
+                },
+            )
+            .await;
+            assert!(reply.ok, "{reply:?}");
+            let sent = receive(&mut recv, &mut reader, |f| {
+                matches!(f.body, Body::Command(_))
+            });
+            assert!(sent.await.is_some(), "the command did not reach the edge");
+            connection.close(0u32.into(), b"reconnecting");
+            // The server replaces a closed connection at once; give it the close.
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+    });
+    server.stop();
+    let recorded = scan3d_server::ingest::recorder::read_session(
+        &scan3d_server::ingest::recorder::session_dir(&data, rig::EDGE_NAME, SESSION),
+    )
+    .expect("the session reads");
+    let commands: Vec<String> = recorded
+        .iter()
+        .filter_map(|r| match &r.frame.body {
+            Body::Command(Command::StartStaticScan { position, .. }) => Some(position.clone()),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(
+        commands, positions,
+        "every command sent must be in the recording"
+    );
+}

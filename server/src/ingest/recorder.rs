@@ -1712,6 +1712,16 @@ impl SessionRecorder {
         self.durable.ranges()
     }
 
+    /// The lowest sequence number above every command recorded in this session, on any
+    /// connection: the server numbers its frames to the edge from here after a reconnect, so
+    /// a new command is never taken for a resend of an old one.
+    pub fn next_command_seq(&self) -> u64 {
+        self.commands
+            .ranges
+            .last_key_value()
+            .map_or(0, |(_, &end)| end.saturating_add(1))
+    }
+
     /// Number of edge frames buffered since the last commit.
     pub fn pending(&self) -> usize {
         self.pending.len()

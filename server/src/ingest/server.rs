@@ -984,6 +984,11 @@ impl EdgeConnection {
         let Some(session_id) = self.current_session else {
             return Ok(());
         };
+        // A new connection numbers its frames from 0, but the session may hold commands of
+        // earlier connections: go on above them, or the recorder takes this one for a resend.
+        let floor = self.session(session_id)?.recorder.next_command_seq();
+        let counter = self.sent_seq.entry(session_id).or_insert(0);
+        *counter = (*counter).max(floor);
         let seq = next_seq(&mut self.sent_seq, session_id);
         let frame = Frame::new(session_id, seq, command);
         let raw = encode(&frame).map_err(|e| format!("cannot encode a command: {e}"))?;
