@@ -35,8 +35,8 @@ use anyhow::{Context, anyhow, bail};
 use nix::time::ClockId;
 use scan3d_edge::uplink::client::SubmitError;
 use scan3d_hw_sim::fleet::{
-    self, EdgeHandle, EdgeIdentity, LidarStream, Produced, Producers, SimEdge, Submission, clock_ns,
-    mono_ns,
+    self, EdgeHandle, EdgeIdentity, LidarStream, Produced, Producers, SimEdge, Submission,
+    clock_ns, mono_ns,
 };
 use scan3d_hw_sim::rig::{self, ServerThread};
 use scan3d_hw_sim::world::World;
@@ -491,8 +491,7 @@ impl RateRun {
 
     /// [`all_delivered`](Self::all_delivered), with ack p99 within [`ACK_P99_BOUND`].
     fn kept_up(&self) -> bool {
-        self.all_delivered()
-            && quantile(&self.acked_ms, 0.99) <= ACK_P99_BOUND.as_secs_f64() * 1e3
+        self.all_delivered() && quantile(&self.acked_ms, 0.99) <= ACK_P99_BOUND.as_secs_f64() * 1e3
     }
 
     /// Adds one edge's frames: when the server recorded each, and when the edge's

@@ -654,12 +654,21 @@ mod tests {
         second.send_to(b"b", relay.local_addr()).unwrap();
         let (data, second_upstream) = recv(&target).unwrap();
         assert_eq!(data, b"b");
-        assert_ne!(first_upstream, second_upstream, "one upstream peer per client");
+        assert_ne!(
+            first_upstream, second_upstream,
+            "one upstream peer per client"
+        );
 
         target.send_to(b"for the first", first_upstream).unwrap();
         target.send_to(b"for the second", second_upstream).unwrap();
-        assert_eq!(recv(&first).map(|(d, _)| d), Some(b"for the first".to_vec()));
-        assert_eq!(recv(&second).map(|(d, _)| d), Some(b"for the second".to_vec()));
+        assert_eq!(
+            recv(&first).map(|(d, _)| d),
+            Some(b"for the first".to_vec())
+        );
+        assert_eq!(
+            recv(&second).map(|(d, _)| d),
+            Some(b"for the second".to_vec())
+        );
         assert_eq!(recv(&first), None);
 
         // The same client keeps its path.
@@ -709,10 +718,13 @@ mod tests {
         assert!((900.0..=1100.0).contains(&lost), "lost {lost} of {n}");
         let (low, high) = (Duration::from_millis(150), Duration::from_millis(250));
         assert!(delays.iter().all(|d| (low..=high).contains(d)));
-        let mean_ms = delays.iter().map(Duration::as_secs_f64).sum::<f64>() * 1e3
-            / delays.len() as f64;
+        let mean_ms =
+            delays.iter().map(Duration::as_secs_f64).sum::<f64>() * 1e3 / delays.len() as f64;
         // Uniform over ±50 ms: sd ≈ 28.9 ms, so the mean of ~19,000 is within ±0.7 ms (3 sd).
-        assert!((199.0..=201.0).contains(&mean_ms), "mean delay {mean_ms} ms");
+        assert!(
+            (199.0..=201.0).contains(&mean_ms),
+            "mean delay {mean_ms} ms"
+        );
         // The spread covers the interval: both ends are reached within a millisecond.
         let min = delays.iter().min().unwrap();
         let max = delays.iter().max().unwrap();
@@ -751,7 +763,11 @@ mod tests {
     fn with_reordering_later_datagrams_overtake_and_without_they_never_do() {
         let reordering = decisions(Impairment::soak(5), 2000);
         // 1 ms apart with 100 ms of spread: about half the neighbours swap.
-        assert!(overtakings(&reordering) > 500, "{}", overtakings(&reordering));
+        assert!(
+            overtakings(&reordering) > 500,
+            "{}",
+            overtakings(&reordering)
+        );
 
         let in_order = decisions(
             Impairment {
@@ -808,7 +824,9 @@ mod tests {
         let start = Instant::now();
         let mut sent_at = Vec::new();
         for i in 0..n {
-            client.send_to(&i.to_le_bytes(), relay.local_addr()).unwrap();
+            client
+                .send_to(&i.to_le_bytes(), relay.local_addr())
+                .unwrap();
             sent_at.push(start.elapsed());
             std::thread::sleep(Duration::from_micros(500));
         }
@@ -818,9 +836,17 @@ mod tests {
             echoes.push((seq, start.elapsed() - sent_at[seq as usize]));
         }
         // Each way 10 % lost: 81 % of 400 = 324 expected back (sd ≈ 8).
-        assert!((290..=360).contains(&echoes.len()), "{} echoes", echoes.len());
+        assert!(
+            (290..=360).contains(&echoes.len()),
+            "{} echoes",
+            echoes.len()
+        );
         // Two passes through the relay, each delayed at least 20 ms.
-        assert!(echoes.iter().all(|&(_, rtt)| rtt >= Duration::from_millis(40)));
+        assert!(
+            echoes
+                .iter()
+                .all(|&(_, rtt)| rtt >= Duration::from_millis(40))
+        );
         let out_of_order = echoes.windows(2).filter(|w| w[1].0 < w[0].0).count();
         assert!(out_of_order > 20, "{out_of_order} echoes out of order");
         let stats = relay.stats();

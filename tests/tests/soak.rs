@@ -290,7 +290,9 @@ fn wait_for(limit: Duration, what: &str, mut done: impl FnMut() -> bool) -> anyh
 
 /// A UDP port that was free a moment ago (the server binds it; the restart binds it again).
 fn free_udp_port() -> anyhow::Result<u16> {
-    Ok(std::net::UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port())
+    Ok(std::net::UdpSocket::bind("127.0.0.1:0")?
+        .local_addr()?
+        .port())
 }
 
 /// Where the edge `identity` spools.
@@ -333,8 +335,7 @@ fn read_back(
     spooled: &HashSet<u64>,
 ) -> anyhow::Result<Readback> {
     let dir = session_dir(data_dir, &edge.name, edge.session_id);
-    let frames =
-        read_session(&dir).with_context(|| format!("reading back {}", dir.display()))?;
+    let frames = read_session(&dir).with_context(|| format!("reading back {}", dir.display()))?;
     let mut seen: HashMap<u64, u64> = HashMap::new();
     for frame in &frames {
         *seen.entry(frame.frame.seq).or_default() += 1;
@@ -360,7 +361,9 @@ fn mib(kib: Option<u64>) -> String {
 }
 
 fn print_samples(samples: &[Sample], kill_at: Duration, restart_at: Duration) {
-    println!("  server process over time (RSS from /proc/PID/status VmRSS, fds = entries of /proc/PID/fd):");
+    println!(
+        "  server process over time (RSS from /proc/PID/status VmRSS, fds = entries of /proc/PID/fd):"
+    );
     println!(
         "  {:>7} {:>8} {:>8} {:>5} {:>9} {:>9} {:>9}",
         "t s", "pid", "RSS MiB", "fds", "pending", "acked/s", "connected"
@@ -450,7 +453,10 @@ fn a_fleet_through_a_lossy_network_and_a_killed_server_loses_no_frame() -> anyho
         .collect::<anyhow::Result<_>>()?;
     let handles: Vec<EdgeHandle> = edges.iter().map(|e| e.handle.clone()).collect();
     let connections = |handles: &[EdgeHandle]| -> Vec<u64> {
-        handles.iter().map(|e| e.uplink.stats().connections).collect()
+        handles
+            .iter()
+            .map(|e| e.uplink.stats().connections)
+            .collect()
     };
     wait_for(Duration::from_secs(120), "every edge to connect", || {
         connections(&handles).iter().all(|&c| c > 0)
@@ -505,7 +511,9 @@ fn a_fleet_through_a_lossy_network_and_a_killed_server_loses_no_frame() -> anyho
     });
     let drained_at = start.elapsed();
     stop_sampling.store(true, Ordering::Relaxed);
-    let samples = sampler.join().map_err(|_| anyhow::anyhow!("sampler panicked"))?;
+    let samples = sampler
+        .join()
+        .map_err(|_| anyhow::anyhow!("sampler panicked"))?;
 
     let mut uplinks = Vec::new();
     for edge in edges {
@@ -596,13 +604,19 @@ fn a_fleet_through_a_lossy_network_and_a_killed_server_loses_no_frame() -> anyho
     print_samples(&samples, kill_at, restart_at);
     println!(
         "  load     1-minute load average at the end: {}",
-        std::fs::read_to_string("/proc/loadavg").unwrap_or_default().trim()
+        std::fs::read_to_string("/proc/loadavg")
+            .unwrap_or_default()
+            .trim()
     );
     if let Err(e) = &terminated {
         println!("  server   {e}");
     }
 
-    let failed = lost > 0 || undelivered > 0 || reconnected.is_err() || drained.is_err() || terminated.is_err();
+    let failed = lost > 0
+        || undelivered > 0
+        || reconnected.is_err()
+        || drained.is_err()
+        || terminated.is_err();
     if failed || std::env::var_os("SOAK_KEEP").is_some() {
         // Recordings, spools and server logs, for a post-mortem.
         println!("  kept     {}", work.keep().display());
