@@ -515,10 +515,17 @@ fn a_fleet_through_a_lossy_network_and_a_killed_server_loses_no_frame() -> anyho
         .join()
         .map_err(|_| anyhow::anyhow!("sampler panicked"))?;
 
-    let mut uplinks = Vec::new();
-    for edge in edges {
-        uplinks.push(edge.stop(&runtime)?);
-    }
+    // All at once: each may spend its drain timeout sending what is left.
+    let uplinks = std::thread::scope(|scope| {
+        let stopping: Vec<_> = edges
+            .into_iter()
+            .map(|edge| scope.spawn(|| edge.stop(&runtime)))
+            .collect();
+        stopping
+            .into_iter()
+            .map(|t| t.join().map_err(|_| anyhow::anyhow!("an edge panicked"))?)
+            .collect::<anyhow::Result<Vec<_>>>()
+    })?;
     let relay_stats = relay.stats();
     relay.shutdown();
     let server_pid_end = server.pid();
