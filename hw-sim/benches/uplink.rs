@@ -894,12 +894,18 @@ fn print_fleets(runs: &[RateRun]) {
                 .iter()
                 .filter(|r| r.edges < largest)
                 .all(RateRun::kept_up);
+            let top = runs.iter().map(|r| r.edges).max() == Some(largest);
             println!(
-                "   => largest K measured that kept up (all recorded and acknowledged, ack p99 <= 3 x commit_interval = {bound_ms:.0} ms): {largest}{}",
+                "   => largest K measured that kept up (all recorded and acknowledged, ack p99 <= 3 x commit_interval = {bound_ms:.0} ms): {largest}{}{}",
                 if all_below {
                     ""
                 } else {
                     " (a smaller K did not: the machine's load varies)"
+                },
+                if top {
+                    "; it is the largest K run, larger fleets were not measured"
+                } else {
+                    ""
                 }
             );
         }
