@@ -259,7 +259,7 @@ fn sample_server(
         next += every;
         let pid = pid.load(Ordering::SeqCst);
         let baseline = baseline.lock().unwrap_or_else(|e| e.into_inner()).clone();
-        samples.push(Sample {
+        let sample = Sample {
             at: start.elapsed(),
             pid,
             rss_kib: rss_kib(pid),
@@ -271,7 +271,10 @@ fn sample_server(
                 .zip(&baseline)
                 .filter(|(e, b)| e.uplink.stats().connections > **b)
                 .count(),
-        });
+        };
+        // As it happens too, so a run that hangs at its end is not blind.
+        eprintln!("soak sample: {sample:?}");
+        samples.push(sample);
     }
     samples
 }
