@@ -9,6 +9,7 @@
 //! - [`mounts`]: where the emulated sensors sit in the room.
 //! - [`truth`]: ground truth for scoring clouds: surface samples, exact distances, the world file.
 //! - [`turntable`]: the Sweep on the stepper's turntable, its scan plane following the rotor.
+//! - [`fleet`]: synthetic edges (own certificate, spool and session each) for load and soak runs.
 //! - [`pair`]: a driver wired straight to an emulator in memory (deterministic tests, benches).
 //! - [`pty`]: runs an emulator on a Linux pty behind a symlink, paced at the wire rate.
 //! - [`rig`]: a whole installation (lidars, certificates, server, edge daemon) for the demo and tests.
@@ -20,6 +21,7 @@
 pub mod demo;
 pub mod device;
 pub mod faults;
+pub mod fleet;
 pub mod i2c;
 pub mod imu;
 pub mod maps;

@@ -1,0 +1,643 @@
+//! The soak and fault run: K synthetic edges (the uplink benchmark's clients,
+//! `scan3d_hw_sim::fleet`, each with its own certificate, spool and session) stream both lidars
+//! at full sensor rate for N minutes to one server, a real `scan3d serve` process on loopback,
+//! through a seeded impairing UDP relay (loss, delay ± jitter, reordering). Midway the server is
+//! killed with SIGKILL and restarted on the same port and data directory. At the end every frame
+//! every edge produced must be in the recordings (read back from disk), and the server's RSS and
+//! open file descriptors, sampled over time from `/proc/<pid>/status` and `/proc/<pid>/fd`, are
+//! printed as a table.
+//!
+//! ```text
+//! SOAK_MINUTES=10 SOAK_EDGES=16 \
+//!     cargo test -p scan3d-tests --release --test soak -- --ignored --nocapture
+//! ```
+//!
+//! Knobs (environment, defaults in brackets): `SOAK_MINUTES` [10], `SOAK_EDGES` [16],
+//! `SOAK_LOSS` [0.05], `SOAK_DELAY_MS` [200], `SOAK_JITTER_MS` [50] (one-way, each direction:
+//! a round trip costs twice), `SOAK_REORDER` [1], `SOAK_SEED` [1], `SOAK_KILL_AT` [0.5, the
+//! fraction of the run at which the server is killed], `SOAK_SAMPLE_S` [10, the sampling period],
+//! `SOAK_DRAIN_S` [300, how long the edges may take to deliver their backlog after producing],
+//! `SOAK_CC` [unset: the edge's own QUIC settings; `bbr`: BBR congestion control, to compare],
+//! `SOAK_KEEP` [unset: the work directory with recordings, spools and server logs is kept only
+//! when the run fails].
+//!
+//! The server process is this test binary re-run as `scan3d serve --config …` (the library's
+//! CLI entry, exactly what the `scan3d` binary's `main` calls, with the same logging), so the
+//! SIGKILL is real; `SOAK_SERVER_BIN=/path/to/scan3d` runs that binary instead.
+
+use std::collections::{HashMap, HashSet};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, bail};
+use scan3d_edge::uplink::spool::{Spool, SpoolConfig};
+use scan3d_hw_sim::fleet::{self, EdgeHandle, EdgeIdentity, LidarStream, Producers, SimEdge};
+use scan3d_hw_sim::world::World;
+use scan3d_server::ingest::recorder::{read_session, session_dir};
+use scan3d_tests::relay::{Impairment, UdpRelay};
+
+/// Environment variable that turns this test binary into the server child.
+const CHILD_CONFIG_VAR: &str = "SCAN3D_SOAK_SERVER_CONFIG";
+
+/// The server's body when this binary is re-run as the child (see [`ServerProcess::spawn`]).
+#[test]
+#[ignore = "runs only as the server child of the soak run"]
+fn soak_server_child() {
+    let Ok(config) = std::env::var(CHILD_CONFIG_VAR) else {
+        return;
+    };
+    use clap::Parser;
+    scan3d_service::daemon::init_logging("info");
+    let cli = scan3d_server::cli::Cli::parse_from(["scan3d", "serve", "--config", &config]);
+    scan3d_server::cli::execute(cli, &mut std::io::sink()).expect("server ran");
+}
+
+/// The run's parameters, from the environment.
+#[derive(Debug, Clone)]
+struct Plan {
+    minutes: f64,
+    edges: usize,
+    impairment: Impairment,
+    kill_at: f64,
+    sample_every: Duration,
+    drain_limit: Duration,
+    /// `SOAK_CC=bbr`: the edges' QUIC connections use BBR instead of quinn's default (Cubic), to
+    /// compare; unset, the edges run with the edge's own transport settings.
+    bbr: bool,
+}
+
+/// Reads `name` as a `T`, or `default` when unset.
+fn env_or<T: std::str::FromStr>(name: &str, default: T) -> anyhow::Result<T>
+where
+    T::Err: std::fmt::Display,
+{
+    match std::env::var(name) {
+        Ok(text) => text
+            .trim()
+            .parse()
+            .map_err(|e| anyhow::anyhow!("{name}={text:?}: {e}")),
+        Err(_) => Ok(default),
+    }
+}
+
+impl Plan {
+    fn from_env() -> anyhow::Result<Self> {
+        let soak = Impairment::soak(env_or("SOAK_SEED", 1)?);
+        let plan = Plan {
+            minutes: env_or("SOAK_MINUTES", 10.0)?,
+            edges: env_or("SOAK_EDGES", 16)?,
+            impairment: Impairment {
+                loss: env_or("SOAK_LOSS", soak.loss)?,
+                delay: Duration::from_millis(env_or("SOAK_DELAY_MS", 200)?),
+                jitter: Duration::from_millis(env_or("SOAK_JITTER_MS", 50)?),
+                reorder: env_or::<u8>("SOAK_REORDER", 1)? != 0,
+                seed: soak.seed,
+            },
+            kill_at: env_or("SOAK_KILL_AT", 0.5)?,
+            sample_every: Duration::from_secs(env_or("SOAK_SAMPLE_S", 10)?),
+            drain_limit: Duration::from_secs(env_or("SOAK_DRAIN_S", 300)?),
+            bbr: match std::env::var("SOAK_CC").as_deref() {
+                Err(_) | Ok("") | Ok("default") => false,
+                Ok("bbr") => true,
+                Ok(other) => bail!("SOAK_CC={other:?}: expected `bbr` or `default`"),
+            },
+        };
+        if !(plan.minutes > 0.0 && plan.minutes <= 24.0 * 60.0) {
+            bail!("SOAK_MINUTES={} is outside (0, 1440]", plan.minutes);
+        }
+        if !(1..=256).contains(&plan.edges) {
+            bail!("SOAK_EDGES={} is outside 1..=256", plan.edges);
+        }
+        if !(0.0..1.0).contains(&plan.kill_at) {
+            bail!("SOAK_KILL_AT={} is outside [0, 1)", plan.kill_at);
+        }
+        if plan.sample_every.is_zero() {
+            bail!("SOAK_SAMPLE_S must be at least 1");
+        }
+        plan.impairment.validate()?;
+        Ok(plan)
+    }
+
+    fn duration(&self) -> Duration {
+        Duration::from_secs_f64(self.minutes * 60.0)
+    }
+}
+
+/// The server as a child process, restartable on the same configuration.
+struct ServerProcess {
+    config: PathBuf,
+    logs: PathBuf,
+    child: Child,
+    starts: usize,
+}
+
+impl ServerProcess {
+    /// Starts `scan3d serve --config config`, its log in `logs/server-N.log`.
+    fn spawn(config: &Path, logs: &Path) -> anyhow::Result<Self> {
+        let child = Self::start_child(config, logs, 0)?;
+        Ok(Self {
+            config: config.to_path_buf(),
+            logs: logs.to_path_buf(),
+            child,
+            starts: 1,
+        })
+    }
+
+    fn start_child(config: &Path, logs: &Path, n: usize) -> anyhow::Result<Child> {
+        let log = std::fs::File::create(logs.join(format!("server-{n}.log")))?;
+        let mut command = match std::env::var_os("SOAK_SERVER_BIN") {
+            Some(bin) => {
+                let mut command = Command::new(bin);
+                command.arg("serve").arg("--config").arg(config);
+                command
+            }
+            None => {
+                let mut command = Command::new(std::env::current_exe()?);
+                command
+                    .args([
+                        "soak_server_child",
+                        "--exact",
+                        "--ignored",
+                        "--nocapture",
+                        "--test-threads=1",
+                    ])
+                    .env(CHILD_CONFIG_VAR, config);
+                command
+            }
+        };
+        command
+            .stdout(Stdio::null())
+            .stderr(log)
+            .spawn()
+            .context("cannot start the server process")
+    }
+
+    fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    /// SIGKILL: no commit, no close, no goodbye.
+    fn kill(&mut self) -> anyhow::Result<()> {
+        self.child.kill()?;
+        self.child.wait()?;
+        Ok(())
+    }
+
+    /// Starts the server again on the same configuration.
+    fn restart(&mut self) -> anyhow::Result<()> {
+        self.child = Self::start_child(&self.config, &self.logs, self.starts)?;
+        self.starts += 1;
+        Ok(())
+    }
+
+    /// SIGTERM and wait: the server commits, closes its recordings and exits 0.
+    fn terminate(mut self) -> anyhow::Result<()> {
+        let pid = nix::unistd::Pid::from_raw(i32::try_from(self.pid())?);
+        nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGTERM)?;
+        let status = self.child.wait()?;
+        if !status.success() {
+            bail!("the server did not exit cleanly after SIGTERM: {status}");
+        }
+        Ok(())
+    }
+}
+
+/// One reading of the server process.
+#[derive(Debug, Clone, Copy)]
+struct Sample {
+    at: Duration,
+    pid: u32,
+    /// `VmRSS`, KiB; `None` if the process was not there (between kill and restart).
+    rss_kib: Option<u64>,
+    fds: Option<usize>,
+    /// Frames waiting in all edges' spools.
+    pending: usize,
+    /// Frames acknowledged so far, all edges.
+    acked: u64,
+    /// Edges with at least one connection since the last server start.
+    connected: usize,
+}
+
+/// `VmRSS` of `pid` in KiB.
+fn rss_kib(pid: u32) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    status
+        .lines()
+        .find_map(|line| line.strip_prefix("VmRSS:"))?
+        .trim()
+        .trim_end_matches("kB")
+        .trim()
+        .parse()
+        .ok()
+}
+
+/// Open file descriptors of `pid`.
+fn fd_count(pid: u32) -> Option<usize> {
+    Some(std::fs::read_dir(format!("/proc/{pid}/fd")).ok()?.count())
+}
+
+/// Samples the server (whichever process currently has `pid`) every `every` until `stop`.
+fn sample_server(
+    pid: Arc<AtomicU32>,
+    edges: Vec<EdgeHandle>,
+    baseline: Arc<Mutex<Vec<u64>>>,
+    every: Duration,
+    stop: Arc<AtomicBool>,
+    start: Instant,
+) -> Vec<Sample> {
+    let mut samples = Vec::new();
+    let mut next = start;
+    while !stop.load(Ordering::Relaxed) {
+        if Instant::now() < next {
+            std::thread::sleep(Duration::from_millis(100));
+            continue;
+        }
+        next += every;
+        let pid = pid.load(Ordering::SeqCst);
+        let baseline = baseline.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        let sample = Sample {
+            at: start.elapsed(),
+            pid,
+            rss_kib: rss_kib(pid),
+            fds: fd_count(pid),
+            pending: edges.iter().map(|e| e.uplink.pending()).sum(),
+            acked: edges.iter().map(EdgeHandle::acked_prefix).sum(),
+            connected: edges
+                .iter()
+                .zip(&baseline)
+                .filter(|(e, b)| e.uplink.stats().connections > **b)
+                .count(),
+        };
+        // As it happens too, so a run that hangs at its end is not blind.
+        eprintln!("soak sample: {sample:?}");
+        samples.push(sample);
+    }
+    samples
+}
+
+/// Waits until `done`, polling every 100 ms; fails after `limit`.
+fn wait_for(limit: Duration, what: &str, mut done: impl FnMut() -> bool) -> anyhow::Result<()> {
+    let start = Instant::now();
+    while !done() {
+        if start.elapsed() > limit {
+            bail!("timed out after {limit:?} waiting for {what}");
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    Ok(())
+}
+
+/// A UDP port that was free a moment ago (the server binds it; the restart binds it again).
+fn free_udp_port() -> anyhow::Result<u16> {
+    Ok(std::net::UdpSocket::bind("127.0.0.1:0")?
+        .local_addr()?
+        .port())
+}
+
+/// Where the edge `identity` spools.
+fn spool_dir(work: &tempfile::TempDir, identity: &EdgeIdentity) -> PathBuf {
+    work.path().join("spools").join(&identity.name)
+}
+
+/// The sequence numbers of the frames left in the spool at `dir` (after the edge stopped: its
+/// shutdown wrote everything unacknowledged to disk). Acknowledgements are not persisted, so
+/// this may include frames the server has too.
+fn spooled_seqs(dir: &Path) -> anyhow::Result<HashSet<u64>> {
+    let mut spool = Spool::open(SpoolConfig::new(dir))?;
+    let mut seqs = HashSet::new();
+    while let Some(frame) = spool.next_unsent() {
+        seqs.insert(frame.seq);
+    }
+    Ok(seqs)
+}
+
+/// What reading one edge's recording back found.
+#[derive(Debug, Default)]
+struct Readback {
+    /// Frames the edge produced that are neither in the recording nor in its spool.
+    lost: Vec<u64>,
+    /// Frames the edge produced that are not in the recording yet but still in its spool (not
+    /// lost: a restarted edge sends them).
+    undelivered: u64,
+    /// Frames recorded more than once.
+    duplicates: u64,
+    /// Frames in the recording (all bodies, time-sync pongs included).
+    records: u64,
+}
+
+/// Reads the session of `edge` and checks that each of `seqs` is in it, or else still in
+/// `spooled`.
+fn read_back(
+    data_dir: &Path,
+    edge: &EdgeHandle,
+    seqs: &[u64],
+    spooled: &HashSet<u64>,
+) -> anyhow::Result<Readback> {
+    let dir = session_dir(data_dir, &edge.name, edge.session_id);
+    let frames = read_session(&dir).with_context(|| format!("reading back {}", dir.display()))?;
+    let mut seen: HashMap<u64, u64> = HashMap::new();
+    for frame in &frames {
+        *seen.entry(frame.frame.seq).or_default() += 1;
+    }
+    let missing: Vec<u64> = seqs
+        .iter()
+        .copied()
+        .filter(|s| !seen.contains_key(s))
+        .collect();
+    Ok(Readback {
+        undelivered: missing.iter().filter(|s| spooled.contains(s)).count() as u64,
+        lost: missing
+            .into_iter()
+            .filter(|s| !spooled.contains(s))
+            .collect(),
+        duplicates: seen.values().map(|&n| n.saturating_sub(1)).sum(),
+        records: frames.len() as u64,
+    })
+}
+
+fn mib(kib: Option<u64>) -> String {
+    kib.map_or("-".into(), |k| format!("{:.1}", k as f64 / 1024.0))
+}
+
+fn print_samples(samples: &[Sample], kill_at: Duration, restart_at: Duration) {
+    println!(
+        "  server process over time (RSS from /proc/PID/status VmRSS, fds = entries of /proc/PID/fd):"
+    );
+    println!(
+        "  {:>7} {:>8} {:>8} {:>5} {:>9} {:>9} {:>9}",
+        "t s", "pid", "RSS MiB", "fds", "pending", "acked/s", "connected"
+    );
+    let mut previous: Option<&Sample> = None;
+    for s in samples {
+        let rate = previous.map_or(f64::NAN, |p| {
+            s.acked.saturating_sub(p.acked) as f64 / (s.at - p.at).as_secs_f64()
+        });
+        previous = Some(s);
+        let note = if s.at >= kill_at && s.at < restart_at + Duration::from_secs(1) {
+            "  (killed / restarting)"
+        } else {
+            ""
+        };
+        println!(
+            "  {:>7.0} {:>8} {:>8} {:>5} {:>9} {:>9.1} {:>9}{note}",
+            s.at.as_secs_f64(),
+            s.pid,
+            mib(s.rss_kib),
+            s.fds.map_or("-".into(), |f| f.to_string()),
+            s.pending,
+            rate,
+            s.connected
+        );
+    }
+    let max_rss = samples.iter().filter_map(|s| s.rss_kib).max();
+    let max_fds = samples.iter().filter_map(|s| s.fds).max();
+    println!(
+        "  max RSS {} MiB, max fds {}",
+        mib(max_rss),
+        max_fds.map_or("-".into(), |f| f.to_string())
+    );
+}
+
+#[test]
+#[ignore = "the soak run takes minutes: SOAK_MINUTES=10 SOAK_EDGES=16 cargo test -p scan3d-tests --release --test soak -- --ignored --nocapture"]
+fn a_fleet_through_a_lossy_network_and_a_killed_server_loses_no_frame() -> anyhow::Result<()> {
+    let plan = Plan::from_env()?;
+    let work = tempfile::tempdir()?;
+    let pki = work.path().join("pki");
+    let data = work.path().join("data");
+    let logs = work.path().join("logs");
+    std::fs::create_dir_all(&logs)?;
+
+    let paired = Instant::now();
+    let identities = fleet::pair_edges(&pki, plan.edges)?;
+    let pairing = paired.elapsed();
+
+    let port = free_udp_port()?;
+    let server_addr = SocketAddr::from(([127, 0, 0, 1], port));
+    let config = work.path().join("server.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "listen = \"{server_addr}\"\npki_dir = {:?}\ndata_dir = {:?}\nmax_connections = {}\n",
+            pki.display().to_string(),
+            data.display().to_string(),
+            plan.edges + 4
+        ),
+    )?;
+    let mut server = ServerProcess::spawn(&config, &logs)?;
+    let server_pid = Arc::new(AtomicU32::new(server.pid()));
+    let relay = UdpRelay::start_impaired(server_addr, plan.impairment)?;
+
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .thread_name("soak-edges")
+        .enable_all()
+        .build()?;
+    let edges: Vec<SimEdge> = identities
+        .iter()
+        .enumerate()
+        .map(|(i, identity)| {
+            let session_id = plan.impairment.seed.wrapping_mul(1_000_003) + i as u64 + 1;
+            let mut config =
+                fleet::uplink_config(relay.local_addr(), identity, spool_dir(&work, identity))?;
+            if plan.bbr {
+                let mut transport = quinn::TransportConfig::default();
+                transport.congestion_controller_factory(Arc::new(
+                    quinn::congestion::BbrConfig::default(),
+                ));
+                config.client_config.transport_config(Arc::new(transport));
+            }
+            SimEdge::start_with(&runtime, config, identity, session_id)
+        })
+        .collect::<anyhow::Result<_>>()?;
+    let handles: Vec<EdgeHandle> = edges.iter().map(|e| e.handle.clone()).collect();
+    let connections = |handles: &[EdgeHandle]| -> Vec<u64> {
+        handles
+            .iter()
+            .map(|e| e.uplink.stats().connections)
+            .collect()
+    };
+    wait_for(Duration::from_secs(120), "every edge to connect", || {
+        connections(&handles).iter().all(|&c| c > 0)
+    })?;
+
+    let world = Arc::new(World::conference_room());
+    let streams = LidarStream::both(&world)?;
+    let start = Instant::now();
+    let begin = tokio::time::Instant::from_std(start);
+    let duration = plan.duration();
+    let producers = Producers::start(&runtime, &handles, &streams, begin, begin + duration);
+
+    let baseline = Arc::new(Mutex::new(vec![0u64; handles.len()]));
+    let stop_sampling = Arc::new(AtomicBool::new(false));
+    let sampler = {
+        let (pid, edges, baseline, stop) = (
+            server_pid.clone(),
+            handles.clone(),
+            baseline.clone(),
+            stop_sampling.clone(),
+        );
+        let every = plan.sample_every;
+        std::thread::spawn(move || sample_server(pid, edges, baseline, every, stop, start))
+    };
+
+    // The fault: SIGKILL mid-run, restart two seconds later on the same port and data.
+    let kill_at = duration.mul_f64(plan.kill_at);
+    std::thread::sleep(kill_at.saturating_sub(start.elapsed()));
+    let killed_pid = server.pid();
+    server.kill()?;
+    let kill_at = start.elapsed();
+    std::thread::sleep(Duration::from_secs(2));
+    *baseline.lock().unwrap_or_else(|e| e.into_inner()) = connections(&handles);
+    server.restart()?;
+    server_pid.store(server.pid(), Ordering::SeqCst);
+    let restart_at = start.elapsed();
+    let reconnected = wait_for(Duration::from_secs(120), "every edge to reconnect", || {
+        let base = baseline.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        connections(&handles).iter().zip(&base).all(|(c, b)| c > b)
+    });
+    let all_back_at = start.elapsed();
+
+    let produced = producers.join(&runtime)?;
+    let produced_at = start.elapsed();
+    // Deliver the backlog: every produced frame acknowledged.
+    let drained = wait_for(plan.drain_limit, "the last acknowledgements", || {
+        handles.iter().zip(&produced).all(|(edge, p)| {
+            p.submissions
+                .last()
+                .is_none_or(|last| edge.acked_prefix() > last.seq)
+        })
+    });
+    let drained_at = start.elapsed();
+    stop_sampling.store(true, Ordering::Relaxed);
+    let samples = sampler
+        .join()
+        .map_err(|_| anyhow::anyhow!("sampler panicked"))?;
+
+    // All at once: each may spend its drain timeout sending what is left.
+    let uplinks = std::thread::scope(|scope| {
+        let stopping: Vec<_> = edges
+            .into_iter()
+            .map(|edge| scope.spawn(|| edge.stop(&runtime)))
+            .collect();
+        stopping
+            .into_iter()
+            .map(|t| t.join().map_err(|_| anyhow::anyhow!("an edge panicked"))?)
+            .collect::<anyhow::Result<Vec<_>>>()
+    })?;
+    let relay_stats = relay.stats();
+    relay.shutdown();
+    let server_pid_end = server.pid();
+    let terminated = server.terminate();
+
+    let mut lost = 0usize;
+    let mut undelivered = 0u64;
+    let mut duplicates = 0u64;
+    let mut records = 0u64;
+    let mut lost_detail = Vec::new();
+    for ((edge, p), identity) in handles.iter().zip(&produced).zip(&identities) {
+        let seqs: Vec<u64> = p.submissions.iter().map(|s| s.seq).collect();
+        let spooled = spooled_seqs(&spool_dir(&work, identity))?;
+        let back = read_back(&data, edge, &seqs, &spooled)?;
+        lost += back.lost.len();
+        undelivered += back.undelivered;
+        duplicates += back.duplicates;
+        records += back.records;
+        if !back.lost.is_empty() {
+            let first: Vec<u64> = back.lost.iter().take(10).copied().collect();
+            lost_detail.push(format!(
+                "{}: {} lost, first seqs {first:?}",
+                edge.name,
+                back.lost.len()
+            ));
+        }
+    }
+    let sent: usize = produced.iter().map(|p| p.submissions.len()).sum();
+    let refused: u64 = produced.iter().map(|p| p.refused).sum();
+    let reconnects: u64 = uplinks.iter().map(|u| u.connections).sum();
+    let resent: u64 = uplinks.iter().map(|u| u.frames_sent).sum();
+
+    println!();
+    println!(
+        "soak: {} edges x {:.1} min at full sensor rate (RPLidar 5.5 rev/s + Sweep 5 rev/s each), one server SIGKILL + restart",
+        plan.edges, plan.minutes
+    );
+    println!(
+        "  relay    loss {:.1} %, delay {} ± {} ms each way, reordering {}, seed {}",
+        plan.impairment.loss * 100.0,
+        plan.impairment.delay.as_millis(),
+        plan.impairment.jitter.as_millis(),
+        if plan.impairment.reorder { "on" } else { "off" },
+        plan.impairment.seed
+    );
+    println!(
+        "           {} forwarded, {} lost on purpose, {} dropped (cut/down), {} delivered out of order",
+        relay_stats.forwarded, relay_stats.lost, relay_stats.dropped, relay_stats.reordered
+    );
+    println!(
+        "  pairing  {} bundles in {:.0} ms",
+        plan.edges,
+        pairing.as_secs_f64() * 1e3
+    );
+    println!(
+        "  fault    pid {killed_pid} SIGKILLed at {:.1} s, restarted at {:.1} s (pid {server_pid_end}); every edge reconnected by {:.1} s{}",
+        kill_at.as_secs_f64(),
+        restart_at.as_secs_f64(),
+        all_back_at.as_secs_f64(),
+        match &reconnected {
+            Ok(()) => String::new(),
+            Err(e) => format!(" ({e})"),
+        }
+    );
+    println!(
+        "  frames   {sent} produced, {refused} refused by a full spool, {records} records read back ({duplicates} duplicates),"
+    );
+    println!(
+        "           {undelivered} not recorded but still in the edges' spools (not lost, sent on the next start), {lost} LOST (neither)"
+    );
+    println!(
+        "           producing ended at {:.1} s, last acknowledgement at {:.1} s{}; {reconnects} connections, {resent} frames written (resends included)",
+        produced_at.as_secs_f64(),
+        drained_at.as_secs_f64(),
+        match &drained {
+            Ok(()) => String::new(),
+            Err(e) => format!(" ({e})"),
+        }
+    );
+    for line in &lost_detail {
+        println!("           {line}");
+    }
+    print_samples(&samples, kill_at, restart_at);
+    println!(
+        "  load     1-minute load average at the end: {}",
+        std::fs::read_to_string("/proc/loadavg")
+            .unwrap_or_default()
+            .trim()
+    );
+    if let Err(e) = &terminated {
+        println!("  server   {e}");
+    }
+
+    let failed = lost > 0
+        || undelivered > 0
+        || reconnected.is_err()
+        || drained.is_err()
+        || terminated.is_err();
+    if failed || std::env::var_os("SOAK_KEEP").is_some() {
+        // Recordings, spools and server logs, for a post-mortem.
+        println!("  kept     {}", work.keep().display());
+    }
+    assert_eq!(lost, 0, "frames lost: {lost_detail:?}");
+    assert_eq!(
+        undelivered, 0,
+        "frames still in the edges' spools when the run ended"
+    );
+    reconnected?;
+    drained?;
+    terminated?;
+    Ok(())
+}
