@@ -474,12 +474,35 @@ impl Uplink {
             // Send everything not yet sent on this connection, in order.
             let next = self.inner.spool().next_unsent();
             if let Some(frame) = next {
-                tokio::select! {
-                    written = send.write_all(&frame.bytes) => match written {
-                        Ok(()) => self.inner.stats().frames_sent += 1,
-                        Err(e) => break lost_or_refused(&connection, format!("write failed: {e}")),
-                    },
-                    _ = connection.closed() => break lost_or_refused(&connection, "connection closed".into()),
+                // A write blocked by flow or congestion control must not hold shutdown past the
+                // drain deadline. The write is never cancelled half way (the stream would carry
+                // a torn frame) except by closing the connection: the frame stays spooled.
+                let mut write = std::pin::pin!(send.write_all(&frame.bytes));
+                let outcome = loop {
+                    tokio::select! {
+                        written = &mut write => break WriteOutcome::Written(written),
+                        _ = connection.closed() => break WriteOutcome::ConnectionClosed,
+                        _ = shutdown.changed(), if drain_until.is_none() => {
+                            drain_until = Some(tokio::time::Instant::now() + self.config.drain_timeout);
+                        }
+                        () = sleep_until_deadline(drain_until) => break WriteOutcome::DrainTimedOut,
+                    }
+                };
+                match outcome {
+                    WriteOutcome::Written(Ok(())) => self.inner.stats().frames_sent += 1,
+                    WriteOutcome::Written(Err(e)) => {
+                        break lost_or_refused(&connection, format!("write failed: {e}"));
+                    }
+                    WriteOutcome::ConnectionClosed => {
+                        break lost_or_refused(&connection, "connection closed".into());
+                    }
+                    WriteOutcome::DrainTimedOut => {
+                        tracing::info!(
+                            "drain timeout with a write still blocked; the spooled frames are sent after the next start"
+                        );
+                        connection.close(0u32.into(), b"edge shutting down");
+                        break SessionEnd::Shutdown;
+                    }
                 }
                 continue;
             }
@@ -511,6 +534,24 @@ impl Uplink {
         };
         reader.abort();
         end
+    }
+}
+
+/// How a frame's write on the connection ended.
+enum WriteOutcome {
+    /// The stream took it (or failed).
+    Written(Result<(), quinn::WriteError>),
+    /// The connection closed while the write was blocked.
+    ConnectionClosed,
+    /// Shutting down, and the drain deadline passed while the write was blocked.
+    DrainTimedOut,
+}
+
+/// Waits until `deadline`, or for ever without one.
+async fn sleep_until_deadline(deadline: Option<tokio::time::Instant>) {
+    match deadline {
+        Some(deadline) => tokio::time::sleep_until(deadline).await,
+        None => std::future::pending().await,
     }
 }
 
