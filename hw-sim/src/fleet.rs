@@ -22,7 +22,6 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 use scan3d_edge::clock::{MonotonicClock, SharedClock};
 use scan3d_edge::uplink::client::{SubmitError, Uplink, UplinkConfig, UplinkHandle, UplinkStats};
-use scan3d_edge::uplink::spool::SpoolConfig;
 use scan3d_edge::uplink::tls;
 use scan3d_protocol::{Frame, LidarRevolution, SensorId, encode};
 use scan3d_server::ingest::pki::{self, PairRequest};
@@ -281,9 +280,7 @@ pub fn uplink_config(
     spool_dir: PathBuf,
 ) -> anyhow::Result<UplinkConfig> {
     let section = rig::uplink_section(server, &identity.bundle);
-    let mut spool = SpoolConfig::new(spool_dir);
-    spool.memory_limit_bytes = usize::try_from(section.spool_memory_mb << 20)?;
-    spool.disk_limit_bytes = section.spool_disk_mb << 20;
+    let spool = section.spool_config(spool_dir)?;
     Ok(UplinkConfig::new(
         section.server.clone(),
         section.tls_name().to_owned(),
