@@ -17,7 +17,8 @@
 //! a round trip costs twice), `SOAK_REORDER` [1], `SOAK_SEED` [1], `SOAK_KILL_AT` [0.5, the
 //! fraction of the run at which the server is killed], `SOAK_SAMPLE_S` [10, the sampling period],
 //! `SOAK_DRAIN_S` [300, how long the edges may take to deliver their backlog after producing],
-//! `SOAK_CC` [unset: the edge's own QUIC settings; `bbr`: BBR congestion control, to compare],
+//! `SOAK_CC` [unset: the edge's own QUIC settings (BBR); `cubic`: quinn's default Cubic, to
+//! compare],
 //! `SOAK_KEEP` [unset: the work directory with recordings, spools and server logs is kept only
 //! when the run fails].
 //!
@@ -65,9 +66,9 @@ struct Plan {
     kill_at: f64,
     sample_every: Duration,
     drain_limit: Duration,
-    /// `SOAK_CC=bbr`: the edges' QUIC connections use BBR instead of quinn's default (Cubic), to
-    /// compare; unset, the edges run with the edge's own transport settings.
-    bbr: bool,
+    /// `SOAK_CC=cubic`: the edges' QUIC connections use quinn's default Cubic instead of the
+    /// edge's BBR, to compare; unset, the edges run with the edge's own transport settings.
+    cubic: bool,
 }
 
 /// Reads `name` as a `T`, or `default` when unset.
@@ -100,10 +101,10 @@ impl Plan {
             kill_at: env_or("SOAK_KILL_AT", 0.5)?,
             sample_every: Duration::from_secs(env_or("SOAK_SAMPLE_S", 10)?),
             drain_limit: Duration::from_secs(env_or("SOAK_DRAIN_S", 300)?),
-            bbr: match std::env::var("SOAK_CC").as_deref() {
-                Err(_) | Ok("") | Ok("default") => false,
-                Ok("bbr") => true,
-                Ok(other) => bail!("SOAK_CC={other:?}: expected `bbr` or `default`"),
+            cubic: match std::env::var("SOAK_CC").as_deref() {
+                Err(_) | Ok("") | Ok("default") | Ok("bbr") => false,
+                Ok("cubic") => true,
+                Ok(other) => bail!("SOAK_CC={other:?}: expected `cubic` or `default`"),
             },
         };
         if !(plan.minutes > 0.0 && plan.minutes <= 24.0 * 60.0) {
@@ -444,12 +445,11 @@ fn a_fleet_through_a_lossy_network_and_a_killed_server_loses_no_frame() -> anyho
             let session_id = plan.impairment.seed.wrapping_mul(1_000_003) + i as u64 + 1;
             let mut config =
                 fleet::uplink_config(relay.local_addr(), identity, spool_dir(&work, identity))?;
-            if plan.bbr {
-                let mut transport = quinn::TransportConfig::default();
-                transport.congestion_controller_factory(Arc::new(
-                    quinn::congestion::BbrConfig::default(),
-                ));
-                config.client_config.transport_config(Arc::new(transport));
+            if plan.cubic {
+                // The link's shared settings, with quinn's default congestion control.
+                config
+                    .client_config
+                    .transport_config(Arc::new(scan3d_service::link::transport_config()));
             }
             SimEdge::start_with(&runtime, config, identity, session_id)
         })
