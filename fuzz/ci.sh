@@ -39,7 +39,7 @@ for target in "${targets[@]}"; do
   start=$SECONDS
   # The first corpus directory receives new inputs; regressions/ is only read.
   cargo +nightly fuzz run "${flags[@]}" "$target" "corpus/$target" "regressions/$target" -- \
-    -runs="$runs" -timeout=10 -rss_limit_mb=2048 -print_final_stats=1 2>"artifacts/$target/ci.log" ||
+    -runs="$runs" -timeout=30 -rss_limit_mb=2048 -print_final_stats=1 2>"artifacts/$target/ci.log" ||
     { tail -n 60 "artifacts/$target/ci.log"; echo "fuzz target $target failed (log: fuzz/artifacts/$target/ci.log)"; exit 1; }
   grep -E '^(stat::number_of_executed_units|stat::peak_rss_mb)' "artifacts/$target/ci.log" | tr '\n' ' '
   echo "($((SECONDS - start)) s)"

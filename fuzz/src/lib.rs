@@ -88,6 +88,7 @@ unsafe impl GlobalAlloc for Budget {
 /// Runs `f` with at most `base + per_byte × input_len` bytes allocated beyond what was live
 /// before; exceeding it aborts the process with the sizes and a backtrace.
 pub fn with_budget<T>(input_len: usize, base: usize, per_byte: usize, f: impl FnOnce() -> T) -> T {
+    lift_budget_on_panic();
     let baseline = LIVE.load(Ordering::Relaxed);
     BASELINE.store(baseline, Ordering::Relaxed);
     INPUT_LEN.store(input_len, Ordering::Relaxed);
@@ -96,6 +97,19 @@ pub fn with_budget<T>(input_len: usize, base: usize, per_byte: usize, f: impl Fn
     let out = f();
     LIMIT.store(usize::MAX, Ordering::Relaxed);
     out
+}
+
+/// Wraps the panic hook (libFuzzer's, installed before the first input) so that a panic under
+/// a budget reports normally: formatting the message and the backtrace allocates.
+fn lift_budget_on_panic() {
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        let report = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            LIMIT.store(usize::MAX, Ordering::Relaxed);
+            report(info);
+        }));
+    });
 }
 
 /// Default budget of a reader target: 4 MiB plus 256 bytes per input byte.
