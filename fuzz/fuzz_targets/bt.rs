@@ -16,7 +16,11 @@ fuzz_target!(|data: &[u8]| {
         let out = tree.to_bt_bytes_const();
         let again = Octree::read_bt(&out, model).expect("our own .bt must read back");
         assert_eq!(again.num_nodes(), tree.num_nodes());
-        assert_eq!(again.to_bt_bytes_const(), out, "read → write is not a fixed point");
+        assert_eq!(
+            again.to_bt_bytes_const(),
+            out,
+            "read → write is not a fixed point"
+        );
 
         let start = scan3d_fuzz::octomap_data_offset(data).expect("the reader found `data`");
         let out_start = scan3d_fuzz::octomap_data_offset(&out).expect("our header");

@@ -14,7 +14,11 @@ fn roundtrip(frame: &Frame, original: &[u8]) {
     let (again, used) = decode(&bytes).expect("an encoded frame must decode");
     assert_eq!(used, bytes.len());
     // Bytes, not `==`: NaN samples are legal and unequal to themselves.
-    assert_eq!(encode(&again).expect("re-encode"), bytes, "decode∘encode ≠ id");
+    assert_eq!(
+        encode(&again).expect("re-encode"),
+        bytes,
+        "decode∘encode ≠ id"
+    );
     // postcard accepts non-minimal varints, so only a canonical input is compared directly.
     if bytes.len() == original.len() {
         assert_eq!(bytes, original, "same-length re-encoding differs");

@@ -11,6 +11,10 @@ fuzz_target!(|data: &[u8]| {
             return;
         };
         let points: usize = scans.iter().map(|s| s.points.len()).sum();
-        assert!(points * 28 <= data.len(), "{points} points from {} bytes", data.len());
+        assert!(
+            points * 28 <= data.len(),
+            "{points} points from {} bytes",
+            data.len()
+        );
     });
 });

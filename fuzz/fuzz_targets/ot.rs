@@ -22,7 +22,11 @@ fuzz_target!(|data: &[u8]| {
             "written .ot data is not the consumed prefix of the input"
         );
         let again = Octree::read_ot(&out, model).expect("our own .ot must read back");
-        assert_eq!(again.to_ot_bytes(), out, "read → write is not a fixed point");
+        assert_eq!(
+            again.to_ot_bytes(),
+            out,
+            "read → write is not a fixed point"
+        );
         scan3d_fuzz::check_tree(&tree);
     });
 });

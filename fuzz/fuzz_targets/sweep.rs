@@ -31,10 +31,15 @@ fuzz_target!(|data: &[u8]| {
     scan3d_fuzz::with_reader_budget(data.len(), || {
         let (settings, steps) = scan3d_fuzz::stream::parse(data);
         let mut driver = Sweep::new(config(settings)).expect("a valid Sweep config");
-        scan3d_fuzz::drive(&mut driver, &steps, u8::MAX, |d, action, now| match action {
-            0 => d.stop(now),
-            1 => d.start(now),
-            _ => {}
-        });
+        scan3d_fuzz::drive(
+            &mut driver,
+            &steps,
+            u8::MAX,
+            |d, action, now| match action {
+                0 => d.stop(now),
+                1 => d.start(now),
+                _ => {}
+            },
+        );
     });
 });

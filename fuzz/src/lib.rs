@@ -157,7 +157,11 @@ fn drain(driver: &mut dyn LidarDriver, now: u64, last_arrival: &mut u64, max_qua
             assert!((0.0..360.0).contains(&a), "angle {a} outside [0, 360)");
             let r = s.sample.range_m;
             assert!(r.is_finite() && r >= 0.0, "range {r}");
-            assert!(s.sample.quality <= max_quality, "quality {}", s.sample.quality);
+            assert!(
+                s.sample.quality <= max_quality,
+                "quality {}",
+                s.sample.quality
+            );
             assert!(
                 s.arrival_ns <= now,
                 "arrival {} after now {now}",
@@ -251,7 +255,11 @@ pub fn check_tree(tree: &scan3d_server::octree::Octree) {
     let _ = tree.metric_bounds();
     let bt = tree.to_bt_bytes();
     let again = Octree::read_bt(&bt, *tree.model()).expect("our own .bt must read back");
-    assert_eq!(again.to_bt_bytes_const(), bt, ".bt write → read → write differs");
+    assert_eq!(
+        again.to_bt_bytes_const(),
+        bt,
+        ".bt write → read → write differs"
+    );
 }
 
 /// The finite points of a flat cloud in file order, as `into_scans` keeps them, bit for bit.
@@ -270,7 +278,11 @@ fn kept_points(cloud: scan3d_server::cloud::io::FlatCloud) -> Vec<[u32; 3]> {
 pub fn check_cloud_roundtrip<E: std::fmt::Debug>(
     cloud: scan3d_server::cloud::io::FlatCloud,
     parse: impl Fn(&[u8]) -> Result<scan3d_server::cloud::io::FlatCloud, E>,
-    write: impl Fn(&mut Vec<u8>, &[scan3d_server::cloud::OriginScan], scan3d_server::cloud::io::Encoding),
+    write: impl Fn(
+        &mut Vec<u8>,
+        &[scan3d_server::cloud::OriginScan],
+        scan3d_server::cloud::io::Encoding,
+    ),
 ) {
     use scan3d_server::cloud::io::Encoding;
     let scans = cloud

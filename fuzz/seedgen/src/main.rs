@@ -63,7 +63,12 @@ fn frames() -> Vec<(&'static str, Frame)> {
     let session = 0x5eed_0001;
     let mut rev = LidarRevolution::new(SensorId::RPLIDAR, 1_000, 182_000_000);
     for i in 0..8u64 {
-        let _ = rev.push(i as f32 * 45.0, 1.5 + i as f32 * 0.1, 47, 1_000 + i * 20_000_000);
+        let _ = rev.push(
+            i as f32 * 45.0,
+            1.5 + i as f32 * 0.1,
+            47,
+            1_000 + i * 20_000_000,
+        );
     }
     let mount = MountInfo {
         axis_offset_m: 0.05,
@@ -256,7 +261,11 @@ fn frame_seeds(c: &Corpus) -> Result<()> {
     if let Some(tag) = bad.get_mut(12) {
         *tag = 0x7f;
     }
-    c.put("frame", "malformed_mid_stream", &[good.clone(), bad, good].concat())?;
+    c.put(
+        "frame",
+        "malformed_mid_stream",
+        &[good.clone(), bad, good].concat(),
+    )?;
     Ok(())
 }
 
@@ -275,9 +284,14 @@ fn session<D: LidarDriver, E: Device>(
         samples += u64::from(matches!(e, LidarEvent::Sample(_)));
     });
     if samples == 0 {
-        return Err(format!("the recorded session never streamed (settings {settings:#04x})").into());
+        return Err(
+            format!("the recorded session never streamed (settings {settings:#04x})").into(),
+        );
     }
-    Ok(stream::write(settings, &pair.recording.take().unwrap_or_default()))
+    Ok(stream::write(
+        settings,
+        &pair.recording.take().unwrap_or_default(),
+    ))
 }
 
 fn driver_seeds(c: &Corpus) -> Result<()> {
@@ -367,21 +381,20 @@ fn map_seeds(c: &Corpus) -> Result<()> {
 fn graph(scans: &[OriginScan]) -> Vec<u8> {
     fn vec3(out: &mut Vec<u8>, v: [f64; 3]) {
         out.extend_from_slice(&3i32.to_le_bytes());
-        v.iter().for_each(|x| out.extend_from_slice(&x.to_le_bytes()));
+        v.iter()
+            .for_each(|x| out.extend_from_slice(&x.to_le_bytes()));
     }
     fn quat(out: &mut Vec<u8>, q: [f64; 4]) {
         out.extend_from_slice(&4i32.to_le_bytes());
-        q.iter().for_each(|x| out.extend_from_slice(&x.to_le_bytes()));
+        q.iter()
+            .for_each(|x| out.extend_from_slice(&x.to_le_bytes()));
     }
     let mut g = (scans.len() as u32).to_le_bytes().to_vec();
     for (id, scan) in scans.iter().enumerate() {
         g.extend_from_slice(&(scan.points.len().min(6) as u32).to_le_bytes());
         for p in scan.points.iter().take(6) {
             // Points relative to the node pose (a pure translation here).
-            vec3(
-                &mut g,
-                [0, 1, 2].map(|i| f64::from(p[i]) - scan.origin[i]),
-            );
+            vec3(&mut g, [0, 1, 2].map(|i| f64::from(p[i]) - scan.origin[i]));
         }
         vec3(&mut g, scan.origin);
         quat(&mut g, [1.0, 0.0, 0.0, 0.0]);
@@ -468,14 +481,22 @@ fn session_seeds(c: &Corpus) -> Result<()> {
 
 fn text_seeds(c: &Corpus) -> Result<()> {
     let root = Path::new(ROOT);
-    c.put("edge_config", "deploy_edge", &fs::read(root.join("deploy/edge.toml"))?)?;
+    c.put(
+        "edge_config",
+        "deploy_edge",
+        &fs::read(root.join("deploy/edge.toml"))?,
+    )?;
     c.put("edge_config", "minimal", b"device_name = \"edge\"\n")?;
     c.put(
         "edge_config",
         "rplidar_only",
         b"device_name = \"e\"\n[rplidar]\npath = \"/dev/ttyUSB0\"\nanswer_timeout_ms = 10\nscan_mode = \"standard\"\n",
     )?;
-    c.put("server_config", "deploy_server", &fs::read(root.join("deploy/server.toml"))?)?;
+    c.put(
+        "server_config",
+        "deploy_server",
+        &fs::read(root.join("deploy/server.toml"))?,
+    )?;
     c.put("server_config", "empty", b"")?;
     for (i, (_, frame)) in frames()
         .into_iter()

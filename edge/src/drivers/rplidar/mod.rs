@@ -1087,10 +1087,18 @@ mod tests {
         let mut d = Rplidar::new(config.clone());
         d.start(ms(1));
         assert_eq!(tx(&mut d), [w(&[0xA5, 0x25])]);
-        assert_eq!(d.poll_timeout(), Some(never), "STOP settles until the end of time");
+        assert_eq!(
+            d.poll_timeout(),
+            Some(never),
+            "STOP settles until the end of time"
+        );
         d.handle_timeout(never);
         assert_eq!(tx(&mut d), [Transmit::FlushInput, w(&[0xA5, 0x50])]);
-        assert_eq!(d.poll_timeout(), Some(never), "GET_INFO waits until the end of time");
+        assert_eq!(
+            d.poll_timeout(),
+            Some(never),
+            "GET_INFO waits until the end of time"
+        );
         d.handle_timeout(never);
         assert_eq!(tx(&mut d), [w(&[0xA5, 0x50])], "the retry is sent");
         assert_eq!(d.poll_timeout(), Some(never));
@@ -1098,7 +1106,11 @@ mod tests {
         let mut d = Rplidar::new(config);
         d.reset(ms(1));
         assert_eq!(tx(&mut d), [w(&[0xA5, 0x40])]);
-        assert_eq!(d.poll_timeout(), Some(never), "RESET settles until the end of time");
+        assert_eq!(
+            d.poll_timeout(),
+            Some(never),
+            "RESET settles until the end of time"
+        );
     }
 
     #[test]
