@@ -64,10 +64,11 @@ use nodes::NodeParser;
 
 const MS: u64 = 1_000_000;
 
-/// Milliseconds from the configuration as nanoseconds, saturating: a deadline far in the future
-/// must stay far in the future, never wrap to the past.
-fn ms(value: u64) -> u64 {
-    value.saturating_mul(MS)
+/// The deadline `ms` milliseconds after `now`, saturating: a configured timeout too long to
+/// represent means "not before the end of time", never an overflow (a panic in debug builds, a
+/// wrapped deadline in the past in release builds, which would fire at once).
+fn deadline_after(now: u64, ms: u64) -> u64 {
+    now.saturating_add(ms.saturating_mul(MS))
 }
 /// First firmware with EXPRESS_SCAN and GET_SAMPLERATE (1.17).
 const FW_1_17: u16 = 0x0111;
@@ -325,13 +326,13 @@ impl Rplidar {
         if reset {
             self.transmits.push_back(Transmit::Write(codec::reset()));
             self.phase = Phase::Settling {
-                until: now.saturating_add(ms(self.config.reset_wait_ms)),
+                until: deadline_after(now, self.config.reset_wait_ms),
                 info_attempts: self.config.info_attempts_after_reset,
             };
         } else {
             self.transmits.push_back(Transmit::Write(codec::stop()));
             self.phase = Phase::Settling {
-                until: now.saturating_add(ms(self.config.stop_wait_ms)),
+                until: deadline_after(now, self.config.stop_wait_ms),
                 info_attempts: self.config.info_attempts,
             };
         }
@@ -381,8 +382,8 @@ impl Rplidar {
             request,
             attempts: 1,
             max_attempts: max_attempts.max(1),
-            timeout_ns: ms(timeout_ms),
-            deadline: now.saturating_add(ms(timeout_ms)),
+            timeout_ns: timeout_ms.saturating_mul(MS),
+            deadline: deadline_after(now, timeout_ms),
             got_descriptor: false,
         });
     }
@@ -521,7 +522,7 @@ impl Rplidar {
         self.resyncs_reported = self.stats.resyncs;
         self.phase = Phase::Scanning {
             parser,
-            deadline: now.saturating_add(ms(self.config.spinup_timeout_ms)),
+            deadline: deadline_after(now, self.config.spinup_timeout_ms),
         };
     }
 
@@ -633,14 +634,14 @@ impl Rplidar {
             StreamParser::Capsules(p) => p.parse(&self.buf, &mut self.stats, &mut emit),
         };
         if frames > 0 {
-            *deadline = now.saturating_add(ms(self.config.answer_timeout_ms));
+            *deadline = deadline_after(now, self.config.answer_timeout_ms);
         }
         self.stats.samples_emitted += emitted;
         self.consume(consumed);
         if self.stats.resyncs > self.resyncs_reported && now >= self.next_resync_report {
             let lost = self.stats.resyncs - self.resyncs_reported;
             self.resyncs_reported = self.stats.resyncs;
-            self.next_resync_report = now.saturating_add(1000 * MS);
+            self.next_resync_report = deadline_after(now, 1000);
             self.warn(format!(
                 "scan stream lost framing {lost} time(s); resynchronised"
             ));
@@ -790,24 +791,6 @@ mod tests {
         d.handle_timeout(ms(100));
         assert_eq!(tx(d), [Transmit::FlushInput, w(&[0xA5, 0x50])]);
         assert_eq!(d.poll_timeout(), Some(ms(600)));
-    }
-
-    #[test]
-    fn huge_timeouts_saturate_instead_of_wrapping_into_the_past() {
-        let mut d = Rplidar::new(RplidarConfig {
-            stop_wait_ms: u64::MAX,
-            ..RplidarConfig::default()
-        });
-        let now = u64::MAX / 2;
-        d.start(now);
-        assert_eq!(tx(&mut d), [w(&[0xA5, 0x25])]);
-        assert_eq!(
-            d.poll_timeout(),
-            Some(u64::MAX),
-            "the wait ends at the end of time"
-        );
-        d.handle_timeout(now + 1);
-        assert!(tx(&mut d).is_empty(), "still waiting");
     }
 
     #[test]
@@ -1178,6 +1161,48 @@ mod tests {
         assert!(matches!(&ev(&mut d)[..], [LidarEvent::Warning(_)]));
         assert_eq!(tx(&mut d), [w(&[0xA5, 0x25])]);
         assert_eq!(d.poll_timeout(), Some(ms(5240)));
+    }
+
+    #[test]
+    fn timeouts_too_long_to_represent_saturate_to_the_end_of_time() {
+        // Found by fuzz/fuzz_targets/rplidar.rs (fuzz/regressions/rplidar/): `now + ms * MS`
+        // overflowed for a configured timeout of more than u64::MAX / 1e6 ms.
+        let never = u64::MAX;
+        let config = RplidarConfig {
+            stop_wait_ms: never,
+            info_timeout_ms: never,
+            reset_wait_ms: never,
+            answer_timeout_ms: never,
+            spinup_timeout_ms: never,
+            ..RplidarConfig::default()
+        };
+        let mut d = Rplidar::new(config.clone());
+        d.start(ms(1));
+        assert_eq!(tx(&mut d), [w(&[0xA5, 0x25])]);
+        assert_eq!(
+            d.poll_timeout(),
+            Some(never),
+            "STOP settles until the end of time"
+        );
+        d.handle_timeout(never);
+        assert_eq!(tx(&mut d), [Transmit::FlushInput, w(&[0xA5, 0x50])]);
+        assert_eq!(
+            d.poll_timeout(),
+            Some(never),
+            "GET_INFO waits until the end of time"
+        );
+        d.handle_timeout(never);
+        assert_eq!(tx(&mut d), [w(&[0xA5, 0x50])], "the retry is sent");
+        assert_eq!(d.poll_timeout(), Some(never));
+
+        let mut d = Rplidar::new(config);
+        d.reset(ms(1));
+        assert_eq!(tx(&mut d), [w(&[0xA5, 0x40])]);
+        assert_eq!(
+            d.poll_timeout(),
+            Some(never),
+            "RESET settles until the end of time"
+        );
     }
 
     #[test]
