@@ -210,6 +210,13 @@ impl Octree {
                 if depth == 0 {
                     break;
                 }
+                // An inner-node code whose record lists no child is a childless node, a leaf
+                // (OctoMap's getNumLeafNodes counts it) of value -FLT_MAX (getMaxChildLogOdds
+                // of no children). OctoMap never writes one; a hand-made file can hold it.
+                if end == node + 1 {
+                    leaves += 1;
+                    occupied += u64::from(model.is_occupied(max));
+                }
                 depth -= 1;
                 let parent = &mut stack[depth].2;
                 *parent = parent.max(max);
@@ -248,6 +255,11 @@ impl Octree {
         // The root keeps clamp max (OctoMap never recomputes it after reading).
         if let Some(root) = values.first_mut() {
             *root = model.clamp_max;
+        }
+        if values.len() == 1 {
+            // A root record without children: the root alone, a leaf at clamp max.
+            leaves += 1;
+            occupied += u64::from(model.is_occupied(model.clamp_max));
         }
         if values.len() as u64 != h.size {
             return Err(OctreeError::SizeMismatch {
@@ -437,6 +449,35 @@ mod tests {
             (33, 2, 1)
         );
         assert_eq!(t.to_bt_bytes(), bt);
+    }
+
+    #[test]
+    fn childless_nodes_of_a_hand_made_bt_are_counted_as_the_leaves_they_are() {
+        // Found by fuzz/fuzz_targets/bt.rs (fuzz/regressions/bt/): an inner-node code whose
+        // record lists no child made a node that `leaves()` yields but `num_leaves` missed.
+        let model = SensorModel::default();
+        let head = |size: u32| {
+            format!("# Octomap OcTree binary file\nid OcTree\nsize {size}\nres 0.1\ndata\n")
+                .into_bytes()
+        };
+        // Root: child 0 inner (code 3), child 1 occupied (code 2); child 0's record: nothing.
+        let mut bt = head(3);
+        bt.extend_from_slice(&[0x0b, 0x00, 0x00, 0x00]);
+        let t = Octree::read_bt(&bt, model).unwrap();
+        assert_eq!(t.leaves().count(), 2);
+        assert_eq!((t.num_nodes(), t.num_leaves(), t.num_occupied()), (3, 2, 1));
+        let childless = t.leaves().find(|l| l.log_odds != model.clamp_max).unwrap();
+        assert_eq!(
+            childless.log_odds,
+            -f32::MAX,
+            "getMaxChildLogOdds of no children"
+        );
+        // A root record without children: the root alone is the one leaf, at clamp max.
+        let mut bt = head(1);
+        bt.extend_from_slice(&[0x00, 0x00]);
+        let t = Octree::read_bt(&bt, model).unwrap();
+        assert_eq!(t.leaves().count(), 1);
+        assert_eq!((t.num_nodes(), t.num_leaves(), t.num_occupied()), (1, 1, 1));
     }
 
     #[test]
