@@ -128,7 +128,10 @@ impl FlatCloud {
                 }
                 let mut scans: Vec<OriginScan> = Vec::new();
                 for (p, o) in self.points.into_iter().zip(origins) {
-                    if !finite3(&p) || !o.iter().all(|c| c.is_finite()) {
+                    // Per-point origins are written as f32 fields (PLY `sx sy sz`, PCD `vp_*`),
+                    // so one beyond f32's range is dropped here, counted, like an infinite one,
+                    // rather than turned into an infinite origin by the next write.
+                    if !finite3(&p) || !o.iter().all(|&c| (c as f32).is_finite()) {
                         continue;
                     }
                     match scans.last_mut() {
@@ -415,6 +418,28 @@ mod tests {
                 points: vec![[1.0, 0.0, 0.0], [3.0, 0.0, 0.0]]
             }]
         );
+    }
+
+    #[test]
+    fn a_per_point_origin_beyond_f32_is_dropped_at_read_not_lost_by_the_next_write() {
+        // Found by fuzz/fuzz_targets/pcd.rs (fuzz/regressions/pcd/): a finite f64 origin of
+        // 1e39 was kept, then written to an f32 `vp_x` as inf, and its point vanished on re-read.
+        let flat = FlatCloud {
+            points: vec![[1.0, 0.0, 0.0], [2.0, 0.0, 0.0], [3.0, 0.0, 0.0]],
+            origins: Origins::PerPoint(vec![[0.0; 3], [1e39, 0.0, 0.0], [0.5, 0.0, 0.0]]),
+        };
+        let got = flat.into_scans(None).unwrap();
+        assert_eq!(got.dropped_nonfinite, 1);
+        let kept: Vec<_> = got.scans.iter().flat_map(|s| s.points.clone()).collect();
+        assert_eq!(kept, vec![[1.0, 0.0, 0.0], [3.0, 0.0, 0.0]]);
+        let mut pcd = Vec::new();
+        crate::cloud::pcd::write_pcd_scans(&mut pcd, &got.scans, Encoding::Binary).unwrap();
+        let back = crate::cloud::pcd::parse_pcd(&pcd)
+            .unwrap()
+            .into_scans(None)
+            .unwrap();
+        assert_eq!(back.dropped_nonfinite, 0);
+        assert_eq!(back.scans, got.scans);
     }
 
     #[test]
