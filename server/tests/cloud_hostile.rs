@@ -1,5 +1,6 @@
-//! Hostile headers for every file reader (issue 10, defect 6): PCD, PLY, `.scans`, and the
-//! octree's `.bt`, `.ot` and `.graph`. Counts and sizes from a file must be checked before they
+//! Hostile headers for every file reader (issue 10, defect 6, and the fuzzers' findings): PCD,
+//! PLY, `.scans`, the octree's `.bt`, `.ot` and `.graph`, and MCAP recordings. Counts and sizes
+//! from a file must be checked before they
 //! size an allocation or a loop: a lying header gives a typed error (or a valid cloud), never
 //! a panic, a wrapped product, or memory beyond what the bytes present justify. A counting
 //! allocator measures each parse's peak heap use.
@@ -452,4 +453,51 @@ fn ply_huge_vertex_counts_and_list_lengths_are_bounded_by_the_bytes_present() {
         bounded("ply ascii long list", f.as_bytes(), parse_ply),
         Err(PlyError::BadRecord { line: 9, .. })
     ));
+}
+
+/// One MCAP record: opcode, u64 LE body length, body.
+fn mcap_record(op: u8, body: &[u8]) -> Vec<u8> {
+    let mut r = vec![op];
+    r.extend_from_slice(&(body.len() as u64).to_le_bytes());
+    r.extend_from_slice(body);
+    r
+}
+
+#[test]
+fn hostile_mcap_length_prefixes_are_refused_within_the_bytes_present() {
+    // Found by fuzz/fuzz_targets/mcap_session.rs (fuzz/regressions/mcap_session/): a string
+    // length inside a short record made the MCAP parser reserve gigabytes before reading.
+    let huge = 0x695f_0000u32.to_le_bytes();
+    let mut header = huge.to_vec(); // Header: profile string of 1.7 GB
+    header.extend_from_slice(b"P0\r");
+    let mut channel = vec![1, 0, 0, 0]; // Channel: id 1, schema 0, topic of 1.7 GB
+    channel.extend_from_slice(&huge);
+    channel.extend_from_slice(b"/x");
+    let mut chunk = vec![0u8; 28]; // Chunk: times, size, CRC, compression of 1.7 GB
+    chunk.extend_from_slice(&huge);
+    let mut index = vec![1, 0]; // MessageIndex: channel 1, pairs of 1.7 GB
+    index.extend_from_slice(&huge);
+    for (what, record) in [
+        ("header", mcap_record(0x01, &header)),
+        ("channel", mcap_record(0x04, &channel)),
+        ("chunk", mcap_record(0x06, &chunk)),
+        ("message index", mcap_record(0x07, &index)),
+    ] {
+        let dir = tempfile::tempdir().unwrap();
+        let mut file = b"\x89MCAP0\r\n".to_vec();
+        file.extend_from_slice(&record);
+        std::fs::write(dir.path().join("0000.mcap"), &file).unwrap();
+        let (result, peak) = peak_of(|| {
+            scan3d_server::ingest::recorder::read_session_report(dir.path()).map(|r| r.0.len())
+        });
+        assert!(
+            peak < (1 << 20) + 64 * file.len(),
+            "{what}: {peak} bytes of heap for a {}-byte file ({result:?})",
+            file.len()
+        );
+        assert!(
+            !matches!(result, Ok(n) if n > 0),
+            "{what}: frames from nothing"
+        );
+    }
 }

@@ -623,10 +623,81 @@ fn known_opcode(op: u8) -> bool {
     (0x01..=0x0F).contains(&op) || op >= 0x80
 }
 
+/// `mcap::parse_record` for the records the readers use (chunk, message index, channel,
+/// message), after checking that every length prefix in `body` fits inside it: the parser
+/// reserves a prefix's length before reading, so a 28-byte file could otherwise ask for
+/// gigabytes (found by `fuzz/fuzz_targets/mcap_session.rs`). Other records are `None`: the
+/// readers never need them.
+fn parse_record_checked(
+    op: u8,
+    body: &[u8],
+) -> Option<Result<mcap::records::Record<'_>, mcap::McapError>> {
+    use mcap::records::op;
+    let mut fields = Prefixed { rest: body };
+    let fits = match op {
+        // start, end, uncompressed size (u64), CRC (u32), compression, records (u64 length).
+        op::CHUNK => fields.skip(28) && fields.string() && fields.bytes_u64(),
+        // channel id (u16), then (log time, offset) pairs behind a u32 byte length.
+        op::MESSAGE_INDEX => fields.skip(2) && fields.bytes_u32(),
+        // id, schema id (u16 each), topic, message encoding, metadata (u32 byte length).
+        op::CHANNEL => fields.skip(4) && fields.string() && fields.string() && fields.bytes_u32(),
+        // channel (u16), sequence (u32), log and publish time (u64): the data is the rest.
+        op::MESSAGE => fields.skip(22),
+        _ => return None,
+    };
+    Some(if fits {
+        mcap::parse_record(op, body)
+    } else {
+        Err(mcap::McapError::UnexpectedEof)
+    })
+}
+
+/// Walks the length-prefixed fields of an MCAP record body without allocating.
+struct Prefixed<'a> {
+    rest: &'a [u8],
+}
+
+impl Prefixed<'_> {
+    fn skip(&mut self, n: usize) -> bool {
+        match self.rest.get(n..) {
+            Some(rest) => {
+                self.rest = rest;
+                true
+            }
+            None => false,
+        }
+    }
+
+    fn prefix<const N: usize>(&mut self) -> Option<u64> {
+        let (head, _) = self.rest.split_first_chunk::<N>()?;
+        let mut bytes = [0u8; 8];
+        bytes[..N].copy_from_slice(head);
+        self.rest = &self.rest[N..];
+        Some(u64::from_le_bytes(bytes))
+    }
+
+    fn string(&mut self) -> bool {
+        self.bytes_u32()
+    }
+
+    fn bytes_u32(&mut self) -> bool {
+        self.prefix::<4>()
+            .and_then(|n| usize::try_from(n).ok())
+            .is_some_and(|n| self.skip(n))
+    }
+
+    fn bytes_u64(&mut self) -> bool {
+        self.prefix::<8>()
+            .and_then(|n| usize::try_from(n).ok())
+            .is_some_and(|n| self.skip(n))
+    }
+}
+
 /// Decompresses and CRC-checks one chunk record body; the chunk's records on success, why not
 /// otherwise. Sizes are checked before anything is allocated.
 fn chunk_records(body: &[u8]) -> Result<Vec<u8>, String> {
-    let record = mcap::parse_record(mcap::records::op::CHUNK, body)
+    let record = parse_record_checked(mcap::records::op::CHUNK, body)
+        .unwrap_or(Err(mcap::McapError::UnexpectedEof))
         .map_err(|e| format!("chunk header: {e}"))?;
     let mcap::records::Record::Chunk { header, data } = record else {
         return Err("not a chunk".into());
@@ -778,8 +849,8 @@ impl FileWalker<'_> {
                 break;
             }
             let body = self.read_at(pos + RECORD_HEAD, body_len as usize)?;
-            match mcap::parse_record(op, &body) {
-                Ok(mcap::records::Record::MessageIndex(index)) => {
+            match parse_record_checked(op, &body) {
+                Some(Ok(mcap::records::Record::MessageIndex(index))) => {
                     *count.get_or_insert(0) += index.records.len() as u64;
                 }
                 _ => break,
@@ -811,12 +882,13 @@ impl FileWalker<'_> {
             };
             let (body, next) = after.split_at(body_len);
             rest = next;
-            match mcap::parse_record(head[0], body) {
-                Ok(mcap::records::Record::Channel(channel)) => {
+            match parse_record_checked(head[0], body) {
+                None => {}
+                Some(Ok(mcap::records::Record::Channel(channel))) => {
                     self.channels
                         .insert(channel.id, (channel.topic, channel.message_encoding));
                 }
-                Ok(mcap::records::Record::Message { header, data }) => {
+                Some(Ok(mcap::records::Record::Message { header, data })) => {
                     let channel = self.channels.get(&header.channel_id);
                     if let Some(item) = message_item(self.path, channel, header.log_time, &data) {
                         visit(item)?;
@@ -824,8 +896,8 @@ impl FileWalker<'_> {
                         scan.skipped += 1;
                     }
                 }
-                Ok(_) => {}
-                Err(e) => {
+                Some(Ok(_)) => {}
+                Some(Err(e)) => {
                     tracing::warn!(path = %self.path.display(), error = %e, "unparsable record skipped");
                     scan.skipped += 1;
                 }
