@@ -69,15 +69,8 @@ fn an_oversized_command_is_refused_and_the_edge_stays_connected() {
         .build()
         .expect("runtime");
     runtime.block_on(async {
-        let mut endpoint =
-            quinn::Endpoint::client(SocketAddr::from(([127, 0, 0, 1], 0))).expect("endpoint");
-        endpoint.set_default_client_config(client_config(&bundle).expect("bundle"));
-        let connection = endpoint
-            .connect(server.addr(), "localhost")
-            .expect("connect")
-            .await
-            .expect("handshake");
-        let (mut send, mut recv) = connection.open_bi().await.expect("stream");
+        let (_endpoint, connection, mut send, mut recv) =
+            connect_edge(server.addr(), &bundle).await;
         let mut reader = FrameReader::new();
         let heartbeat = |seq| encode(&Frame::new(SESSION, seq, Heartbeat { sent_ns: 1 })).unwrap();
         send.write_all(&heartbeat(0)).await.expect("write");
