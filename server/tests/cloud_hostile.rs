@@ -473,6 +473,10 @@ fn hostile_mcap_length_prefixes_are_refused_within_the_bytes_present() {
     let mut channel = vec![1, 0, 0, 0]; // Channel: id 1, schema 0, topic of 1.7 GB
     channel.extend_from_slice(&huge);
     channel.extend_from_slice(b"/x");
+    let mut metadata = vec![1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0]; // Channel 1, empty topic and encoding,
+    metadata.extend_from_slice(&8u32.to_le_bytes()); // a metadata map of 8 bytes whose key
+    metadata.extend_from_slice(&huge); // claims 1.7 GB
+    metadata.extend_from_slice(b"abcd");
     let mut chunk = vec![0u8; 28]; // Chunk: times, size, CRC, compression of 1.7 GB
     chunk.extend_from_slice(&huge);
     let mut index = vec![1, 0]; // MessageIndex: channel 1, pairs of 1.7 GB
@@ -480,6 +484,7 @@ fn hostile_mcap_length_prefixes_are_refused_within_the_bytes_present() {
     for (what, record) in [
         ("header", mcap_record(0x01, &header)),
         ("channel", mcap_record(0x04, &channel)),
+        ("channel metadata", mcap_record(0x04, &metadata)),
         ("chunk", mcap_record(0x06, &chunk)),
         ("message index", mcap_record(0x07, &index)),
     ] {

@@ -640,7 +640,7 @@ fn parse_record_checked(
         // channel id (u16), then (log time, offset) pairs behind a u32 byte length.
         op::MESSAGE_INDEX => fields.skip(2) && fields.bytes_u32(),
         // id, schema id (u16 each), topic, message encoding, metadata (u32 byte length).
-        op::CHANNEL => fields.skip(4) && fields.string() && fields.string() && fields.bytes_u32(),
+        op::CHANNEL => fields.skip(4) && fields.string() && fields.string() && fields.string_map(),
         // channel (u16), sequence (u32), log and publish time (u64): the data is the rest.
         op::MESSAGE => fields.skip(22),
         _ => return None,
@@ -684,6 +684,25 @@ impl Prefixed<'_> {
         self.prefix::<4>()
             .and_then(|n| usize::try_from(n).ok())
             .is_some_and(|n| self.skip(n))
+    }
+
+    /// A `map<string, string>`: a u32 byte length, then key and value strings that must each
+    /// fit inside that length.
+    fn string_map(&mut self) -> bool {
+        let Some(len) = self.prefix::<4>().and_then(|n| usize::try_from(n).ok()) else {
+            return false;
+        };
+        let Some((map, rest)) = self.rest.split_at_checked(len) else {
+            return false;
+        };
+        self.rest = rest;
+        let mut entries = Prefixed { rest: map };
+        while !entries.rest.is_empty() {
+            if !(entries.string() && entries.string()) {
+                return false;
+            }
+        }
+        true
     }
 
     fn bytes_u64(&mut self) -> bool {
