@@ -172,6 +172,8 @@ pub(crate) struct RayStepper {
 /// More steps than any ray between two in-range keys takes: each step moves one key field by
 /// one towards the end voxel (at most 65 535 per axis), plus one past it per axis at the stop
 /// rule. Debug builds assert it in both kernels, so a ray that cannot end fails loudly.
+// Only `debug_assert!`s read it, which release builds compile out.
+#[cfg_attr(not(debug_assertions), allow(dead_code))]
 pub(crate) const MAX_RAY_STEPS: u32 = 3 * 65_536 + 3;
 
 impl RayStepper {
