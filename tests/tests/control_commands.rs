@@ -56,18 +56,50 @@ async fn operator(socket: &Path, command: Command) -> scan3d_server::ingest::con
     .expect("the control socket answers")
 }
 
+/// A paired edge bundle, a running server with its control socket, and a runtime to drive
+/// the edge's side from.
+struct Site {
+    dir: tempfile::TempDir,
+    bundle: std::path::PathBuf,
+    data: std::path::PathBuf,
+    server: ServerThread,
+    socket: std::path::PathBuf,
+    runtime: tokio::runtime::Runtime,
+}
+
+impl Site {
+    fn start() -> Self {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let pki = dir.path().join("pki");
+        let bundle = rig::pair_certificates(&pki).expect("pairing");
+        let data = dir.path().join("data");
+        let server = ServerThread::start(rig::ingest_config(&pki, &data, 0)).expect("server");
+        let socket = socket_path(&data);
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .enable_all()
+            .build()
+            .expect("runtime");
+        Site {
+            dir,
+            bundle,
+            data,
+            server,
+            socket,
+            runtime,
+        }
+    }
+}
+
 #[test]
 fn an_oversized_command_is_refused_and_the_edge_stays_connected() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let pki = dir.path().join("pki");
-    let bundle = rig::pair_certificates(&pki).expect("pairing");
-    let data = dir.path().join("data");
-    let server = ServerThread::start(rig::ingest_config(&pki, &data, 0)).expect("server");
-    let socket = socket_path(&data);
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-        .expect("runtime");
+    let Site {
+        dir: _dir,
+        bundle,
+        data: _,
+        server,
+        socket,
+        runtime,
+    } = Site::start();
     runtime.block_on(async {
         let (_endpoint, connection, mut send, mut recv) =
             connect_edge(server.addr(), &bundle).await;
@@ -154,16 +186,14 @@ async fn connect_edge(
 
 #[test]
 fn a_command_sent_after_a_reconnect_is_recorded_not_taken_for_a_resend() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let pki = dir.path().join("pki");
-    let bundle = rig::pair_certificates(&pki).expect("pairing");
-    let data = dir.path().join("data");
-    let server = ServerThread::start(rig::ingest_config(&pki, &data, 0)).expect("server");
-    let socket = socket_path(&data);
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-        .expect("runtime");
+    let Site {
+        dir: _dir,
+        bundle,
+        data,
+        server,
+        socket,
+        runtime,
+    } = Site::start();
     let positions = ["first", "second"];
     runtime.block_on(async {
         // The same exchange on two connections of one session: a heartbeat, its ack, a command.
