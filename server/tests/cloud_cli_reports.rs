@@ -1,21 +1,11 @@
 //! What `scan3d map` and `scan3d convert` report about points they could not use: points a
 //! PLY/PCD reader dropped for NaN or infinite values, and degenerate rays the octree skipped.
 
+mod common;
+
+use common::{arg, run_cli};
+
 use std::path::Path;
-
-use clap::Parser;
-use scan3d_server::cli::{Cli, execute};
-
-fn run(args: &[&str]) -> anyhow::Result<String> {
-    let cli = Cli::try_parse_from(std::iter::once("scan3d").chain(args.iter().copied()))?;
-    let mut out = Vec::new();
-    execute(cli, &mut out)?;
-    Ok(String::from_utf8(out)?)
-}
-
-fn s(path: &Path) -> &str {
-    path.to_str().expect("utf-8 path")
-}
 
 /// A PCD from the origin with one ordinary point, two non-finite ones and a near-zero one
 /// (its ray is degenerate: another voxel, f32 length 0).
@@ -35,7 +25,16 @@ fn map_reports_points_dropped_by_the_reader_and_degenerate_rays_skipped() {
     let dir = tempfile::tempdir().unwrap();
     let pcd = awkward_pcd(dir.path());
     let out = dir.path().join("m.bt");
-    let text = run(&["map", s(&pcd), "--res", "0.1", "--out", s(&out), "--quiet"]).unwrap();
+    let text = run_cli(&[
+        "map",
+        arg(&pcd),
+        "--res",
+        "0.1",
+        "--out",
+        arg(&out),
+        "--quiet",
+    ])
+    .unwrap();
     assert!(text.contains("1 scans, 2 points"), "{text}");
     assert!(
         text.contains("dropped 2 points with NaN or infinite coordinates or origins while reading"),
@@ -46,7 +45,7 @@ fn map_reports_points_dropped_by_the_reader_and_degenerate_rays_skipped() {
         "{text}"
     );
     // Both endpoints are hits in the written map.
-    let info = run(&["info", "--json", s(&out)]).unwrap();
+    let info = run_cli(&["info", "--json", arg(&out)]).unwrap();
     let v: serde_json::Value = serde_json::from_str(&info).unwrap();
     assert_eq!(v["occupied_leaves"], 2, "{info}");
 }
@@ -56,7 +55,7 @@ fn convert_reports_points_dropped_by_the_reader() {
     let dir = tempfile::tempdir().unwrap();
     let pcd = awkward_pcd(dir.path());
     let ply = dir.path().join("c.ply");
-    let text = run(&["convert", s(&pcd), s(&ply)]).unwrap();
+    let text = run_cli(&["convert", arg(&pcd), arg(&ply)]).unwrap();
     assert!(
         text.contains("dropped 2 points with NaN or infinite coordinates or origins while reading"),
         "{text}"

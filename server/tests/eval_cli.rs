@@ -2,23 +2,15 @@
 
 mod common;
 
-use clap::Parser;
-use scan3d_server::cli::{Cli, execute};
+use common::run_cli;
 
 fn data(rel: &str) -> String {
     common::octomap_data(rel).to_string_lossy().into_owned()
 }
 
-fn run(args: &[&str]) -> anyhow::Result<String> {
-    let cli = Cli::try_parse_from(std::iter::once("scan3d").chain(args.iter().copied()))?;
-    let mut out = Vec::new();
-    execute(cli, &mut out)?;
-    Ok(String::from_utf8(out)?)
-}
-
 #[test]
 fn eval_json_has_every_key_and_octomaps_counts() {
-    let out = run(&[
+    let out = run_cli(&[
         "eval",
         &data("geb079.bt"),
         &data("reference/geb079_sim_0.08.bt"),
@@ -97,19 +89,19 @@ fn eval_json_has_every_key_and_octomaps_counts() {
 #[test]
 fn eval_table_and_errors() {
     let ot = data("reference/geb079_sim_0.1.ot");
-    let out = run(&["eval", &ot, &data("reference/geb079_sim_0.1.bt")]).unwrap();
+    let out = run_cli(&["eval", &ot, &data("reference/geb079_sim_0.1.bt")]).unwrap();
     assert!(out.contains("sum 85865.52"), "{out}");
     assert!(out.contains("over 556561 common voxels"), "{out}");
-    let e = run(&["eval", &ot, &data("reference/geb079_sim_0.2.bt")]).unwrap_err();
+    let e = run_cli(&["eval", &ot, &data("reference/geb079_sim_0.2.bt")]).unwrap_err();
     assert!(e.to_string().contains("resolution mismatch"), "{e}");
-    let e = run(&["eval", &ot, &data("mapcoll.txt")]).unwrap_err();
+    let e = run_cli(&["eval", &ot, &data("mapcoll.txt")]).unwrap_err();
     assert!(format!("{e:#}").contains("not a readable OctoMap"), "{e:#}");
-    let e = run(&["eval", &ot, &ot, "--bbox", "1,2,3"]).unwrap_err();
+    let e = run_cli(&["eval", &ot, &ot, "--bbox", "1,2,3"]).unwrap_err();
     assert!(e.to_string().contains("want 6"), "{e}");
-    let e = run(&["eval", &ot, &ot, "--bbox", "0,0,0,0.01,0.01,0.01"]).unwrap_err();
+    let e = run_cli(&["eval", &ot, &ot, "--bbox", "0,0,0,0.01,0.01,0.01"]).unwrap_err();
     assert!(format!("{e:#}").contains("no voxel centre"), "{e:#}");
     // A box: only the voxels whose centre is inside count.
-    let out = run(&[
+    let out = run_cli(&[
         "eval",
         &ot,
         &ot,
@@ -126,7 +118,7 @@ fn eval_table_and_errors() {
 fn report_writes_tables_json_and_figure() {
     let dir = tempfile::tempdir().unwrap();
     let out_dir = dir.path().join("report");
-    let out = run(&[
+    let out = run_cli(&[
         "report",
         "--ref",
         &data("reference/geb079_sim_0.1.ot"),
@@ -157,7 +149,7 @@ fn report_writes_tables_json_and_figure() {
 fn sweep_writes_fig12_with_octomaps_node_counts() {
     let dir = tempfile::tempdir().unwrap();
     let out_dir = dir.path().join("sweep");
-    run(&[
+    run_cli(&[
         "sweep",
         &data("spherical_scan.graph"),
         "--res",
@@ -186,7 +178,7 @@ fn sweep_writes_fig12_with_octomaps_node_counts() {
             .unwrap()
             .contains("Fig. 12")
     );
-    let e = run(&[
+    let e = run_cli(&[
         "sweep",
         &data("mapcoll.txt"),
         "--out",

@@ -3,22 +3,8 @@
 
 mod common;
 
-use std::path::Path;
-
-use clap::Parser;
 use common::octomap_data as data;
-use scan3d_server::cli::{Cli, execute};
-
-fn run(args: &[&str]) -> anyhow::Result<String> {
-    let cli = Cli::try_parse_from(std::iter::once("scan3d").chain(args.iter().copied()))?;
-    let mut out = Vec::new();
-    execute(cli, &mut out)?;
-    Ok(String::from_utf8(out)?)
-}
-
-fn s(path: &Path) -> &str {
-    path.to_str().expect("utf-8 path")
-}
+use common::{arg, run_cli};
 
 #[test]
 fn map_writes_octomaps_bytes() {
@@ -26,13 +12,13 @@ fn map_writes_octomaps_bytes() {
     let graph = data("spherical_scan.graph");
     for ext in ["bt", "ot"] {
         let out = dir.path().join(format!("m.{ext}"));
-        run(&[
+        run_cli(&[
             "map",
-            s(&graph),
+            arg(&graph),
             "--res",
             "0.2",
             "--out",
-            s(&out),
+            arg(&out),
             "--quiet",
         ])
         .unwrap();
@@ -46,7 +32,12 @@ fn map_writes_octomaps_bytes() {
 fn convert_ot_to_bt_is_writebinary() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("m.bt");
-    let text = run(&["convert", s(&data("reference/scan_dat_0.2.ot")), s(&out)]).unwrap();
+    let text = run_cli(&[
+        "convert",
+        arg(&data("reference/scan_dat_0.2.ot")),
+        arg(&out),
+    ])
+    .unwrap();
     assert!(text.starts_with("wrote "), "{text}");
     assert_eq!(
         std::fs::read(&out).unwrap(),
@@ -59,8 +50,17 @@ fn a_cloud_through_ply_keeps_its_origins_and_gives_the_same_map() {
     let dir = tempfile::tempdir().unwrap();
     let ply = dir.path().join("c.ply");
     let ot = dir.path().join("c.ot");
-    run(&["convert", s(&data("spherical_scan.graph")), s(&ply)]).unwrap();
-    run(&["map", s(&ply), "--res", "0.1", "--out", s(&ot), "--quiet"]).unwrap();
+    run_cli(&["convert", arg(&data("spherical_scan.graph")), arg(&ply)]).unwrap();
+    run_cli(&[
+        "map",
+        arg(&ply),
+        "--res",
+        "0.1",
+        "--out",
+        arg(&ot),
+        "--quiet",
+    ])
+    .unwrap();
     assert_eq!(
         std::fs::read(&ot).unwrap(),
         std::fs::read(data("reference/spherical_scan_0.1.ot")).unwrap()
@@ -69,10 +69,10 @@ fn a_cloud_through_ply_keeps_its_origins_and_gives_the_same_map() {
 
 #[test]
 fn info_reports_counts_and_bounds() {
-    let text = run(&[
+    let text = run_cli(&[
         "info",
         "--json",
-        s(&data("reference/spherical_scan_0.1.bt")),
+        arg(&data("reference/spherical_scan_0.1.bt")),
     ])
     .unwrap();
     let v: serde_json::Value = serde_json::from_str(&text).unwrap();
@@ -94,9 +94,9 @@ fn non_finite_points_are_skipped_and_counted_and_filters_apply_in_order() {
     )
     .unwrap();
     let out = dir.path().join("p.bt");
-    let text = run(&[
+    let text = run_cli(&[
         "map",
-        s(&ply),
+        arg(&ply),
         "--res",
         "0.5",
         "--origin",
@@ -104,7 +104,7 @@ fn non_finite_points_are_skipped_and_counted_and_filters_apply_in_order() {
         "--filter",
         "box-out:8,-1,-1,10,1,1",
         "--out",
-        s(&out),
+        arg(&out),
         "--quiet",
     ])
     .unwrap();
@@ -113,7 +113,7 @@ fn non_finite_points_are_skipped_and_counted_and_filters_apply_in_order() {
         "{text}"
     );
     assert!(text.contains("2 points kept"), "{text}");
-    let info = run(&["info", "--json", s(&out)]).unwrap();
+    let info = run_cli(&["info", "--json", arg(&out)]).unwrap();
     let v: serde_json::Value = serde_json::from_str(&info).unwrap();
     assert!(v["occupied_leaves"].as_u64().unwrap() >= 2, "{info}");
 }
@@ -124,15 +124,15 @@ fn bad_inputs_give_one_clear_error() {
     let truncated = dir.path().join("t.bt");
     let bytes = std::fs::read(data("reference/spherical_scan_0.1.bt")).unwrap();
     std::fs::write(&truncated, &bytes[..bytes.len() / 2]).unwrap();
-    let err = run(&["info", s(&truncated)]).unwrap_err().to_string();
+    let err = run_cli(&["info", arg(&truncated)]).unwrap_err().to_string();
     assert!(err.contains("t.bt"), "{err}");
-    let err = run(&["map", "missing.ply", "--res", "0.1", "--out", "x.bt"])
+    let err = run_cli(&["map", "missing.ply", "--res", "0.1", "--out", "x.bt"])
         .unwrap_err()
         .to_string();
     assert!(err.contains("missing.ply"), "{err}");
-    let err = run(&[
+    let err = run_cli(&[
         "map",
-        s(&data("spherical_scan.graph")),
+        arg(&data("spherical_scan.graph")),
         "--res",
         "0.1",
         "--out",
@@ -141,9 +141,9 @@ fn bad_inputs_give_one_clear_error() {
     .unwrap_err()
     .to_string();
     assert!(err.contains("must end in .bt or .ot"), "{err}");
-    let err = run(&[
+    let err = run_cli(&[
         "convert",
-        s(&data("reference/spherical_scan_0.1.bt")),
+        arg(&data("reference/spherical_scan_0.1.bt")),
         "x.ply",
     ])
     .unwrap_err()

@@ -109,3 +109,19 @@ pub fn octomap_tool(name: &str) -> Option<PathBuf> {
     }
     found
 }
+
+/// Runs `scan3d ARGS…` in process, as the binary's `main` would, and returns what it printed.
+pub fn run_cli(args: &[&str]) -> anyhow::Result<String> {
+    use clap::Parser;
+    let cli = scan3d_server::cli::Cli::try_parse_from(
+        std::iter::once("scan3d").chain(args.iter().copied()),
+    )?;
+    let mut out = Vec::new();
+    scan3d_server::cli::execute(cli, &mut out)?;
+    Ok(String::from_utf8(out)?)
+}
+
+/// `path` as a CLI argument.
+pub fn arg(path: &Path) -> &str {
+    path.to_str().expect("utf-8 path")
+}
