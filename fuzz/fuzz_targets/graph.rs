@@ -7,7 +7,7 @@ use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
     scan3d_fuzz::with_reader_budget(data.len(), || {
-        let Ok(scans) = scan3d_server::octree::read_graph(data) else {
+        let Ok(scans) = scan3d_map::octree::read_graph(data) else {
             return;
         };
         let points: usize = scans.iter().map(|s| s.points.len()).sum();

@@ -4,7 +4,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use scan3d_server::octree::{Octree, SensorModel};
+use scan3d_map::octree::{Octree, SensorModel};
 
 fuzz_target!(|data: &[u8]| {
     scan3d_fuzz::with_reader_budget(data.len(), || {

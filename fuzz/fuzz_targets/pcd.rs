@@ -2,7 +2,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use scan3d_server::cloud::pcd::{parse_pcd, write_pcd_scans};
+use scan3d_map::cloud::pcd::{parse_pcd, write_pcd_scans};
 
 fuzz_target!(|data: &[u8]| {
     scan3d_fuzz::with_reader_budget(data.len(), || {

@@ -2,7 +2,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use scan3d_server::cloud::ply::{parse_ply, write_ply_scans};
+use scan3d_map::cloud::ply::{parse_ply, write_ply_scans};
 
 fuzz_target!(|data: &[u8]| {
     scan3d_fuzz::with_reader_budget(data.len(), || {

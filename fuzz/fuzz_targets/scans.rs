@@ -3,7 +3,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use scan3d_server::cloud::scans_file::{parse_scans, write_scans};
+use scan3d_map::cloud::scans_file::{parse_scans, write_scans};
 
 fuzz_target!(|data: &[u8]| {
     scan3d_fuzz::with_reader_budget(data.len(), || {

@@ -249,8 +249,8 @@ pub fn octomap_data_offset(bytes: &[u8]) -> Option<usize> {
 /// Checks what every tree read from a file must allow: leaf iteration agrees with the counts,
 /// bounds and the max-likelihood `.bt` (OctoMap's `writeBinary`) are computable, and that
 /// `.bt` reads back to the same bytes.
-pub fn check_tree(tree: &scan3d_server::octree::Octree) {
-    use scan3d_server::octree::Octree;
+pub fn check_tree(tree: &scan3d_map::octree::Octree) {
+    use scan3d_map::octree::Octree;
     assert_eq!(tree.leaves().count() as u64, tree.num_leaves());
     let _ = tree.metric_bounds();
     let bt = tree.to_bt_bytes();
@@ -263,7 +263,7 @@ pub fn check_tree(tree: &scan3d_server::octree::Octree) {
 }
 
 /// The finite points of a flat cloud in file order, as `into_scans` keeps them, bit for bit.
-fn kept_points(cloud: scan3d_server::cloud::io::FlatCloud) -> Vec<[u32; 3]> {
+fn kept_points(cloud: scan3d_map::cloud::io::FlatCloud) -> Vec<[u32; 3]> {
     let scans = cloud
         .into_scans(Some([0.0; 3]))
         .map(|loaded| loaded.scans)
@@ -277,15 +277,15 @@ fn kept_points(cloud: scan3d_server::cloud::io::FlatCloud) -> Vec<[u32; 3]> {
 /// Cloud property for PLY and PCD: read → write (binary and ASCII) → read gives the same
 /// points. `parse` reads a file, `write` writes scans in an encoding.
 pub fn check_cloud_roundtrip<E: std::fmt::Debug>(
-    cloud: scan3d_server::cloud::io::FlatCloud,
-    parse: impl Fn(&[u8]) -> Result<scan3d_server::cloud::io::FlatCloud, E>,
+    cloud: scan3d_map::cloud::io::FlatCloud,
+    parse: impl Fn(&[u8]) -> Result<scan3d_map::cloud::io::FlatCloud, E>,
     write: impl Fn(
         &mut Vec<u8>,
-        &[scan3d_server::cloud::OriginScan],
-        scan3d_server::cloud::io::Encoding,
+        &[scan3d_map::cloud::OriginScan],
+        scan3d_map::cloud::io::Encoding,
     ),
 ) {
-    use scan3d_server::cloud::io::Encoding;
+    use scan3d_map::cloud::io::Encoding;
     let scans = cloud
         .clone()
         .into_scans(Some([0.0; 3]))

@@ -26,14 +26,14 @@ use anyhow::Context;
 use clap::Parser;
 use scan3d_edge::clock::{ScaledClock, SharedClock};
 use scan3d_edge::daemon::DaemonReport;
+use scan3d_map::cloud::scans::ScanCollector;
 use scan3d_protocol::{Body, SensorId};
-use scan3d_server::cloud::scans::ScanCollector;
 use scan3d_server::ingest::recorder::{session_dir, topic};
 use scan3d_server::ingest::server::{IngestEvent, IngestStats};
 use scan3d_server::ingest::timesync::Estimate;
 
-use scan3d_server::cloud::OriginScan;
-use scan3d_server::cloud::io;
+use scan3d_map::cloud::OriginScan;
+use scan3d_map::cloud::io;
 
 use crate::maps::{MapPlan, MapResult, MapSetup, build_map, paper_maps, scan_map};
 use crate::noise::RangeNoise;

@@ -17,17 +17,17 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use scan3d_edge::clock::{Clock, ScaledClock, SharedClock};
+use scan3d_map::cloud::OriginScan;
+use scan3d_map::cloud::assembly::{Position, cut_range};
+use scan3d_map::cloud::filter::{Filter, apply_all};
+use scan3d_map::cloud::io;
+use scan3d_map::octree::{Octree, Resolution, SensorModel, VoxelMap};
 use scan3d_protocol::{Body, StaticScan, StaticScanOutcome};
 use scan3d_server::cli::DataDirArgs;
 use scan3d_server::cli::assemble::assemble_session;
 use scan3d_server::cli::scan::{At, ScanArgs};
-use scan3d_server::cloud::OriginScan;
-use scan3d_server::cloud::assembly::{Position, cut_range};
-use scan3d_server::cloud::filter::{Filter, apply_all};
-use scan3d_server::cloud::io;
 use scan3d_server::ingest::recorder::session_dir;
 use scan3d_server::ingest::server::IngestEvent;
-use scan3d_server::octree::{Octree, Resolution, SensorModel, VoxelMap};
 
 use crate::noise::RangeNoise;
 use crate::rig::{self, EDGE_NAME, EdgeThread, ServerThread};

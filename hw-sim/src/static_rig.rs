@@ -20,7 +20,7 @@ use scan3d_edge::config::{EdgeConfig, ImuSection, SweepSection, UplinkSection};
 use scan3d_edge::drivers::stepper::{Port, StepperConfig};
 use scan3d_edge::drivers::sweep::SweepConfig;
 use scan3d_edge::static_scan::{MountConfig, StaticScanConfig};
-use scan3d_server::cloud::assembly::{MountGeometry, Position};
+use scan3d_map::cloud::assembly::{MountGeometry, Position};
 
 use crate::faults::FaultConfig;
 use crate::i2c::{BusStats, I2cBus};

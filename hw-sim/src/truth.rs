@@ -18,7 +18,7 @@ use std::path::{Path, PathBuf};
 use nalgebra::{Point3, Vector3};
 use serde::Serialize;
 
-use scan3d_server::octree::{Key, OctreeError, Resolution, SensorModel, VoxelMap};
+use scan3d_map::octree::{Key, OctreeError, Resolution, SensorModel, VoxelMap};
 
 use crate::world::{Aabb, Material, Rect, Shape, World};
 
@@ -422,7 +422,7 @@ enum MaterialOut {
 ///   (furniture, glass) and not occupied;
 /// - **unknown**: everything else (outside the room: beyond walls, the doorway, the hall).
 ///
-/// Written with [`scan3d_server::octree::Octree::to_bt_bytes`] it is a `.bt` any OctoMap tool
+/// Written with [`scan3d_map::octree::Octree::to_bt_bytes`] it is a `.bt` any OctoMap tool
 /// opens, comparable voxel by voxel with maps of the same resolution.
 pub fn truth_map(
     world: &World,

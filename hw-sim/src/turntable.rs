@@ -5,7 +5,7 @@
 //! at simulated time `t` it reads the rotor angle from the shared [`Turntable`] handle of the
 //! PCA9685 emulator ([`crate::stepper::Pca9685Emulator::turntable`]) and places the Sweep with
 //! [`sweep_pose`], the exact inverse of the server's eq. (1)
-//! ([`scan3d_server::cloud::assembly::static_point`]): a sample of range L at device azimuth α,
+//! ([`scan3d_map::cloud::assembly::static_point`]): a sample of range L at device azimuth α,
 //! taken at turntable yaw φ_t, lands at
 //!
 //! ```text
@@ -23,7 +23,7 @@
 use std::f64::consts::FRAC_PI_2;
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
-use scan3d_server::cloud::assembly::{MountGeometry, Position};
+use scan3d_map::cloud::assembly::{MountGeometry, Position};
 
 use crate::stepper::Turntable;
 use crate::world::PoseSource;
@@ -89,7 +89,7 @@ mod tests {
 
     use nalgebra::Point3;
     use scan3d_edge::drivers::stepper::{Direction, MotorHat, Move, Port, Stepper, StepperConfig};
-    use scan3d_server::cloud::assembly::{StaticSample, static_point};
+    use scan3d_map::cloud::assembly::{StaticSample, static_point};
 
     use super::*;
     use crate::device::{Device, WireUnit};

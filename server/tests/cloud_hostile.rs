@@ -8,12 +8,12 @@
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 
-use scan3d_server::cloud::OriginScan;
-use scan3d_server::cloud::io::{Encoding, FlatCloud};
-use scan3d_server::cloud::pcd::{MAX_FIELDS, PcdError, parse_pcd, write_pcd_scans};
-use scan3d_server::cloud::ply::{PlyError, parse_ply, write_ply_scans};
-use scan3d_server::cloud::scans_file::{ScansError, parse_scans, write_scans};
-use scan3d_server::octree::{Octree, OctreeError, Resolution, SensorModel, VoxelMap, read_graph};
+use scan3d_map::cloud::OriginScan;
+use scan3d_map::cloud::io::{Encoding, FlatCloud};
+use scan3d_map::cloud::pcd::{MAX_FIELDS, PcdError, parse_pcd, write_pcd_scans};
+use scan3d_map::cloud::ply::{PlyError, parse_ply, write_ply_scans};
+use scan3d_map::cloud::scans_file::{ScansError, parse_scans, write_scans};
+use scan3d_map::octree::{Octree, OctreeError, Resolution, SensorModel, VoxelMap, read_graph};
 
 /// Counts live heap bytes per thread (tests run on several threads) and their peak.
 struct Counting;

@@ -1,4 +1,4 @@
-//! The map metrics of `scan3d_server::eval` (issue 6) against hand-computed small maps,
+//! The map metrics of `scan3d_map::eval` (issue 6) against hand-computed small maps,
 //! OctoMap's own confusion counts (research/octomap.md §8.5) and `compare_octrees`' KLD.
 
 mod common;
@@ -6,8 +6,8 @@ mod common;
 use std::process::Command;
 
 use common::{octomap_tool, read_octomap_data as read};
-use scan3d_server::eval::{EvalError, LeafMap, Role, VoxelBox, compare, evaluate, evaluate_truth};
-use scan3d_server::octree::{Key, Octree, OctreeError, Resolution, SensorModel, VoxelMap};
+use scan3d_map::eval::{EvalError, LeafMap, Role, VoxelBox, compare, evaluate, evaluate_truth};
+use scan3d_map::octree::{Key, Octree, OctreeError, Resolution, SensorModel, VoxelMap};
 
 fn load(rel: &str) -> LeafMap {
     LeafMap::read(&read(rel), SensorModel::default()).expect("reads")

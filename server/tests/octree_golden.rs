@@ -6,7 +6,7 @@
 mod common;
 
 use common::{octomap_data as data, octomap_tool, read_octomap_data as read};
-use scan3d_server::octree::{Octree, OctreeError, Resolution, SensorModel, VoxelMap, read_graph};
+use scan3d_map::octree::{Octree, OctreeError, Resolution, SensorModel, VoxelMap, read_graph};
 
 fn build(graph: &str, res: f64) -> Octree {
     let scans = read_graph(&read(graph)).expect("graph parses");
@@ -226,8 +226,8 @@ fn ground_truth_from_voxel_states_writes_readable_bt() {
     let mut gt = VoxelMap::new(*t.resolution(), model);
     let mut voxels = 0u64;
     t.for_each_voxel_in_box(
-        scan3d_server::octree::Key([0; 3]),
-        scan3d_server::octree::Key([65535; 3]),
+        scan3d_map::octree::Key([0; 3]),
+        scan3d_map::octree::Key([65535; 3]),
         |k, v| {
             voxels += 1;
             gt.set_log_odds(
@@ -243,8 +243,8 @@ fn ground_truth_from_voxel_states_writes_readable_bt() {
     assert_eq!(gt.num_voxels(), voxels);
     let rebuilt = gt.to_octree();
     assert_eq!(
-        rebuilt.search(scan3d_server::octree::Key([32768; 3])),
-        t.search(scan3d_server::octree::Key([32768; 3]))
+        rebuilt.search(scan3d_map::octree::Key([32768; 3])),
+        t.search(scan3d_map::octree::Key([32768; 3]))
     );
     same(&rebuilt.to_bt_bytes(), &bytes, "geb079 rebuilt from voxels");
 }

@@ -9,7 +9,7 @@ use scan3d_hw_sim::maps::{MapPlan, MapSetup, scan_map};
 use scan3d_hw_sim::noise::RangeNoise;
 use scan3d_hw_sim::truth::GroundTruth;
 use scan3d_hw_sim::world::World;
-use scan3d_server::cloud::assembly::Position;
+use scan3d_map::cloud::assembly::Position;
 
 /// A 4 × 3 × 2.5 m box room.
 const BOX_ROOM: &str = r#"

@@ -30,14 +30,14 @@ use scan3d_protocol::{
     StaticScanProblem, StaticScanSamples, StaticScanStart, StaticScanWarning, StatusEvent,
     StepperState, TaggedSweepSample, TimePing, TimePong, encode,
 };
-use scan3d_server::cloud::OriginScan;
-use scan3d_server::cloud::io::Encoding;
-use scan3d_server::cloud::pcd::write_pcd_scans;
-use scan3d_server::cloud::ply::write_ply_scans;
-use scan3d_server::cloud::scans_file::write_scans;
+use scan3d_map::cloud::OriginScan;
+use scan3d_map::cloud::io::Encoding;
+use scan3d_map::cloud::pcd::write_pcd_scans;
+use scan3d_map::cloud::ply::write_ply_scans;
+use scan3d_map::cloud::scans_file::write_scans;
 use scan3d_server::ingest::control::ControlRequest;
 use scan3d_server::ingest::recorder::SessionRecorder;
-use scan3d_server::octree::{Resolution, SensorModel, VoxelMap};
+use scan3d_map::octree::{Resolution, SensorModel, VoxelMap};
 
 type Result<T> = std::result::Result<T, Box<dyn Error>>;
 

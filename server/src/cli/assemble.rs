@@ -10,10 +10,10 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 
-use crate::cloud::OriginScan;
-use crate::cloud::assembly::{AssembledScan, StaticScanAssembler, cut_range};
-use crate::cloud::io;
 use crate::ingest::recorder::read_session_checked;
+use scan3d_map::cloud::OriginScan;
+use scan3d_map::cloud::assembly::{AssembledScan, StaticScanAssembler, cut_range};
+use scan3d_map::cloud::io;
 
 /// Options of `scan3d assemble`.
 #[derive(Debug, clap::Args)]

@@ -5,7 +5,7 @@ use std::io::Write;
 use std::path::PathBuf;
 
 use super::map::{TreeFormat, load_cloud, read_tree, report_dropped, write_tree};
-use crate::cloud::io::{self, CloudFormat};
+use scan3d_map::cloud::io::{self, CloudFormat};
 
 /// Options of `scan3d convert`.
 #[derive(Debug, clap::Args)]

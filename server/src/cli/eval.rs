@@ -1,13 +1,13 @@
 //! `scan3d eval REF TARGET [--bbox x0,y0,z0,x1,y1,z1] [--truth TRUTH] [--json]`: the paper's
-//! map metrics (`crate::eval`) of one map against a reference, as a table or one JSON object.
+//! map metrics (`scan3d_map::eval`) of one map against a reference, as a table or one JSON object.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 
-use crate::eval::{self, LeafMap, Metrics, Role, VoxelBox};
-use crate::octree::SensorModel;
+use scan3d_map::eval::{self, LeafMap, Metrics, Role, VoxelBox};
+use scan3d_map::octree::SensorModel;
 
 /// Options of `scan3d eval`.
 #[derive(Debug, clap::Args)]

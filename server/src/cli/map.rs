@@ -11,10 +11,10 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use crate::cloud::OriginScan;
-use crate::cloud::filter::{Filter, apply_all};
-use crate::cloud::io::{self, LoadedScans};
-use crate::octree::{InsertStats, Octree, Resolution, SensorModel, VoxelMap, read_graph};
+use scan3d_map::cloud::OriginScan;
+use scan3d_map::cloud::filter::{Filter, apply_all};
+use scan3d_map::cloud::io::{self, LoadedScans};
+use scan3d_map::octree::{InsertStats, Octree, Resolution, SensorModel, VoxelMap, read_graph};
 
 /// A point `x,y,z` on the command line (clap value parser).
 pub fn parse_xyz_arg(text: &str) -> Result<[f64; 3], String> {
@@ -106,7 +106,7 @@ impl MapArgs {
 }
 
 /// Loads any cloud the CLI accepts, with sensor origins: `.graph` through OctoMap's pose
-/// transform, `.scans`/`.ply`/`.pcd` through [`crate::cloud::io`], with the count of points
+/// transform, `.scans`/`.ply`/`.pcd` through [`scan3d_map::cloud::io`], with the count of points
 /// the reader dropped for non-finite values.
 pub fn load_cloud(path: &Path, origin: Option<[f64; 3]>) -> anyhow::Result<LoadedScans> {
     let is_graph = path

@@ -7,8 +7,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 
-use crate::cloud::scans::ScanCollector;
 use crate::ingest::recorder::read_session_checked;
+use scan3d_map::cloud::scans::ScanCollector;
 
 /// Options of `scan3d replay`.
 #[derive(Debug, clap::Args)]

@@ -9,8 +9,8 @@ use anyhow::Context;
 use serde::Serialize;
 
 use super::eval::{MetricBox, evaluate_maps, key_box, load_map, opt, parse_bbox};
-use crate::eval::plot::{Fig11Group, fig11_png, fig11_svg};
-use crate::eval::{MapSummary, Metrics, summarize};
+use scan3d_map::eval::plot::{Fig11Group, fig11_png, fig11_svg};
+use scan3d_map::eval::{MapSummary, Metrics, summarize};
 
 /// Options of `scan3d report`.
 #[derive(Debug, clap::Args)]

@@ -9,10 +9,10 @@ use std::time::Instant;
 use anyhow::Context;
 use serde::Serialize;
 
-use crate::cloud::{OriginScan, io};
-use crate::eval::plot::{Fig12Row, fig12_png, fig12_svg};
-use crate::eval::{LeafMap, evaluate};
-use crate::octree::{Resolution, SensorModel, VoxelMap, read_graph};
+use scan3d_map::cloud::{OriginScan, io};
+use scan3d_map::eval::plot::{Fig12Row, fig12_png, fig12_svg};
+use scan3d_map::eval::{LeafMap, evaluate};
+use scan3d_map::octree::{Resolution, SensorModel, VoxelMap, read_graph};
 
 /// Options of `scan3d sweep`.
 #[derive(Debug, clap::Args)]

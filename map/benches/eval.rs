@@ -1,10 +1,10 @@
-//! Speed of `scan3d_server::eval` (issue 6): all metrics on geb079_sim at 0.05 m, its `.ot`
+//! Speed of `scan3d_map::eval` (issue 6): all metrics on geb079_sim at 0.05 m, its `.ot`
 //! (2.76 M leaves) against its `.bt` (1.67 M leaves), both made with the octree module; target
 //! ≤ 50 ms after loading, loading ≥ 100 M nodes/s. Printed beside OctoMap's
 //! `benches/octomap_bench.cpp`'s `cmp` on the same pair (compiled with g++ -O2 -DNDEBUG against
 //! Debian's liboctomap-dev; skipped with a message when that is not possible).
 //!
-//! `cargo bench -p scan3d-server --bench eval`. Times are the best of `EVAL_BENCH_REPS`
+//! `cargo bench -p scan3d-map --bench eval`. Times are the best of `EVAL_BENCH_REPS`
 //! (default 7) runs, as the machine is shared. The two map files are built once and cached in
 //! the target directory.
 
@@ -16,8 +16,8 @@ use std::time::Instant;
 
 use common::{octomap_bench, octomap_data};
 
-use scan3d_server::eval::{LeafMap, evaluate};
-use scan3d_server::octree::{Octree, Resolution, SensorModel, VoxelMap, read_graph};
+use scan3d_map::eval::{LeafMap, evaluate};
+use scan3d_map::octree::{Octree, Resolution, SensorModel, VoxelMap, read_graph};
 
 fn best<T>(reps: usize, mut f: impl FnMut() -> T) -> (f64, T) {
     let mut best = f64::MAX;
@@ -148,13 +148,13 @@ fn main() {
 }
 
 fn distinct_pairs(a: &LeafMap, b: &LeafMap) -> usize {
-    scan3d_server::eval::compare(
+    scan3d_map::eval::compare(
         a,
         b,
         None,
         [
-            scan3d_server::eval::Role::Reference,
-            scan3d_server::eval::Role::Target,
+            scan3d_map::eval::Role::Reference,
+            scan3d_map::eval::Role::Target,
         ],
     )
     .map_or(0, |c| c.pairs.len())

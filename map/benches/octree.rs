@@ -1,5 +1,5 @@
-//! Insertion and `.bt` read speed of `scan3d_server::octree` against OctoMap 1.9.7 on the same
-//! input in the same run (research/octomap.md §8). `cargo bench -p scan3d-server --bench octree`.
+//! Insertion and `.bt` read speed of `scan3d_map::octree` against OctoMap 1.9.7 on the same
+//! input in the same run (research/octomap.md §8). `cargo bench -p scan3d-map --bench octree`.
 //!
 //! OctoMap's side is `benches/octomap_bench.cpp`, compiled here with g++ -O2 -DNDEBUG
 //! against Debian's liboctomap-dev; without g++ or the headers it is skipped with a message.
@@ -15,8 +15,8 @@ use std::time::Instant;
 
 use common::{octomap_bench, octomap_data};
 
-use scan3d_server::cloud::OriginScan;
-use scan3d_server::octree::{Octree, Resolution, SensorModel, VoxelMap, ray_keys, read_graph};
+use scan3d_map::cloud::OriginScan;
+use scan3d_map::octree::{Octree, Resolution, SensorModel, VoxelMap, ray_keys, read_graph};
 
 /// Process CPU time in seconds (less sensitive than wall time to other processes on the
 /// shared cores; octomap_bench prints the same clock).

@@ -6,7 +6,7 @@
 use std::sync::mpsc;
 use std::time::Duration;
 
-use scan3d_server::octree::{InsertStats, Kernel, Resolution, SensorModel, VoxelMap, ray_keys};
+use scan3d_map::octree::{InsertStats, Kernel, Resolution, SensorModel, VoxelMap, ray_keys};
 
 const KERNELS: [Kernel; 2] = [Kernel::Scalar, Kernel::Avx2];
 
@@ -223,7 +223,7 @@ fn any_mix_of_tiny_huge_subnormal_infinite_and_nan_coordinates_finishes_identica
 #[test]
 fn the_default_kernel_follows_scan3d_octree_kernel() {
     // CI runs the golden tests once with SCAN3D_OCTREE_KERNEL=scalar and once without.
-    let want = match std::env::var(scan3d_server::octree::KERNEL_ENV).as_deref() {
+    let want = match std::env::var(scan3d_map::octree::KERNEL_ENV).as_deref() {
         Ok("scalar") => Kernel::Scalar,
         _ => Kernel::Avx2,
     };

@@ -1,7 +1,7 @@
 //! The paper's Fig. 11 (metric scores per map) and Fig. 12 (resolution against build time,
 //! evaluation time, tree size and occupied volume), drawn with plotters as SVG text or PNG.
 //!
-//! Text uses the bundled DejaVu Sans (`server/assets/`, Bitstream Vera license) through
+//! Text uses the bundled DejaVu Sans (`map/assets/`, Bitstream Vera license) through
 //! plotters' `ab_glyph` backend, so no system font library is needed.
 
 use std::ops::Range;
@@ -12,7 +12,7 @@ use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 
-/// The bundled font (DejaVu Sans; license in `server/assets/DejaVuSans-LICENSE.txt`).
+/// The bundled font (DejaVu Sans; license in `map/assets/DejaVuSans-LICENSE.txt`).
 const FONT: &[u8] = include_bytes!("../../assets/DejaVuSans.ttf");
 /// The family name the charts ask for.
 const FAMILY: &str = "sans-serif";

@@ -14,7 +14,7 @@
 //! keys; `SCAN3D_OCTREE_KERNEL=scalar` forces the scalar one.
 //!
 //! ```no_run
-//! # use scan3d_server::octree::*;
+//! # use scan3d_map::octree::*;
 //! # fn main() -> Result<(), OctreeError> {
 //! let bytes = std::fs::read("map.graph").unwrap_or_default();
 //! let mut map = VoxelMap::new(Resolution::new(0.1)?, SensorModel::default());
