@@ -28,7 +28,7 @@
 //!   `01` + value, enum variants as a varint index. It must fill `len` exactly.
 //!
 //! For example, `Frame { session_id: 1, seq: 2, body: Heartbeat { sent_ns: 3 } }` is
-//! `53 33 44 50 01 00 04 00 00 00 01 02 07 03`.
+//! `53 33 44 50 02 00 04 00 00 00 01 02 07 03`.
 //!
 //! # Frames
 //!

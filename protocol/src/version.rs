@@ -3,7 +3,12 @@
 /// The protocol version this build speaks; written in every frame header and in [`crate::Hello`].
 ///
 /// Bump it for any change to the header, to a field, or to the order of enum variants.
-pub const PROTOCOL_VERSION: u16 = 1;
+///
+/// | version | change |
+/// | --- | --- |
+/// | 1 | first release |
+/// | 2 | one sample timeline (static-scan yaws refer to the Sweep revolution's samples instead of repeating them), the edge's clock identity in `Hello`, time sync on QUIC datagrams |
+pub const PROTOCOL_VERSION: u16 = 2;
 
 /// The peer speaks a protocol version this build cannot read.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]

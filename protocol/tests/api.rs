@@ -70,22 +70,24 @@ fn ack_coverage() {
 
 #[test]
 fn version_compatibility() {
-    assert_eq!(PROTOCOL_VERSION, 1);
-    assert_eq!(check_compatible(1), Ok(()));
-    assert_eq!(
-        check_compatible(2),
-        Err(IncompatibleVersion {
-            peer: 2,
-            supported: 1
-        })
-    );
+    assert_eq!(PROTOCOL_VERSION, 2);
+    assert_eq!(check_compatible(2), Ok(()));
+    for older_or_newer in [1, 3] {
+        assert_eq!(
+            check_compatible(older_or_newer),
+            Err(IncompatibleVersion {
+                peer: older_or_newer,
+                supported: 2
+            })
+        );
+    }
     let mut hello = Hello::new("pi", "0.1.0", Vec::new());
     assert_eq!(hello.check_compatible(), Ok(()));
     hello.protocol_version = 0;
     let err = hello.check_compatible().unwrap_err();
     assert_eq!(
         err.to_string(),
-        "peer speaks protocol version 0, this build speaks version 1"
+        "peer speaks protocol version 0, this build speaks version 2"
     );
 }
 
