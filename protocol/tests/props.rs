@@ -12,7 +12,7 @@ use scan3d_protocol::{
 };
 
 /// `S3DP` + version 1 LE: the only start a decodable frame can have.
-const VALID_START: [u8; 6] = [0x53, 0x33, 0x44, 0x50, 0x01, 0x00];
+const VALID_START: [u8; 6] = [0x53, 0x33, 0x44, 0x50, 0x02, 0x00];
 
 /// Any `f32` except NaN (NaN != NaN would make equality checks meaningless).
 fn f32s() -> impl Strategy<Value = f32> {

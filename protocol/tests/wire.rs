@@ -10,11 +10,11 @@ use scan3d_protocol::{
 };
 
 /// `S3DP`, version 1 LE.
-const MAGIC_V1: [u8; 6] = [0x53, 0x33, 0x44, 0x50, 0x01, 0x00];
+const MAGIC_V2: [u8; 6] = [0x53, 0x33, 0x44, 0x50, 0x02, 0x00];
 
 /// Header for a payload of `len` bytes (len < 256), built by hand.
 fn header(len: u8) -> Vec<u8> {
-    let mut h = MAGIC_V1.to_vec();
+    let mut h = MAGIC_V2.to_vec();
     h.extend_from_slice(&[len, 0x00, 0x00, 0x00]);
     h
 }
@@ -36,7 +36,7 @@ fn heartbeat_frame_exact_bytes() {
         bytes,
         [
             0x53, 0x33, 0x44, 0x50, // magic "S3DP"
-            0x01, 0x00, // version 1 LE
+            0x02, 0x00, // version 2 LE
             0x04, 0x00, 0x00, 0x00, // payload length 4 LE
             0x01, // session id 1
             0x02, // seq 2
@@ -51,10 +51,10 @@ fn heartbeat_frame_exact_bytes() {
 #[test]
 fn header_to_bytes_and_decode_header() {
     let h = FrameHeader {
-        version: 1,
+        version: 2,
         payload_len: 0x0102_0304,
     };
-    let bytes = [0x53, 0x33, 0x44, 0x50, 0x01, 0x00, 0x04, 0x03, 0x02, 0x01];
+    let bytes = [0x53, 0x33, 0x44, 0x50, 0x02, 0x00, 0x04, 0x03, 0x02, 0x01];
     assert_eq!(h.to_bytes(), bytes);
     // 0x01020304 is > MAX_FRAME_LEN, so decode_header rejects the length it parsed.
     assert_eq!(
@@ -64,11 +64,11 @@ fn header_to_bytes_and_decode_header() {
             max: 4 * 1024 * 1024
         })
     );
-    let small = [0x53, 0x33, 0x44, 0x50, 0x01, 0x00, 0x10, 0x00, 0x00, 0x00];
+    let small = [0x53, 0x33, 0x44, 0x50, 0x02, 0x00, 0x10, 0x00, 0x00, 0x00];
     assert_eq!(
         decode_header(&small),
         Ok(FrameHeader {
-            version: 1,
+            version: 2,
             payload_len: 16
         })
     );
@@ -107,7 +107,7 @@ fn hello_exact_bytes() {
             0x09, 0x00, 0x00, // session 9, seq 0, tag 0 = Hello
             0x02, b'p', b'i', // device name
             0x03, b'0', b'.', b'1', // software version
-            0x01, // protocol version 1 (varint u16)
+            0x02, // protocol version 2 (varint u16)
             0x01, // one sensor
             0x00, // sensor 0 = rplidar
             0x02, b'A', b'1', // model
@@ -378,13 +378,13 @@ fn decode_bad_magic() {
 
 #[test]
 fn decode_wrong_version() {
-    let bytes = [0x53, 0x33, 0x44, 0x50, 0x02, 0x00, 0x04, 0x00, 0x00, 0x00];
+    let bytes = [0x53, 0x33, 0x44, 0x50, 0x03, 0x00, 0x04, 0x00, 0x00, 0x00];
     let err = decode(&bytes).unwrap_err();
     assert_eq!(
         err,
         DecodeError::UnsupportedVersion {
-            got: 2,
-            supported: 1
+            got: 3,
+            supported: 2
         }
     );
     assert!(err.is_fatal());
@@ -393,7 +393,7 @@ fn decode_wrong_version() {
         decode(&[0x53, 0x33, 0x44, 0x50, 0x00, 0x01]),
         Err(DecodeError::UnsupportedVersion {
             got: 256,
-            supported: 1
+            supported: 2
         })
     );
 }
@@ -401,7 +401,7 @@ fn decode_wrong_version() {
 #[test]
 fn decode_too_large_before_payload_arrives() {
     // payload 0x3FFFF7 + header 10 = 0x400001 = MAX_FRAME_LEN + 1
-    let over = [0x53, 0x33, 0x44, 0x50, 0x01, 0x00, 0xF7, 0xFF, 0x3F, 0x00];
+    let over = [0x53, 0x33, 0x44, 0x50, 0x02, 0x00, 0xF7, 0xFF, 0x3F, 0x00];
     let err = decode(&over).unwrap_err();
     assert_eq!(
         err,
@@ -411,7 +411,7 @@ fn decode_too_large_before_payload_arrives() {
         }
     );
     assert!(err.is_fatal());
-    let max = [0x53, 0x33, 0x44, 0x50, 0x01, 0x00, 0xFF, 0xFF, 0xFF, 0xFF];
+    let max = [0x53, 0x33, 0x44, 0x50, 0x02, 0x00, 0xFF, 0xFF, 0xFF, 0xFF];
     assert_eq!(
         decode(&max),
         Err(DecodeError::TooLarge {
@@ -420,7 +420,7 @@ fn decode_too_large_before_payload_arrives() {
         })
     );
     // Exactly the maximum is accepted and waits for its payload.
-    let at_max = [0x53, 0x33, 0x44, 0x50, 0x01, 0x00, 0xF6, 0xFF, 0x3F, 0x00];
+    let at_max = [0x53, 0x33, 0x44, 0x50, 0x02, 0x00, 0xF6, 0xFF, 0x3F, 0x00];
     assert_eq!(
         decode(&at_max),
         Err(DecodeError::Incomplete { needed: 4_194_294 })
@@ -430,7 +430,7 @@ fn decode_too_large_before_payload_arrives() {
 #[test]
 fn decode_truncated_header_and_payload() {
     let bytes = [
-        0x53, 0x33, 0x44, 0x50, 0x01, 0x00, 0x04, 0x00, 0x00, 0x00, 0x01, 0x02, 0x07, 0x03,
+        0x53, 0x33, 0x44, 0x50, 0x02, 0x00, 0x04, 0x00, 0x00, 0x00, 0x01, 0x02, 0x07, 0x03,
     ];
     assert_eq!(decode(&[]), Err(DecodeError::Incomplete { needed: 10 }));
     assert_eq!(
@@ -510,7 +510,7 @@ fn decode_reports_trailing_bytes_in_the_message() {
 fn decode_leaves_the_next_frame_alone() {
     let mut bytes = header(4);
     bytes.extend_from_slice(&[0x01, 0x02, 0x07, 0x03]);
-    bytes.extend_from_slice(&MAGIC_V1);
+    bytes.extend_from_slice(&MAGIC_V2);
     let (frame, used) = decode(&bytes).unwrap();
     assert_eq!(used, 14);
     assert_eq!(frame, Frame::new(1, 2, Heartbeat { sent_ns: 3 }));
@@ -544,7 +544,7 @@ fn reader_fatal_error_sticks() {
     reader.push(&[0x53, 0x33, 0x44, 0x50, 0x07, 0x00]);
     let expected = Err(DecodeError::UnsupportedVersion {
         got: 7,
-        supported: 1,
+        supported: 2,
     });
     assert_eq!(reader.next_frame(), expected);
     reader.push(&[0x00; 8]);
@@ -555,7 +555,7 @@ fn reader_fatal_error_sticks() {
 #[test]
 fn reader_byte_by_byte() {
     let stream = [
-        0x53, 0x33, 0x44, 0x50, 0x01, 0x00, 0x04, 0x00, 0x00, 0x00, 0x01, 0x02, 0x07, 0x03,
+        0x53, 0x33, 0x44, 0x50, 0x02, 0x00, 0x04, 0x00, 0x00, 0x00, 0x01, 0x02, 0x07, 0x03,
     ];
     let mut reader = FrameReader::new();
     for &b in &stream[..13] {
