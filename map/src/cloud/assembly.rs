@@ -137,6 +137,20 @@ impl AssembledScan {
 pub struct StaticScanAssembler {
     scans: Vec<AssembledScan>,
     orphans: u64,
+    /// How many origin groups of each scan [`StaticScanAssembler::take_new`] has handed out.
+    taken: Vec<usize>,
+}
+
+/// Points seen from one sensor origin (a half revolution of a static scan), handed out by
+/// [`StaticScanAssembler::take_new`] as soon as they are complete, for incremental maps.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NewRays {
+    /// Index of the scan in [`StaticScanAssembler::scans`].
+    pub scan_index: usize,
+    /// The operator's name of the scan's position.
+    pub position: String,
+    /// The points and their origin, world frame.
+    pub rays: OriginScan,
 }
 
 impl StaticScanAssembler {
@@ -194,6 +208,28 @@ impl StaticScanAssembler {
     /// The assembled scans, in start order.
     pub fn finish(self) -> Vec<AssembledScan> {
         self.scans
+    }
+
+    /// The scans assembled so far, in start order.
+    pub fn scans(&self) -> &[AssembledScan] {
+        &self.scans
+    }
+
+    /// The origin groups completed since the last call, in recorded order. Every group is
+    /// complete once the body that produced it was taken (one yaw per half revolution), so a
+    /// live map can insert them at once; they stay in [`StaticScanAssembler::scans`] too.
+    pub fn take_new(&mut self) -> Vec<NewRays> {
+        self.taken.resize(self.scans.len(), 0);
+        let mut new = Vec::new();
+        for (scan_index, (scan, taken)) in self.scans.iter().zip(&mut self.taken).enumerate() {
+            new.extend(scan.scans[*taken..].iter().map(|rays| NewRays {
+                scan_index,
+                position: scan.position.name.clone(),
+                rays: rays.clone(),
+            }));
+            *taken = scan.scans.len();
+        }
+        new
     }
 
     /// The latest scan with this id (ids restart with each edge session).
@@ -377,6 +413,11 @@ mod tests {
                 tagged(270.0, 2.0, 1.8),
             ],
         ));
+        let new = assembler.take_new();
+        assert_eq!(new.len(), 2, "both half revolutions are complete once their batch is in");
+        assert!(new.iter().all(|n| n.scan_index == 0 && n.position == "door"));
+        assert_eq!(new[1].rays, assembler.scans()[0].scans[1]);
+        assert!(assembler.take_new().is_empty(), "each group is handed out once");
         assembler.on_body(&Body::StaticScan(StaticScan::Finished(StaticScanEnd {
             scan_id: 0,
             t_ns: 1,
