@@ -2,6 +2,7 @@
 //!
 //! Stages follow the data flow, one module each (see `ARCHITECTURE.md`); today:
 //! - [`ingest`]: QUIC server with mutual TLS, durable MCAP session recordings, time sync.
+//! - [`pipeline`]: per session, frames through assembly, filters, octree and metrics.
 //! - the octree, clouds and metrics are the pure `scan3d-map` crate, used here.
 //! - [`config`]: the daemon's `server.toml`.
 //! - [`cli`]: the `scan3d` subcommands.
@@ -10,3 +11,4 @@
 pub mod cli;
 pub mod config;
 pub mod ingest;
+pub mod pipeline;
