@@ -414,20 +414,10 @@ mod tests {
             ],
         ));
         let new = assembler.take_new();
-        assert_eq!(
-            new.len(),
-            2,
-            "both half revolutions are complete once their batch is in"
-        );
-        assert!(
-            new.iter()
-                .all(|n| n.scan_index == 0 && n.position == "door")
-        );
+        assert_eq!(new.len(), 2, "both half revolutions are complete once their batch is in");
+        assert!(new.iter().all(|n| n.scan_index == 0 && n.position == "door"));
         assert_eq!(new[1].rays, assembler.scans()[0].scans[1]);
-        assert!(
-            assembler.take_new().is_empty(),
-            "each group is handed out once"
-        );
+        assert!(assembler.take_new().is_empty(), "each group is handed out once");
         assembler.on_body(&Body::StaticScan(StaticScan::Finished(StaticScanEnd {
             scan_id: 0,
             t_ns: 1,
