@@ -750,13 +750,10 @@ impl StaticScanController {
             .ok_or(StaticScanError::NoStepInFlight)
     }
 
-    /// θ of eq. (1) in [0, 360) for a finite device azimuth.
+    /// θ of eq. (1) in [0, 360) for a finite device azimuth (the protocol's one definition,
+    /// which the server's eq. (1) uses too).
     fn theta_of(&self, azimuth_deg: f64) -> f64 {
-        match (azimuth_deg - self.config.azimuth_zero_deg).rem_euclid(360.0) {
-            // rem_euclid rounds a tiny negative difference up to exactly 360.
-            t if t >= 360.0 => 0.0,
-            t => t,
-        }
+        scan3d_protocol::theta_deg(azimuth_deg, self.config.azimuth_zero_deg)
     }
 
     fn region(&self, theta: f64) -> Region {
