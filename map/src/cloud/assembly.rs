@@ -122,7 +122,7 @@ pub struct AssembledScan {
     /// How the Sweep sat on the turntable.
     pub mount: MountGeometry,
     /// Points grouped by sensor origin: one group per half revolution (each half has one yaw,
-    /// hence one optical centre), in recorded order.
+    /// hence one optical centre; one run of a `StaticScan::Yaws` message), in recorded order.
     pub scans: Vec<OriginScan>,
     /// How it ended, if the end was recorded.
     pub outcome: Option<StaticScanOutcome>,
@@ -339,12 +339,13 @@ impl StaticScanAssembler {
 }
 
 impl AssembledScan {
-    /// Adds the tagged samples of one revolution: a new origin group wherever the yaw changes.
-    /// Returns how many tagged indices lie past the revolution's end (not placed).
+    /// Adds the tagged samples of one revolution: an origin group per run (the edge makes one
+    /// run per half revolution), opened at its first point. Returns how many tagged indices
+    /// lie past the revolution's end (not placed).
     fn add(&mut self, samples: &[RevolutionSample], runs: &[YawRun]) -> u64 {
-        let mut current_yaw: Option<f32> = None;
         let mut past_end = 0u64;
         for run in runs {
+            let mut group_open = false;
             let first = usize::try_from(run.first_index).unwrap_or(usize::MAX);
             let count = usize::try_from(run.count).unwrap_or(usize::MAX);
             let end = first.saturating_add(count);
@@ -361,8 +362,8 @@ impl AssembledScan {
                     self.no_return += 1;
                     continue;
                 };
-                if current_yaw != Some(run.yaw_deg) {
-                    current_yaw = Some(run.yaw_deg);
+                if !group_open {
+                    group_open = true;
                     self.scans.push(OriginScan {
                         origin: sensor_origin(&self.position, &self.mount, static_sample.yaw_deg),
                         points: Vec::new(),
