@@ -13,9 +13,9 @@ use std::thread::JoinHandle;
 use std::time::Duration;
 
 use crate::clock::SharedClock;
-use crate::lidar::{ArrivedSample, DriverStats, LidarDriver, LidarEvent};
+use crate::lidar::{DriverStats, LidarDriver, LidarEvent};
 use crate::serial::{self, SerialError, SerialEvent, SerialOptions};
-use crate::timing::{Revolution, RevolutionAssembler, TimingConfig};
+use crate::timing::{Revolution, RevolutionAssembler, StampedSample, TimingConfig};
 
 /// What an acquisition thread reports.
 #[derive(Debug, Clone, PartialEq)]
@@ -26,9 +26,10 @@ pub enum AcquisitionEvent {
     Lost(String),
     /// A full revolution with per-sample times.
     Revolution(Revolution),
-    /// One sample as it arrived, before revolution assembly; only when the thread was spawned
-    /// with `forward_samples` (the static-scan controller acts within a revolution).
-    Sample(ArrivedSample),
+    /// One sample as soon as it arrived, with the measurement time and revolution position it
+    /// has in its [`AcquisitionEvent::Revolution`] (one time per sample); only when the thread
+    /// was spawned with `forward_samples` (the static-scan controller acts within a revolution).
+    Sample(StampedSample),
     /// Any other driver event: info, health, scanning, warnings, and `Failed` (after which the
     /// thread restarts the handshake following a pause). Samples never come this way: they
     /// arrive assembled as [`AcquisitionEvent::Revolution`]s.
@@ -57,7 +58,7 @@ const RESTART_PAUSE: Duration = Duration::from_secs(1);
 
 impl Acquisition {
     /// Starts reading `driver` on the port described by `options`. With `forward_samples`,
-    /// every sample is also sent on its own as it arrives ([`AcquisitionEvent::Sample`]).
+    /// every sample is also sent on its own, timed, as it arrives ([`AcquisitionEvent::Sample`]).
     pub fn spawn(
         mut driver: Box<dyn LidarDriver + Send>,
         options: SerialOptions,
@@ -143,10 +144,11 @@ fn forward(
             AcquisitionEvent::Lost(reason)
         }
         SerialEvent::Driver(LidarEvent::Sample(sample)) => {
-            if forward_samples && tx.send(AcquisitionEvent::Sample(sample)).is_err() {
+            let stamped = assembler.stamp(sample);
+            if forward_samples && tx.send(AcquisitionEvent::Sample(stamped.sample)).is_err() {
                 return ControlFlow::Break(());
             }
-            match assembler.push(sample) {
+            match stamped.finished {
                 Some(rev) => AcquisitionEvent::Revolution(rev),
                 None => return ControlFlow::Continue(()),
             }

@@ -16,7 +16,8 @@
 //! [`run_with_i2c`]) is shared through `embedded-hal-bus` by the IMU thread (Madgwick-fused
 //! `Imu` frames at the IMU rate) and the turntable thread. A `StartStaticScan` command from the
 //! server makes the Sweep worker run a [`ScanSession`]: one step per revolution while the beam
-//! is blocked, every sample tagged with its yaw, sent as `StaticScan` frames.
+//! is blocked, every sample decided on the time it has in its revolution frame, and the yaws
+//! sent as `StaticScan::Yaws` frames that refer to the Sweep revolution frames by index.
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -486,7 +487,7 @@ impl ScanHooks {
         self.carry_out(actions, bodies);
     }
 
-    fn on_sample(&mut self, sample: &crate::lidar::ArrivedSample, bodies: &mut Vec<Body>) {
+    fn on_sample(&mut self, sample: &crate::timing::StampedSample, bodies: &mut Vec<Body>) {
         let mut actions = Vec::new();
         if let Some(session) = &mut self.session {
             session.on_sample(sample, &mut actions);
@@ -785,10 +786,12 @@ fn status_body(
     .into()
 }
 
-/// The protocol frame of a timestamped revolution. Its base time is the earliest of `t0` and
-/// the sample times (reported angles may step back slightly around the start flag).
+/// The protocol frame of a timestamped revolution. Its base time is the revolution's `t0_ns`,
+/// the first sample's time (sample times only go forwards), which names it for the static-scan
+/// yaws; a sample more than 4.29 s after it (only the tail of a stalled revolution can be) is
+/// dropped, so the indices of the others stay.
 pub fn revolution_frame(sensor: SensorId, rev: &Revolution) -> LidarRevolution {
-    let t0 = rev.samples.iter().map(|s| s.t_ns).fold(rev.t0_ns, u64::min);
+    let t0 = rev.t0_ns;
     let mut frame = LidarRevolution::new(sensor, t0, rev.t1_ns.max(t0));
     for s in &rev.samples {
         if frame

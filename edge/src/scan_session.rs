@@ -3,20 +3,29 @@
 //!
 //! Sans-I/O like the controller: the Sweep worker feeds samples and step outcomes and carries
 //! out the returned [`ScanAction`]s (submit a frame, move the stepper, go home). The messages
-//! follow [`scan3d_protocol::StaticScan`]: `Started` (position, δφ, mount), one `Samples` per
-//! revolution with every tagged sample's yaw, a `Warning` for each late / failed / missed step,
-//! and `Finished` with the counters.
+//! follow [`scan3d_protocol::StaticScan`]: `Started` (position, δφ, mount), one `Yaws` per Sweep
+//! revolution naming it by its `t0_ns` and giving the yaw of runs of its sample indices, a
+//! `Warning` for each late / failed / missed step, and `Finished` with the counters.
+//!
+//! **One timeline.** The samples come already timed, as [`crate::timing::RevolutionAssembler`]
+//! stamped them when they arrived: the controller decides each yaw on the very time the sample
+//! has in the Sweep's revolution frame, and the samples themselves travel only in that frame
+//! (see [`crate::timing`] for why the one estimator is causal). A `Yaws` message is sent once
+//! every sample of its revolution is decided (tagged, blocked or untrusted), so usually just
+//! before the revolution frame itself; the server joins the two by `t0_ns` in either order.
+
+use std::collections::VecDeque;
 
 use scan3d_protocol::{
     Body, MountInfo, StaticScan, StaticScanEnd, StaticScanOutcome, StaticScanProblem,
-    StaticScanSamples, StaticScanStart, StaticScanWarning, TaggedSweepSample,
+    StaticScanStart, StaticScanWarning, StaticScanYaws, YawRun,
 };
 
-use crate::lidar::ArrivedSample;
 use crate::static_scan::{
-    ScanEvent, StaticScanConfig, StaticScanController, StaticScanError, StepCommand,
+    Half, ScanEvent, StaticScanConfig, StaticScanController, StaticScanError, StepCommand,
+    TaggedSample,
 };
-use crate::timing::TimedSample;
+use crate::timing::{RevolutionPosition, StampedSample, TimedSample};
 
 /// What the caller must do for a [`ScanSession`].
 #[derive(Debug, Clone, PartialEq)]
@@ -43,67 +52,36 @@ pub struct ScanPosition {
     pub heading_deg: f64,
 }
 
-/// Measurement times from arrival times, as each sample arrives: within a revolution the
-/// beam turns at a steady rate, so arrival time against unwrapped beam angle is a line plus
-/// the serial latency. The line fitted under the **lower envelope** of the last revolution's
-/// arrivals ([`crate::timing`]'s Moon–Skelly–Towsley fit, here made causal) gives each new
-/// sample's measurement time. Without it, a sample measured while the rotor still moved but
-/// delivered late (a USB latency timer, a busy host) would look as if it were taken after the
-/// step and be tagged with the new yaw.
-#[derive(Debug, Default)]
-struct MeasurementTimes {
-    /// Unwrapped beam angle of the last sample, degrees.
-    unwrapped_deg: Option<f64>,
-    /// (unwrapped angle, arrival ns) over the last revolution.
-    window: std::collections::VecDeque<(f64, f64)>,
-    /// The current line `arrival = a + b·angle` and the angle it was fitted at.
-    fit: Option<(f64, f64, f64)>,
-    /// The last estimate, so estimates never go backwards.
-    last_ns: u64,
+/// The yaw runs of one Sweep revolution, as its samples are decided.
+#[derive(Debug)]
+struct RevolutionYaws {
+    t0_ns: u64,
+    runs: Vec<YawRun>,
+    /// The scan revolution and half of the last run: a run never spans two halves, even of one
+    /// yaw (with an azimuth zero other than 0, a Sweep revolution holds the second half at φ
+    /// and the next first half at φ too), so each run is one half revolution's optical centre.
+    last_half: Option<(u32, Half)>,
 }
 
-impl MeasurementTimes {
-    /// Refit after the beam turned this far.
-    const REFIT_DEG: f64 = 5.0;
-    /// No fit before the window spans this much.
-    const MIN_SPAN_DEG: f64 = 30.0;
-
-    /// The measurement time of a sample at device angle `angle_deg` that arrived at
-    /// `arrival_ns` (never later than its arrival, never before the previous estimate).
-    fn estimate(&mut self, angle_deg: f64, arrival_ns: u64) -> u64 {
-        let unwrapped = match self.unwrapped_deg {
-            None => angle_deg,
-            Some(previous) => {
-                let delta = (angle_deg - previous.rem_euclid(360.0)).rem_euclid(360.0);
-                previous + if delta > 180.0 { delta - 360.0 } else { delta }
+impl RevolutionYaws {
+    fn tag(&mut self, index: u32, tagged: &TaggedSample) {
+        let yaw_deg = tagged.yaw_deg as f32;
+        let half = (tagged.revolution, tagged.half);
+        match self.runs.last_mut() {
+            Some(run)
+                if run.yaw_deg == yaw_deg
+                    && self.last_half == Some(half)
+                    && run.first_index.checked_add(run.count) == Some(index) =>
+            {
+                run.count += 1;
             }
-        };
-        self.unwrapped_deg = Some(unwrapped);
-        self.window.push_back((unwrapped, arrival_ns as f64));
-        while self
-            .window
-            .front()
-            .is_some_and(|&(u, _)| unwrapped - u > 360.0)
-        {
-            self.window.pop_front();
+            _ => self.runs.push(YawRun {
+                first_index: index,
+                count: 1,
+                yaw_deg,
+            }),
         }
-        let span = self.window.front().map_or(0.0, |&(u, _)| unwrapped - u);
-        let stale = self
-            .fit
-            .is_none_or(|(_, _, at)| (unwrapped - at).abs() >= Self::REFIT_DEG);
-        if span >= Self::MIN_SPAN_DEG && stale {
-            let (x, y): (Vec<f64>, Vec<f64>) = self.window.iter().copied().unzip();
-            let (a, b) = crate::timing::lower_envelope_fit(&x, &y);
-            self.fit = Some((a, b, unwrapped));
-        }
-        let estimate = match self.fit {
-            Some((a, b, _)) if span >= Self::MIN_SPAN_DEG => {
-                (a + b * unwrapped).clamp(0.0, arrival_ns as f64) as u64
-            }
-            _ => arrival_ns,
-        };
-        self.last_ns = self.last_ns.max(estimate);
-        self.last_ns
+        self.last_half = Some(half);
     }
 }
 
@@ -112,8 +90,11 @@ impl MeasurementTimes {
 pub struct ScanSession {
     scan_id: u32,
     controller: StaticScanController,
-    times: MeasurementTimes,
-    batch: Option<StaticScanSamples>,
+    /// Where each sample fed and not yet decided sits in its revolution, in feeding order (the
+    /// controller decides samples in the order they were fed).
+    undecided: VecDeque<(u64, Option<RevolutionPosition>)>,
+    /// The revolution whose samples are being decided.
+    yaws: Option<RevolutionYaws>,
     ended: bool,
 }
 
@@ -164,8 +145,8 @@ impl ScanSession {
         let session = Self {
             scan_id,
             controller,
-            times: MeasurementTimes::default(),
-            batch: None,
+            undecided: VecDeque::new(),
+            yaws: None,
             ended: false,
         };
         Ok((
@@ -189,21 +170,15 @@ impl ScanSession {
         &self.controller
     }
 
-    /// Feeds one Sweep sample as it arrived; its measurement time is estimated from the
-    /// arrival times (see `MeasurementTimes`) before the controller decides its yaw.
-    pub fn on_sample(&mut self, sample: &ArrivedSample, out: &mut Vec<ScanAction>) {
+    /// Feeds one Sweep sample as the revolution assembler stamped it on arrival: the controller
+    /// decides its yaw on that time, and a tag refers to its place in the revolution.
+    pub fn on_sample(&mut self, sample: &StampedSample, out: &mut Vec<ScanAction>) {
         if self.ended {
             return;
         }
-        let t_ns = self
-            .times
-            .estimate(f64::from(sample.sample.angle_deg), sample.arrival_ns);
-        self.controller.on_sample(&TimedSample {
-            angle_deg: sample.sample.angle_deg,
-            range_m: sample.sample.range_m,
-            quality: sample.sample.quality,
-            t_ns,
-        });
+        self.undecided
+            .push_back((sample.sample.t_ns, sample.position));
+        self.controller.on_sample(&sample.sample);
         self.drain(out);
     }
 
@@ -246,27 +221,15 @@ impl ScanSession {
             match event {
                 ScanEvent::Step(command) => out.push(ScanAction::Step(command)),
                 ScanEvent::Tagged(tagged) => {
-                    if self
-                        .batch
-                        .as_ref()
-                        .is_some_and(|b| b.revolution != tagged.revolution)
+                    if let Some(position) = self.decided(&tagged.sample, out)
+                        && let Some(yaws) = self.yaws.as_mut()
                     {
-                        self.flush(out);
+                        yaws.tag(position.index, &tagged);
                     }
-                    let batch = self.batch.get_or_insert_with(|| StaticScanSamples {
-                        scan_id: self.scan_id,
-                        revolution: tagged.revolution,
-                        t_ns: tagged.sample.t_ns,
-                        samples: Vec::with_capacity(1024),
-                    });
-                    batch.samples.push(TaggedSweepSample {
-                        azimuth_deg: tagged.sample.angle_deg,
-                        range_m: tagged.sample.range_m,
-                        quality: tagged.sample.quality,
-                        yaw_deg: tagged.yaw_deg as f32,
-                    });
                 }
-                ScanEvent::Blocked(_) | ScanEvent::Untrusted { .. } => {}
+                ScanEvent::Blocked(sample) | ScanEvent::Untrusted { sample, .. } => {
+                    self.decided(&sample, out);
+                }
                 ScanEvent::LateStep {
                     revolution,
                     expected_by_ns,
@@ -332,9 +295,43 @@ impl ScanSession {
         }
     }
 
+    /// The controller decided the oldest undecided sample: its place in its revolution. A
+    /// sample of a new revolution first sends the finished revolution's yaws.
+    fn decided(
+        &mut self,
+        sample: &TimedSample,
+        out: &mut Vec<ScanAction>,
+    ) -> Option<RevolutionPosition> {
+        let Some((t_ns, position)) = self.undecided.pop_front() else {
+            tracing::error!("the controller decided a sample that was not fed");
+            return None;
+        };
+        debug_assert_eq!(t_ns, sample.t_ns, "samples are decided in feeding order");
+        let position = position?;
+        if self.yaws.as_ref().is_none_or(|y| y.t0_ns != position.t0_ns) {
+            self.flush(out);
+            self.yaws = Some(RevolutionYaws {
+                t0_ns: position.t0_ns,
+                runs: Vec::new(),
+                last_half: None,
+            });
+        }
+        Some(position)
+    }
+
+    /// Sends the yaws of the revolution being decided, if it has any tagged sample.
     fn flush(&mut self, out: &mut Vec<ScanAction>) {
-        if let Some(batch) = self.batch.take() {
-            out.push(ScanAction::Send(StaticScan::Samples(batch).into()));
+        if let Some(yaws) = self.yaws.take()
+            && !yaws.runs.is_empty()
+        {
+            out.push(ScanAction::Send(
+                StaticScan::Yaws(StaticScanYaws {
+                    scan_id: self.scan_id,
+                    revolution_t0_ns: yaws.t0_ns,
+                    runs: yaws.runs,
+                })
+                .into(),
+            ));
         }
     }
 
@@ -389,11 +386,17 @@ impl ScanSession {
 
 #[cfg(test)]
 mod tests {
-    use super::*;
-    use crate::lidar::RawSample;
+    use std::collections::HashMap;
 
-    /// A Sweep at `hz` with `per_rev` evenly spaced samples, all at 2 m.
-    fn sample(i: u64, per_rev: u64, hz: f64) -> ArrivedSample {
+    use super::*;
+    use crate::lidar::{ArrivedSample, RawSample};
+    use crate::timing::{Revolution, RevolutionAssembler, TimingConfig};
+
+    const MS: u64 = 1_000_000;
+
+    /// Sample `i` of a Sweep at `hz` with `per_rev` evenly spaced samples, all at 2 m, measured
+    /// at its nominal time and arriving `delay_ns` later.
+    fn sample(i: u64, per_rev: u64, hz: f64, delay_ns: u64) -> ArrivedSample {
         let angle = (i % per_rev) as f64 * 360.0 / per_rev as f64;
         ArrivedSample {
             sample: RawSample {
@@ -402,8 +405,12 @@ mod tests {
                 quality: 100,
                 new_revolution: i.is_multiple_of(per_rev),
             },
-            arrival_ns: (i as f64 * 1e9 / (hz * per_rev as f64)) as u64,
+            arrival_ns: measured(i, per_rev, hz) + delay_ns,
         }
+    }
+
+    fn measured(i: u64, per_rev: u64, hz: f64) -> u64 {
+        (i as f64 * 1e9 / (hz * per_rev as f64)) as u64
     }
 
     fn position() -> ScanPosition {
@@ -415,34 +422,60 @@ mod tests {
         }
     }
 
-    /// Runs a whole scan with a stepper that finishes each move `step_ms` after the command.
-    fn run(config: &StaticScanConfig, step_ms: f64) -> Vec<ScanAction> {
+    /// What a run produced: every action, and the Sweep revolution frames by `t0_ns`.
+    struct Run {
+        actions: Vec<ScanAction>,
+        revolutions: HashMap<u64, Revolution>,
+    }
+
+    /// Runs a scan at 1 Hz, 360 samples per revolution, through the real revolution assembler
+    /// (as the acquisition thread does): move number k finishes `step_ns(k)` after the arrival
+    /// of the sample that commanded it, and sample i arrives `delay_ns(i)` after it was taken.
+    fn run_with(
+        config: &StaticScanConfig,
+        step_ns: impl Fn(usize) -> u64,
+        delay_ns: impl Fn(u64) -> u64,
+    ) -> Run {
         let (mut session, started) =
             ScanSession::start(3, position(), config, (1.8, 100.0), 0).unwrap();
-        let mut all = vec![started];
+        let mut assembler = RevolutionAssembler::new(TimingConfig::default());
+        let mut run = Run {
+            actions: vec![started],
+            revolutions: HashMap::new(),
+        };
         let mut out = Vec::new();
         let per_rev = 360;
         let mut pending: Option<u64> = None;
+        let mut moves = 0;
         for i in 0..(per_rev * 120) {
-            let s = sample(i, per_rev, 1.0);
+            let s = sample(i, per_rev, 1.0, delay_ns(i));
             if let Some(done) = pending
                 && s.arrival_ns >= done
             {
                 session.on_step_done(done, &mut out);
                 pending = None;
             }
-            session.on_sample(&s, &mut out);
+            let stamped = assembler.stamp(s);
+            if let Some(rev) = stamped.finished {
+                run.revolutions.insert(rev.t0_ns, rev);
+            }
+            session.on_sample(&stamped.sample, &mut out);
             for action in out.drain(..) {
                 if let ScanAction::Step(_) = action {
-                    pending = Some(s.arrival_ns + (step_ms * 1e6) as u64);
+                    pending = Some(s.arrival_ns + step_ns(moves));
+                    moves += 1;
                 }
-                all.push(action);
+                run.actions.push(action);
             }
             if session.is_over() {
                 break;
             }
         }
-        all
+        run
+    }
+
+    fn run(config: &StaticScanConfig, step_ms: f64) -> Run {
+        run_with(config, |_| (step_ms * 1e6) as u64, |_| 0)
     }
 
     fn bodies(actions: &[ScanAction]) -> Vec<&StaticScan> {
@@ -455,11 +488,33 @@ mod tests {
             .collect()
     }
 
+    fn yaws<'a>(messages: &[&'a StaticScan]) -> Vec<&'a StaticScanYaws> {
+        messages
+            .iter()
+            .filter_map(|m| match m {
+                StaticScan::Yaws(y) => Some(y),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// Each tagged sample of `yaws`, from its revolution frame: (device azimuth, yaw).
+    fn tagged_samples(run: &Run, yaws: &StaticScanYaws) -> Vec<(f32, f32)> {
+        let rev = &run.revolutions[&yaws.revolution_t0_ns];
+        yaws.runs
+            .iter()
+            .flat_map(|r| {
+                let range = r.first_index as usize..(r.first_index + r.count) as usize;
+                rev.samples[range].iter().map(|s| (s.angle_deg, r.yaw_deg))
+            })
+            .collect()
+    }
+
     #[test]
-    fn a_full_scan_sends_start_samples_per_revolution_and_end() {
+    fn a_full_scan_sends_start_the_yaws_of_each_revolution_by_sample_index_and_end() {
         let config = StaticScanConfig::default();
-        let actions = run(&config, 10.0);
-        let messages = bodies(&actions);
+        let run = run(&config, 10.0);
+        let messages = bodies(&run.actions);
         let StaticScan::Started(start) = messages[0] else {
             panic!("first message {:?}", messages[0]);
         };
@@ -472,30 +527,42 @@ mod tests {
         assert_eq!(end.revolutions, 100);
         assert!((end.yaw_deg - 180.0).abs() < 1e-9);
         assert_eq!((end.late_steps, end.failed_steps), (0, 0));
-        let revolutions: Vec<&StaticScanSamples> = messages
-            .iter()
-            .filter_map(|m| match m {
-                StaticScan::Samples(s) => Some(s),
-                _ => None,
-            })
-            .collect();
+        let revolutions = yaws(&messages);
         assert_eq!(revolutions.len(), 100);
-        let tagged: u64 = revolutions.iter().map(|r| r.samples.len() as u64).sum();
+        let tagged: u64 = revolutions.iter().map(|r| r.tagged_samples()).sum();
         assert_eq!(tagged, end.tagged);
-        // Revolution 10: first half at 10 steps, second half at 11 steps (eq. (1)'s φ, φ+δφ).
+        // Every message names a revolution frame that was sent, and each of its revolutions once.
+        let mut t0s: Vec<u64> = revolutions.iter().map(|r| r.revolution_t0_ns).collect();
+        t0s.dedup();
+        assert_eq!(t0s.len(), 100);
+        // Revolution 10: the first half (θ 0°–149°, indices 0–149) at 10 steps, the second
+        // (θ 211°–359°) at 11 steps (eq. (1)'s φ, φ+δφ); the blocked sector is in no run.
         let r10 = revolutions[10];
-        let first = r10.samples.iter().find(|s| s.azimuth_deg < 150.0).unwrap();
-        let second = r10.samples.iter().find(|s| s.azimuth_deg > 210.0).unwrap();
-        assert!((first.yaw_deg - 18.0).abs() < 1e-4, "{first:?}");
-        assert!((second.yaw_deg - 19.8).abs() < 1e-4, "{second:?}");
-        assert!(
-            r10.samples
-                .iter()
-                .all(|s| !(150.0..=210.0).contains(&s.azimuth_deg))
-        );
-        assert_eq!(actions.last(), Some(&ScanAction::ReturnHome));
         assert_eq!(
-            actions
+            r10.runs,
+            [
+                YawRun {
+                    first_index: 0,
+                    count: 150,
+                    yaw_deg: 18.0,
+                },
+                YawRun {
+                    first_index: 211,
+                    count: 149,
+                    yaw_deg: 19.8,
+                },
+            ]
+        );
+        let samples = tagged_samples(&run, r10);
+        assert!(samples.iter().all(|(az, _)| !(150.0..=210.0).contains(az)));
+        assert!(
+            samples
+                .iter()
+                .all(|&(az, yaw)| (yaw == 18.0) == (az < 150.0))
+        );
+        assert_eq!(run.actions.last(), Some(&ScanAction::ReturnHome));
+        assert_eq!(
+            run.actions
                 .iter()
                 .filter(|a| matches!(a, ScanAction::Step(_)))
                 .count(),
@@ -504,11 +571,52 @@ mod tests {
     }
 
     #[test]
-    fn late_steps_are_reported_and_their_halves_not_sent() {
+    fn with_an_azimuth_zero_a_sweep_revolution_holds_runs_of_two_halves_kept_apart() {
+        // The device's 90° points up: a Sweep revolution (device 0°–360°) holds θ 270°–360° of
+        // one scan revolution's second half, then the next one's first half (θ 0°–149°) at the
+        // same yaw, then θ 211°–269° after the step.
+        let config = StaticScanConfig {
+            azimuth_zero_deg: 90.0,
+            ..StaticScanConfig::default()
+        };
+        let run = run(&config, 10.0);
+        let messages = bodies(&run.actions);
+        let r10 = yaws(&messages)[10];
+        let shape: Vec<(u32, u32)> = r10.runs.iter().map(|r| (r.first_index, r.count)).collect();
+        assert_eq!(shape, [(0, 90), (90, 150), (301, 59)]);
+        assert_eq!(r10.runs[0].yaw_deg, r10.runs[1].yaw_deg);
+        assert!((r10.runs[2].yaw_deg - r10.runs[1].yaw_deg - 1.8).abs() < 1e-4);
+    }
+
+    #[test]
+    fn a_revolution_of_yaws_costs_a_few_dozen_bytes_instead_of_a_copy_of_its_samples() {
+        let run = run(&StaticScanConfig::default(), 10.0);
+        let messages = bodies(&run.actions);
+        let revolutions = yaws(&messages);
+        let bytes: Vec<usize> = revolutions
+            .iter()
+            .map(|y| {
+                let frame =
+                    scan3d_protocol::Frame::new(u64::MAX, 1 << 20, StaticScan::Yaws((*y).clone()));
+                scan3d_protocol::encode(&frame).unwrap().len()
+            })
+            .collect();
+        let tagged = revolutions[10].tagged_samples();
+        // Version 1 repeated every tagged sample (f32 azimuth, f32 range, u8 quality, f32 yaw).
+        let v1_bytes = 13 * tagged as usize;
+        let max = *bytes.iter().max().unwrap();
+        println!(
+            "static-scan bytes per revolution of {tagged} tagged samples: {max} (v1: over {v1_bytes})"
+        );
+        assert!(max <= 64, "{max} bytes");
+    }
+
+    #[test]
+    fn late_steps_are_reported_and_their_halves_not_tagged() {
         // A step that takes 200 ms cannot fit in a 60° sector at 1 Hz (167 ms).
         let config = StaticScanConfig::default();
-        let actions = run(&config, 200.0);
-        let messages = bodies(&actions);
+        let run = run(&config, 200.0);
+        let messages = bodies(&run.actions);
         let late = messages
             .iter()
             .filter(
@@ -521,16 +629,62 @@ mod tests {
         };
         assert_eq!(end.late_steps as usize, late);
         assert!(end.untrusted > 0);
-        // No sample past the sector was sent with a yaw it may not have had.
-        for m in &messages {
-            if let StaticScan::Samples(s) = m {
-                assert!(
-                    s.samples.iter().all(|x| x.azimuth_deg < 150.0),
-                    "revolution {} sent second-half samples",
-                    s.revolution
-                );
-            }
+        // No sample past the sector was tagged with a yaw it may not have had.
+        for y in yaws(&messages) {
+            assert!(
+                tagged_samples(&run, y).iter().all(|(az, _)| *az < 150.0),
+                "revolution {} tagged second-half samples",
+                y.revolution_t0_ns
+            );
         }
+    }
+
+    #[test]
+    fn a_sample_taken_before_the_step_settled_but_delivered_late_is_not_tagged_with_the_new_yaw() {
+        // Every sample arrives 0.5 ms after it was taken, except θ 200°–215°: one read 5 ms
+        // after sample 215. The first move is commanded on sample 150 (θ = 150°) and reported
+        // done 1 ms before sample 211, the first past the sector, was taken: with the 2 ms
+        // settle time that sample was taken while the rotor settled. By its arrival time it
+        // would look settled; by its measurement time (the envelope's) it is not.
+        let config = StaticScanConfig::default();
+        let m = |i| measured(i, 360, 1.0);
+        let delay = |i: u64| {
+            if (200..=215).contains(&i) {
+                m(215) + 5 * MS - m(i)
+            } else {
+                MS / 2
+            }
+        };
+        let first_move = m(211) - MS - (m(150) + MS / 2);
+        let run = run_with(
+            &config,
+            |k| if k == 0 { first_move } else { 10 * MS },
+            delay,
+        );
+        let messages = bodies(&run.actions);
+        let late: Vec<_> = messages
+            .iter()
+            .filter_map(|m| match m {
+                StaticScan::Warning(w) if w.problem == StaticScanProblem::LateStep => {
+                    Some(w.revolution)
+                }
+                _ => None,
+            })
+            .collect();
+        assert_eq!(late, [0]);
+        let revolutions = yaws(&messages);
+        assert_eq!(
+            revolutions[0].runs,
+            [YawRun {
+                first_index: 0,
+                count: 150,
+                yaw_deg: 0.0,
+            }],
+            "revolution 0's second half is untrusted"
+        );
+        // The rotor did arrive: revolution 1 is at 1.8° and 3.6°.
+        let yaws1: Vec<f32> = revolutions[1].runs.iter().map(|r| r.yaw_deg).collect();
+        assert_eq!(yaws1, [1.8, 3.6]);
     }
 
     #[test]
@@ -543,9 +697,11 @@ mod tests {
         ));
         // 5 steps/s: a 200 ms move cannot fit in the 167 ms sector at 1 Hz.
         let (mut session, _) = ScanSession::start(0, position(), &config, (1.8, 5.0), 0).unwrap();
+        let mut assembler = RevolutionAssembler::new(TimingConfig::default());
         let mut out = Vec::new();
         for i in 0..800 {
-            session.on_sample(&sample(i, 360, 1.0), &mut out);
+            let stamped = assembler.stamp(sample(i, 360, 1.0, 0));
+            session.on_sample(&stamped.sample, &mut out);
         }
         assert!(out.iter().any(|a| matches!(
             a,
@@ -555,30 +711,17 @@ mod tests {
     }
 
     #[test]
-    fn measurement_times_take_the_least_delayed_phase() {
-        let mut times = MeasurementTimes::default();
-        // 1 Hz, a sample every degree measured at i ms·(1000/360); arrivals late by 1 ms plus
-        // a burst of 40 ms every 50 samples.
-        let mut worst: u64 = 0;
-        for i in 0..1080u64 {
-            let measured = i * 1_000_000_000 / 360;
-            let late = if i % 50 < 5 { 40_000_000 } else { 1_000_000 };
-            let estimate = times.estimate((i % 360) as f64, measured + late);
-            if i > 400 {
-                worst = worst.max(estimate.abs_diff(measured + 1_000_000));
-            }
-        }
-        // After a revolution, every estimate is within rounding of the 1 ms floor.
-        assert!(worst < 10_000, "worst error {worst} ns");
-    }
-
-    #[test]
     fn stop_flushes_and_goes_home() {
         let config = StaticScanConfig::default();
         let (mut session, _) = ScanSession::start(0, position(), &config, (1.8, 100.0), 0).unwrap();
+        let mut assembler = RevolutionAssembler::new(TimingConfig::default());
         let mut out = Vec::new();
         for i in 0..500 {
-            session.on_sample(&sample(i, 360, 1.0), &mut out);
+            let stamped = assembler.stamp(sample(i, 360, 1.0, 0));
+            session.on_sample(&stamped.sample, &mut out);
+            if out.iter().any(|a| matches!(a, ScanAction::Step(_))) {
+                session.on_step_done(stamped.sample.sample.t_ns + 10 * MS, &mut out);
+            }
         }
         out.clear();
         session.stop(2_000_000_000, &mut out);
@@ -590,8 +733,18 @@ mod tests {
                 _ => None,
             })
             .collect();
-        assert!(
-            matches!(messages.last(), Some(StaticScan::Finished(end)) if end.outcome == StaticScanOutcome::Stopped)
+        // The open revolution's first half (samples 360–499, θ 0°–139°) is sent before the end.
+        let [StaticScan::Yaws(open), StaticScan::Finished(end)] = messages.as_slice() else {
+            panic!("{messages:?}");
+        };
+        assert_eq!(end.outcome, StaticScanOutcome::Stopped);
+        assert_eq!(
+            open.runs,
+            [YawRun {
+                first_index: 0,
+                count: 140,
+                yaw_deg: 1.8,
+            }]
         );
         assert_eq!(out.last(), Some(&ScanAction::ReturnHome));
         let mut again = Vec::new();

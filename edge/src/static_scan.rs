@@ -36,7 +36,6 @@ use std::collections::VecDeque;
 use serde::Deserialize;
 
 use crate::drivers::stepper::{Direction, Move};
-use crate::lidar::ArrivedSample;
 use crate::timing::TimedSample;
 
 /// Held second-half samples beyond this count (a revolution's worth at any Sweep setting is far
@@ -61,8 +60,8 @@ pub struct StaticScanConfig {
     /// the stepper's default `full_steps_per_sec`): a move of n steps needs n / rate.
     pub max_step_rate_hz: f64,
     /// Time after a reported step completion before a sample counts as taken at the new yaw,
-    /// milliseconds (default 2): rotor settling, plus the serial latency when the caller feeds
-    /// arrival times instead of measurement times.
+    /// milliseconds (default 2): rotor settling. Samples are judged on their measurement times
+    /// ([`crate::timing`]), so the serial latency needs no allowance here.
     pub settle_ms: f64,
     /// Consecutive failed steps after which the scan is aborted (default 3).
     pub max_step_failures: u32,
@@ -580,19 +579,9 @@ impl StaticScanController {
         self.events.pop_front()
     }
 
-    /// Feeds a decoded Sweep sample stamped with its arrival time (arrivals are later than
-    /// measurements: set [`StaticScanConfig::settle_ms`] to cover the serial latency).
-    pub fn on_arrived(&mut self, arrived: &ArrivedSample) {
-        self.on_sample(&TimedSample {
-            angle_deg: arrived.sample.angle_deg,
-            range_m: arrived.sample.range_m,
-            quality: arrived.sample.quality,
-            t_ns: arrived.arrival_ns,
-        });
-    }
-
-    /// Feeds one Sweep sample; `angle_deg` is the device azimuth and `t_ns` the best estimate
-    /// of its measurement time on the edge clock. Samples must come in stream order.
+    /// Feeds one Sweep sample; `angle_deg` is the device azimuth and `t_ns` its measurement time
+    /// on the edge clock, the one it has in its revolution frame
+    /// ([`crate::timing::RevolutionAssembler::stamp`]). Samples must come in stream order.
     pub fn on_sample(&mut self, sample: &TimedSample) {
         if self.phase == Phase::Over {
             self.stats.ignored += 1;
@@ -750,13 +739,10 @@ impl StaticScanController {
             .ok_or(StaticScanError::NoStepInFlight)
     }
 
-    /// θ of eq. (1) in [0, 360) for a finite device azimuth.
+    /// θ of eq. (1) in [0, 360) for a finite device azimuth (the protocol's one definition,
+    /// which the server's eq. (1) uses too).
     fn theta_of(&self, azimuth_deg: f64) -> f64 {
-        match (azimuth_deg - self.config.azimuth_zero_deg).rem_euclid(360.0) {
-            // rem_euclid rounds a tiny negative difference up to exactly 360.
-            t if t >= 360.0 => 0.0,
-            t => t,
-        }
+        scan3d_protocol::theta_deg(azimuth_deg, self.config.azimuth_zero_deg)
     }
 
     fn region(&self, theta: f64) -> Region {
@@ -1372,7 +1358,7 @@ mod tests {
     #[test]
     fn the_azimuth_zero_offset_moves_the_sector_and_the_halves() {
         // The device's 90° points up: blocked device azimuths 240°–300°; 0°–90° is the
-        // second half (θ 270°–360°), not a new revolution. Fed as arrival-stamped samples.
+        // second half (θ 270°–360°), not a new revolution.
         let config = StaticScanConfig {
             azimuth_zero_deg: 90.0,
             ..StaticScanConfig::default()
@@ -1386,15 +1372,7 @@ mod tests {
                 ctrl.on_step_done(at).unwrap();
                 done_at = None;
             }
-            ctrl.on_arrived(&ArrivedSample {
-                sample: crate::lidar::RawSample {
-                    angle_deg: s.angle_deg,
-                    range_m: s.range_m,
-                    quality: s.quality,
-                    new_revolution: false,
-                },
-                arrival_ns: s.t_ns,
-            });
+            ctrl.on_sample(s);
             while let Some(e) = ctrl.poll_event() {
                 if let ScanEvent::Step(_) = e {
                     assert!((240.0..241.0).contains(&s.angle_deg), "{}", s.angle_deg);

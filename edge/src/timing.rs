@@ -1,13 +1,33 @@
-//! Per-sample measurement times from serial arrival times, and revolution assembly.
+//! Per-sample measurement times from serial arrival times, and revolution assembly: the one
+//! estimator every lidar sample's time comes from.
 //!
 //! A serial read returns a burst of bytes some time after they were measured, so the arrival
 //! time of a sample is its measurement time plus a varying delay (UART, USB latency timer,
-//! scheduling). Within one revolution the device samples at a steady rate, so measurement
-//! time is (nearly) linear in the beam angle. We fit `arrival = a + b·progress` and then move
-//! the line down onto the **lower envelope** of the arrivals — the least-delayed samples, the
-//! same idea as NTP's minimum-delay filter (`research/hardware.md` §5.4) — and finally subtract
-//! the fixed transport latency. Angle progress (rather than sample index) keeps the fit correct
-//! when samples were lost to corruption.
+//! scheduling). Within a revolution the device samples at a steady rate, so measurement time is
+//! (nearly) linear in the beam angle. [`SampleClock`] fits `arrival = a + b·angle` under the
+//! **lower envelope** of the arrivals over the last two turns of unwrapped beam angle — the
+//! least-delayed samples, the same idea as NTP's minimum-delay filter
+//! (`research/hardware.md` §5.4) — and subtracts the fixed transport latency. Angle progress
+//! (rather than sample index) keeps the fit correct when samples were lost to corruption.
+//!
+//! **Causal, and the only one.** Each sample is stamped as it arrives, from the line fitted on
+//! the two turns before it (refitted every 5°), and [`RevolutionAssembler`] puts that
+//! same time into the revolution frame. The static-scan controller needs a measurement time per
+//! sample as it arrives: whether a sample just past the blocked sector was taken before or after
+//! the step finished decides its yaw, and it must be decided while the step is reported, not a
+//! revolution later. A sample measured while the rotor still moved but delivered late (a USB
+//! latency timer, a busy host) gets its measurement time back from the envelope, so it is judged
+//! as taken before the step, not tagged with the new yaw. Stamping the revolution frame with a
+//! second, after-the-fact fit would give the server other times than the ones the tags were
+//! decided on; with one causal estimator, the time a sample is tagged by is the time it is
+//! recorded with. What the causal fit gives up is interpolation: it extrapolates a line fitted
+//! over the last two turns, which for a beam turning at a steady rate is the same line (two
+//! turns rather than one keep the slope, and so the extrapolation, within 0.5 ms under 8 ms of
+//! bursty jitter: `bursty_arrivals_are_mapped_back_to_measurement_times`). Only the first
+//! 30° after the port opens have no fit yet (arrival times minus the latency are used); they
+//! fall in the partial revolution before the first start flag, which is dropped.
+
+use std::collections::VecDeque;
 
 use serde::Serialize;
 
@@ -29,12 +49,44 @@ pub struct TimedSample {
 /// One full 360° revolution of a lidar with per-sample times.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Revolution {
-    /// Estimated time at which the beam passed the revolution's first sample angle.
+    /// Time of the first sample: names the revolution (strictly increasing from one revolution
+    /// to the next of the same assembler).
     pub t0_ns: u64,
-    /// Estimated time at which the beam came back to that angle (start of the next revolution).
+    /// Time of the sample that started the next revolution.
     pub t1_ns: u64,
-    /// The samples in angle order.
+    /// The samples in angle order, with the times they were stamped with as they arrived.
     pub samples: Vec<TimedSample>,
+}
+
+/// Where a stamped sample sits: sample `index` of the revolution whose first sample's time is
+/// `t0_ns` (once that revolution is complete, its [`Revolution::t0_ns`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct RevolutionPosition {
+    /// The revolution's [`Revolution::t0_ns`].
+    pub t0_ns: u64,
+    /// Index of the sample in [`Revolution::samples`].
+    pub index: u32,
+}
+
+/// A sample as [`RevolutionAssembler::stamp`] timed it, and where it goes.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct StampedSample {
+    /// The sample with its measurement time.
+    pub sample: TimedSample,
+    /// Its place in the revolution being assembled; `None` before the first revolution start
+    /// (such samples are in no revolution frame).
+    pub position: Option<RevolutionPosition>,
+}
+
+/// What one sample did to a [`RevolutionAssembler`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct Stamped {
+    /// The sample, timed.
+    pub sample: StampedSample,
+    /// The revolution this sample completed (it starts the next one), if any. A revolution of
+    /// fewer than [`TimingConfig::min_samples`] samples is dropped instead: positions that named
+    /// it refer to no frame.
+    pub finished: Option<Revolution>,
 }
 
 /// Tunables of [`RevolutionAssembler`].
@@ -56,7 +108,98 @@ impl Default for TimingConfig {
     }
 }
 
-/// Groups a sample stream into revolutions and stamps every sample with a measurement time.
+/// Measurement times from arrival times, causally: the line under the lower envelope of the
+/// arrivals over the last two turns of beam travel (see the module doc), never later than a
+/// sample's arrival and never before the previous estimate.
+#[derive(Debug, Clone, Default)]
+pub struct SampleClock {
+    latency_ns: u64,
+    /// Arrivals are kept relative to this (the first one after a reset), for well-conditioned
+    /// arithmetic.
+    base_ns: Option<u64>,
+    /// Unwrapped beam angle of the last sample, degrees.
+    unwrapped_deg: Option<f64>,
+    /// (unwrapped angle, arrival − base) over the last [`Self::WINDOW_DEG`].
+    window: VecDeque<(f64, f64)>,
+    /// The current line `arrival − base = a + b·angle` and the angle it was fitted at.
+    fit: Option<(f64, f64, f64)>,
+    /// The last estimate, so estimates never go backwards.
+    last_ns: u64,
+}
+
+impl SampleClock {
+    /// Refit after the beam turned this far.
+    const REFIT_DEG: f64 = 5.0;
+    /// No fit before the window spans this much.
+    const MIN_SPAN_DEG: f64 = 30.0;
+    /// The envelope is fitted over this much beam travel (two turns).
+    const WINDOW_DEG: f64 = 720.0;
+
+    /// A clock subtracting `latency_ns` of fixed transport latency.
+    pub fn new(latency_ns: u64) -> Self {
+        Self {
+            latency_ns,
+            ..Self::default()
+        }
+    }
+
+    /// Forgets the beam's history (after a reconnect); estimates still never go backwards.
+    pub fn reset(&mut self) {
+        *self = Self {
+            latency_ns: self.latency_ns,
+            last_ns: self.last_ns,
+            ..Self::default()
+        };
+    }
+
+    /// The measurement time of a sample at device angle `angle_deg` that arrived at
+    /// `arrival_ns` (never later than its arrival, never before the previous estimate).
+    pub fn estimate(&mut self, angle_deg: f64, arrival_ns: u64) -> u64 {
+        let base = *self.base_ns.get_or_insert(arrival_ns);
+        let arrival = arrival_ns as f64 - base as f64;
+        let unwrapped = match self.unwrapped_deg {
+            None => angle_deg,
+            Some(previous) => {
+                let delta = (angle_deg - previous.rem_euclid(360.0)).rem_euclid(360.0);
+                // More than half a turn forward is a small step backwards (jitter).
+                previous + if delta > 180.0 { delta - 360.0 } else { delta }
+            }
+        };
+        self.unwrapped_deg = Some(unwrapped);
+        self.window.push_back((unwrapped, arrival));
+        while self
+            .window
+            .front()
+            .is_some_and(|&(u, _)| unwrapped - u > Self::WINDOW_DEG)
+        {
+            self.window.pop_front();
+        }
+        let span = self.window.front().map_or(0.0, |&(u, _)| unwrapped - u);
+        let stale = self
+            .fit
+            .is_none_or(|(_, _, at)| (unwrapped - at).abs() >= Self::REFIT_DEG);
+        if span >= Self::MIN_SPAN_DEG && stale {
+            let (x, y): (Vec<f64>, Vec<f64>) = self.window.iter().copied().unzip();
+            let (a, b) = lower_envelope_fit(&x, &y);
+            self.fit = Some((a, b, unwrapped));
+        }
+        let line = match self.fit {
+            Some((a, b, _)) if span >= Self::MIN_SPAN_DEG => a + b * unwrapped,
+            _ => arrival,
+        };
+        let estimate = (base as f64 + line - self.latency_ns as f64).clamp(0.0, arrival_ns as f64);
+        self.last_ns = self.last_ns.max(estimate.round() as u64);
+        self.last_ns
+    }
+
+    /// Later estimates are at least `t_ns`.
+    fn floor(&mut self, t_ns: u64) {
+        self.last_ns = self.last_ns.max(t_ns);
+    }
+}
+
+/// Groups a sample stream into revolutions and stamps every sample with its measurement time
+/// as it arrives ([`SampleClock`]).
 ///
 /// A revolution starts at a sample flagged `new_revolution`; an angle wrap without the flag
 /// (the flagged sample was lost to corruption) also closes it. Samples before the first
@@ -64,8 +207,11 @@ impl Default for TimingConfig {
 #[derive(Debug, Clone)]
 pub struct RevolutionAssembler {
     config: TimingConfig,
-    current: Vec<ArrivedSample>,
+    clock: SampleClock,
+    current: Vec<TimedSample>,
     in_revolution: bool,
+    /// `t0_ns` of the last revolution started, so the next one's is strictly later.
+    last_t0_ns: Option<u64>,
     dropped_samples: u64,
 }
 
@@ -74,8 +220,10 @@ impl RevolutionAssembler {
     pub fn new(config: TimingConfig) -> Self {
         Self {
             config,
+            clock: SampleClock::new(config.latency_ns),
             current: Vec::new(),
             in_revolution: false,
+            last_t0_ns: None,
             dropped_samples: 0,
         }
     }
@@ -85,6 +233,7 @@ impl RevolutionAssembler {
         self.dropped_samples += self.current.len() as u64;
         self.current.clear();
         self.in_revolution = false;
+        self.clock.reset();
     }
 
     /// Samples that never became part of an emitted revolution (partial or too short ones).
@@ -94,19 +243,55 @@ impl RevolutionAssembler {
 
     /// Add a sample; returns the revolution it completed, if any.
     pub fn push(&mut self, sample: ArrivedSample) -> Option<Revolution> {
+        self.stamp(sample).finished
+    }
+
+    /// Add a sample: its measurement time, its place in the revolution, and the revolution it
+    /// completed, if any.
+    pub fn stamp(&mut self, sample: ArrivedSample) -> Stamped {
         let boundary = sample.sample.new_revolution || self.wraps_without_flag(&sample);
+        let mut t_ns = self
+            .clock
+            .estimate(f64::from(sample.sample.angle_deg), sample.arrival_ns);
         let mut finished = None;
         if boundary {
+            if let Some(last) = self.last_t0_ns
+                && t_ns <= last
+            {
+                // Flat arrivals (a stalled clock): keep revolution names unique.
+                t_ns = last + 1;
+                self.clock.floor(t_ns);
+            }
             if self.in_revolution {
-                finished = self.finish();
+                finished = self.finish(t_ns);
             } else {
                 self.dropped_samples += self.current.len() as u64;
                 self.current.clear();
             }
             self.in_revolution = true;
+            self.last_t0_ns = Some(t_ns);
         }
-        self.current.push(sample);
-        finished
+        let timed = TimedSample {
+            angle_deg: sample.sample.angle_deg,
+            range_m: sample.sample.range_m,
+            quality: sample.sample.quality,
+            t_ns,
+        };
+        let position = match (self.in_revolution, self.current.first()) {
+            (false, _) => None,
+            (true, first) => Some(RevolutionPosition {
+                t0_ns: first.map_or(t_ns, |f| f.t_ns),
+                index: u32::try_from(self.current.len()).unwrap_or(u32::MAX),
+            }),
+        };
+        self.current.push(timed);
+        Stamped {
+            sample: StampedSample {
+                sample: timed,
+                position,
+            },
+            finished,
+        }
     }
 
     /// The beam crossed 0° again although the start flag is missing (the flagged sample was
@@ -120,76 +305,28 @@ impl RevolutionAssembler {
         let (Some(first), Some(last)) = (self.current.first(), self.current.last()) else {
             return false;
         };
-        let crosses_zero = sample.sample.angle_deg + 180.0 < last.sample.angle_deg;
-        let covered = angle_progress(first.sample.angle_deg, last.sample.angle_deg);
+        let crosses_zero = sample.sample.angle_deg + 180.0 < last.angle_deg;
+        let covered = angle_progress(first.angle_deg, last.angle_deg);
         self.in_revolution && crosses_zero && covered >= 270.0
     }
 
-    fn finish(&mut self) -> Option<Revolution> {
+    fn finish(&mut self, t1_ns: u64) -> Option<Revolution> {
         let samples = std::mem::take(&mut self.current);
         if samples.len() < self.config.min_samples.max(2) {
             self.dropped_samples += samples.len() as u64;
             return None;
         }
-        Some(stamp_revolution(&samples, self.config.latency_ns))
-    }
-}
-
-/// Stamps one revolution's samples (first sample = revolution start) with measurement times.
-pub fn stamp_revolution(samples: &[ArrivedSample], latency_ns: u64) -> Revolution {
-    let Some(first) = samples.first() else {
-        return Revolution {
-            t0_ns: 0,
-            t1_ns: 0,
-            samples: Vec::new(),
-        };
-    };
-    // Unwrapped angle travelled since the first sample; small backward steps stay negative.
-    let mut travelled = 0.0;
-    let mut previous = first.sample.angle_deg;
-    let progress: Vec<f64> = samples
-        .iter()
-        .map(|s| {
-            travelled += signed_step(previous, s.sample.angle_deg);
-            previous = s.sample.angle_deg;
-            travelled
+        Some(Revolution {
+            t0_ns: samples[0].t_ns,
+            t1_ns,
+            samples,
         })
-        .collect();
-    // Arrivals relative to the first one keep the arithmetic in a well-conditioned range.
-    let base = first.arrival_ns;
-    let arrivals: Vec<f64> = samples
-        .iter()
-        .map(|s| s.arrival_ns as f64 - base as f64)
-        .collect();
-    let (intercept, slope) = lower_envelope_fit(&progress, &arrivals);
-    let time_at = |x: f64| -> u64 {
-        let t = base as f64 + intercept + slope * x - latency_ns as f64;
-        if t <= 0.0 { 0 } else { t.round() as u64 }
-    };
-    Revolution {
-        t0_ns: time_at(0.0),
-        t1_ns: time_at(360.0),
-        samples: samples
-            .iter()
-            .zip(&progress)
-            .map(|(s, &x)| TimedSample {
-                angle_deg: s.sample.angle_deg,
-                range_m: s.sample.range_m,
-                quality: s.sample.quality,
-                t_ns: time_at(x),
-            })
-            .collect(),
     }
 }
 
 /// Degrees from `from` to `to` going forwards, in `[0, 360)`.
 fn angle_progress(from: f32, to: f32) -> f64 {
     (f64::from(to) - f64::from(from)).rem_euclid(360.0)
-}
-
-/// The step from `from` to `to` taken the short way round, in `[-180, 180)`.
-fn signed_step(from: f32, to: f32) -> f64 {
-    (f64::from(to) - f64::from(from) + 180.0).rem_euclid(360.0) - 180.0
 }
 
 /// Fits the line `y = a + b·x` that lies on or below every point and is as close to them as
@@ -199,7 +336,7 @@ fn signed_step(from: f32, to: f32) -> f64 {
 /// optimum is the edge of the points' lower convex hull that spans the mean of `x`. Late
 /// arrivals only ever lie above the line, so they cannot pull it; only the least-delayed
 /// samples define it. A negative slope (time running backwards) is clamped to zero.
-pub(crate) fn lower_envelope_fit(x: &[f64], y: &[f64]) -> (f64, f64) {
+fn lower_envelope_fit(x: &[f64], y: &[f64]) -> (f64, f64) {
     let mut points: Vec<(f64, f64)> = x.iter().copied().zip(y.iter().copied()).collect();
     points.sort_by(|p, q| p.0.total_cmp(&q.0).then(p.1.total_cmp(&q.1)));
     // Andrew's monotone chain, lower hull only; for equal x keep the lowest y.
@@ -253,25 +390,30 @@ mod tests {
     use super::*;
     use crate::lidar::RawSample;
 
-    /// A revolution of `n` samples measured every `period_ns` from `t_start`, delivered in
-    /// serial reads of `chunk` samples, each read returning `delay(i)` after its last sample.
+    const MS: u64 = 1_000_000;
+
+    /// `revolutions` revolutions of `per_rev` samples measured every `period_ns` from `t_start`,
+    /// delivered in serial reads of `chunk` samples, each read returning `delay(read)` after its
+    /// last sample. Returns the samples and their true measurement times.
     fn synthetic(
-        n: usize,
+        per_rev: usize,
+        revolutions: usize,
         period_ns: u64,
         t_start: u64,
         chunk: usize,
         delay: impl Fn(usize) -> u64,
     ) -> (Vec<ArrivedSample>, Vec<u64>) {
+        let n = per_rev * revolutions;
         let truth: Vec<u64> = (0..n).map(|i| t_start + i as u64 * period_ns).collect();
         let samples = (0..n)
             .map(|i| {
                 let chunk_end = ((i / chunk + 1) * chunk - 1).min(n - 1);
                 ArrivedSample {
                     sample: RawSample {
-                        angle_deg: (i as f32 * 360.0 / n as f32) + 0.5,
+                        angle_deg: ((i % per_rev) as f32 * 360.0 / per_rev as f32) + 0.5,
                         range_m: 1.0,
                         quality: 47,
-                        new_revolution: i == 0,
+                        new_revolution: i % per_rev == 0,
                     },
                     arrival_ns: truth[chunk_end] + delay(i / chunk),
                 }
@@ -280,20 +422,41 @@ mod tests {
         (samples, truth)
     }
 
+    fn assemble(
+        samples: &[ArrivedSample],
+        latency_ns: u64,
+    ) -> (Vec<StampedSample>, Vec<Revolution>) {
+        let mut asm = RevolutionAssembler::new(TimingConfig {
+            latency_ns,
+            min_samples: 2,
+        });
+        let mut stamped = Vec::new();
+        let mut revs = Vec::new();
+        for s in samples {
+            let out = asm.stamp(*s);
+            stamped.push(out.sample);
+            revs.extend(out.finished);
+        }
+        (stamped, revs)
+    }
+
     #[test]
     fn bursty_arrivals_are_mapped_back_to_measurement_times() {
-        // 2000 samples/s, chunks of 32 samples, latency 2 ms plus 0..8 ms of pseudo-random jitter.
-        let latency = 2_000_000;
-        let (samples, truth) = synthetic(360, 500_000, 1_000_000_000, 32, |c| {
-            latency + (c as u64 * 7919 % 9) * 1_000_000
+        // 2000 samples/s, chunks of 32 samples, latency 2 ms plus 0..8 ms of pseudo-random
+        // jitter. After the first revolution (the envelope's history), every time is within
+        // 1 ms of the truth (in fact 0.5 ms).
+        let latency = 2 * MS;
+        let (samples, truth) = synthetic(360, 3, 500_000, 1_000_000_000, 32, |c| {
+            latency + (c as u64 * 7919 % 9) * MS
         });
-        let rev = stamp_revolution(&samples, latency);
-        for (s, t) in rev.samples.iter().zip(&truth) {
-            let err = s.t_ns as i64 - *t as i64;
+        let (stamped, revs) = assemble(&samples, latency);
+        assert_eq!(revs.len(), 2);
+        for (s, t) in stamped.iter().zip(&truth).skip(360) {
+            let err = s.sample.t_ns as i64 - *t as i64;
             assert!(err.abs() < 1_000_000, "sample time off by {err} ns");
         }
-        // 360 samples over 359.5 degrees of progress: the beam returns after 360 * 0.5 ms.
-        let period = rev.t1_ns - rev.t0_ns;
+        // 360 samples per turn: the next revolution starts 360 × 0.5 ms later.
+        let period = revs[1].t1_ns - revs[1].t0_ns;
         assert!(
             (period as i64 - 180_000_000).abs() < 2_000_000,
             "period {period}"
@@ -302,15 +465,53 @@ mod tests {
 
     #[test]
     fn lost_samples_do_not_skew_times() {
-        let (mut samples, truth) = synthetic(400, 250_000, 5_000_000, 16, |_| 300_000);
-        let mut truth = truth;
-        // Drop a run of 40 samples in the middle (a resync).
-        samples.drain(150..190);
-        truth.drain(150..190);
-        let rev = stamp_revolution(&samples, 300_000);
-        for (s, t) in rev.samples.iter().zip(&truth) {
-            assert!((s.t_ns as i64 - *t as i64).abs() < 300_000);
+        let (mut samples, mut truth) = synthetic(400, 2, 250_000, 5_000_000, 16, |_| 300_000);
+        // Drop a run of 40 samples in the middle of the second revolution (a resync).
+        samples.drain(550..590);
+        truth.drain(550..590);
+        let (stamped, _) = assemble(&samples, 300_000);
+        for (s, t) in stamped.iter().zip(&truth).skip(400) {
+            assert!((s.sample.t_ns as i64 - *t as i64).abs() < 300_000);
         }
+    }
+
+    #[test]
+    fn a_revolution_carries_the_times_its_samples_were_stamped_with_as_they_arrived() {
+        let (samples, _) = synthetic(100, 4, MS, 0, 10, |c| (c as u64 % 3) * MS);
+        let (stamped, revs) = assemble(&samples, 0);
+        assert_eq!(revs.len(), 3, "the fourth is still open");
+        for rev in &revs {
+            let members: Vec<_> = stamped
+                .iter()
+                .filter(|s| s.position.is_some_and(|p| p.t0_ns == rev.t0_ns))
+                .collect();
+            assert_eq!(members.len(), rev.samples.len());
+            for (k, (s, r)) in members.iter().zip(&rev.samples).enumerate() {
+                assert_eq!(s.position.unwrap().index as usize, k);
+                assert_eq!(&s.sample, r, "one time per sample");
+            }
+            assert_eq!(rev.t0_ns, rev.samples[0].t_ns);
+        }
+        // The next revolution starts where the last ended.
+        assert!(revs.windows(2).all(|w| w[0].t1_ns == w[1].t0_ns));
+    }
+
+    #[test]
+    fn measurement_times_take_the_least_delayed_phase() {
+        let mut times = SampleClock::new(0);
+        // 1 Hz, a sample every degree measured at i ms·(1000/360); arrivals late by 1 ms plus
+        // a burst of 40 ms every 50 samples.
+        let mut worst: u64 = 0;
+        for i in 0..1080u64 {
+            let measured = i * 1_000_000_000 / 360;
+            let late = if i % 50 < 5 { 40 * MS } else { MS };
+            let estimate = times.estimate((i % 360) as f64, measured + late);
+            if i > 400 {
+                worst = worst.max(estimate.abs_diff(measured + MS));
+            }
+        }
+        // After a revolution, every estimate is within rounding of the 1 ms floor.
+        assert!(worst < 10_000, "worst error {worst} ns");
     }
 
     fn sample(angle: f32, start: bool, t: u64) -> ArrivedSample {
@@ -332,6 +533,7 @@ mod tests {
             min_samples: 2,
         });
         let mut revs = Vec::new();
+        let mut lead_positions = Vec::new();
         let mut t = 0;
         for rev in 0..3 {
             for k in 0..10 {
@@ -341,7 +543,11 @@ mod tests {
                     k as f32 * 36.0
                 };
                 t += 1000;
-                revs.extend(asm.push(sample(angle, rev > 0 && k == 0, t)));
+                let out = asm.stamp(sample(angle, rev > 0 && k == 0, t));
+                if rev == 0 {
+                    lead_positions.push(out.sample.position);
+                }
+                revs.extend(out.finished);
             }
         }
         assert_eq!(
@@ -351,7 +557,8 @@ mod tests {
         );
         assert_eq!(revs[0].samples.len(), 10);
         assert_eq!(asm.dropped_samples(), 10);
-        assert!(revs[0].samples.windows(2).all(|w| w[0].t_ns < w[1].t_ns));
+        assert!(lead_positions.iter().all(Option::is_none));
+        assert!(revs[0].samples.windows(2).all(|w| w[0].t_ns <= w[1].t_ns));
     }
 
     #[test]
@@ -391,12 +598,21 @@ mod tests {
     }
 
     #[test]
-    fn single_arrival_time_gives_flat_but_valid_times() {
-        let samples: Vec<_> = (0..10)
-            .map(|i| sample(i as f32 * 30.0, i == 0, 5_000))
-            .collect();
-        let rev = stamp_revolution(&samples, 1_000);
-        assert!(rev.samples.iter().all(|s| s.t_ns == 4_000));
-        assert_eq!(rev.t0_ns, 4_000);
+    fn single_arrival_time_gives_flat_but_valid_times_and_unique_revolution_names() {
+        // Every sample of two revolutions arrives in one read at 5 µs; latency 1 µs.
+        let mut asm = RevolutionAssembler::new(TimingConfig {
+            latency_ns: 1_000,
+            min_samples: 2,
+        });
+        let mut revs = Vec::new();
+        for i in 0..21 {
+            revs.extend(asm.push(sample((i % 10) as f32 * 30.0, i % 10 == 0, 5_000)));
+        }
+        assert_eq!(revs.len(), 2);
+        assert!(revs[0].samples.iter().all(|s| s.t_ns == 4_000));
+        assert_eq!(revs[0].t0_ns, 4_000);
+        // The next revolution's start is bumped by 1 ns so that t0 names it uniquely.
+        assert_eq!((revs[0].t1_ns, revs[1].t0_ns), (4_001, 4_001));
+        assert!(revs[1].samples.iter().all(|s| s.t_ns == 4_001));
     }
 }

@@ -86,7 +86,7 @@ pub enum Body {
     Status(DeviceStatus),
     /// Order from the server.
     Command(Command),
-    /// Static 3D scan: start, yaw-tagged samples, warnings, end.
+    /// Static 3D scan: start, the yaws of each Sweep revolution's samples, warnings, end.
     StaticScan(StaticScan),
 }
 

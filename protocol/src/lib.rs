@@ -47,7 +47,13 @@
 //! | 7 | [`Heartbeat`] | both | sender's clock |
 //! | 8 | [`DeviceStatus`] | edge → server | sensor lost / back, acquisition paused / resumed, with a reason |
 //! | 9 | [`Command`] | server → edge | start static scan at a named position, stop it, set a motor speed |
-//! | 10 | [`StaticScan`] | edge → server | static 3D scan: start (position, step, mount), yaw-tagged Sweep samples per revolution, warnings, end |
+//! | 10 | [`StaticScan`] | edge → server | static 3D scan: start (position, step, mount), the yaws of each Sweep revolution's samples as runs of sample indices, warnings, end |
+//!
+//! **One sample timeline.** Every lidar sample travels once, in its [`LidarRevolution`], with
+//! the one measurement time the edge estimated for it. During a static scan the edge adds, per
+//! Sweep revolution, a [`StaticScan::Yaws`] message naming that revolution by its `t0_ns` and
+//! giving the turntable yaw φ of runs of its sample indices ([`YawRun`]); θ of eq. (1) is
+//! [`theta_deg`] on both sides.
 //!
 //! Sensors are named by [`SensorId`] (0 rplidar, 1 sweep, 2 imu, 3 stepper). All edge times are
 //! nanoseconds on the edge's monotonic clock.
@@ -88,8 +94,8 @@ pub use types::{
     Ack, Command, DeviceStatus, Heartbeat, Hello, ImuSample, InvalidCommand, LidarRevolution,
     MAX_MOTOR_SPEED_HZ, MAX_POSITION_NAME_LEN, MountInfo, RevolutionSample, SampleTimeError,
     SensorId, SensorInfo, StaticScan, StaticScanEnd, StaticScanOutcome, StaticScanProblem,
-    StaticScanSamples, StaticScanStart, StaticScanWarning, StatusEvent, StepperState,
-    TaggedSweepSample, TimePing, TimePong,
+    StaticScanStart, StaticScanWarning, StaticScanYaws, StatusEvent, StepperState, TimePing,
+    TimePong, YawRun, theta_deg,
 };
 pub use version::{IncompatibleVersion, PROTOCOL_VERSION, check_compatible};
 

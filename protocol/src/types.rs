@@ -144,6 +144,8 @@ pub struct LidarRevolution {
     /// Which lidar (normally [`SensorId::RPLIDAR`] or [`SensorId::SWEEP`]).
     pub sensor: SensorId,
     /// Edge monotonic clock (ns) at the start of the revolution; the base for sample offsets.
+    /// Sample times only go forwards, so it also names the revolution within its sensor and
+    /// session ([`StaticScanYaws::revolution_t0_ns`] refers to it).
     pub t0_ns: u64,
     /// Edge monotonic clock (ns) at the end of the revolution (the next one's start).
     pub t1_ns: u64,
@@ -442,17 +444,22 @@ impl Command {
 }
 
 /// A static 3D scan's messages (the paper's §III-A): the edge turns the Sweep on the stepper,
-/// one step per revolution while the beam is blocked, and tags every sample with the turntable
-/// yaw φ it was taken at, so the server can apply eq. (1) without any other stream.
+/// one step per revolution while the beam is blocked, and gives every sample it trusts the
+/// turntable yaw φ it was taken at, so the server can apply eq. (1) from the recording alone.
 ///
-/// Variant order is part of the wire: `Started` = 0, `Samples` = 1, `Warning` = 2,
+/// The samples themselves travel once, in the Sweep's [`LidarRevolution`] frames, with the one
+/// time each has; [`StaticScanYaws`] only names a revolution (its `t0_ns`) and the yaw of runs of
+/// its sample indices.
+///
+/// Variant order is part of the wire: `Started` = 0, `Yaws` = 1, `Warning` = 2,
 /// `Finished` = 3.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub enum StaticScan {
     /// A scan began at a known position (answers [`Command::StartStaticScan`]).
     Started(StaticScanStart),
-    /// Tagged samples of one revolution (both halves).
-    Samples(StaticScanSamples),
+    /// The yaws of one Sweep revolution's samples (protocol version 2; version 1 carried the
+    /// samples again here).
+    Yaws(StaticScanYaws),
     /// Something went wrong for part of the scan; the affected samples were not tagged.
     Warning(StaticScanWarning),
     /// The scan ended (complete, aborted or stopped) and the turntable went home.
@@ -468,6 +475,25 @@ pub struct MountInfo {
     pub height_m: f64,
     /// The device azimuth that points straight up (θ = 0 of eq. (1)), degrees.
     pub azimuth_zero_deg: f64,
+}
+
+impl MountInfo {
+    /// θ of eq. (1) for a device azimuth on this mount (see [`theta_deg`]).
+    pub fn theta_deg(&self, azimuth_deg: f64) -> f64 {
+        theta_deg(azimuth_deg, self.azimuth_zero_deg)
+    }
+}
+
+/// θ of eq. (1), degrees in `[0, 360)`: the Sweep's device azimuth minus the mount's azimuth
+/// zero (the device azimuth that points straight up), so θ = 0 is up and θ = 180° down into the
+/// base. The one definition the edge's blocked-sector logic and the server's eq. (1) share.
+/// NaN in, NaN out.
+pub fn theta_deg(azimuth_deg: f64, azimuth_zero_deg: f64) -> f64 {
+    match (azimuth_deg - azimuth_zero_deg).rem_euclid(360.0) {
+        // rem_euclid rounds a tiny negative difference up to exactly 360.
+        t if t >= 360.0 => 0.0,
+        t => t,
+    }
 }
 
 /// The start of a static scan: position, step and mount, everything eq. (1) needs.
@@ -495,30 +521,42 @@ pub struct StaticScanStart {
     pub mount: MountInfo,
 }
 
-/// One Sweep sample with the turntable yaw it was taken at.
+/// Consecutive samples of one Sweep revolution taken at one turntable yaw: indices
+/// `first_index .. first_index + count` of [`LidarRevolution::samples`].
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct TaggedSweepSample {
-    /// Device azimuth, degrees, as the Sweep reports it.
-    pub azimuth_deg: f32,
-    /// Range, metres (`0.0` = no return).
-    pub range_m: f32,
-    /// Signal strength (0–255).
-    pub quality: u8,
+pub struct YawRun {
+    /// Index of the run's first sample in the revolution.
+    pub first_index: u32,
+    /// Number of samples in the run.
+    pub count: u32,
     /// Turntable yaw φ from home, degrees.
     pub yaw_deg: f32,
 }
 
-/// Tagged samples of one revolution of a static scan.
+/// The turntable yaws of one Sweep revolution's samples during a static scan.
+///
+/// The revolution is the [`LidarRevolution`] of [`SensorId::SWEEP`] in the same session whose
+/// `t0_ns` is `revolution_t0_ns` (unique per sensor and session: the edge's sample times only go
+/// forwards). Samples covered by no run are not tagged: in the blocked sector, or not trusted
+/// (a late or failed step, a step in flight). Runs are in index order and do not overlap.
+/// Either frame may come first on the wire; the server joins them by `t0_ns`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct StaticScanSamples {
+pub struct StaticScanYaws {
     /// The scan.
     pub scan_id: u32,
-    /// Revolution index within the scan.
-    pub revolution: u32,
-    /// Edge monotonic clock (ns) of the first sample.
-    pub t_ns: u64,
-    /// The samples in the order the device produced them.
-    pub samples: Vec<TaggedSweepSample>,
+    /// `t0_ns` of the Sweep revolution the indices refer to (edge clock).
+    pub revolution_t0_ns: u64,
+    /// The tagged runs of samples.
+    pub runs: Vec<YawRun>,
+}
+
+impl StaticScanYaws {
+    /// Samples tagged by all runs together (saturating).
+    pub fn tagged_samples(&self) -> u64 {
+        self.runs
+            .iter()
+            .fold(0u64, |n, run| n.saturating_add(u64::from(run.count)))
+    }
 }
 
 /// What went wrong during a static scan.
@@ -579,7 +617,8 @@ pub struct StaticScanEnd {
     pub yaw_deg: f64,
     /// Full revolutions.
     pub revolutions: u32,
-    /// Samples tagged with a yaw.
+    /// Samples tagged with a yaw (as the controller decided; those in a revolution the edge
+    /// dropped, e.g. a partial one after a reconnect, are in no [`StaticScanYaws`]).
     pub tagged: u64,
     /// Samples in the blocked sector.
     pub blocked: u64,
@@ -602,6 +641,23 @@ mod tests {
             y_m: 2.0,
             heading_deg,
         }
+    }
+
+    #[test]
+    fn theta_is_the_azimuth_from_the_mount_zero_in_zero_to_360() {
+        assert_eq!(theta_deg(90.0, 0.0), 90.0);
+        assert_eq!(theta_deg(30.0, 90.0), 300.0);
+        assert_eq!(theta_deg(359.5, 359.5), 0.0);
+        // A difference that rounds to −0.0…01 wraps to 0, never to 360.
+        assert_eq!(theta_deg(-1e-20, 0.0), 0.0);
+        assert!(theta_deg(f64::NAN, 0.0).is_nan());
+        let mount = MountInfo {
+            axis_offset_m: 0.0,
+            height_m: 0.0,
+            azimuth_zero_deg: 180.0,
+        };
+        assert_eq!(mount.theta_deg(180.0), 0.0);
+        assert_eq!(mount.theta_deg(0.0), 180.0);
     }
 
     #[test]

@@ -6,9 +6,9 @@ use proptest::prelude::*;
 use scan3d_protocol::{
     Ack, Body, Command, DecodeError, DeviceStatus, Frame, FrameReader, HEADER_LEN, Heartbeat,
     Hello, ImuSample, LidarRevolution, MountInfo, RevolutionSample, SensorId, SensorInfo,
-    StaticScan, StaticScanEnd, StaticScanOutcome, StaticScanProblem, StaticScanSamples,
-    StaticScanStart, StaticScanWarning, StatusEvent, StepperState, TaggedSweepSample, TimePing,
-    TimePong, decode, encode,
+    StaticScan, StaticScanEnd, StaticScanOutcome, StaticScanProblem, StaticScanStart,
+    StaticScanWarning, StaticScanYaws, StatusEvent, StepperState, TimePing, TimePong, YawRun,
+    decode, encode,
 };
 
 /// `S3DP` + version 1 LE: the only start a decodable frame can have.
@@ -182,25 +182,21 @@ fn static_scan() -> impl Strategy<Value = StaticScan> {
                 mount,
             },
         );
-    let sample = (f32s(), f32s(), any::<u8>(), f32s()).prop_map(
-        |(azimuth_deg, range_m, quality, yaw_deg)| TaggedSweepSample {
-            azimuth_deg,
-            range_m,
-            quality,
+    let run =
+        (any::<u32>(), any::<u32>(), f32s()).prop_map(|(first_index, count, yaw_deg)| YawRun {
+            first_index,
+            count,
             yaw_deg,
-        },
-    );
-    let samples = (
-        any::<u32>(),
+        });
+    let yaws = (
         any::<u32>(),
         any::<u64>(),
-        prop::collection::vec(sample, 0..40),
+        prop::collection::vec(run, 0..40),
     )
-        .prop_map(|(scan_id, revolution, t_ns, samples)| StaticScanSamples {
+        .prop_map(|(scan_id, revolution_t0_ns, runs)| StaticScanYaws {
             scan_id,
-            revolution,
-            t_ns,
-            samples,
+            revolution_t0_ns,
+            runs,
         });
     let problem = prop_oneof![
         Just(StaticScanProblem::LateStep),
@@ -251,7 +247,7 @@ fn static_scan() -> impl Strategy<Value = StaticScan> {
         );
     prop_oneof![
         start.prop_map(StaticScan::Started),
-        samples.prop_map(StaticScan::Samples),
+        yaws.prop_map(StaticScan::Yaws),
         warning.prop_map(StaticScan::Warning),
         end.prop_map(StaticScan::Finished),
     ]

@@ -4,9 +4,9 @@
 use scan3d_protocol::{
     Ack, Body, Command, DecodeError, DeviceStatus, EncodeError, Frame, FrameHeader, FrameReader,
     HEADER_LEN, Heartbeat, Hello, ImuSample, LidarRevolution, MAX_FRAME_LEN, PROTOCOL_VERSION,
-    RevolutionSample, SensorId, SensorInfo, StaticScan, StaticScanProblem, StaticScanSamples,
-    StaticScanWarning, StatusEvent, StepperState, TaggedSweepSample, TimePing, TimePong, decode,
-    decode_header, encode,
+    RevolutionSample, SensorId, SensorInfo, StaticScan, StaticScanProblem, StaticScanWarning,
+    StaticScanYaws, StatusEvent, StepperState, TimePing, TimePong, YawRun, decode, decode_header,
+    encode,
 };
 
 /// `S3DP`, version 1 LE.
@@ -284,30 +284,38 @@ fn command_exact_bytes() {
 }
 
 #[test]
-fn static_scan_samples_exact_bytes() {
+fn static_scan_yaws_exact_bytes() {
+    // Two runs of one 2 Hz revolution: the first half at 0°, the second at 1.8° after the
+    // blocked sector; the samples themselves are in the Sweep revolution with t0 = 300.
     assert_wire(
         Frame::new(
             1,
             0,
-            StaticScan::Samples(StaticScanSamples {
+            StaticScan::Yaws(StaticScanYaws {
                 scan_id: 2,
-                revolution: 3,
-                t_ns: 4,
-                samples: vec![TaggedSweepSample {
-                    azimuth_deg: 90.0,
-                    range_m: 2.0,
-                    quality: 200,
-                    yaw_deg: 1.8,
-                }],
+                revolution_t0_ns: 300,
+                runs: vec![
+                    YawRun {
+                        first_index: 0,
+                        count: 209,
+                        yaw_deg: 0.0,
+                    },
+                    YawRun {
+                        first_index: 292,
+                        count: 208,
+                        yaw_deg: 1.8,
+                    },
+                ],
             }),
         ),
         &[
-            0x01, 0x00, 0x0A, 0x01, // session, seq, tag 10 = StaticScan, 1 = Samples
-            0x02, 0x03, 0x04, // scan_id, revolution, t_ns
-            0x01, // one sample
-            0x00, 0x00, 0xB4, 0x42, // 90.0f32
-            0x00, 0x00, 0x00, 0x40, // 2.0f32
-            0xC8, // quality 200
+            0x01, 0x00, 0x0A, 0x01, // session, seq, tag 10 = StaticScan, 1 = Yaws
+            0x02, // scan_id
+            0xAC, 0x02, // revolution_t0_ns 300 (varint)
+            0x02, // two runs
+            0x00, 0xD1, 0x01, // first_index 0, count 209
+            0x00, 0x00, 0x00, 0x00, // 0.0f32
+            0xA4, 0x02, 0xD0, 0x01, // first_index 292, count 208
             0x66, 0x66, 0xE6, 0x3F, // 1.8f32
         ],
     );

@@ -1,7 +1,9 @@
 //! Static 3D scans through the whole system: the operator's command goes server → QUIC → edge,
 //! the edge daemon steps the emulated turntable (PCA9685 on the emulated I2C bus) while the
 //! emulated Sweep's beam is blocked, and the cloud is assembled by eq. (1) from the server's
-//! recording — then checked against the simple box room's true walls.
+//! recording — then checked against the simple box room's true walls. The recording itself is
+//! checked for one sample timeline: every tagged sample is in a Sweep revolution frame once,
+//! referred to by index from a few dozen bytes of `StaticScan::Yaws`.
 
 use std::sync::Arc;
 
@@ -9,7 +11,9 @@ use scan3d_hw_sim::maps::{MapPlan, MapSetup, scan_map};
 use scan3d_hw_sim::noise::RangeNoise;
 use scan3d_hw_sim::truth::GroundTruth;
 use scan3d_hw_sim::world::World;
-use scan3d_map::cloud::assembly::Position;
+use scan3d_map::cloud::assembly::{Position, StaticScanAssembler};
+use scan3d_protocol::{Body, SensorId, StaticScan};
+use scan3d_server::ingest::recorder::visit_session;
 
 /// A 4 × 3 × 2.5 m box room.
 const BOX_ROOM: &str = r#"
@@ -97,6 +101,7 @@ fn run(name: &'static str, positions: Vec<Position>, noise: RangeNoise) -> Vec<C
         roll.to_degrees(),
         pitch.to_degrees()
     );
+    check_one_timeline(&result.session_dir);
     assert!(clouds.join(format!("{name}.ply")).exists());
     assert!(clouds.join(format!("{name}.scans")).exists());
     result
@@ -116,6 +121,62 @@ fn run(name: &'static str, positions: Vec<Position>, noise: RangeNoise) -> Vec<C
             })
         })
         .collect()
+}
+
+/// The recorded session carries each Sweep sample once: every tagged sample the edge counted is
+/// in exactly one yaw run of a recorded Sweep revolution (none orphaned), and a revolution's
+/// yaws cost a few dozen bytes where version 1 repeated its samples (13 bytes each).
+fn check_one_timeline(session_dir: &std::path::Path) {
+    let mut assembler = StaticScanAssembler::new();
+    let mut sweep_t0s = std::collections::HashSet::new();
+    let (mut yaw_frames, mut yaw_bytes, mut run_samples, mut counted) = (0u64, 0usize, 0u64, 0u64);
+    let mut sweep_bytes = 0usize;
+    let report = visit_session(session_dir, |recorded| {
+        match &recorded.frame.body {
+            Body::Revolution(rev) if rev.sensor == SensorId::SWEEP => {
+                assert!(
+                    sweep_t0s.insert(rev.t0_ns),
+                    "two revolutions named {}",
+                    rev.t0_ns
+                );
+                sweep_bytes += recorded.raw.len();
+            }
+            Body::StaticScan(StaticScan::Yaws(yaws)) => {
+                yaw_frames += 1;
+                yaw_bytes += recorded.raw.len();
+                run_samples += yaws.tagged_samples();
+            }
+            Body::StaticScan(StaticScan::Finished(end)) => counted += end.tagged,
+            _ => {}
+        }
+        assembler.on_body(&recorded.frame.body);
+        Ok(())
+    })
+    .expect("the session reads back");
+    assert!(report.losses.is_empty(), "{:?}", report.losses);
+    assert!(yaw_frames >= 100, "{yaw_frames} yaw messages");
+    assert_eq!(
+        run_samples, counted,
+        "tagged samples sent = tagged samples counted"
+    );
+    assert_eq!(
+        assembler.orphan_samples(),
+        0,
+        "every yaw run found its revolution"
+    );
+    let per_revolution = yaw_bytes as f64 / yaw_frames as f64;
+    let tagged_per_revolution = run_samples as f64 / yaw_frames as f64;
+    println!(
+        "static-scan bytes per revolution: {per_revolution:.1} for {tagged_per_revolution:.0} \
+         tagged samples (version 1 repeated them: about {:.0}); Sweep revolution frames: {:.0} \
+         bytes each",
+        13.0 * tagged_per_revolution + 20.0,
+        sweep_bytes as f64 / sweep_t0s.len() as f64
+    );
+    assert!(
+        per_revolution < 64.0,
+        "{per_revolution} bytes per revolution"
+    );
 }
 
 /// One assembled point, its range from its sensor origin and its distance to the true surface.

@@ -27,8 +27,8 @@ use scan3d_hw_sim::world::World;
 use scan3d_protocol::{
     Ack, Body, Command, DeviceStatus, Frame, Heartbeat, Hello, ImuSample, LidarRevolution,
     MountInfo, SensorId, SensorInfo, StaticScan, StaticScanEnd, StaticScanOutcome,
-    StaticScanProblem, StaticScanSamples, StaticScanStart, StaticScanWarning, StatusEvent,
-    StepperState, TaggedSweepSample, TimePing, TimePong, encode,
+    StaticScanProblem, StaticScanStart, StaticScanWarning, StaticScanYaws, StatusEvent,
+    StepperState, TimePing, TimePong, YawRun, encode,
 };
 use scan3d_map::cloud::OriginScan;
 use scan3d_map::cloud::io::Encoding;
@@ -181,23 +181,20 @@ fn frames() -> Vec<(&'static str, Frame)> {
             .into(),
         ),
         (
-            "static_samples",
-            StaticScan::Samples(StaticScanSamples {
+            "static_yaws",
+            StaticScan::Yaws(StaticScanYaws {
                 scan_id: 1,
-                revolution: 0,
-                t_ns: 13,
-                samples: vec![
-                    TaggedSweepSample {
-                        azimuth_deg: 10.0,
-                        range_m: 2.5,
-                        quality: 200,
+                revolution_t0_ns: 13,
+                runs: vec![
+                    YawRun {
+                        first_index: 0,
+                        count: 150,
                         yaw_deg: 0.0,
                     },
-                    TaggedSweepSample {
-                        azimuth_deg: 11.0,
-                        range_m: f32::NAN,
-                        quality: 0,
-                        yaw_deg: 1.8,
+                    YawRun {
+                        first_index: 211,
+                        count: u32::MAX,
+                        yaw_deg: f32::NAN,
                     },
                 ],
             })

@@ -14,14 +14,23 @@
 //! Samples with θ ∈ (0, π) use the yaw in effect during the first half of the revolution;
 //! the stepper turns by δφ while the beam crosses the blocked sector, so samples with
 //! θ ∈ (π, 2π) use φ + δφ. Which yaw applies is decided when the sample is tagged on the edge;
-//! here every sample carries its own φ.
+//! θ is [`scan3d_protocol::theta_deg`], the definition the edge's blocked sector uses too.
+//!
+//! The samples reach the server once, in the Sweep's `Body::Revolution` frames; the edge's
+//! `StaticScan::Yaws` messages name a revolution by its `t0_ns` and give φ for runs of its
+//! sample indices. [`StaticScanAssembler`] joins the two by `t0_ns`, whichever comes first.
 //!
 //! Beyond the paper, [`MountGeometry`] places the Sweep's optical centre relative to the
 //! turntable axis (its offset beside the axis and its height) and the azimuth at which the
 //! device reports 0; [`Position`] adds a heading φ0 so several positions can be spliced in
 //! one world frame.
 
-use scan3d_protocol::{Body, StaticScan, StaticScanOutcome, StaticScanSamples, StaticScanWarning};
+use std::collections::VecDeque;
+
+use scan3d_protocol::{
+    Body, LidarRevolution, RevolutionSample, SensorId, StaticScan, StaticScanOutcome,
+    StaticScanWarning, StaticScanYaws, YawRun,
+};
 use serde::{Deserialize, Serialize};
 
 pub use super::OriginScan;
@@ -92,7 +101,7 @@ pub fn static_point(
     if !(sample.range_m.is_finite() && sample.range_m > 0.0) {
         return None;
     }
-    let theta = (sample.azimuth_deg - mount.azimuth_zero_deg).to_radians();
+    let theta = scan3d_protocol::theta_deg(sample.azimuth_deg, mount.azimuth_zero_deg).to_radians();
     let phi = (position.heading_deg + sample.yaw_deg).to_radians();
     let [ox, oy, oz] = sensor_origin(position, mount, sample.yaw_deg);
     let l = sample.range_m;
@@ -113,7 +122,7 @@ pub struct AssembledScan {
     /// How the Sweep sat on the turntable.
     pub mount: MountGeometry,
     /// Points grouped by sensor origin: one group per half revolution (each half has one yaw,
-    /// hence one optical centre), in recorded order.
+    /// hence one optical centre; one run of a `StaticScan::Yaws` message), in recorded order.
     pub scans: Vec<OriginScan>,
     /// How it ended, if the end was recorded.
     pub outcome: Option<StaticScanOutcome>,
@@ -130,15 +139,30 @@ impl AssembledScan {
     }
 }
 
-/// Turns a session's `StaticScan` frames into world-frame points with eq. (1): feed every
-/// recorded frame in order, then take [`StaticScanAssembler::finish`]. Samples of a scan whose
-/// start was not recorded are counted in [`StaticScanAssembler::orphan_samples`], never guessed.
+/// Sweep revolutions kept for yaw messages that come after them (the edge sends a
+/// revolution's yaws once its samples are decided, normally just before the revolution frame).
+const RECENT_REVOLUTIONS: usize = 64;
+/// Yaw messages kept while their revolution frame has not come yet.
+const WAITING_YAWS: usize = 64;
+
+/// Turns a session's frames into world-frame points with eq. (1): feed every recorded body in
+/// order (Sweep revolutions and `StaticScan` messages; others are ignored), then take
+/// [`StaticScanAssembler::finish`]. A revolution's yaws and its samples are joined by the
+/// revolution's `t0_ns` in either order, from a bounded buffer of recent Sweep revolutions and
+/// of yaw messages waiting for theirs. Samples that cannot be placed — their scan's start was
+/// not recorded, their revolution is missing (a later one came first) or was evicted, an index
+/// past its revolution's end — are counted in [`StaticScanAssembler::orphan_samples`], never
+/// guessed.
 #[derive(Debug, Default)]
 pub struct StaticScanAssembler {
     scans: Vec<AssembledScan>,
     orphans: u64,
     /// How many origin groups of each scan [`StaticScanAssembler::take_new`] has handed out.
     taken: Vec<usize>,
+    /// The last Sweep revolutions since a scan started, `(t0_ns, samples)`, oldest first.
+    revolutions: VecDeque<(u64, Vec<RevolutionSample>)>,
+    /// Yaw messages whose revolution has not come yet, oldest first.
+    waiting: VecDeque<StaticScanYaws>,
 }
 
 /// Points seen from one sensor origin (a half revolution of a static scan), handed out by
@@ -159,11 +183,17 @@ impl StaticScanAssembler {
         Self::default()
     }
 
-    /// Takes one frame body; anything but `StaticScan` is ignored.
+    /// Takes one frame body: Sweep revolutions and `StaticScan` messages; anything else is
+    /// ignored.
     pub fn on_body(&mut self, body: &Body) {
-        let Body::StaticScan(message) = body else {
-            return;
-        };
+        match body {
+            Body::Revolution(rev) if rev.sensor == SensorId::SWEEP => self.on_revolution(rev),
+            Body::StaticScan(message) => self.on_static_scan(message),
+            _ => {}
+        }
+    }
+
+    fn on_static_scan(&mut self, message: &StaticScan) {
         match message {
             StaticScan::Started(start) => self.scans.push(AssembledScan {
                 scan_id: start.scan_id,
@@ -183,10 +213,7 @@ impl StaticScanAssembler {
                 warnings: Vec::new(),
                 no_return: 0,
             }),
-            StaticScan::Samples(batch) => match self.current(batch.scan_id) {
-                Some(scan) => scan.add(batch),
-                None => self.orphans += batch.samples.len() as u64,
-            },
+            StaticScan::Yaws(yaws) => self.on_yaws(yaws),
             StaticScan::Warning(warning) => {
                 if let Some(scan) = self.current(warning.scan_id) {
                     scan.warnings.push(warning.clone());
@@ -200,9 +227,82 @@ impl StaticScanAssembler {
         }
     }
 
-    /// Samples whose scan start was never seen.
+    fn on_yaws(&mut self, yaws: &StaticScanYaws) {
+        if self.current(yaws.scan_id).is_none() {
+            self.orphans = self.orphans.saturating_add(yaws.tagged_samples());
+            return;
+        }
+        let t0 = yaws.revolution_t0_ns;
+        if let Some(index) = self.revolutions.iter().position(|(t, _)| *t == t0) {
+            let samples = std::mem::take(&mut self.revolutions[index].1);
+            self.join(yaws.scan_id, &samples, &yaws.runs);
+            self.revolutions[index].1 = samples;
+        } else if self
+            .revolutions
+            .back()
+            .is_some_and(|(newest, _)| *newest > t0)
+        {
+            // Revolution frames come in time order: one older than the newest seen that is
+            // not here was dropped on the edge or evicted here.
+            self.orphans = self.orphans.saturating_add(yaws.tagged_samples());
+        } else {
+            if self.waiting.len() == WAITING_YAWS
+                && let Some(oldest) = self.waiting.pop_front()
+            {
+                self.orphans = self.orphans.saturating_add(oldest.tagged_samples());
+            }
+            self.waiting.push_back(yaws.clone());
+        }
+    }
+
+    fn on_revolution(&mut self, rev: &LidarRevolution) {
+        if self.scans.is_empty() {
+            // No static scan yet: nothing can refer to this revolution.
+            return;
+        }
+        let t0 = rev.t0_ns;
+        let mut index = 0;
+        while index < self.waiting.len() {
+            let waiting_t0 = self.waiting[index].revolution_t0_ns;
+            if waiting_t0 > t0 {
+                index += 1;
+                continue;
+            }
+            let Some(yaws) = self.waiting.remove(index) else {
+                break;
+            };
+            if waiting_t0 == t0 {
+                self.join(yaws.scan_id, &rev.samples, &yaws.runs);
+            } else {
+                // A later revolution came first: this one will not come.
+                self.orphans = self.orphans.saturating_add(yaws.tagged_samples());
+            }
+        }
+        if self.revolutions.len() == RECENT_REVOLUTIONS {
+            self.revolutions.pop_front();
+        }
+        self.revolutions.push_back((t0, rev.samples.clone()));
+    }
+
+    /// Places the runs of one revolution's samples in the scan `scan_id`.
+    fn join(&mut self, scan_id: u32, samples: &[RevolutionSample], runs: &[YawRun]) {
+        let Some(scan) = self.current(scan_id) else {
+            let tagged = runs.iter().map(|r| u64::from(r.count)).sum::<u64>();
+            self.orphans = self.orphans.saturating_add(tagged);
+            return;
+        };
+        let past_end = scan.add(samples, runs);
+        self.orphans = self.orphans.saturating_add(past_end);
+    }
+
+    /// Samples that could not be placed: their scan's start was never seen, their revolution
+    /// frame is missing or was evicted, or their index is past its revolution's end — plus
+    /// those still waiting for a revolution frame (at the end of a session, the ones whose
+    /// revolution was never sent).
     pub fn orphan_samples(&self) -> u64 {
-        self.orphans
+        self.waiting
+            .iter()
+            .fold(self.orphans, |n, y| n.saturating_add(y.tagged_samples()))
     }
 
     /// The assembled scans, in start order.
@@ -239,29 +339,42 @@ impl StaticScanAssembler {
 }
 
 impl AssembledScan {
-    fn add(&mut self, batch: &StaticScanSamples) {
-        let mut current_yaw: Option<f32> = None;
-        for sample in &batch.samples {
-            let static_sample = StaticSample {
-                range_m: f64::from(sample.range_m),
-                azimuth_deg: f64::from(sample.azimuth_deg),
-                yaw_deg: f64::from(sample.yaw_deg),
-            };
-            let Some(point) = static_point(&self.position, &self.mount, &static_sample) else {
-                self.no_return += 1;
-                continue;
-            };
-            if current_yaw != Some(sample.yaw_deg) {
-                current_yaw = Some(sample.yaw_deg);
-                self.scans.push(OriginScan {
-                    origin: sensor_origin(&self.position, &self.mount, static_sample.yaw_deg),
-                    points: Vec::new(),
-                });
-            }
-            if let Some(scan) = self.scans.last_mut() {
-                scan.points.push(point.map(|c| c as f32));
+    /// Adds the tagged samples of one revolution: an origin group per run (the edge makes one
+    /// run per half revolution), opened at its first point. Returns how many tagged indices
+    /// lie past the revolution's end (not placed).
+    fn add(&mut self, samples: &[RevolutionSample], runs: &[YawRun]) -> u64 {
+        let mut past_end = 0u64;
+        for run in runs {
+            let mut group_open = false;
+            let first = usize::try_from(run.first_index).unwrap_or(usize::MAX);
+            let count = usize::try_from(run.count).unwrap_or(usize::MAX);
+            let end = first.saturating_add(count);
+            let placed = samples.get(first.min(samples.len())..end.min(samples.len()));
+            let placed = placed.unwrap_or_default();
+            past_end = past_end.saturating_add((count - placed.len()) as u64);
+            for sample in placed {
+                let static_sample = StaticSample {
+                    range_m: f64::from(sample.range_m),
+                    azimuth_deg: f64::from(sample.angle_deg),
+                    yaw_deg: f64::from(run.yaw_deg),
+                };
+                let Some(point) = static_point(&self.position, &self.mount, &static_sample) else {
+                    self.no_return += 1;
+                    continue;
+                };
+                if !group_open {
+                    group_open = true;
+                    self.scans.push(OriginScan {
+                        origin: sensor_origin(&self.position, &self.mount, static_sample.yaw_deg),
+                        points: Vec::new(),
+                    });
+                }
+                if let Some(scan) = self.scans.last_mut() {
+                    scan.points.push(point.map(|c| c as f32));
+                }
             }
         }
+        past_end
     }
 }
 
@@ -368,29 +481,11 @@ mod tests {
         assert_eq!(static_point(&p, &mount, &none), None);
     }
 
-    #[test]
-    fn the_assembler_groups_points_by_half_revolution_origin() {
-        use scan3d_protocol::{MountInfo, StaticScanEnd, StaticScanStart, TaggedSweepSample};
-        let mut assembler = StaticScanAssembler::new();
-        // Samples before any start are orphans, not guessed.
-        let batch = |scan_id, samples: Vec<TaggedSweepSample>| {
-            Body::StaticScan(StaticScan::Samples(StaticScanSamples {
-                scan_id,
-                revolution: 0,
-                t_ns: 0,
-                samples,
-            }))
-        };
-        let tagged = |azimuth_deg, range_m, yaw_deg| TaggedSweepSample {
-            azimuth_deg,
-            range_m,
-            quality: 9,
-            yaw_deg,
-        };
-        assembler.on_body(&batch(0, vec![tagged(90.0, 1.0, 0.0)]));
-        assert_eq!(assembler.orphan_samples(), 1);
-        assembler.on_body(&Body::StaticScan(StaticScan::Started(StaticScanStart {
-            scan_id: 0,
+    use scan3d_protocol::{MountInfo, StaticScanEnd, StaticScanStart};
+
+    fn started(scan_id: u32) -> Body {
+        Body::StaticScan(StaticScan::Started(StaticScanStart {
+            scan_id,
             t_ns: 0,
             position: "door".into(),
             x_m: 1.0,
@@ -404,38 +499,96 @@ mod tests {
                 height_m: 0.5,
                 azimuth_zero_deg: 0.0,
             },
-        })));
-        assembler.on_body(&batch(
-            0,
-            vec![
-                tagged(90.0, 2.0, 0.0),
-                tagged(100.0, 0.0, 0.0), // no return
-                tagged(270.0, 2.0, 1.8),
-            ],
-        ));
+        }))
+    }
+
+    /// A Sweep revolution starting at `t0_ns` with samples (azimuth, range).
+    fn revolution(sensor: SensorId, t0_ns: u64, samples: &[(f32, f32)]) -> Body {
+        let mut rev = LidarRevolution::new(sensor, t0_ns, t0_ns + 500_000_000);
+        for (k, &(azimuth, range)) in samples.iter().enumerate() {
+            rev.push(azimuth, range, 9, t0_ns + k as u64).unwrap();
+        }
+        Body::Revolution(rev)
+    }
+
+    fn yaws(scan_id: u32, revolution_t0_ns: u64, runs: &[(u32, u32, f32)]) -> Body {
+        Body::StaticScan(StaticScan::Yaws(StaticScanYaws {
+            scan_id,
+            revolution_t0_ns,
+            runs: runs
+                .iter()
+                .map(|&(first_index, count, yaw_deg)| YawRun {
+                    first_index,
+                    count,
+                    yaw_deg,
+                })
+                .collect(),
+        }))
+    }
+
+    /// Four samples: up-ish first half, a blocked one, a no-return, the second half.
+    const SAMPLES: [(f32, f32); 5] = [
+        (90.0, 2.0),
+        (100.0, 0.0), // no return
+        (180.0, 0.3), // blocked: in no run
+        (270.0, 2.0),
+        (280.0, 2.0),
+    ];
+
+    #[test]
+    fn yaws_are_joined_with_their_sweep_revolution_by_t0_and_grouped_by_half_revolution_origin() {
+        let mut assembler = StaticScanAssembler::new();
+        // Yaws before any start are orphans, not guessed.
+        assembler.on_body(&yaws(0, 7, &[(0, 1, 0.0)]));
+        assert_eq!(assembler.orphan_samples(), 1);
+        assembler.on_body(&started(0));
+        // The yaws usually come just before their revolution; they wait for it.
+        assembler.on_body(&yaws(0, 1_000, &[(0, 2, 0.0), (3, 2, 1.8)]));
+        assert!(assembler.take_new().is_empty());
+        assert_eq!(assembler.orphan_samples(), 1 + 4, "waiting, not placed yet");
+        // An RPLidar revolution with the same t0 is another sensor's.
+        assembler.on_body(&revolution(SensorId::RPLIDAR, 1_000, &SAMPLES));
+        assert!(assembler.take_new().is_empty());
+        assembler.on_body(&revolution(SensorId::SWEEP, 1_000, &SAMPLES));
+        assert_eq!(assembler.orphan_samples(), 1);
         let new = assembler.take_new();
-        assert_eq!(new.len(), 2, "both half revolutions are complete once their batch is in");
-        assert!(new.iter().all(|n| n.scan_index == 0 && n.position == "door"));
+        assert_eq!(
+            new.len(),
+            2,
+            "both half revolutions are complete once joined"
+        );
+        assert!(
+            new.iter()
+                .all(|n| n.scan_index == 0 && n.position == "door")
+        );
         assert_eq!(new[1].rays, assembler.scans()[0].scans[1]);
-        assert!(assembler.take_new().is_empty(), "each group is handed out once");
+        assert!(
+            assembler.take_new().is_empty(),
+            "each group is handed out once"
+        );
+        // The other order: the revolution first, then its yaws (from the recent buffer).
+        assembler.on_body(&revolution(SensorId::SWEEP, 2_000, &SAMPLES));
+        assembler.on_body(&yaws(0, 2_000, &[(0, 1, 3.6)]));
+        assert_eq!(assembler.take_new().len(), 1);
         assembler.on_body(&Body::StaticScan(StaticScan::Finished(StaticScanEnd {
             scan_id: 0,
             t_ns: 1,
             outcome: StaticScanOutcome::Completed,
             yaw_deg: 180.0,
             revolutions: 100,
-            tagged: 3,
-            blocked: 0,
+            tagged: 5,
+            blocked: 2,
             untrusted: 0,
             late_steps: 0,
             failed_steps: 0,
         })));
+        assert_eq!(assembler.orphan_samples(), 1);
         let scans = assembler.finish();
         assert_eq!(scans.len(), 1);
         let scan = &scans[0];
         assert_eq!(scan.outcome, Some(StaticScanOutcome::Completed));
-        assert_eq!((scan.points(), scan.no_return), (2, 1));
-        assert_eq!(scan.scans.len(), 2, "one origin per half revolution");
+        assert_eq!((scan.points(), scan.no_return), (4, 1));
+        assert_eq!(scan.scans.len(), 3, "one origin per half revolution");
         // φ = 90°: the optical centre is 0.1 m along (cos φ, sin φ) = +y from (1, 2), 0.5 m up.
         let o = scan.scans[0].origin;
         assert!(close(o, [1.0, 2.1, 0.5]), "{o:?}");
@@ -449,11 +602,39 @@ mod tests {
             o2,
             [1.0 + 0.1 * phi.cos(), 2.0 + 0.1 * phi.sin(), 0.5]
         ));
+        assert_eq!(scan.scans[1].points.len(), 2);
         let q = scan.scans[1].points[0].map(f64::from);
         assert!(close_f32(
             q,
             [o2[0] + 2.0 * phi.sin(), o2[1] - 2.0 * phi.cos(), 0.5]
         ));
+    }
+
+    #[test]
+    fn yaws_of_a_missing_or_evicted_revolution_and_indices_past_its_end_are_orphans() {
+        let mut assembler = StaticScanAssembler::new();
+        assembler.on_body(&started(0));
+        // Waiting for revolution 1 000, but 2 000 comes: 1 000 was dropped on the edge.
+        assembler.on_body(&yaws(0, 1_000, &[(0, 3, 0.0)]));
+        assembler.on_body(&revolution(SensorId::SWEEP, 2_000, &SAMPLES));
+        assert_eq!(assembler.orphan_samples(), 3);
+        // Yaws for a revolution older than the newest seen, not in the buffer: orphans at once.
+        assembler.on_body(&yaws(0, 1_500, &[(0, 2, 0.0)]));
+        assert_eq!(assembler.orphan_samples(), 5);
+        // Indices past the revolution's five samples.
+        assembler.on_body(&yaws(0, 2_000, &[(3, 4, 1.8)]));
+        assert_eq!(assembler.orphan_samples(), 7);
+        assert_eq!(assembler.scans()[0].points(), 2);
+        // A revolution pushed out of the bounded buffer cannot be joined any more.
+        for k in 0..RECENT_REVOLUTIONS as u64 {
+            assembler.on_body(&revolution(SensorId::SWEEP, 3_000 + k, &SAMPLES));
+        }
+        assembler.on_body(&yaws(0, 2_000, &[(0, 1, 1.8)]));
+        assert_eq!(assembler.orphan_samples(), 8);
+        // Yaws of a scan never started.
+        assembler.on_body(&yaws(9, 3_000, &[(0, 1, 1.8)]));
+        assert_eq!(assembler.orphan_samples(), 9);
+        assert_eq!(assembler.scans()[0].points(), 2, "nothing was guessed");
     }
 
     fn close_f32(a: [f64; 3], b: [f64; 3]) -> bool {

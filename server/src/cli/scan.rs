@@ -2,7 +2,7 @@
 //! connected edge through the running server's control socket; `--stop` ends one early.
 //!
 //! The edge answers in its session: a `StaticScan::Started` frame with the position and mount,
-//! the yaw-tagged samples, then `StaticScan::Finished`; `scan3d assemble SESSION_DIR` turns
+//! a `StaticScan::Yaws` per Sweep revolution, then `StaticScan::Finished`; `scan3d assemble SESSION_DIR` turns
 //! them into a cloud.
 
 use std::io::Write;

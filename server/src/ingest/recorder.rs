@@ -82,7 +82,7 @@
 //! | `/scan3d/heartbeat` | [`Body::Heartbeat`] from the edge | `sent_ns` |
 //! | `/scan3d/ack` | [`Body::Ack`] from the edge (it takes an edge sequence number too) | log time |
 //! | `/scan3d/command` | [`Body::Command`] the server sent ([`SessionRecorder::append_command`]) | log time |
-//! | `/scan3d/static_scan` | [`Body::StaticScan`]: start (position, step, mount), tagged samples, warnings, end | `t_ns` |
+//! | `/scan3d/static_scan` | [`Body::StaticScan`]: start (position, step, mount), the yaws of a Sweep revolution's samples, warnings, end | `t_ns` (yaws: the revolution's `t0_ns`) |
 //! | `/scan3d/undecodable` | a frame the server could not decode ([`SessionRecorder::append_undecodable`]); encoding `scan3d-undecodable`, see below | log time |
 //!
 //! A frame the server cannot decode (or will not record as what it claims to be) is kept rather
@@ -110,7 +110,7 @@ use std::sync::Arc;
 
 use mcap::records::{MessageHeader, Metadata};
 use mcap::{Compression, McapError, WriteOptions, Writer};
-use scan3d_protocol::{Body, Direction, Frame, StaticScan, decode};
+use scan3d_protocol::{Body, DecodeError, Direction, Frame, PROTOCOL_VERSION, StaticScan, decode};
 use serde::Serialize;
 
 /// The MCAP message encoding of every channel: S3DP header + postcard [`Frame`].
@@ -199,6 +199,20 @@ pub enum RecorderError {
         /// What was lost ([`SessionReport::loss_line`]).
         losses: String,
     },
+    /// The session was recorded by a build speaking another protocol version (postcard has no
+    /// field tags: its frames cannot be read as this version's). Nothing of it is read.
+    #[error(
+        "session {} was recorded with protocol version {version}; this build reads version {supported}",
+        dir.display()
+    )]
+    ProtocolVersion {
+        /// The session directory.
+        dir: PathBuf,
+        /// The version in the recorded frames' headers.
+        version: u16,
+        /// [`PROTOCOL_VERSION`].
+        supported: u16,
+    },
     /// An earlier write or sync failed; the file's state is unknown. Drop this recorder and
     /// [`SessionRecorder::open`] the session again (it continues in a new file).
     #[error("recorder for {0} failed earlier; open the session again")]
@@ -215,6 +229,8 @@ impl RecorderError {
             RecorderError::Io { .. }
             | RecorderError::Mcap { .. }
             | RecorderError::Damaged { .. }
+            // What is on disk, not what the caller gave.
+            | RecorderError::ProtocolVersion { .. }
             | RecorderError::Failed(_) => true,
             RecorderError::InvalidEdgeName(_)
             | RecorderError::WrongSession { .. }
@@ -288,7 +304,7 @@ fn edge_time_ns(body: &Body) -> Option<u64> {
         Body::Heartbeat(hb) => Some(hb.sent_ns),
         Body::StaticScan(scan) => Some(match scan {
             StaticScan::Started(start) => start.t_ns,
-            StaticScan::Samples(samples) => samples.t_ns,
+            StaticScan::Yaws(yaws) => yaws.revolution_t0_ns,
             StaticScan::Warning(warning) => warning.t_ns,
             StaticScan::Finished(end) => end.t_ns,
         }),
@@ -957,6 +973,7 @@ fn message_item(
             tracing::warn!(path = %path.display(), "message with bytes after its frame skipped");
             None
         }
+        Err(DecodeError::UnsupportedVersion { got, .. }) => Some(Item::OtherVersion(got)),
         Err(e) => {
             tracing::warn!(path = %path.display(), error = %e, "undecodable message skipped");
             None
@@ -1103,6 +1120,8 @@ struct DirScan {
 enum Item {
     Frame(RecordedFrame),
     Undecodable(UndecodableFrame),
+    /// A frame whose header names another protocol version (an old recording).
+    OtherVersion(u16),
 }
 
 /// Visits every item of the given files, each frame `(session, direction, seq)` and each
@@ -1129,12 +1148,13 @@ fn visit_files(
                     .or_default()
                     .insert(recorded.frame.seq),
                 Item::Undecodable(undecodable) => undecodable_seen.insert(undecodable.seq),
+                Item::OtherVersion(_) => true,
             };
             match &item {
                 Item::Frame(recorded) if !matches!(recorded.frame.body, Body::Command(_)) => {
                     edge_seqs.insert(recorded.frame.seq);
                 }
-                Item::Frame(_) => {}
+                Item::Frame(_) | Item::OtherVersion(_) => {}
                 Item::Undecodable(undecodable) => {
                     edge_seqs.insert(undecodable.seq);
                 }
@@ -1164,7 +1184,8 @@ fn range_len(range: &RangeInclusive<u64>) -> u64 {
 /// `(session, direction, seq)` once. Files cut short are read up to their last complete chunk;
 /// damaged chunks are skipped and reported in the returned [`SessionReport`] (check
 /// [`SessionReport::losses`]); undecodable frames are counted, not visited. Streaming: memory
-/// does not grow with the recording.
+/// does not grow with the recording. A session recorded with another protocol version fails
+/// with [`RecorderError::ProtocolVersion`] at its first such frame.
 pub fn visit_session(
     session_dir: &Path,
     mut visit: impl FnMut(RecordedFrame) -> Result<(), RecorderError>,
@@ -1173,6 +1194,11 @@ pub fn visit_session(
     let scan = visit_files(&files, &mut |item| match item {
         Item::Frame(recorded) => visit(recorded),
         Item::Undecodable(_) => Ok(()),
+        Item::OtherVersion(version) => Err(RecorderError::ProtocolVersion {
+            dir: session_dir.to_path_buf(),
+            version,
+            supported: PROTOCOL_VERSION,
+        }),
     })?;
     Ok(scan.report)
 }
@@ -1636,7 +1662,8 @@ fn recover(dir: &Path, session_id: u64) -> Result<Recovered, RecorderError> {
                         edge.insert(recorded.frame.seq);
                     }
                 }
-                Item::Frame(_) => {}
+                // Another version's frames are not this session's (its id is random per boot).
+                Item::Frame(_) | Item::OtherVersion(_) => {}
                 Item::Undecodable(undecodable) => {
                     edge.insert(undecodable.seq);
                 }
@@ -2087,6 +2114,54 @@ mod tests {
         Ack, Command, DeviceStatus, Heartbeat, Hello, ImuSample, LidarRevolution, SensorId,
         StatusEvent, StepperState, TimePing, TimePong,
     };
+
+    #[test]
+    fn a_session_recorded_with_protocol_version_1_is_refused_with_one_line_naming_it() {
+        let tmp = tempfile::tempdir().unwrap();
+        let mut rec = SessionRecorder::open(tmp.path(), "pi", 0x5eed).unwrap();
+        for seq in 0..3 {
+            let frame = Frame::new(0x5eed, seq, Heartbeat { sent_ns: seq });
+            let mut raw = scan3d_protocol::encode(&frame).unwrap();
+            // What a version-1 edge sent: the same header with version 1.
+            raw[4..6].copy_from_slice(&1u16.to_le_bytes());
+            rec.append(&raw, &frame, 1_000 + seq).unwrap();
+        }
+        rec.close().unwrap();
+        let dir = session_dir(tmp.path(), "pi", 0x5eed);
+        let mut visited = 0;
+        let err = visit_session(&dir, |_| {
+            visited += 1;
+            Ok(())
+        })
+        .unwrap_err();
+        assert_eq!(visited, 0);
+        assert!(matches!(
+            err,
+            RecorderError::ProtocolVersion {
+                version: 1,
+                supported: 2,
+                ..
+            }
+        ));
+        assert_eq!(
+            err.to_string(),
+            format!(
+                "session {} was recorded with protocol version 1; this build reads version 2",
+                dir.display()
+            )
+        );
+        // What calls it says the same.
+        let err = read_session(&dir).unwrap_err();
+        assert!(matches!(
+            err,
+            RecorderError::ProtocolVersion { version: 1, .. }
+        ));
+        let err = summarize_session("pi", 0x5eed, &dir).unwrap_err();
+        assert!(matches!(
+            err,
+            RecorderError::ProtocolVersion { version: 1, .. }
+        ));
+    }
 
     #[test]
     fn seq_set_tracks_prefix_and_gaps() {
