@@ -102,6 +102,24 @@ pub enum Body {
 }
 
 impl Body {
+    /// The variant's name (`"Hello"`, `"TimePong"`, …), for logs, errors and channel metadata.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Body::Hello(_) => "Hello",
+            Body::Revolution(_) => "Revolution",
+            Body::Imu(_) => "Imu",
+            Body::Stepper(_) => "Stepper",
+            Body::TimePing(_) => "TimePing",
+            Body::TimePong(_) => "TimePong",
+            Body::Ack(_) => "Ack",
+            Body::Heartbeat(_) => "Heartbeat",
+            Body::Status(_) => "Status",
+            Body::Command(_) => "Command",
+            Body::StaticScan(_) => "StaticScan",
+            Body::ClockModel(_) => "ClockModel",
+        }
+    }
+
     /// Which way this message normally travels, so a receiver can reject misdirected frames.
     pub fn direction(&self) -> Direction {
         match self {

@@ -242,20 +242,7 @@ pub enum Appended {
 
 /// The body type's name, as in [`Body`] (used in channel metadata and errors).
 pub fn body_name(body: &Body) -> &'static str {
-    match body {
-        Body::Hello(_) => "Hello",
-        Body::Revolution(_) => "Revolution",
-        Body::Imu(_) => "Imu",
-        Body::Stepper(_) => "Stepper",
-        Body::TimePing(_) => "TimePing",
-        Body::TimePong(_) => "TimePong",
-        Body::Ack(_) => "Ack",
-        Body::Heartbeat(_) => "Heartbeat",
-        Body::Status(_) => "Status",
-        Body::Command(_) => "Command",
-        Body::StaticScan(_) => "StaticScan",
-        Body::ClockModel(_) => "ClockModel",
-    }
+    body.name()
 }
 
 /// The MCAP topic a frame with this body is recorded on (see the module table). `TimePing` only

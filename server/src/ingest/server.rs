@@ -62,10 +62,10 @@ use tokio::task::JoinSet;
 use super::acks::AckPlan;
 use super::control::EdgeControl;
 use super::recorder::{Appended, SessionRecorder, body_name};
+use super::tls;
 use crate::pose::timesync::{
     ClockModel, MonotonicServerClock, Pinger, ServerClock, TimeSync, TimeSyncConfig,
 };
-use super::tls;
 
 /// QUIC application close codes the server uses.
 pub mod close_code {
@@ -1057,13 +1057,11 @@ impl EdgeConnection {
     fn ping(&mut self, connection: &quinn::Connection) {
         let ping = self.pinger.ping(self.shared.clock.now_ns());
         let frame = Frame::new(self.current_session.unwrap_or(0), 0, ping);
-        let sent = encode(&frame)
-            .map_err(|e| e.to_string())
-            .and_then(|bytes| {
-                connection
-                    .send_datagram(bytes.into())
-                    .map_err(|e| e.to_string())
-            });
+        let sent = encode(&frame).map_err(|e| e.to_string()).and_then(|bytes| {
+            connection
+                .send_datagram(bytes.into())
+                .map_err(|e| e.to_string())
+        });
         if let Err(e) = sent {
             tracing::debug!(edge = %self.edge, error = %e, "time-sync ping not sent");
         }

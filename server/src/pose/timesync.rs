@@ -459,7 +459,10 @@ mod tests {
         let server_truth: u64 = 91_000_000_000;
         let edge = server_truth + 3_000_000_000 + (server_truth as f64 * skew) as u64;
         let mapped = model.to_server_ns(edge);
-        assert!(mapped.abs_diff(server_truth) < 20_000, "{mapped} vs {server_truth}");
+        assert!(
+            mapped.abs_diff(server_truth) < 20_000,
+            "{mapped} vs {server_truth}"
+        );
         assert!(model.error_bound_at(edge) >= mapped.abs_diff(server_truth));
     }
 
@@ -503,7 +506,10 @@ mod tests {
         for t in 0..(Pinger::MAX_OUTSTANDING as u64 + 1) {
             pinger.ping(10_000 + t);
         }
-        let forgotten = TimePong { t0_ns: 10_000, ..pong };
+        let forgotten = TimePong {
+            t0_ns: 10_000,
+            ..pong
+        };
         assert_eq!(pinger.pong(&forgotten, 20_000), None);
     }
 
