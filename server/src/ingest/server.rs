@@ -64,7 +64,7 @@ use super::control::EdgeControl;
 use super::recorder::{Appended, SessionRecorder, body_name};
 use super::tls;
 use crate::pose::timesync::{
-    ClockModel, MonotonicServerClock, Pinger, ServerClock, TimeSync, TimeSyncConfig,
+    ClockModel, EdgeClock, MonotonicServerClock, Pinger, ServerClock, TimeSyncConfig,
 };
 
 /// QUIC application close codes the server uses.
@@ -389,25 +389,6 @@ struct Shared {
     /// The clock estimator of each edge, by name: it outlives connections, so a reconnect
     /// keeps the fit (one entry per paired edge at most).
     edge_clocks: Mutex<HashMap<String, EdgeClock>>,
-}
-
-/// One edge's clock estimator and what it is the estimator of.
-struct EdgeClock {
-    /// The session whose pongs it fitted.
-    session_id: u64,
-    /// That session's clock identity, once its `Hello` was seen.
-    clock_id: Option<[u8; 16]>,
-    sync: TimeSync,
-}
-
-impl EdgeClock {
-    fn new(session_id: u64, clock_id: Option<[u8; 16]>, config: TimeSyncConfig) -> Self {
-        Self {
-            session_id,
-            clock_id,
-            sync: TimeSync::new(config),
-        }
-    }
 }
 
 /// An edge's current connection and a way to wait until its task has closed its recordings.
@@ -1091,18 +1072,10 @@ impl EdgeConnection {
             return Ok(());
         };
         let session_id = frame.session_id;
-        let model = {
-            let mut clocks = lock(&self.shared.edge_clocks);
-            let config = self.shared.time_sync;
-            let clock = clocks
-                .entry(self.edge.clone())
-                .or_insert_with(|| EdgeClock::new(session_id, None, config));
-            if clock.session_id != session_id {
-                // Another session: another run of the edge, whose clock may have restarted.
-                *clock = EdgeClock::new(session_id, None, config);
-            }
-            clock.sync.add(exchange)
-        };
+        let model = lock(&self.shared.edge_clocks)
+            .entry(self.edge.clone())
+            .or_insert_with(|| EdgeClock::new(session_id, self.shared.time_sync))
+            .on_exchange(session_id, exchange);
         let Some(model) = model else {
             tracing::debug!(edge = %self.edge, ?exchange, "ignored an exchange with inconsistent timestamps");
             return Ok(());
@@ -1126,17 +1099,12 @@ impl EdgeConnection {
     /// A `Hello` of `session_id` named its clock: the edge's estimator starts over when that is
     /// not the clock it was fitting.
     fn clock_identity(&mut self, session_id: u64, clock_id: [u8; 16]) {
-        let config = self.shared.time_sync;
-        let mut clocks = lock(&self.shared.edge_clocks);
-        let clock = clocks
+        let started_over = lock(&self.shared.edge_clocks)
             .entry(self.edge.clone())
-            .or_insert_with(|| EdgeClock::new(session_id, Some(clock_id), config));
-        let same = clock.session_id == session_id && clock.clock_id.is_none_or(|c| c == clock_id);
-        if same {
-            clock.clock_id = Some(clock_id);
-        } else {
+            .or_insert_with(|| EdgeClock::new(session_id, self.shared.time_sync))
+            .on_hello(session_id, clock_id);
+        if started_over {
             tracing::debug!(edge = %self.edge, session = format!("{session_id:016x}"), "a new edge clock: time sync starts over");
-            *clock = EdgeClock::new(session_id, Some(clock_id), config);
         }
     }
 

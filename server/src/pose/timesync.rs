@@ -335,6 +335,62 @@ fn fit(
     })
 }
 
+/// One edge's estimator across its connections and sessions: exchanges of one session go into
+/// one fit, kept across reconnects; it starts over when the exchanges come from another
+/// session (another run of the edge) or the session's `Hello` names another clock
+/// (`Hello::clock_id`) than the one fitted.
+#[derive(Debug, Clone)]
+pub struct EdgeClock {
+    session_id: u64,
+    clock_id: Option<[u8; 16]>,
+    sync: TimeSync,
+}
+
+impl EdgeClock {
+    /// An estimator for `session_id`, clock not yet named.
+    pub fn new(session_id: u64, config: TimeSyncConfig) -> Self {
+        Self {
+            session_id,
+            clock_id: None,
+            sync: TimeSync::new(config),
+        }
+    }
+
+    /// The session whose exchanges are fitted.
+    pub fn session_id(&self) -> u64 {
+        self.session_id
+    }
+
+    /// The fit's current model.
+    pub fn model(&self) -> Option<&ClockModel> {
+        self.sync.model()
+    }
+
+    /// A `Hello` of `session_id` named its clock; `true` when that discarded the fit.
+    pub fn on_hello(&mut self, session_id: u64, clock_id: [u8; 16]) -> bool {
+        let same = self.session_id == session_id && self.clock_id.is_none_or(|c| c == clock_id);
+        if !same {
+            self.start_over(session_id);
+        }
+        self.clock_id = Some(clock_id);
+        !same
+    }
+
+    /// An exchange answered in `session_id`; the new model, or `None` for an inconsistent one.
+    pub fn on_exchange(&mut self, session_id: u64, exchange: Exchange) -> Option<ClockModel> {
+        if self.session_id != session_id {
+            self.start_over(session_id);
+            self.clock_id = None;
+        }
+        self.sync.add(exchange)
+    }
+
+    fn start_over(&mut self, session_id: u64) {
+        self.session_id = session_id;
+        self.sync.reset();
+    }
+}
+
 /// The skew (ns of θ per ns of edge time) from the lower envelopes of the two one-way
 /// differences, and the edge-time span of the exchanges, or `None` with fewer than two.
 ///
@@ -574,6 +630,28 @@ mod tests {
             ..pong
         };
         assert_eq!(pinger.pong(&forgotten, 20_000), None);
+    }
+
+    #[test]
+    fn an_edge_clock_starts_over_for_a_new_session_or_a_new_clock_and_not_otherwise() {
+        let mut clock = EdgeClock::new(1, TimeSyncConfig::default());
+        assert!(!clock.on_hello(1, [7; 16]), "first naming keeps the fit");
+        clock.on_exchange(1, exchange(0, 5_000, 1_000, 1_000));
+        clock.on_exchange(1, exchange(1_000_000_000, 5_000, 1_000, 1_000));
+        assert_eq!(clock.model().map(|m| m.exchanges), Some(2));
+        // The same hello again (a resend, a reconnect): nothing changes.
+        assert!(!clock.on_hello(1, [7; 16]));
+        assert_eq!(clock.model().map(|m| m.exchanges), Some(2));
+        // The edge rebooted: another clock behind the same session id would be a lie, but the
+        // estimator must not mix the two time lines.
+        assert!(clock.on_hello(1, [8; 16]));
+        assert!(clock.model().is_none());
+        let model = clock.on_exchange(1, exchange(9_000_000_000, -3_000, 1_000, 1_000));
+        assert_eq!(model.map(|m| (m.offset_ns, m.exchanges)), Some((-3_000, 1)));
+        // Exchanges of another session start over too.
+        let model = clock.on_exchange(2, exchange(10_000_000_000, 40, 1_000, 1_000));
+        assert_eq!(model.map(|m| (m.offset_ns, m.exchanges)), Some((40, 1)));
+        assert_eq!(clock.session_id(), 2);
     }
 
     #[test]
