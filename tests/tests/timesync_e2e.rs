@@ -18,8 +18,7 @@ use scan3d_server::pose::timesync::{MonotonicServerClock, ServerClock, SessionCl
 const SESSION: u64 = 0x71_3e_5a_c0;
 
 #[test]
-fn the_clock_model_arrives_is_recorded_and_replays_identically_and_pongs_never_touch_the_spool()
-{
+fn the_clock_model_arrives_is_recorded_and_replays_identically_and_pongs_never_touch_the_spool() {
     let dir = tempfile::tempdir().expect("temp dir");
     let pki = dir.path().join("pki");
     let data = dir.path().join("data");
@@ -121,7 +120,11 @@ fn the_clock_model_arrives_is_recorded_and_replays_identically_and_pongs_never_t
             _ => None,
         })
         .expect("the hello is recorded");
-    assert_eq!(hello.clock_id, MonotonicClock::new().clock_id(), "the boot id");
+    assert_eq!(
+        hello.clock_id,
+        MonotonicClock::new().clock_id(),
+        "the boot id"
+    );
     let recorded = frames
         .iter()
         .filter(|f| f.topic == "/scan3d/timesync")
