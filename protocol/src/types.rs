@@ -275,13 +275,18 @@ pub struct ClockModel {
     /// Rate of change of θ, ppm of edge time (the edge clock's frequency error relative to the
     /// server's; crystals are typically within ±50 ppm).
     pub skew_ppm: f64,
-    /// Bound on the mapping error at `ref_edge_ns`, ns; it widens by `skew_bound_ppm` per unit
-    /// of distance from there ([`ClockModel::error_bound_at`]).
+    /// Bound on the mapping error for edge times between the oldest and newest exchange fitted
+    /// (`fit_from_edge_ns..=fit_to_edge_ns`), ns; outside, it widens by `skew_bound_ppm` per
+    /// unit of distance ([`ClockModel::error_bound_at`]).
     pub error_bound_ns: u64,
     /// Uncertainty of `skew_ppm`, ppm.
     pub skew_bound_ppm: f64,
     /// Edge time (ns) the offset refers to (the weighted centre of the exchanges fitted).
     pub ref_edge_ns: u64,
+    /// Edge time (ns) of the oldest exchange fitted.
+    pub fit_from_edge_ns: u64,
+    /// Edge time (ns) of the newest exchange fitted.
+    pub fit_to_edge_ns: u64,
     /// Edge time (ns) of the newest exchange in the fit: the model is the current one for edge
     /// times from here until the next model's.
     pub valid_from_edge_ns: u64,
@@ -311,7 +316,11 @@ impl ClockModel {
 
     /// Bound on the error of [`ClockModel::to_server_ns`] at `edge_ns`, ns.
     pub fn error_bound_at(&self, edge_ns: u64) -> u64 {
-        let distance = edge_ns.abs_diff(self.ref_edge_ns) as f64;
+        let distance = if edge_ns < self.fit_from_edge_ns {
+            self.fit_from_edge_ns - edge_ns
+        } else {
+            edge_ns.saturating_sub(self.fit_to_edge_ns)
+        } as f64;
         let widening = (self.skew_bound_ppm.abs() * 1e-6 * distance).ceil();
         let widening = if widening.is_finite() {
             widening.min(u64::MAX as f64) as u64

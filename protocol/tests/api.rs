@@ -135,6 +135,8 @@ fn a_clock_model_maps_edge_time_with_its_offset_and_skew_and_widens_its_bound() 
         error_bound_ns: 400_000,
         skew_bound_ppm: 2.0,
         ref_edge_ns: 100_000_000_000,
+        fit_from_edge_ns: 95_000_000_000,
+        fit_to_edge_ns: 100_000_000_000,
         valid_from_edge_ns: 100_000_000_000,
         min_delay_ns: 2_000_000,
         exchanges: 10,
@@ -145,8 +147,10 @@ fn a_clock_model_maps_edge_time_with_its_offset_and_skew_and_widens_its_bound() 
     // 10 s earlier it was 200 µs less ahead.
     assert_eq!(model.to_server_ns(90_000_000_000), 85_000_200_000);
     assert_eq!(model.error_bound_at(100_000_000_000), 400_000);
+    // Within the exchanges fitted the bound holds as is; outside it widens with the skew's.
+    assert_eq!(model.error_bound_at(96_000_000_000), 400_000);
     assert_eq!(model.error_bound_at(110_000_000_000), 420_000);
-    assert_eq!(model.error_bound_at(90_000_000_000), 420_000);
+    assert_eq!(model.error_bound_at(85_000_000_000), 420_000);
     // Times the offset would push below zero saturate instead of wrapping.
     assert_eq!(model.to_server_ns(1_000), 0);
 }

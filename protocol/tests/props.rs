@@ -286,17 +286,21 @@ fn clock_model() -> impl Strategy<Value = ClockModel> {
     (
         (any::<i64>(), f64s(), any::<u64>(), f64s()),
         (any::<u64>(), any::<u64>(), any::<u64>(), any::<u32>()),
+        (any::<u64>(), any::<u64>()),
     )
         .prop_map(
             |(
                 (offset_ns, skew_ppm, error_bound_ns, skew_bound_ppm),
                 (ref_edge_ns, valid_from_edge_ns, min_delay_ns, exchanges),
+                (fit_from_edge_ns, fit_to_edge_ns),
             )| ClockModel {
                 offset_ns,
                 skew_ppm,
                 error_bound_ns,
                 skew_bound_ppm,
                 ref_edge_ns,
+                fit_from_edge_ns,
+                fit_to_edge_ns,
                 valid_from_edge_ns,
                 min_delay_ns,
                 exchanges,

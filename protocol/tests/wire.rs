@@ -128,6 +128,8 @@ fn clock_model_exact_bytes() {
         error_bound_ns: 300,
         skew_bound_ppm: 0.0,
         ref_edge_ns: 5,
+        fit_from_edge_ns: 4,
+        fit_to_edge_ns: 6,
         valid_from_edge_ns: 6,
         min_delay_ns: 1,
         exchanges: 3,
@@ -142,6 +144,7 @@ fn clock_model_exact_bytes() {
             0xac, 0x02, // error bound 300 ns
             0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, // skew bound 0.0
             0x05, // reference edge time
+            0x04, 0x06, // fitted exchanges from, to
             0x06, // valid from edge time
             0x01, // min delay
             0x03, // exchanges

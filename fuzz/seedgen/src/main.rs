@@ -130,6 +130,8 @@ fn frames() -> Vec<(&'static str, Frame)> {
                 error_bound_ns: 1_200_000,
                 skew_bound_ppm: 3.0,
                 ref_edge_ns: 90_000_000_000,
+                fit_from_edge_ns: 60_000_000_000,
+                fit_to_edge_ns: 94_000_000_000,
                 valid_from_edge_ns: 95_000_000_000,
                 min_delay_ns: 2_100_000,
                 exchanges: 14,

@@ -328,7 +328,9 @@ fn fit(
         skew_ppm: slope * 1e6,
         error_bound_ns: error_bound.ceil() as u64,
         skew_bound_ppm: slope_error * 1e6,
-        ref_edge_ns: ref_edge.clamp(0, i128::from(u64::MAX)) as u64,
+        ref_edge_ns: to_edge_ns(ref_edge),
+        fit_from_edge_ns: to_edge_ns(x0 + min_x as i128),
+        fit_to_edge_ns: to_edge_ns(x0 + max_x as i128),
         valid_from_edge_ns: newest_edge_ns,
         min_delay_ns: min_delay,
         exchanges: u32::try_from(points.len()).unwrap_or(u32::MAX),
@@ -389,6 +391,10 @@ impl EdgeClock {
         self.session_id = session_id;
         self.sync.reset();
     }
+}
+
+fn to_edge_ns(t: i128) -> u64 {
+    t.clamp(0, i128::from(u64::MAX)) as u64
 }
 
 /// The skew (ns of θ per ns of edge time) from the lower envelopes of the two one-way
@@ -662,6 +668,8 @@ mod tests {
             error_bound_ns: 1,
             skew_bound_ppm: 0.0,
             ref_edge_ns: valid_from_edge_ns,
+            fit_from_edge_ns: valid_from_edge_ns,
+            fit_to_edge_ns: valid_from_edge_ns,
             valid_from_edge_ns,
             min_delay_ns: 2,
             exchanges: 1,
