@@ -26,7 +26,7 @@
 //! **Error bound.** The truth lies within δᵢ/2 of each θᵢ, so the fitted line is within
 //! |rᵢ| + δᵢ/2 of the truth at each exchange (rᵢ its residual); both being lines, the largest of
 //! these bounds the error between the oldest and newest exchange, and their sum over the span
-//! bounds the skew error, which widens the bound away from the reference point
+//! bounds the skew error, which widens the bound outside that span
 //! ([`ClockModel::error_bound_at`]). It holds whatever the delay distribution, as long as the
 //! clocks are linear over the window.
 //!
