@@ -128,6 +128,7 @@ impl Context {
             .cloned()
             .collect();
         Hello::new(self.device_name.clone(), env!("CARGO_PKG_VERSION"), sensors)
+            .with_clock_id(self.clock.clock_id())
     }
 }
 

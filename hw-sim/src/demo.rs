@@ -30,7 +30,7 @@ use scan3d_map::cloud::scans::RevolutionCollector;
 use scan3d_protocol::{Body, SensorId};
 use scan3d_server::ingest::recorder::{session_dir, topic};
 use scan3d_server::ingest::server::{IngestEvent, IngestStats};
-use scan3d_server::ingest::timesync::Estimate;
+use scan3d_server::pose::timesync::ClockModel;
 
 use scan3d_map::cloud::OriginScan;
 use scan3d_map::cloud::io;
@@ -81,8 +81,8 @@ pub struct DemoReport {
     pub edge: DaemonReport,
     /// The server's counters.
     pub server: IngestStats,
-    /// The last time-sync estimate.
-    pub time_sync: Option<Estimate>,
+    /// The last time-sync clock model.
+    pub time_sync: Option<ClockModel>,
     /// Seconds of sensor time the server received, per lidar.
     pub sensor_seconds: BTreeMap<SensorId, f64>,
     /// PLY files written from the server's frames.
@@ -372,7 +372,7 @@ struct Received {
     scans: RevolutionCollector,
     frames_per_topic: BTreeMap<String, u64>,
     sensor_ns: BTreeMap<SensorId, u64>,
-    time_sync: Option<Estimate>,
+    time_sync: Option<ClockModel>,
 }
 
 impl Received {
@@ -387,7 +387,7 @@ impl Received {
                     }
                     self.scans.on_frame(&frame);
                 }
-                IngestEvent::TimeSync { estimate, .. } => self.time_sync = Some(estimate),
+                IngestEvent::TimeSync { model, .. } => self.time_sync = Some(model),
                 IngestEvent::Connected { .. } | IngestEvent::Disconnected { .. } => {}
             }
         }
@@ -454,9 +454,11 @@ pub fn summary(report: &DemoReport) -> String {
     if let Some(sync) = &report.time_sync {
         let _ = writeln!(
             s,
-            "time sync: edge clock - server clock = {:.3} s, round trip {:.3} ms",
-            sync.offset_ns / 1e9,
-            sync.delay_ns / 1e6
+            "time sync: edge clock - server clock = {:.3} s, skew {:.1} ppm, error bound {:.3} ms, round trip {:.3} ms",
+            sync.offset_ns as f64 / 1e9,
+            sync.skew_ppm,
+            sync.error_bound_ns as f64 / 1e6,
+            sync.min_delay_ns as f64 / 1e6
         );
     }
     if let Some(uplink) = &report.edge.uplink {

@@ -16,8 +16,10 @@
 //! - [`static_rig`]: the paper's scanner: Sweep on the turntable, IMU and motor HAT on I2C.
 //! - [`maps`]: the paper's static maps through the whole system, scored against ground truth.
 //! - [`demo`]: the README's demo.
+//! - [`clock`]: a drifting edge clock and delay model driving the real time-sync exchange.
 #![warn(missing_docs)]
 
+pub mod clock;
 pub mod demo;
 pub mod device;
 pub mod faults;

@@ -3,8 +3,8 @@
 use serde::{Deserialize, Serialize};
 
 use crate::types::{
-    Ack, Command, DeviceStatus, Heartbeat, Hello, ImuSample, LidarRevolution, StaticScan,
-    StepperState, TimePing, TimePong,
+    Ack, ClockModel, Command, DeviceStatus, Heartbeat, Hello, ImuSample, LidarRevolution,
+    StaticScan, StepperState, TimePing, TimePong,
 };
 
 /// One message with its session and sequence number.
@@ -13,6 +13,12 @@ use crate::types::{
 /// direction numbers its own frames from 0 within the session. The server acknowledges edge frames
 /// with [`Ack`] by these sequence numbers, and resent frames keep their original number, so
 /// receiving one twice is harmless.
+///
+/// **Two paths.** Every frame on the connection's reliable stream is sequenced and (edge →
+/// server) acknowledged. Time-sync frames ([`Body::TimePing`], [`Body::TimePong`]) travel
+/// instead as one frame per QUIC datagram (the same encoding): they carry `seq` 0, are neither
+/// sequence-numbered nor acknowledged, and are never spooled or resent, so a backlog on the
+/// stream cannot delay them and a reconnect cannot replay a stale one.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Frame {
     /// Random id chosen by the edge at boot; a new id means a new edge clock epoch.
@@ -64,6 +70,9 @@ pub enum Direction {
 /// | 8 | [`Body::Status`] | edge → server |
 /// | 9 | [`Body::Command`] | server → edge |
 /// | 10 | [`Body::StaticScan`] | edge → server |
+/// | 11 | [`Body::ClockModel`] | server only (recorded, never sent) |
+///
+/// `TimePing` and `TimePong` travel in QUIC datagrams, not on the stream (see [`Frame`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub enum Body {
     /// Edge identity and sensor inventory; first frame of a connection.
@@ -74,9 +83,9 @@ pub enum Body {
     Imu(ImuSample),
     /// Stepper state change.
     Stepper(StepperState),
-    /// Time-sync request carrying the server's send time.
+    /// Time-sync request carrying the server's send time (a datagram).
     TimePing(TimePing),
-    /// Time-sync answer carrying t0, t1 and t2.
+    /// Time-sync answer carrying t0, t1 and t2 (a datagram).
     TimePong(TimePong),
     /// Acknowledgement of received frames.
     Ack(Ack),
@@ -88,9 +97,29 @@ pub enum Body {
     Command(Command),
     /// Static 3D scan: start, the yaws of each Sweep revolution's samples, warnings, end.
     StaticScan(StaticScan),
+    /// The server's mapping of the edge clock, recorded in the session when it changes.
+    ClockModel(ClockModel),
 }
 
 impl Body {
+    /// The variant's name (`"Hello"`, `"TimePong"`, …), for logs, errors and channel metadata.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Body::Hello(_) => "Hello",
+            Body::Revolution(_) => "Revolution",
+            Body::Imu(_) => "Imu",
+            Body::Stepper(_) => "Stepper",
+            Body::TimePing(_) => "TimePing",
+            Body::TimePong(_) => "TimePong",
+            Body::Ack(_) => "Ack",
+            Body::Heartbeat(_) => "Heartbeat",
+            Body::Status(_) => "Status",
+            Body::Command(_) => "Command",
+            Body::StaticScan(_) => "StaticScan",
+            Body::ClockModel(_) => "ClockModel",
+        }
+    }
+
     /// Which way this message normally travels, so a receiver can reject misdirected frames.
     pub fn direction(&self) -> Direction {
         match self {
@@ -101,7 +130,9 @@ impl Body {
             | Body::TimePong(_)
             | Body::Status(_)
             | Body::StaticScan(_) => Direction::EdgeToServer,
-            Body::TimePing(_) | Body::Command(_) => Direction::ServerToEdge,
+            // A clock model originates at the server (it is recorded, not sent): an edge that
+            // sends one is misdirected like one sending a command.
+            Body::TimePing(_) | Body::Command(_) | Body::ClockModel(_) => Direction::ServerToEdge,
             Body::Ack(_) | Body::Heartbeat(_) => Direction::Both,
         }
     }
@@ -131,4 +162,5 @@ body_from! {
     DeviceStatus => Status,
     Command => Command,
     StaticScan => StaticScan,
+    ClockModel => ClockModel,
 }

@@ -37,23 +37,27 @@
 //!
 //! | tag | body | direction | content |
 //! | --- | --- | --- | --- |
-//! | 0 | [`Hello`] | edge → server | device name, software and protocol version, [`SensorInfo`] per sensor |
+//! | 0 | [`Hello`] | edge → server | device name, software and protocol version, [`SensorInfo`] per sensor, clock identity |
 //! | 1 | [`LidarRevolution`] | edge → server | one 360° revolution: angle, range, quality and time offset per sample, t0/t1 |
 //! | 2 | [`ImuSample`] | edge → server | accel, gyro, mag triples, optional orientation quaternion |
 //! | 3 | [`StepperState`] | edge → server | commanded angle, step index, holding / released |
-//! | 4 | [`TimePing`] | server → edge | NTP t0 (server clock) |
-//! | 5 | [`TimePong`] | edge → server | t0 echoed, t1 receive and t2 send (edge clock); the server adds t3 |
+//! | 4 | [`TimePing`] | server → edge, datagram | NTP t0 (server monotonic clock) |
+//! | 5 | [`TimePong`] | edge → server, datagram | t0 echoed, t1 receive and t2 send (edge clock); the server adds t3 |
 //! | 6 | [`Ack`] | both | highest contiguous sequence number, or a range |
 //! | 7 | [`Heartbeat`] | both | sender's clock |
 //! | 8 | [`DeviceStatus`] | edge → server | sensor lost / back, acquisition paused / resumed, with a reason |
 //! | 9 | [`Command`] | server → edge | start static scan at a named position, stop it, set a motor speed |
 //! | 10 | [`StaticScan`] | edge → server | static 3D scan: start (position, step, mount), the yaws of each Sweep revolution's samples as runs of sample indices, warnings, end |
+//! | 11 | [`ClockModel`] | server only (recorded) | edge → server clock mapping: offset, skew, error bound, reference point |
 //!
 //! **One sample timeline.** Every lidar sample travels once, in its [`LidarRevolution`], with
 //! the one measurement time the edge estimated for it. During a static scan the edge adds, per
 //! Sweep revolution, a [`StaticScan::Yaws`] message naming that revolution by its `t0_ns` and
 //! giving the turntable yaw φ of runs of its sample indices ([`YawRun`]); θ of eq. (1) is
 //! [`theta_deg`] on both sides.
+//!
+//! Time-sync pings and pongs travel as QUIC datagrams (one frame each, `seq` 0, neither
+//! acknowledged nor resent); every other frame goes on the reliable stream.
 //!
 //! Sensors are named by [`SensorId`] (0 rplidar, 1 sweep, 2 imu, 3 stepper). All edge times are
 //! nanoseconds on the edge's monotonic clock.
@@ -91,11 +95,11 @@ pub use codec::{
 };
 pub use frame::{Body, Direction, Frame};
 pub use types::{
-    Ack, Command, DeviceStatus, Heartbeat, Hello, ImuSample, InvalidCommand, LidarRevolution,
-    MAX_MOTOR_SPEED_HZ, MAX_POSITION_NAME_LEN, MountInfo, RevolutionSample, SampleTimeError,
-    SensorId, SensorInfo, StaticScan, StaticScanEnd, StaticScanOutcome, StaticScanProblem,
-    StaticScanStart, StaticScanWarning, StaticScanYaws, StatusEvent, StepperState, TimePing,
-    TimePong, YawRun, theta_deg,
+    Ack, ClockModel, Command, DeviceStatus, Heartbeat, Hello, ImuSample, InvalidCommand,
+    LidarRevolution, MAX_MOTOR_SPEED_HZ, MAX_POSITION_NAME_LEN, MountInfo, RevolutionSample,
+    SampleTimeError, SensorId, SensorInfo, StaticScan, StaticScanEnd, StaticScanOutcome,
+    StaticScanProblem, StaticScanStart, StaticScanWarning, StaticScanYaws, StatusEvent,
+    StepperState, TimePing, TimePong, YawRun, theta_deg,
 };
 pub use version::{IncompatibleVersion, PROTOCOL_VERSION, check_compatible};
 

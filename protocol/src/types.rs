@@ -81,10 +81,16 @@ pub struct Hello {
     pub protocol_version: u16,
     /// The sensors the edge found at start-up.
     pub sensors: Vec<SensorInfo>,
+    /// Identity of the clock every edge time of the session is on: on Linux the boot id
+    /// (`/proc/sys/kernel/random/boot_id`), because CLOCK_MONOTONIC restarts at boot, not at
+    /// process start; random when that cannot be read; all zeros when unknown. The server's
+    /// clock model is discarded when it changes.
+    pub clock_id: [u8; 16],
 }
 
 impl Hello {
-    /// A hello for this build: `protocol_version` is [`crate::PROTOCOL_VERSION`].
+    /// A hello for this build: `protocol_version` is [`crate::PROTOCOL_VERSION`], the clock
+    /// identity unknown (all zeros; see [`Hello::with_clock_id`]).
     pub fn new(
         device_name: impl Into<String>,
         software_version: impl Into<String>,
@@ -95,7 +101,14 @@ impl Hello {
             software_version: software_version.into(),
             protocol_version: crate::PROTOCOL_VERSION,
             sensors,
+            clock_id: [0; 16],
         }
+    }
+
+    /// This hello with the edge clock's identity set.
+    pub fn with_clock_id(mut self, clock_id: [u8; 16]) -> Self {
+        self.clock_id = clock_id;
+        self
     }
 
     /// Whether this build can talk to the peer that sent this hello
@@ -227,15 +240,18 @@ pub struct StepperState {
     pub holding: bool,
 }
 
-/// First half of an NTP-style exchange, sent by the server.
+/// First half of an NTP-style exchange, sent by the server in a QUIC datagram (never on the
+/// stream, see [`crate::Frame`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct TimePing {
-    /// Server clock (ns) when the ping was sent (NTP t0).
+    /// Server monotonic clock (ns) when the ping was sent (NTP t0). Monotonic, not wall time,
+    /// so that stepping the laptop's clock cannot move it.
     pub t0_ns: u64,
 }
 
-/// The edge's answer to a [`TimePing`]. The server records its own receive time t3 and has the
-/// four NTP timestamps: offset = ((t1 − t0) + (t2 − t3)) / 2, delay = (t3 − t0) − (t2 − t1).
+/// The edge's answer to a [`TimePing`], in a QUIC datagram of its own (never spooled, never
+/// resent: a lost pong costs one exchange). The server records its own receive time t3 and has
+/// the four NTP timestamps: offset = ((t1 − t0) + (t2 − t3)) / 2, delay = (t3 − t0) − (t2 − t1).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct TimePong {
     /// The ping's `t0_ns`, echoed (server clock).
@@ -244,6 +260,77 @@ pub struct TimePong {
     pub t1_ns: u64,
     /// Edge monotonic clock (ns) when this pong was sent (NTP t2).
     pub t2_ns: u64,
+}
+
+/// How an edge's clock maps to the server's: the server's time-sync estimate, recorded in the
+/// session (topic `/scan3d/timesync`) each time it changes so that a replay maps sample times
+/// exactly as the live server did. Made by the server only; never sent to an edge.
+///
+/// The offset θ (edge − server, NTP's sign) is linear in edge time:
+/// `θ(t) = offset_ns + skew_ppm · 10⁻⁶ · (t − ref_edge_ns)`, and `server = t − θ(t)`
+/// ([`ClockModel::to_server_ns`]). Server times are on the server's monotonic clock (UNIX time
+/// at server start plus the time elapsed since, so a stepped wall clock does not move them).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ClockModel {
+    /// θ at `ref_edge_ns`: edge clock minus server clock, ns.
+    pub offset_ns: i64,
+    /// Rate of change of θ, ppm of edge time (the edge clock's frequency error relative to the
+    /// server's; crystals are typically within ±50 ppm).
+    pub skew_ppm: f64,
+    /// Bound on the mapping error for edge times between the oldest and newest exchange fitted
+    /// (`fit_from_edge_ns..=fit_to_edge_ns`), ns; outside, it widens by `skew_bound_ppm` per
+    /// unit of distance ([`ClockModel::error_bound_at`]).
+    pub error_bound_ns: u64,
+    /// Uncertainty of `skew_ppm`, ppm.
+    pub skew_bound_ppm: f64,
+    /// Edge time (ns) the offset refers to (the weighted centre of the exchanges fitted).
+    pub ref_edge_ns: u64,
+    /// Edge time (ns) of the oldest exchange fitted.
+    pub fit_from_edge_ns: u64,
+    /// Edge time (ns) of the newest exchange fitted.
+    pub fit_to_edge_ns: u64,
+    /// Edge time (ns) of the newest exchange in the fit: the model is the current one for edge
+    /// times from here until the next model's.
+    pub valid_from_edge_ns: u64,
+    /// Smallest round trip among the exchanges fitted, ns (a quality figure).
+    pub min_delay_ns: u64,
+    /// Number of exchanges in the fit.
+    pub exchanges: u32,
+}
+
+impl ClockModel {
+    /// θ at `edge_ns` (edge − server, ns), computed in `i128`.
+    pub fn offset_at(&self, edge_ns: u64) -> i128 {
+        let since_ref = i128::from(edge_ns) - i128::from(self.ref_edge_ns);
+        // The skew term is the only floating-point step: |since_ref| < 2^64 ns and
+        // |skew| ≪ 10^6 ppm keep it far inside f64's exact integer range for real sessions.
+        let drift = (self.skew_ppm * 1e-6 * since_ref as f64).round();
+        let drift = if drift.is_finite() { drift as i128 } else { 0 };
+        i128::from(self.offset_ns) + drift
+    }
+
+    /// The server time (ns, server monotonic clock) of edge time `edge_ns`, saturating at the
+    /// ends of `u64`.
+    pub fn to_server_ns(&self, edge_ns: u64) -> u64 {
+        let server = i128::from(edge_ns) - self.offset_at(edge_ns);
+        server.clamp(0, i128::from(u64::MAX)) as u64
+    }
+
+    /// Bound on the error of [`ClockModel::to_server_ns`] at `edge_ns`, ns.
+    pub fn error_bound_at(&self, edge_ns: u64) -> u64 {
+        let distance = if edge_ns < self.fit_from_edge_ns {
+            self.fit_from_edge_ns - edge_ns
+        } else {
+            edge_ns.saturating_sub(self.fit_to_edge_ns)
+        } as f64;
+        let widening = (self.skew_bound_ppm.abs() * 1e-6 * distance).ceil();
+        let widening = if widening.is_finite() {
+            widening.min(u64::MAX as f64) as u64
+        } else {
+            u64::MAX
+        };
+        self.error_bound_ns.saturating_add(widening)
+    }
 }
 
 /// Acknowledgement of frames received in the opposite direction of the same session.

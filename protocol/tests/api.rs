@@ -125,3 +125,32 @@ fn body_directions_and_conversions() {
         }
     );
 }
+
+#[test]
+fn a_clock_model_maps_edge_time_with_its_offset_and_skew_and_widens_its_bound() {
+    let model = scan3d_protocol::ClockModel {
+        // The edge is 5 s ahead at edge time 100 s and gains 20 µs per second.
+        offset_ns: 5_000_000_000,
+        skew_ppm: 20.0,
+        error_bound_ns: 400_000,
+        skew_bound_ppm: 2.0,
+        ref_edge_ns: 100_000_000_000,
+        fit_from_edge_ns: 95_000_000_000,
+        fit_to_edge_ns: 100_000_000_000,
+        valid_from_edge_ns: 100_000_000_000,
+        min_delay_ns: 2_000_000,
+        exchanges: 10,
+    };
+    assert_eq!(model.to_server_ns(100_000_000_000), 95_000_000_000);
+    // 10 s later the edge is 200 µs further ahead.
+    assert_eq!(model.to_server_ns(110_000_000_000), 104_999_800_000);
+    // 10 s earlier it was 200 µs less ahead.
+    assert_eq!(model.to_server_ns(90_000_000_000), 85_000_200_000);
+    assert_eq!(model.error_bound_at(100_000_000_000), 400_000);
+    // Within the exchanges fitted the bound holds as is; outside it widens with the skew's.
+    assert_eq!(model.error_bound_at(96_000_000_000), 400_000);
+    assert_eq!(model.error_bound_at(110_000_000_000), 420_000);
+    assert_eq!(model.error_bound_at(85_000_000_000), 420_000);
+    // Times the offset would push below zero saturate instead of wrapping.
+    assert_eq!(model.to_server_ns(1_000), 0);
+}

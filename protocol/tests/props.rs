@@ -48,13 +48,15 @@ fn hello() -> impl Strategy<Value = Hello> {
         text(),
         any::<u16>(),
         prop::collection::vec(info, 0..5),
+        any::<[u8; 16]>(),
     )
         .prop_map(
-            |(device_name, software_version, protocol_version, sensors)| Hello {
+            |(device_name, software_version, protocol_version, sensors, clock_id)| Hello {
                 device_name,
                 software_version,
                 protocol_version,
                 sensors,
+                clock_id,
             },
         )
 }
@@ -272,7 +274,34 @@ fn body() -> impl Strategy<Value = Body> {
         status().prop_map(Body::Status),
         command().prop_map(Body::Command),
         static_scan().prop_map(Body::StaticScan),
+        clock_model().prop_map(Body::ClockModel),
     ]
+}
+
+fn clock_model() -> impl Strategy<Value = ClockModel> {
+    (
+        (any::<i64>(), f64s(), any::<u64>(), f64s()),
+        (any::<u64>(), any::<u64>(), any::<u64>(), any::<u32>()),
+        (any::<u64>(), any::<u64>()),
+    )
+        .prop_map(
+            |(
+                (offset_ns, skew_ppm, error_bound_ns, skew_bound_ppm),
+                (ref_edge_ns, valid_from_edge_ns, min_delay_ns, exchanges),
+                (fit_from_edge_ns, fit_to_edge_ns),
+            )| ClockModel {
+                offset_ns,
+                skew_ppm,
+                error_bound_ns,
+                skew_bound_ppm,
+                ref_edge_ns,
+                fit_from_edge_ns,
+                fit_to_edge_ns,
+                valid_from_edge_ns,
+                min_delay_ns,
+                exchanges,
+            },
+        )
 }
 
 fn frame() -> impl Strategy<Value = Frame> {

@@ -99,7 +99,8 @@ fn hello_exact_bytes() {
             firmware: "1.29".into(),
             serial: String::new(),
         }],
-    );
+    )
+    .with_clock_id(*b"boot-id-0123456\x7f");
     assert_eq!(hello.protocol_version, PROTOCOL_VERSION);
     assert_wire(
         Frame::new(9, 0, hello),
@@ -113,6 +114,40 @@ fn hello_exact_bytes() {
             0x02, b'A', b'1', // model
             0x04, b'1', b'.', b'2', b'9', // firmware
             0x00, // empty serial
+            b'b', b'o', b'o', b't', b'-', b'i', b'd', b'-', // clock id: 16 raw bytes,
+            b'0', b'1', b'2', b'3', b'4', b'5', b'6', 0x7f, // no length prefix
+        ],
+    );
+}
+
+#[test]
+fn clock_model_exact_bytes() {
+    let model = ClockModel {
+        offset_ns: -2,
+        skew_ppm: 1.0,
+        error_bound_ns: 300,
+        skew_bound_ppm: 0.0,
+        ref_edge_ns: 5,
+        fit_from_edge_ns: 4,
+        fit_to_edge_ns: 6,
+        valid_from_edge_ns: 6,
+        min_delay_ns: 1,
+        exchanges: 3,
+    };
+    assert_eq!(Body::from(model).direction(), Direction::ServerToEdge);
+    assert_wire(
+        Frame::new(1, 2, model),
+        &[
+            0x01, 0x02, 0x0b, // session 1, seq 2, tag 11 = ClockModel
+            0x03, // offset -2 (zig-zag varint)
+            0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0xf0, 0x3f, // skew 1.0 ppm (f64 LE)
+            0xac, 0x02, // error bound 300 ns
+            0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, // skew bound 0.0
+            0x05, // reference edge time
+            0x04, 0x06, // fitted exchanges from, to
+            0x06, // valid from edge time
+            0x01, // min delay
+            0x03, // exchanges
         ],
     );
 }
@@ -365,8 +400,9 @@ fn encode_rejects_frames_over_the_maximum() {
 #[test]
 fn encode_accepts_a_frame_of_exactly_the_maximum() {
     // payload = session 00, seq 00, tag 00, name (4-byte varint length + n), version "" 00,
-    // protocol 01, sensors 00 => 10 + n bytes; header 10 + 10 + n = MAX_FRAME_LEN.
-    let n = MAX_FRAME_LEN - 20;
+    // protocol 02, sensors 00, clock id 16 bytes => 26 + n bytes; header 10 + 26 + n =
+    // MAX_FRAME_LEN.
+    let n = MAX_FRAME_LEN - 36;
     let hello = Hello::new("y".repeat(n), "", Vec::new());
     let bytes = encode(&Frame::new(0, 0, hello)).unwrap();
     assert_eq!(bytes.len(), MAX_FRAME_LEN);

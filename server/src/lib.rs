@@ -1,7 +1,8 @@
 //! The scan3d server: ingest, pose, 3D assembly, occupancy octree and map metrics.
 //!
 //! Stages follow the data flow, one module each (see `ARCHITECTURE.md`); today:
-//! - [`ingest`]: QUIC server with mutual TLS, durable MCAP session recordings, time sync.
+//! - [`ingest`]: QUIC server with mutual TLS, durable MCAP session recordings.
+//! - [`pose`]: the edge clock's mapping to server time (time sync); scan matching comes here.
 //! - [`pipeline`]: per session, frames through assembly, filters, octree and metrics.
 //! - the octree, clouds and metrics are the pure `scan3d-map` crate, used here.
 //! - [`config`]: the daemon's `server.toml`.
@@ -12,3 +13,4 @@ pub mod cli;
 pub mod config;
 pub mod ingest;
 pub mod pipeline;
+pub mod pose;

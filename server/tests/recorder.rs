@@ -91,7 +91,7 @@ fn mixed_frames() -> Vec<(Frame, &'static str)> {
                 t2_ns: 5_100,
             }
             .into(),
-            "/scan3d/timesync",
+            "/scan3d/timepong",
         ),
         (
             DeviceStatus {
@@ -223,7 +223,7 @@ fn closed_files_satisfy_the_official_reader() {
         ("/scan3d/lidar/sweep", 1),
         ("/scan3d/imu", 1),
         ("/scan3d/stepper", 1),
-        ("/scan3d/timesync", 1),
+        ("/scan3d/timepong", 1),
         ("/scan3d/status", 1),
         ("/scan3d/heartbeat", 1),
         ("/scan3d/ack", 1),

@@ -17,6 +17,9 @@ pub const STREAM_RECEIVE_WINDOW: u32 = 2 * 1024 * 1024;
 /// Connection-wide receive window: 8 MiB, room for several busy streams.
 pub const RECEIVE_WINDOW: u32 = 8 * 1024 * 1024;
 
+/// Datagram receive and send buffers, bytes (time-sync datagrams only).
+pub const DATAGRAM_BUFFER: usize = 64 * 1024;
+
 /// The transport configuration of the link, the same at both ends.
 pub fn transport_config() -> quinn::TransportConfig {
     let mut transport = quinn::TransportConfig::default();
@@ -26,7 +29,11 @@ pub fn transport_config() -> quinn::TransportConfig {
             IDLE_TIMEOUT_MS,
         ))))
         .stream_receive_window(quinn::VarInt::from_u32(STREAM_RECEIVE_WINDOW))
-        .receive_window(quinn::VarInt::from_u32(RECEIVE_WINDOW));
+        .receive_window(quinn::VarInt::from_u32(RECEIVE_WINDOW))
+        // Time-sync pings and pongs travel as datagrams (a few dozen bytes each, one per
+        // second): a small buffer, and datagrams stay enabled whatever quinn's defaults become.
+        .datagram_receive_buffer_size(Some(DATAGRAM_BUFFER))
+        .datagram_send_buffer_size(DATAGRAM_BUFFER);
     transport
 }
 

@@ -6,6 +6,10 @@
 //! the spool only when the server acknowledges them (after they are on its disk). After a
 //! reconnect everything unacknowledged is sent again; the server ignores what it already has.
 //!
+//! Time-sync pings arrive as QUIC datagrams and are answered with a pong datagram at once
+//! ([`super::timesync::answer_ping`]): pongs never enter the spool, so a backlog cannot delay
+//! them and a reconnect never resends a stale one.
+//!
 //! A failed TLS authentication is told apart by who refused ([`classify`]): this edge's TLS
 //! stack rejecting the server's certificate (unknown CA, a name that is not `server_name`,
 //! expired…; a locally raised crypto error) is [`ConnectFailure::ServerCertificateRejected`];
@@ -18,7 +22,7 @@ use std::net::SocketAddr;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
-use scan3d_protocol::{Ack, Body, Command, Frame, FrameReader, TimePong, encode};
+use scan3d_protocol::{Ack, Body, Command, Frame, FrameReader, encode};
 use tokio::sync::{Notify, mpsc, watch};
 
 use super::spool::{Spool, SpoolConfig, SpoolError};
@@ -469,6 +473,7 @@ impl Uplink {
         self.inner.stats().connections += 1;
         self.inner.spool().rewind();
         let reader = tokio::spawn(read_from_server(recv, self.inner.clone()));
+        let pongs = tokio::spawn(answer_pings(connection.clone(), self.inner.clone()));
         let mut drain_until: Option<tokio::time::Instant> = None;
         let end = loop {
             // Send everything not yet sent on this connection, in order.
@@ -533,6 +538,7 @@ impl Uplink {
             }
         };
         reader.abort();
+        pongs.abort();
         end
     }
 }
@@ -555,18 +561,32 @@ async fn sleep_until_deadline(deadline: Option<tokio::time::Instant>) {
     }
 }
 
-/// Reads acks, time-sync pings and commands from the server until the stream ends.
+/// Answers the server's time-sync ping datagrams until the connection ends.
+async fn answer_pings(connection: quinn::Connection, inner: Arc<Inner>) {
+    while let Ok(datagram) = connection.read_datagram().await {
+        let received_ns = inner.clock.now_ns();
+        let pong = super::timesync::answer_ping(
+            &datagram,
+            received_ns,
+            inner.session_id,
+            inner.clock.as_ref(),
+        );
+        match pong.map(|pong| connection.send_datagram(pong.into())) {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => tracing::debug!(error = %e, "time-sync pong not sent"),
+            Err(e) => tracing::debug!(error = %e, "ignoring a datagram from the server"),
+        }
+    }
+}
+
+/// Reads acks and commands from the server until the stream ends.
 async fn read_from_server(mut recv: quinn::RecvStream, inner: Arc<Inner>) {
     let mut reader = FrameReader::new();
-    let handle = UplinkHandle {
-        inner: inner.clone(),
-    };
     loop {
         let chunk = match recv.read_chunk(64 * 1024, true).await {
             Ok(Some(chunk)) => chunk,
             Ok(None) | Err(_) => return,
         };
-        let received_ns = inner.clock.now_ns();
         reader.push(&chunk.bytes);
         loop {
             let frame = match reader.next_frame() {
@@ -590,15 +610,10 @@ async fn read_from_server(mut recv: quinn::RecvStream, inner: Arc<Inner>) {
                     inner.spool().ack_range(frame.session_id, first, last);
                     inner.stats().acks += 1;
                 }
-                Body::TimePing(ping) => {
-                    let pong = TimePong {
-                        t0_ns: ping.t0_ns,
-                        t1_ns: received_ns,
-                        t2_ns: inner.clock.now_ns(),
-                    };
-                    if let Err(e) = handle.submit(pong) {
-                        tracing::debug!(error = %e, "time-sync pong not sent");
-                    }
+                // Pings belong in datagrams: one on the stream went through a queue, so its
+                // timestamps say nothing about the path.
+                Body::TimePing(_) => {
+                    tracing::debug!("ignoring a time-sync ping on the stream");
                 }
                 Body::Command(command) => {
                     tracing::info!(?command, "command from the server");

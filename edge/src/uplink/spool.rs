@@ -1506,7 +1506,7 @@ mod tests {
         let mut spool = Spool::open(config(dir.path(), 0, 1_000, 1_000)).unwrap();
         // Frame { session_id: 1, seq: 2, body: Heartbeat { sent_ns: 3 } } from the protocol notes.
         let wire = vec![
-            0x53, 0x33, 0x44, 0x50, 0x01, 0x00, 0x04, 0, 0, 0, 0x01, 0x02, 0x07, 0x03,
+            0x53, 0x33, 0x44, 0x50, 0x02, 0x00, 0x04, 0, 0, 0, 0x01, 0x02, 0x07, 0x03,
         ];
         spool.push(1, 2, wire.clone()).unwrap();
         assert_eq!(spool.bytes_on_disk(), 28 + 14);

@@ -24,20 +24,17 @@ use scan3d_hw_sim::pair::Pair;
 use scan3d_hw_sim::rplidar::{RplidarEmulator, RplidarEmulatorConfig, RplidarModel};
 use scan3d_hw_sim::sweep::{SweepEmulator, SweepEmulatorConfig};
 use scan3d_hw_sim::world::World;
-use scan3d_protocol::{
-    Ack, Body, Command, DeviceStatus, Frame, Heartbeat, Hello, ImuSample, LidarRevolution,
-    MountInfo, SensorId, SensorInfo, StaticScan, StaticScanEnd, StaticScanOutcome,
-    StaticScanProblem, StaticScanStart, StaticScanWarning, StaticScanYaws, StatusEvent,
-    StepperState, TimePing, TimePong, YawRun, encode,
-};
 use scan3d_map::cloud::OriginScan;
 use scan3d_map::cloud::io::Encoding;
 use scan3d_map::cloud::pcd::write_pcd_scans;
 use scan3d_map::cloud::ply::write_ply_scans;
 use scan3d_map::cloud::scans_file::write_scans;
+use scan3d_map::octree::{Resolution, SensorModel, VoxelMap};
+use scan3d_protocol::{
+    Ack, Body, Command, DeviceStatus, Frame, Heartbeat, Hello, ImuSample, LidarRevolution, MountInfo, SensorId, SensorInfo, StaticScan, StaticScanEnd, StaticScanOutcome, StaticScanProblem, StaticScanStart, StaticScanWarning, StaticScanYaws, StatusEvent, StepperState, TimePing, TimePong, YawRun, encode, ClockModel,
+};
 use scan3d_server::ingest::control::ControlRequest;
 use scan3d_server::ingest::recorder::SessionRecorder;
-use scan3d_map::octree::{Resolution, SensorModel, VoxelMap};
 
 type Result<T> = std::result::Result<T, Box<dyn Error>>;
 
@@ -119,6 +116,22 @@ fn frames() -> Vec<(&'static str, Frame)> {
                 t0_ns: 7,
                 t1_ns: 8,
                 t2_ns: 9,
+            }
+            .into(),
+        ),
+        (
+            "clock_model",
+            ClockModel {
+                offset_ns: -3_000_000_000,
+                skew_ppm: 41.5,
+                error_bound_ns: 1_200_000,
+                skew_bound_ppm: 3.0,
+                ref_edge_ns: 90_000_000_000,
+                fit_from_edge_ns: 60_000_000_000,
+                fit_to_edge_ns: 94_000_000_000,
+                valid_from_edge_ns: 95_000_000_000,
+                min_delay_ns: 2_100_000,
+                exchanges: 14,
             }
             .into(),
         ),

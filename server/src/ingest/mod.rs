@@ -3,7 +3,6 @@
 //! - [`pki`]: the private CA, server certificate and edge bundles (`scan3d pair`).
 //! - [`tls`]: rustls/quinn configuration for mutual TLS, and the edge's identity.
 //! - [`recorder`]: MCAP session recordings, acknowledged only once durable.
-//! - [`timesync`]: NTP-style offset / round-trip estimates per edge.
 //! - [`server`]: the endpoint, one task per edge connection.
 //! - [`acks`]: which acknowledgements to send, from what is durable and what was acknowledged.
 //! - [`control`]: operator commands to connected edges, and the local control socket.
@@ -13,5 +12,4 @@ pub mod control;
 pub mod pki;
 pub mod recorder;
 pub mod server;
-pub mod timesync;
 pub mod tls;

@@ -77,7 +77,8 @@
 //! | `/scan3d/lidar/<sensor>` | [`Body::Revolution`] (`rplidar`, `sweep`; `sensor<N>` for an unknown id) | `t1_ns` (end of the revolution) |
 //! | `/scan3d/imu` | [`Body::Imu`] | `t_ns` |
 //! | `/scan3d/stepper` | [`Body::Stepper`] | `t_ns` |
-//! | `/scan3d/timesync` | [`Body::TimePong`]; `log_time` is the server's receive time t3 | `t2_ns` |
+//! | `/scan3d/timesync` | [`Body::ClockModel`]: the server's edge-clock model each time it changes ([`SessionRecorder::append_clock_model`]; read back with `pose::timesync::SessionClock`) | `valid_from_edge_ns` |
+//! | `/scan3d/timepong` | [`Body::TimePong`] that came on the stream (pongs belong in datagrams, which are not recorded) | `t2_ns` |
 //! | `/scan3d/status` | [`Body::Status`] | `t_ns` |
 //! | `/scan3d/heartbeat` | [`Body::Heartbeat`] from the edge | `sent_ns` |
 //! | `/scan3d/ack` | [`Body::Ack`] from the edge (it takes an edge sequence number too) | log time |
@@ -94,8 +95,8 @@
 //!
 //! # Sequence numbers
 //!
-//! Edge frames and server commands number their frames independently (see [`Frame`]), so the
-//! recorder keeps two sets: a frame is a duplicate when its `(session, direction, seq)` is already
+//! Edge frames and server-originated frames (commands, clock models) number their frames
+//! independently (see [`Frame`]), so the recorder keeps two sets: a frame is a duplicate when its `(session, direction, seq)` is already
 //! recorded, durable or buffered. Durable edge sequence numbers are tracked as ranges;
 //! [`SessionRecorder::commit`] returns the contiguous prefix, [`SessionRecorder::durable_ranges`]
 //! all of them.
@@ -257,19 +258,7 @@ pub enum Appended {
 
 /// The body type's name, as in [`Body`] (used in channel metadata and errors).
 pub fn body_name(body: &Body) -> &'static str {
-    match body {
-        Body::Hello(_) => "Hello",
-        Body::Revolution(_) => "Revolution",
-        Body::Imu(_) => "Imu",
-        Body::Stepper(_) => "Stepper",
-        Body::TimePing(_) => "TimePing",
-        Body::TimePong(_) => "TimePong",
-        Body::Ack(_) => "Ack",
-        Body::Heartbeat(_) => "Heartbeat",
-        Body::Status(_) => "Status",
-        Body::Command(_) => "Command",
-        Body::StaticScan(_) => "StaticScan",
-    }
+    body.name()
 }
 
 /// The MCAP topic a frame with this body is recorded on (see the module table). `TimePing` only
@@ -284,12 +273,13 @@ pub fn topic(body: &Body) -> String {
         Body::Imu(_) => "/scan3d/imu".into(),
         Body::Stepper(_) => "/scan3d/stepper".into(),
         Body::TimePing(_) => "/scan3d/timeping".into(),
-        Body::TimePong(_) => "/scan3d/timesync".into(),
+        Body::TimePong(_) => "/scan3d/timepong".into(),
         Body::Ack(_) => "/scan3d/ack".into(),
         Body::Heartbeat(_) => "/scan3d/heartbeat".into(),
         Body::Status(_) => "/scan3d/status".into(),
         Body::Command(_) => "/scan3d/command".into(),
         Body::StaticScan(_) => "/scan3d/static_scan".into(),
+        Body::ClockModel(_) => "/scan3d/timesync".into(),
     }
 }
 
@@ -308,6 +298,7 @@ fn edge_time_ns(body: &Body) -> Option<u64> {
             StaticScan::Warning(warning) => warning.t_ns,
             StaticScan::Finished(end) => end.t_ns,
         }),
+        Body::ClockModel(model) => Some(model.valid_from_edge_ns),
         Body::Hello(_) | Body::TimePing(_) | Body::Ack(_) | Body::Command(_) => None,
     }
 }
@@ -399,9 +390,16 @@ impl SeqSet {
     }
 }
 
-/// Deduplication key of a recorded frame: edge frames and server commands number separately.
+/// Deduplication key of a recorded frame: edge frames and server-originated ones number
+/// separately.
 fn dedup_key(frame: &Frame) -> (u64, bool) {
-    (frame.session_id, matches!(frame.body, Body::Command(_)))
+    (frame.session_id, server_originated(&frame.body))
+}
+
+/// Whether the server made this body (a command it sent, a clock model): numbered in the
+/// server's sequence, not the edge's.
+fn server_originated(body: &Body) -> bool {
+    matches!(body, Body::Command(_) | Body::ClockModel(_))
 }
 
 /// The message data of an undecodable frame (see the module documentation).
@@ -1151,7 +1149,7 @@ fn visit_files(
                 Item::OtherVersion(_) => true,
             };
             match &item {
-                Item::Frame(recorded) if !matches!(recorded.frame.body, Body::Command(_)) => {
+                Item::Frame(recorded) if !server_originated(&recorded.frame.body) => {
                     edge_seqs.insert(recorded.frame.seq);
                 }
                 Item::Frame(_) | Item::OtherVersion(_) => {}
@@ -1656,7 +1654,7 @@ fn recover(dir: &Path, session_id: u64) -> Result<Recovered, RecorderError> {
         let scan = visit_files(&unread, &mut |item| {
             match item {
                 Item::Frame(recorded) if recorded.frame.session_id == session_id => {
-                    if matches!(recorded.frame.body, Body::Command(_)) {
+                    if server_originated(&recorded.frame.body) {
                         commands.insert(recorded.frame.seq);
                     } else {
                         edge.insert(recorded.frame.seq);
@@ -1854,8 +1852,8 @@ impl SessionRecorder {
         self.durable.ranges()
     }
 
-    /// The lowest sequence number above every command recorded in this session, on any
-    /// connection: the server numbers its frames to the edge from here after a reconnect, so
+    /// The lowest sequence number above every command (and clock model) recorded in this
+    /// session, on any connection: the server numbers its frames to the edge from here after a reconnect, so
     /// a new command is never taken for a resend of an old one.
     pub fn next_command_seq(&self) -> u64 {
         self.commands
@@ -1938,8 +1936,33 @@ impl SessionRecorder {
         frame: &Frame,
         send_time_ns: u64,
     ) -> Result<Appended, RecorderError> {
+        self.append_server_frame(raw, frame, send_time_ns, |body| {
+            matches!(body, Body::Command(_))
+        })
+    }
+
+    /// Records a [`Body::ClockModel`] the server made, numbered in the same sequence as its
+    /// commands ([`SessionRecorder::next_command_seq`]); `log_time_ns` is when it was made.
+    pub fn append_clock_model(
+        &mut self,
+        raw: &[u8],
+        frame: &Frame,
+        log_time_ns: u64,
+    ) -> Result<Appended, RecorderError> {
+        self.append_server_frame(raw, frame, log_time_ns, |body| {
+            matches!(body, Body::ClockModel(_))
+        })
+    }
+
+    fn append_server_frame(
+        &mut self,
+        raw: &[u8],
+        frame: &Frame,
+        send_time_ns: u64,
+        expected: fn(&Body) -> bool,
+    ) -> Result<Appended, RecorderError> {
         self.check(frame)?;
-        if !matches!(frame.body, Body::Command(_)) {
+        if !expected(&frame.body) {
             return Err(RecorderError::Misdirected {
                 seq: frame.seq,
                 body: body_name(&frame.body),
@@ -2280,7 +2303,7 @@ mod tests {
                     t2_ns: 3,
                 }
                 .into(),
-                "/scan3d/timesync",
+                "/scan3d/timepong",
             ),
             (TimePing { t0_ns: 1 }.into(), "/scan3d/timeping"),
             (

@@ -2,15 +2,20 @@
 //! that records every frame durably and acknowledges it.
 //!
 //! One bidirectional stream per connection carries length-prefixed frames both ways
-//! (`scan3d_protocol` framing): edge → server data, server → edge acks, time-sync pings and
-//! commands. The task
+//! (`scan3d_protocol` framing): edge → server data, server → edge acks and commands. Time-sync
+//! pings and pongs go as QUIC datagrams instead (one frame each, unsequenced, never
+//! acknowledged or resent), so a backlog on the stream cannot delay them. The task
 //! - learns the edge's name from its client certificate (a connection without a valid one
 //!   never gets here: the TLS handshake refuses it);
 //! - appends each frame to its session's [`SessionRecorder`], ignoring duplicates (resends);
 //! - every `commit_interval` finishes the MCAP chunk, fsyncs, and acknowledges what became
 //!   durable in each session, as ranges ([`AckPlan`]): a frame is acknowledged only once it is
 //!   on disk, and a gap in the sequence numbers does not stop the acknowledgement of later ones;
-//! - every `time_sync_interval` pings the edge and keeps NTP-style offset estimates;
+//! - every `time_sync_interval` pings the edge in a datagram stamped with the server's
+//!   monotonic clock ([`ServerClock`]); each pong that answers a ping of this connection feeds
+//!   the edge's [`TimeSync`] estimator (kept across reconnects, reset when the edge's session
+//!   or its `Hello::clock_id` changes), and each new [`ClockModel`] is recorded in the pong's
+//!   session (`/scan3d/timesync`) and reported ([`IngestEvent::TimeSync`]);
 //! - rejects frames it cannot use (bad magic, unknown protocol version, over the size limit)
 //!   with a logged reason and closes the connection cleanly. A frame whose header is fine but
 //!   whose payload does not decode, or that carries a server → edge body, is recorded raw
@@ -48,8 +53,8 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use scan3d_protocol::{
-    Body, Command, DecodeError, Direction, Frame, HEADER_LEN, TimePing, decode, decode_header,
-    decode_ids, encode,
+    Body, Command, DecodeError, Direction, Frame, HEADER_LEN, decode, decode_header, decode_ids,
+    encode,
 };
 use tokio::sync::{OwnedSemaphorePermit, Semaphore, mpsc, watch};
 use tokio::task::JoinSet;
@@ -57,8 +62,10 @@ use tokio::task::JoinSet;
 use super::acks::AckPlan;
 use super::control::EdgeControl;
 use super::recorder::{Appended, SessionRecorder, body_name};
-use super::timesync::{Estimate, Exchange, TimeSync};
 use super::tls;
+use crate::pose::timesync::{
+    ClockModel, EdgeClock, MonotonicServerClock, Pinger, ServerClock, TimeSyncConfig,
+};
 
 /// QUIC application close codes the server uses.
 pub mod close_code {
@@ -156,14 +163,14 @@ pub enum IngestEvent {
         /// The decoded frame.
         frame: Frame,
     },
-    /// A new time-sync estimate for an edge session.
+    /// A new clock model for an edge session (also recorded in the session).
     TimeSync {
         /// The edge.
         edge: String,
         /// Its session.
         session_id: u64,
-        /// Offset and round trip.
-        estimate: Estimate,
+        /// How the session's edge clock maps to the server's monotonic clock.
+        model: ClockModel,
     },
     /// A connection ended.
     Disconnected {
@@ -222,6 +229,8 @@ pub struct IngestServer {
     endpoint: quinn::Endpoint,
     config: IngestConfig,
     control: EdgeControl,
+    clock: Arc<dyn ServerClock>,
+    time_sync: TimeSyncConfig,
 }
 
 impl IngestServer {
@@ -234,7 +243,21 @@ impl IngestServer {
             endpoint,
             config,
             control: EdgeControl::default(),
+            clock: Arc::new(MonotonicServerClock::new()),
+            time_sync: TimeSyncConfig::default(),
         })
+    }
+
+    /// Uses `clock` for time-sync t0/t3 instead of [`MonotonicServerClock`] (tests, simulation).
+    pub fn with_clock(mut self, clock: Arc<dyn ServerClock>) -> Self {
+        self.clock = clock;
+        self
+    }
+
+    /// Uses these time-sync estimator settings (e.g. another window) instead of the defaults.
+    pub fn with_time_sync(mut self, config: TimeSyncConfig) -> Self {
+        self.time_sync = config;
+        self
     }
 
     /// A handle that sends commands to the connected edges (e.g. to start a static scan).
@@ -262,6 +285,9 @@ impl IngestServer {
             control: self.control,
             next_connection_id: AtomicU64::new(0),
             recorders_open: AtomicUsize::new(0),
+            clock: self.clock,
+            time_sync: self.time_sync,
+            edge_clocks: Mutex::new(HashMap::new()),
         });
         let (stop_tx, stop_rx) = watch::channel(false);
         let handshakes = Arc::new(Semaphore::new(max_handshakes));
@@ -357,6 +383,12 @@ struct Shared {
     next_connection_id: AtomicU64,
     /// Session recordings open now, all edges together.
     recorders_open: AtomicUsize,
+    /// t0 and t3 of time-sync exchanges.
+    clock: Arc<dyn ServerClock>,
+    time_sync: TimeSyncConfig,
+    /// The clock estimator of each edge, by name: it outlives connections, so a reconnect
+    /// keeps the fit (one entry per paired edge at most).
+    edge_clocks: Mutex<HashMap<String, EdgeClock>>,
 }
 
 /// An edge's current connection and a way to wait until its task has closed its recordings.
@@ -613,8 +645,9 @@ struct EdgeConnection {
     sessions: HashMap<u64, OpenSession>,
     /// Next server → edge seq per session: kept for the open sessions and the current one.
     sent_seq: HashMap<u64, u64>,
-    time_sync: HashMap<u64, TimeSync>,
-    /// The most recent session seen on this connection: the one pinged for time sync.
+    /// Pings sent on this connection and not yet answered.
+    pinger: Pinger,
+    /// The most recent session seen on this connection: commands go to it.
     current_session: Option<u64>,
     buffer: Vec<u8>,
     /// Sum of the sessions' `buffered`.
@@ -634,7 +667,7 @@ impl EdgeConnection {
             liveness,
             sessions: HashMap::new(),
             sent_seq: HashMap::new(),
-            time_sync: HashMap::new(),
+            pinger: Pinger::default(),
             current_session: None,
             buffer: Vec::new(),
             buffered: 0,
@@ -701,9 +734,19 @@ impl EdgeConnection {
                     }
                 }
                 _ = ping_tick.tick() => {
-                    self.ping();
+                    self.ping(connection);
                     None
                 }
+                datagram = connection.read_datagram() => match datagram {
+                    Ok(datagram) => match self.on_datagram(&datagram) {
+                        Ok(()) => None,
+                        Err(reason) => {
+                            connection.close(close_code::STORAGE_ERROR.into(), reason.as_bytes());
+                            Some(reason)
+                        }
+                    },
+                    Err(e) => Some(format!("connection lost: {e}")),
+                },
                 // Commands wait until the edge has said which session it runs.
                 Some(command) = commands.recv(), if self.current_session.is_some() => {
                     match self.command(command) {
@@ -825,24 +868,8 @@ impl EdgeConnection {
         }
         let session_id = frame.session_id;
         let now = unix_now_ns();
-        if let Body::TimePong(pong) = &frame.body {
-            let exchange = Exchange {
-                t0_ns: pong.t0_ns,
-                t1_ns: pong.t1_ns,
-                t2_ns: pong.t2_ns,
-                t3_ns: now,
-            };
-            let sync = self.time_sync.entry(session_id).or_default();
-            if sync.add(exchange)
-                && let Some(estimate) = sync.estimate()
-            {
-                tracing::debug!(edge = %self.edge, offset_ms = estimate.offset_ns / 1e6, rtt_ms = estimate.delay_ns / 1e6, "time sync");
-                self.shared.emit(IngestEvent::TimeSync {
-                    edge: self.edge.clone(),
-                    session_id,
-                    estimate,
-                });
-            }
+        if let Body::Hello(hello) = &frame.body {
+            self.clock_identity(session_id, hello.clock_id);
         }
         if let Some(previous) = self.current_session
             && previous != session_id
@@ -952,7 +979,6 @@ impl EdgeConnection {
         );
         let closed = block(|| open.recorder.close());
         self.shared.recorder_closed();
-        self.time_sync.remove(&session_id);
         // Commands only go to the current session, whose numbering must go on.
         if self.current_session != Some(session_id) {
             self.sent_seq.remove(&session_id);
@@ -984,13 +1010,7 @@ impl EdgeConnection {
         let Some(session_id) = self.current_session else {
             return Ok(());
         };
-        // A new connection numbers its frames from 0, but the session may hold commands of
-        // earlier connections: go on above them, or the recorder takes this one for a resend.
-        let floor = self.session(session_id)?.recorder.next_command_seq();
-        let counter = self.sent_seq.entry(session_id).or_insert(0);
-        *counter = (*counter).max(floor);
-        let seq = next_seq(&mut self.sent_seq, session_id);
-        let frame = Frame::new(session_id, seq, command);
+        let frame = self.server_frame(session_id, command)?;
         let raw = encode(&frame).map_err(|e| format!("cannot encode a command: {e}"))?;
         let open = self.session(session_id)?;
         open.recorder
@@ -1001,16 +1021,90 @@ impl EdgeConnection {
         Ok(())
     }
 
-    fn ping(&mut self) {
-        if let Some(session_id) = self.current_session {
-            let seq = next_seq(&mut self.sent_seq, session_id);
-            self.outgoing.push(Frame::new(
-                session_id,
-                seq,
-                TimePing {
-                    t0_ns: unix_now_ns(),
-                },
-            ));
+    /// A server-originated frame of `session_id` with the next server sequence number.
+    fn server_frame(&mut self, session_id: u64, body: impl Into<Body>) -> Result<Frame, String> {
+        // A new connection numbers its frames from 0, but the session may hold commands (and
+        // clock models) of earlier connections: go on above them, or the recorder takes this
+        // one for a resend.
+        let floor = self.session(session_id)?.recorder.next_command_seq();
+        let counter = self.sent_seq.entry(session_id).or_insert(0);
+        *counter = (*counter).max(floor);
+        let seq = next_seq(&mut self.sent_seq, session_id);
+        Ok(Frame::new(session_id, seq, body))
+    }
+
+    /// Sends a time-sync ping as a datagram (the edge ignores its session id and seq, 0 before
+    /// the edge said which session it runs). A ping that cannot be sent costs one exchange.
+    fn ping(&mut self, connection: &quinn::Connection) {
+        let ping = self.pinger.ping(self.shared.clock.now_ns());
+        let frame = Frame::new(self.current_session.unwrap_or(0), 0, ping);
+        let sent = encode(&frame).map_err(|e| e.to_string()).and_then(|bytes| {
+            connection
+                .send_datagram(bytes.into())
+                .map_err(|e| e.to_string())
+        });
+        if let Err(e) = sent {
+            tracing::debug!(edge = %self.edge, error = %e, "time-sync ping not sent");
+        }
+    }
+
+    /// A datagram from the edge: a time-sync pong (anything else is logged and dropped; datagrams
+    /// are not recorded). `Err` only when the new clock model cannot be recorded.
+    fn on_datagram(&mut self, datagram: &[u8]) -> Result<(), String> {
+        let t3_ns = self.shared.clock.now_ns();
+        let frame = match decode(datagram) {
+            Ok((frame, len)) if len == datagram.len() => frame,
+            Ok(_) => {
+                tracing::debug!(edge = %self.edge, bytes = datagram.len(), "dropped a datagram with bytes after its frame");
+                return Ok(());
+            }
+            Err(e) => {
+                tracing::debug!(edge = %self.edge, error = %e, "dropped a datagram that is not a frame");
+                return Ok(());
+            }
+        };
+        let Body::TimePong(pong) = &frame.body else {
+            tracing::debug!(edge = %self.edge, body = body_name(&frame.body), "dropped a datagram that is not a time-sync pong");
+            return Ok(());
+        };
+        let Some(exchange) = self.pinger.pong(pong, t3_ns) else {
+            tracing::debug!(edge = %self.edge, t0_ns = pong.t0_ns, "dropped a pong that answers no ping of this connection");
+            return Ok(());
+        };
+        let session_id = frame.session_id;
+        let model = lock(&self.shared.edge_clocks)
+            .entry(self.edge.clone())
+            .or_insert_with(|| EdgeClock::new(session_id, self.shared.time_sync))
+            .on_exchange(session_id, exchange);
+        let Some(model) = model else {
+            tracing::debug!(edge = %self.edge, ?exchange, "ignored an exchange with inconsistent timestamps");
+            return Ok(());
+        };
+        tracing::debug!(edge = %self.edge, offset_ns = model.offset_ns, skew_ppm = model.skew_ppm,
+            error_bound_ns = model.error_bound_ns, rtt_ns = exchange.delay_ns(), "time sync");
+        let record = self.server_frame(session_id, model)?;
+        let raw = encode(&record).map_err(|e| format!("cannot encode a clock model: {e}"))?;
+        self.session(session_id)?
+            .recorder
+            .append_clock_model(&raw, &record, unix_now_ns())
+            .map_err(|e| format!("cannot record a clock model: {e}"))?;
+        self.shared.emit(IngestEvent::TimeSync {
+            edge: self.edge.clone(),
+            session_id,
+            model,
+        });
+        Ok(())
+    }
+
+    /// A `Hello` of `session_id` named its clock: the edge's estimator starts over when that is
+    /// not the clock it was fitting.
+    fn clock_identity(&mut self, session_id: u64, clock_id: [u8; 16]) {
+        let started_over = lock(&self.shared.edge_clocks)
+            .entry(self.edge.clone())
+            .or_insert_with(|| EdgeClock::new(session_id, self.shared.time_sync))
+            .on_hello(session_id, clock_id);
+        if started_over {
+            tracing::debug!(edge = %self.edge, session = format!("{session_id:016x}"), "a new edge clock: time sync starts over");
         }
     }
 
@@ -1075,7 +1169,8 @@ fn block<T>(work: impl FnOnce() -> T) -> T {
     }
 }
 
-/// Server wall clock, ns since the UNIX epoch (the clock of MCAP log times and time sync).
+/// Server wall clock, ns since the UNIX epoch (the clock of MCAP log times; time sync uses
+/// [`ServerClock`], which is monotonic).
 pub fn unix_now_ns() -> u64 {
     SystemTime::now()
         .duration_since(UNIX_EPOCH)
