@@ -407,3 +407,91 @@ fn the_map_command_refuses_whole_cloud_filters_on_a_session() {
     .unwrap_err();
     assert!(format!("{err:#}").contains("sor:8,1"), "{err:#}");
 }
+
+#[test]
+fn snapshot_filters_touch_the_written_cloud_only() {
+    let s = two_position_session();
+    let sor: scan3d_map::cloud::filter::Filter = "sor:8,0.5".parse().unwrap();
+    let base = PipelineSettings {
+        resolution_m: 0.1,
+        ..PipelineSettings::default()
+    };
+    let filtered = PipelineSettings {
+        snapshot_filters: vec![sor.clone()],
+        ..base.clone()
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let mut plain = SessionPipeline::new(&base).unwrap();
+    let mut smooth = SessionPipeline::new(&filtered).unwrap();
+    for f in s.frames() {
+        plain.on_frame(f);
+        smooth.on_frame(f);
+    }
+    let a = plain.write_snapshot(&tmp.path().join("a"), None).unwrap();
+    let b = smooth.write_snapshot(&tmp.path().join("b"), None).unwrap();
+    assert!(
+        read(&a.files[0]) == read(&b.files[0]),
+        "the octree is not filtered"
+    );
+    assert!(
+        b.points < a.points,
+        "SOR removed points: {} of {}",
+        b.points,
+        a.points
+    );
+    let expected = sor.apply(&plain.maps().cloud(None)).unwrap();
+    let mut ply = Vec::new();
+    scan3d_map::cloud::ply::write_ply_scans(&mut ply, &expected, io::Encoding::Binary).unwrap();
+    assert!(
+        read(&b.files[2]) == ply,
+        "cloud.ply is the cloud through the snapshot filters"
+    );
+}
+
+/// A stage that counts the rays handed to it.
+struct CountRays(std::sync::Arc<std::sync::atomic::AtomicU64>);
+
+impl scan3d_server::pipeline::Stage for CountRays {
+    fn on_frame(
+        &mut self,
+        ctx: &mut scan3d_server::pipeline::StageContext,
+        _frame: &scan3d_protocol::Frame,
+    ) {
+        let n: usize = ctx.rays.iter().map(|r| r.rays.points.len()).sum();
+        self.0
+            .fetch_add(n as u64, std::sync::atomic::Ordering::Relaxed);
+    }
+}
+
+#[test]
+fn an_added_stage_sees_every_filtered_origin_group() {
+    let count = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let settings = PipelineSettings {
+        resolution_m: 0.1,
+        revolution_filters: vec!["voxel:0.2".parse().unwrap()],
+        ..PipelineSettings::default()
+    };
+    let mut pipeline = SessionPipeline::new(&settings).unwrap();
+    pipeline.add_stage(Box::new(CountRays(count.clone())));
+    for f in two_position_session().frames() {
+        pipeline.on_frame(f);
+    }
+    let status = pipeline.status();
+    assert!(status.points > 0);
+    assert_eq!(
+        count.load(std::sync::atomic::Ordering::Relaxed),
+        status.points
+    );
+    let mut unfiltered = SessionPipeline::new(&PipelineSettings {
+        revolution_filters: vec![],
+        ..settings
+    })
+    .unwrap();
+    for f in two_position_session().frames() {
+        unfiltered.on_frame(f);
+    }
+    assert!(
+        status.points < unfiltered.status().points,
+        "the voxel grid thins each revolution"
+    );
+}
