@@ -26,10 +26,11 @@
 //!
 //! # Memory
 //!
-//! Bounded by the map, not the session: no frame is kept; the assembler forgets a static scan
-//! once it has finished and its rays were handed on (unless [`Products::static_scans`] asks to
-//! keep them, as `scan3d assemble` does); the cloud holds the filtered points (turn it off with
-//! [`Products::cloud`] when only the octree is wanted, as `scan3d map` does).
+//! Bounded by the map, not the session: no frame is kept; the assembler forgets the static
+//! scans that have finished (their rays handed on) when the next one starts, unless
+//! [`Products::static_scans`] asks to keep them, as `scan3d assemble` does; the cloud holds the
+//! filtered points (turn it off with [`Products::cloud`] when only the octree is wanted, as
+//! `scan3d map` does).
 
 mod metrics;
 pub mod offline;
