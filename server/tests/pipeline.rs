@@ -259,6 +259,12 @@ fn a_gap_and_an_undecodable_frame_are_skipped_and_counted_and_the_rest_is_mapped
         resolution_m: 0.1,
         ..PipelineSettings::default()
     };
+    let printed = run_cli(&["replay", arg(&session)]).unwrap();
+    assert!(
+        printed
+            .contains("skipped: 3 frames missing from the session, 2 undecodable, 0 out of order"),
+        "{printed}"
+    );
     let (mut pipeline, report) = run_session(&session, &settings, MAP_ONLY, false).unwrap();
     assert_eq!(report.undecodable_frames, 2);
     let status = pipeline.status();
