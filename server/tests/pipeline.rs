@@ -501,3 +501,82 @@ fn an_added_stage_sees_every_filtered_origin_group() {
         "the voxel grid thins each revolution"
     );
 }
+
+#[test]
+fn mapping_a_damaged_session_fails_unless_lenient_and_then_maps_the_readable_rest() {
+    let tmp = tempfile::tempdir().unwrap();
+    // Six static scans in about four chunks: a damaged chunk loses part of them.
+    let mut s = SessionBuilder::new(0xda);
+    for i in 0..6 {
+        s.static_scan(&position("door", 1.0 + 0.3 * i as f64, 1.0, 0.0), 20, 120);
+    }
+    let session = s.record(&tmp.path().join("data"), "pi");
+    let clean = tmp.path().join("clean.bt");
+    run_cli(&[
+        "map",
+        arg(&session),
+        "--res",
+        "0.1",
+        "--quiet",
+        "--out",
+        arg(&clean),
+    ])
+    .unwrap();
+    // One flipped bit in the middle of the second chunk breaks its CRC.
+    let file = session.join("0000.mcap");
+    let mut bytes = read(&file);
+    let chunks = chunk_bodies(&bytes);
+    assert!(chunks.len() >= 3, "{} chunks", chunks.len());
+    let (start, len) = chunks[1];
+    bytes[start + len / 2] ^= 0x10;
+    std::fs::write(&file, &bytes).unwrap();
+    let out = tmp.path().join("damaged.bt");
+    let err = run_cli(&["map", arg(&session), "--res", "0.1", "--out", arg(&out)]).unwrap_err();
+    let line = format!("{err:#}");
+    assert!(
+        line.contains("recording damaged") && line.contains("--lenient"),
+        "{line}"
+    );
+    assert!(
+        !out.exists(),
+        "nothing written from a damaged recording without --lenient"
+    );
+    let printed = run_cli(&[
+        "map",
+        arg(&session),
+        "--res",
+        "0.1",
+        "--lenient",
+        "--out",
+        arg(&out),
+    ])
+    .unwrap();
+    assert!(
+        printed.contains("frames missing from the session"),
+        "{printed}"
+    );
+    let (damaged, clean) = (read(&out), read(&clean));
+    assert!(damaged != clean, "the lost frames are missing from the map");
+    assert!(
+        Octree::read(&damaged, SensorModel::default())
+            .unwrap()
+            .num_occupied()
+            > 0
+    );
+}
+
+/// `(offset, length)` of every MCAP chunk record's body in `file` (records: opcode, u64 LE
+/// length, body; after the 8-byte magic).
+fn chunk_bodies(file: &[u8]) -> Vec<(usize, usize)> {
+    let mut chunks = Vec::new();
+    let mut at = 8;
+    while at + 9 <= file.len() {
+        let op = file[at];
+        let len = u64::from_le_bytes(file[at + 1..at + 9].try_into().unwrap()) as usize;
+        if op == 0x06 {
+            chunks.push((at + 9, len));
+        }
+        at += 9 + len;
+    }
+    chunks
+}
