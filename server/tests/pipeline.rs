@@ -259,6 +259,12 @@ fn a_gap_and_an_undecodable_frame_are_skipped_and_counted_and_the_rest_is_mapped
         resolution_m: 0.1,
         ..PipelineSettings::default()
     };
+    let printed = run_cli(&["replay", arg(&session)]).unwrap();
+    assert!(
+        printed
+            .contains("skipped: 3 frames missing from the session, 2 undecodable, 0 out of order"),
+        "{printed}"
+    );
     let (mut pipeline, report) = run_session(&session, &settings, MAP_ONLY, false).unwrap();
     assert_eq!(report.undecodable_frames, 2);
     let status = pipeline.status();
@@ -406,4 +412,171 @@ fn the_map_command_refuses_whole_cloud_filters_on_a_session() {
     ])
     .unwrap_err();
     assert!(format!("{err:#}").contains("sor:8,1"), "{err:#}");
+}
+
+#[test]
+fn snapshot_filters_touch_the_written_cloud_only() {
+    let s = two_position_session();
+    let sor: scan3d_map::cloud::filter::Filter = "sor:8,0.5".parse().unwrap();
+    let base = PipelineSettings {
+        resolution_m: 0.1,
+        ..PipelineSettings::default()
+    };
+    let filtered = PipelineSettings {
+        snapshot_filters: vec![sor.clone()],
+        ..base.clone()
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let mut plain = SessionPipeline::new(&base).unwrap();
+    let mut smooth = SessionPipeline::new(&filtered).unwrap();
+    for f in s.frames() {
+        plain.on_frame(f);
+        smooth.on_frame(f);
+    }
+    let a = plain.write_snapshot(&tmp.path().join("a"), None).unwrap();
+    let b = smooth.write_snapshot(&tmp.path().join("b"), None).unwrap();
+    assert!(
+        read(&a.files[0]) == read(&b.files[0]),
+        "the octree is not filtered"
+    );
+    assert!(
+        b.points < a.points,
+        "SOR removed points: {} of {}",
+        b.points,
+        a.points
+    );
+    let expected = sor.apply(&plain.maps().cloud(None)).unwrap();
+    let mut ply = Vec::new();
+    scan3d_map::cloud::ply::write_ply_scans(&mut ply, &expected, io::Encoding::Binary).unwrap();
+    assert!(
+        read(&b.files[2]) == ply,
+        "cloud.ply is the cloud through the snapshot filters"
+    );
+}
+
+/// A stage that counts the rays handed to it.
+struct CountRays(std::sync::Arc<std::sync::atomic::AtomicU64>);
+
+impl scan3d_server::pipeline::Stage for CountRays {
+    fn on_frame(
+        &mut self,
+        ctx: &mut scan3d_server::pipeline::StageContext,
+        _frame: &scan3d_protocol::Frame,
+    ) {
+        let n: usize = ctx.rays.iter().map(|r| r.rays.points.len()).sum();
+        self.0
+            .fetch_add(n as u64, std::sync::atomic::Ordering::Relaxed);
+    }
+}
+
+#[test]
+fn an_added_stage_sees_every_filtered_origin_group() {
+    let count = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let settings = PipelineSettings {
+        resolution_m: 0.1,
+        revolution_filters: vec!["voxel:0.2".parse().unwrap()],
+        ..PipelineSettings::default()
+    };
+    let mut pipeline = SessionPipeline::new(&settings).unwrap();
+    pipeline.add_stage(Box::new(CountRays(count.clone())));
+    for f in two_position_session().frames() {
+        pipeline.on_frame(f);
+    }
+    let status = pipeline.status();
+    assert!(status.points > 0);
+    assert_eq!(
+        count.load(std::sync::atomic::Ordering::Relaxed),
+        status.points
+    );
+    let mut unfiltered = SessionPipeline::new(&PipelineSettings {
+        revolution_filters: vec![],
+        ..settings
+    })
+    .unwrap();
+    for f in two_position_session().frames() {
+        unfiltered.on_frame(f);
+    }
+    assert!(
+        status.points < unfiltered.status().points,
+        "the voxel grid thins each revolution"
+    );
+}
+
+#[test]
+fn mapping_a_damaged_session_fails_unless_lenient_and_then_maps_the_readable_rest() {
+    let tmp = tempfile::tempdir().unwrap();
+    // Six static scans in about four chunks: a damaged chunk loses part of them.
+    let mut s = SessionBuilder::new(0xda);
+    for i in 0..6 {
+        s.static_scan(&position("door", 1.0 + 0.3 * i as f64, 1.0, 0.0), 20, 120);
+    }
+    let session = s.record(&tmp.path().join("data"), "pi");
+    let clean = tmp.path().join("clean.bt");
+    run_cli(&[
+        "map",
+        arg(&session),
+        "--res",
+        "0.1",
+        "--quiet",
+        "--out",
+        arg(&clean),
+    ])
+    .unwrap();
+    // One flipped bit in the middle of the second chunk breaks its CRC.
+    let file = session.join("0000.mcap");
+    let mut bytes = read(&file);
+    let chunks = chunk_bodies(&bytes);
+    assert!(chunks.len() >= 3, "{} chunks", chunks.len());
+    let (start, len) = chunks[1];
+    bytes[start + len / 2] ^= 0x10;
+    std::fs::write(&file, &bytes).unwrap();
+    let out = tmp.path().join("damaged.bt");
+    let err = run_cli(&["map", arg(&session), "--res", "0.1", "--out", arg(&out)]).unwrap_err();
+    let line = format!("{err:#}");
+    assert!(
+        line.contains("recording damaged") && line.contains("--lenient"),
+        "{line}"
+    );
+    assert!(
+        !out.exists(),
+        "nothing written from a damaged recording without --lenient"
+    );
+    let printed = run_cli(&[
+        "map",
+        arg(&session),
+        "--res",
+        "0.1",
+        "--lenient",
+        "--out",
+        arg(&out),
+    ])
+    .unwrap();
+    assert!(
+        printed.contains("frames missing from the session"),
+        "{printed}"
+    );
+    let (damaged, clean) = (read(&out), read(&clean));
+    assert!(damaged != clean, "the lost frames are missing from the map");
+    assert!(
+        Octree::read(&damaged, SensorModel::default())
+            .unwrap()
+            .num_occupied()
+            > 0
+    );
+}
+
+/// `(offset, length)` of every MCAP chunk record's body in `file` (records: opcode, u64 LE
+/// length, body; after the 8-byte magic).
+fn chunk_bodies(file: &[u8]) -> Vec<(usize, usize)> {
+    let mut chunks = Vec::new();
+    let mut at = 8;
+    while at + 9 <= file.len() {
+        let op = file[at];
+        let len = u64::from_le_bytes(file[at + 1..at + 9].try_into().unwrap()) as usize;
+        if op == 0x06 {
+            chunks.push((at + 9, len));
+        }
+        at += 9 + len;
+    }
+    chunks
 }

@@ -101,6 +101,10 @@ pub struct MapArgs {
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
+    /// For a session directory: go on with the readable rest of a damaged recording (with a
+    /// warning) instead of failing.
+    #[arg(long)]
+    pub lenient: bool,
 }
 
 impl MapArgs {
@@ -278,8 +282,13 @@ fn run_session(args: &MapArgs, out: &mut dyn Write) -> anyhow::Result<()> {
     if args.max_range == 0.0 {
         anyhow::bail!("--max-range 0 would cut every ray (use a negative value for no limit)");
     }
-    let (pipeline, _report) = run_session_pipeline(&args.input, &settings, MAP_ONLY, false)
-        .with_context(|| format!("cannot map the session {}", args.input.display()))?;
+    let (pipeline, _report) = run_session_pipeline(&args.input, &settings, MAP_ONLY, args.lenient)
+        .with_context(|| {
+            format!(
+                "cannot map the session {} (--lenient maps what is readable)",
+                args.input.display()
+            )
+        })?;
     let mut pipeline = pipeline;
     let status = pipeline.status();
     writeln!(

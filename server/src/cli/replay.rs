@@ -83,6 +83,14 @@ pub fn run(args: &ReplayArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         "replayed {frames} frames from {}",
         args.session_dir.display()
     )?;
+    let status = pipeline.status();
+    if status.missing_frames + status.undecodable_frames + status.stale_frames > 0 {
+        writeln!(
+            out,
+            "skipped: {} frames missing from the session, {} undecodable, {} out of order",
+            status.missing_frames, status.undecodable_frames, status.stale_frames
+        )?;
+    }
     let collector = pipeline
         .revolution_points()
         .context("the replay pipeline collects revolutions")?;

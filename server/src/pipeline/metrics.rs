@@ -18,6 +18,16 @@ pub fn load_reference(path: &Path, res: &Resolution) -> Result<LeafMap, Pipeline
     let bytes = std::fs::read(path).map_err(|e| unreadable(e.to_string()))?;
     let reference = LeafMap::read(&bytes, SensorModel::default())
         .map_err(|e| unreadable(format!("not a readable OctoMap .bt/.ot file: {e}")))?;
+    check_resolution(&reference, res, path)?;
+    Ok(reference)
+}
+
+/// Checks that the reference read from `path` has voxels of `res` (within 1e-9 m).
+pub(super) fn check_resolution(
+    reference: &LeafMap,
+    res: &Resolution,
+    path: &Path,
+) -> Result<(), PipelineError> {
     let (found, expected) = (reference.resolution().meters(), res.meters());
     if (found - expected).abs() > 1e-9 {
         return Err(PipelineError::ReferenceResolution {
@@ -26,7 +36,7 @@ pub fn load_reference(path: &Path, res: &Resolution) -> Result<LeafMap, Pipeline
             expected,
         });
     }
-    Ok(reference)
+    Ok(())
 }
 
 /// The metrics' view of `tree` as its `.bt` file holds it (max-likelihood values), so the

@@ -26,10 +26,11 @@
 //!
 //! # Memory
 //!
-//! Bounded by the map, not the session: no frame is kept; the assembler forgets a static scan
-//! once it has finished and its rays were handed on (unless [`Products::static_scans`] asks to
-//! keep them, as `scan3d assemble` does); the cloud holds the filtered points (turn it off with
-//! [`Products::cloud`] when only the octree is wanted, as `scan3d map` does).
+//! Bounded by the map, not the session: no frame is kept; the assembler forgets the static
+//! scans that have finished (their rays handed on) when the next one starts, unless
+//! [`Products::static_scans`] asks to keep them, as `scan3d assemble` does; the cloud holds the
+//! filtered points (turn it off with [`Products::cloud`] when only the octree is wanted, as
+//! `scan3d map` does).
 
 mod metrics;
 pub mod offline;
@@ -37,6 +38,7 @@ mod snapshot;
 mod stages;
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use serde::Serialize;
@@ -275,7 +277,7 @@ struct Refreshed {
 pub struct SessionPipeline {
     settings: PipelineSettings,
     products: Products,
-    reference: Option<LeafMap>,
+    reference: Option<Arc<LeafMap>>,
     revolutions_2d: Option<RevolutionStage>,
     assembly: AssemblyStage,
     filters: FilterStage,
@@ -315,14 +317,37 @@ impl SessionPipeline {
     ) -> Result<Self, PipelineError> {
         let res = Resolution::new(settings.resolution_m)?;
         if let Some(max) = settings.max_range_m
-            && !(max > 0.0)
+            && (max.is_nan() || max <= 0.0)
         {
             return Err(PipelineError::MaxRange(max));
         }
         let reference = match &settings.reference {
-            Some(path) => Some(load_reference(path, &res)?),
+            Some(path) => Some(Arc::new(load_reference(path, &res)?)),
             None => None,
         };
+        Self::with_reference(settings, products, reference)
+    }
+
+    /// A pipeline keeping `products` that compares against `reference` (loaded once with
+    /// [`load_reference`] and shared by every session) instead of reading `settings.reference`.
+    pub fn with_reference(
+        settings: &PipelineSettings,
+        products: Products,
+        reference: Option<Arc<LeafMap>>,
+    ) -> Result<Self, PipelineError> {
+        let res = Resolution::new(settings.resolution_m)?;
+        if let Some(max) = settings.max_range_m
+            && (max.is_nan() || max <= 0.0)
+        {
+            return Err(PipelineError::MaxRange(max));
+        }
+        if let Some(reference) = &reference {
+            let path = settings
+                .reference
+                .as_deref()
+                .unwrap_or(Path::new("(shared)"));
+            metrics::check_resolution(reference, &res, path)?;
+        }
         Ok(SessionPipeline {
             settings: settings.clone(),
             products,
@@ -481,7 +506,7 @@ impl SessionPipeline {
 
     /// The reference map, when one is configured.
     pub fn reference(&self) -> Option<&LeafMap> {
-        self.reference.as_ref()
+        self.reference.as_deref()
     }
 
     /// Takes the assembly stage's static scans (with [`Products::static_scans`]), in start order.
@@ -495,3 +520,82 @@ const _: fn() = || {
     fn is_send<T: Send>() {}
     is_send::<SessionPipeline>();
 };
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use scan3d_protocol::{Command, Heartbeat, LidarRevolution, SensorId};
+
+    fn heartbeat(seq: u64) -> Frame {
+        Frame::new(1, seq, Heartbeat { sent_ns: seq })
+    }
+
+    #[test]
+    fn sequence_numbers_count_gaps_stale_frames_and_undecodable_ones() {
+        let mut p = SessionPipeline::new(&PipelineSettings::default()).unwrap();
+        p.on_frame(&heartbeat(0));
+        p.on_frame(&heartbeat(1));
+        p.on_frame(&heartbeat(5)); // 2, 3, 4 missing
+        p.on_frame(&heartbeat(3)); // late: skipped
+        p.on_undecodable(6);
+        p.on_frame(&heartbeat(7));
+        p.on_frame(&heartbeat(7)); // duplicate: skipped
+        let s = p.status();
+        assert_eq!(
+            (
+                s.frames,
+                s.missing_frames,
+                s.stale_frames,
+                s.undecodable_frames
+            ),
+            (4, 3, 2, 1)
+        );
+    }
+
+    #[test]
+    fn a_session_that_starts_late_counts_the_frames_before_it_as_missing() {
+        let mut p = SessionPipeline::new(&PipelineSettings::default()).unwrap();
+        p.on_frame(&heartbeat(4));
+        assert_eq!(p.status().missing_frames, 4);
+    }
+
+    #[test]
+    fn server_commands_have_their_own_numbers_and_are_not_processed() {
+        let mut p = SessionPipeline::new(&PipelineSettings::default()).unwrap();
+        p.on_frame(&heartbeat(0));
+        p.on_frame(&Frame::new(1, 0, Command::StopStaticScan));
+        p.on_frame(&heartbeat(1));
+        let s = p.status();
+        assert_eq!((s.frames, s.stale_frames, s.missing_frames), (2, 0, 0));
+    }
+
+    #[test]
+    fn revolutions_and_their_samples_are_counted_for_both_lidars() {
+        let mut p = SessionPipeline::new(&PipelineSettings::default()).unwrap();
+        for (seq, sensor, n) in [(0, SensorId::RPLIDAR, 3), (1, SensorId::SWEEP, 2)] {
+            let mut rev = LidarRevolution::new(sensor, 0, 1_000);
+            for i in 0..n {
+                rev.push(i as f32, 1.0, 10, i).unwrap();
+            }
+            p.on_frame(&Frame::new(1, seq, rev));
+        }
+        let s = p.status();
+        assert_eq!((s.revolutions, s.samples, s.points), (2, 5, 0));
+    }
+
+    #[test]
+    fn bad_settings_are_refused_with_what_is_wrong() {
+        let bad_res = PipelineSettings {
+            resolution_m: 0.0,
+            ..PipelineSettings::default()
+        };
+        let err = SessionPipeline::new(&bad_res).unwrap_err();
+        assert!(err.to_string().contains("resolution"), "{err}");
+        let bad_range = PipelineSettings {
+            max_range_m: Some(f64::NAN),
+            ..PipelineSettings::default()
+        };
+        let err = SessionPipeline::new(&bad_range).unwrap_err();
+        assert!(matches!(err, PipelineError::MaxRange(_)), "{err}");
+    }
+}

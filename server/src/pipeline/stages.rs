@@ -44,9 +44,9 @@ impl Stage for RevolutionStage {
 /// Static-scan assembly by eq. 1: every body goes to the assembler, and the origin groups it
 /// completes go on in [`StageContext::rays`].
 ///
-/// Unless asked to keep them, a static scan is forgotten once it has finished and its groups
-/// were handed on: the assembler starts afresh when every scan it holds has ended, so its
-/// memory is bounded by one static scan, not the session.
+/// Unless asked to keep them, static scans are forgotten once they have finished and their
+/// groups were handed on: when the next scan starts and every scan held has ended, the
+/// assembler starts afresh, so its memory is bounded by one static scan, not the session.
 #[derive(Debug)]
 pub struct AssemblyStage {
     assembler: StaticScanAssembler,
@@ -91,14 +91,16 @@ impl AssemblyStage {
 
 impl Stage for AssemblyStage {
     fn on_frame(&mut self, ctx: &mut StageContext, frame: &Frame) {
-        self.assembler.on_body(&frame.body);
-        ctx.rays.extend(self.assembler.take_new());
-        let finished = matches!(frame.body, Body::StaticScan(StaticScan::Finished(_)));
-        if !self.keep && finished && self.assembler.scans().iter().all(|s| s.outcome.is_some()) {
+        // Forget the finished scans when the next one starts, not when they finish: the last
+        // revolution of a scan and its yaws may still come after its end message.
+        let starts = matches!(frame.body, Body::StaticScan(StaticScan::Started(_)));
+        if !self.keep && starts && self.assembler.scans().iter().all(|s| s.outcome.is_some()) {
             let done = std::mem::take(&mut self.assembler);
             self.forgotten_orphans += done.orphan_samples();
             self.forgotten_scans += done.scans().len() as u64;
         }
+        self.assembler.on_body(&frame.body);
+        ctx.rays.extend(self.assembler.take_new());
     }
 }
 

@@ -13,8 +13,11 @@ use scan3d_protocol::{
 };
 use scan3d_server::ingest::recorder::{SessionRecorder, session_dir};
 
-/// The room: an axis-aligned box, metres.
+/// The default room: an axis-aligned box, metres.
 pub const ROOM: ([f64; 3], [f64; 3]) = ([0.0, 0.0, 0.0], [4.0, 3.0, 2.5]);
+
+/// The simulator's conference room's size (the demo's maps), metres.
+pub const DEMO_ROOM: ([f64; 3], [f64; 3]) = ([0.0, 0.0, 0.0], [8.0, 6.0, 3.0]);
 
 /// The mount every synthetic static scan uses.
 pub const MOUNT: MountGeometry = MountGeometry {
@@ -23,9 +26,9 @@ pub const MOUNT: MountGeometry = MountGeometry {
     azimuth_zero_deg: 0.0,
 };
 
-/// Distance from `o` along the unit vector `d` to the room's walls (from inside).
-pub fn range_to_walls(o: [f64; 3], d: [f64; 3]) -> f64 {
-    let (lo, hi) = ROOM;
+/// Distance from `o` along the unit vector `d` to the walls of `room` (from inside).
+pub fn range_to_walls(room: ([f64; 3], [f64; 3]), o: [f64; 3], d: [f64; 3]) -> f64 {
+    let (lo, hi) = room;
     (0..3)
         .filter(|&a| d[a].abs() > 1e-12)
         .map(|a| {
@@ -51,17 +54,24 @@ pub struct SessionBuilder {
     seq: u64,
     t_ns: u64,
     scan_id: u32,
+    room: ([f64; 3], [f64; 3]),
     pub items: Vec<Recorded>,
 }
 
 impl SessionBuilder {
-    /// An empty session.
+    /// An empty session in [`ROOM`].
     pub fn new(session_id: u64) -> Self {
+        Self::in_room(session_id, ROOM)
+    }
+
+    /// An empty session in `room` (min and max corner).
+    pub fn in_room(session_id: u64, room: ([f64; 3], [f64; 3])) -> Self {
         SessionBuilder {
             session_id,
             seq: 0,
             t_ns: 1_000_000_000,
             scan_id: 0,
+            room,
             items: Vec::new(),
         }
     }
@@ -92,7 +102,7 @@ impl SessionBuilder {
                 let angle = 360.0 * i as f64 / samples as f64;
                 // RPLidar angles are clockwise.
                 let a = (-angle).to_radians();
-                let r = range_to_walls([2.0, 1.5, 0.2], [a.cos(), a.sin(), 0.0]);
+                let r = range_to_walls(self.room, [2.0, 1.5, 0.2], [a.cos(), a.sin(), 0.0]);
                 let range = if i % 17 == 0 { 0.0 } else { r as f32 };
                 rev.push(
                     angle as f32,
@@ -154,7 +164,7 @@ impl SessionBuilder {
                 let range = if i % 23 == 5 {
                     0.0
                 } else {
-                    range_to_walls(o, d) as f32
+                    range_to_walls(self.room, o, d) as f32
                 };
                 sweep
                     .push(azimuth as f32, range, 90, t)
