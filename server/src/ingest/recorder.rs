@@ -1345,6 +1345,11 @@ pub fn visit_session_items(
     let scan = visit_files(&files, &mut |item| match item {
         Item::Frame(recorded) => visit(SessionItem::Frame(recorded)),
         Item::Undecodable(undecodable) => visit(SessionItem::Undecodable(undecodable)),
+        Item::OtherVersion(version) => Err(RecorderError::ProtocolVersion {
+            dir: session_dir.to_path_buf(),
+            version,
+            supported: PROTOCOL_VERSION,
+        }),
     })?;
     Ok(scan.report)
 }

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use scan3d_map::cloud::assembly::{MountGeometry, Position, sensor_origin};
 use scan3d_protocol::{
     Body, Frame, LidarRevolution, MountInfo, SensorId, StaticScan, StaticScanEnd,
-    StaticScanOutcome, StaticScanSamples, StaticScanStart, TaggedSweepSample, encode,
+    StaticScanOutcome, StaticScanStart, StaticScanYaws, YawRun, encode,
 };
 use scan3d_server::ingest::recorder::{SessionRecorder, session_dir};
 
@@ -142,12 +142,12 @@ impl SessionBuilder {
         }));
         let mut tagged_total = 0u64;
         for r in 0..revolutions {
-            let mut sweep =
-                LidarRevolution::new(SensorId::SWEEP, self.t_ns, self.t_ns + 200_000_000);
-            let mut tagged = Vec::new();
+            let t0 = self.t_ns;
+            let mut sweep = LidarRevolution::new(SensorId::SWEEP, t0, t0 + 200_000_000);
+            let mut runs: Vec<YawRun> = Vec::new();
             for i in 0..samples {
                 let azimuth = 360.0 * f64::from(i) / f64::from(samples);
-                let t = self.t_ns + u64::from(i) * 200_000_000 / u64::from(samples);
+                let t = t0 + u64::from(i) * 200_000_000 / u64::from(samples);
                 let yaw = if azimuth < 180.0 {
                     step * f64::from(r)
                 } else {
@@ -172,20 +172,23 @@ impl SessionBuilder {
                 if (150.0..=210.0).contains(&azimuth) {
                     continue;
                 }
-                tagged.push(TaggedSweepSample {
-                    azimuth_deg: azimuth as f32,
-                    range_m: range,
-                    quality: 90,
-                    yaw_deg: yaw as f32,
-                });
+                tagged_total += 1;
+                match runs.last_mut() {
+                    Some(run) if run.yaw_deg == yaw as f32 && run.first_index + run.count == i => {
+                        run.count += 1;
+                    }
+                    _ => runs.push(YawRun {
+                        first_index: i,
+                        count: 1,
+                        yaw_deg: yaw as f32,
+                    }),
+                }
             }
-            tagged_total += tagged.len() as u64;
             self.push(sweep);
-            self.push(StaticScan::Samples(StaticScanSamples {
+            self.push(StaticScan::Yaws(StaticScanYaws {
                 scan_id,
-                revolution: r,
-                t_ns: self.t_ns,
-                samples: tagged,
+                revolution_t0_ns: t0,
+                runs,
             }));
             self.t_ns += 200_000_000;
         }
