@@ -4,9 +4,9 @@
 
 use proptest::prelude::*;
 use scan3d_protocol::{
-    Ack, Body, Command, DecodeError, DeviceStatus, Frame, FrameReader, HEADER_LEN, Heartbeat,
-    Hello, ImuSample, LidarRevolution, MountInfo, RevolutionSample, SensorId, SensorInfo,
-    StaticScan, StaticScanEnd, StaticScanOutcome, StaticScanProblem, StaticScanStart,
+    Ack, Body, ClockModel, Command, DecodeError, DeviceStatus, Frame, FrameReader, HEADER_LEN,
+    Heartbeat, Hello, ImuSample, LidarRevolution, MountInfo, RevolutionSample, SensorId,
+    SensorInfo, StaticScan, StaticScanEnd, StaticScanOutcome, StaticScanProblem, StaticScanStart,
     StaticScanWarning, StaticScanYaws, StatusEvent, StepperState, TimePing, TimePong, YawRun,
     decode, encode,
 };

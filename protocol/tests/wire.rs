@@ -2,11 +2,11 @@
 //! format (LEB128 varints, zig-zag for signed, little-endian floats, varint enum tags).
 
 use scan3d_protocol::{
-    Ack, Body, Command, DecodeError, DeviceStatus, EncodeError, Frame, FrameHeader, FrameReader,
-    HEADER_LEN, Heartbeat, Hello, ImuSample, LidarRevolution, MAX_FRAME_LEN, PROTOCOL_VERSION,
-    RevolutionSample, SensorId, SensorInfo, StaticScan, StaticScanProblem, StaticScanWarning,
-    StaticScanYaws, StatusEvent, StepperState, TimePing, TimePong, YawRun, decode, decode_header,
-    encode,
+    Ack, Body, ClockModel, Command, DecodeError, DeviceStatus, Direction, EncodeError, Frame,
+    FrameHeader, FrameReader, HEADER_LEN, Heartbeat, Hello, ImuSample, LidarRevolution,
+    MAX_FRAME_LEN, PROTOCOL_VERSION, RevolutionSample, SensorId, SensorInfo, StaticScan,
+    StaticScanProblem, StaticScanWarning, StaticScanYaws, StatusEvent, StepperState, TimePing,
+    TimePong, YawRun, decode, decode_header, encode,
 };
 
 /// `S3DP`, version 1 LE.
