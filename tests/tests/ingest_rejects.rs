@@ -177,7 +177,7 @@ fn bad_frames_close_the_connection_cleanly_and_the_server_keeps_serving() {
     site.runtime.block_on(async {
         // Another protocol version: refused by the header alone.
         let mut client = connect(addr, bundle).await;
-        client.send.write_all(&header(2, 1)).await.expect("write");
+        client.send.write_all(&header(PROTOCOL_VERSION + 1, 1)).await.expect("write");
         // The server may have closed the connection on the header alone already.
         let _ = client.send.write_all(&[0]).await;
         let (code, reason) = client.closed_by_server().await;
@@ -188,7 +188,7 @@ fn bad_frames_close_the_connection_cleanly_and_the_server_keeps_serving() {
         let mut client = connect(addr, bundle).await;
         client
             .send
-            .write_all(&header(1, 5 << 20))
+            .write_all(&header(PROTOCOL_VERSION, 5 << 20))
             .await
             .expect("write");
         let (code, reason) = client.closed_by_server().await;
@@ -198,7 +198,7 @@ fn bad_frames_close_the_connection_cleanly_and_the_server_keeps_serving() {
         // A good header with a payload from which not even the seq can be read: dropped and
         // counted (nothing to acknowledge); the connection stays usable.
         let mut client = connect(addr, bundle).await;
-        let mut garbage = header(1, 3);
+        let mut garbage = header(PROTOCOL_VERSION, 3);
         garbage.extend_from_slice(&[0xff, 0xff, 0xff]);
         client.send.write_all(&garbage).await.expect("write");
         assert!(
