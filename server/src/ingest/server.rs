@@ -174,6 +174,14 @@ pub enum IngestEvent {
     },
 }
 
+/// A consumer of what ingest reports that must never make ingest wait (the live pipeline,
+/// `pipeline::live`, which queues frames with `try_send`). Called on the connection's task, in
+/// recording order: a frame is reported once, when the recorder accepted it (not a duplicate).
+pub trait IngestSink: Send + Sync {
+    /// Takes one event; must return at once.
+    fn on_event(&self, event: IngestEvent);
+}
+
 /// Counters over the server's lifetime.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct IngestStats {
@@ -222,6 +230,7 @@ pub struct IngestServer {
     endpoint: quinn::Endpoint,
     config: IngestConfig,
     control: EdgeControl,
+    sink: Option<Arc<dyn IngestSink>>,
 }
 
 impl IngestServer {
@@ -234,7 +243,14 @@ impl IngestServer {
             endpoint,
             config,
             control: EdgeControl::default(),
+            sink: None,
         })
+    }
+
+    /// Also reports every event to `sink` (besides the `events` channel of [`run`](Self::run)).
+    pub fn with_sink(mut self, sink: Arc<dyn IngestSink>) -> Self {
+        self.sink = Some(sink);
+        self
     }
 
     /// A handle that sends commands to the connected edges (e.g. to start a static scan).
@@ -257,6 +273,7 @@ impl IngestServer {
         let shared = Arc::new(Shared {
             config: self.config,
             events,
+            sink: self.sink,
             stats: Mutex::new(IngestStats::default()),
             edges: Mutex::new(HashMap::new()),
             control: self.control,
@@ -348,6 +365,7 @@ fn admission(
 struct Shared {
     config: IngestConfig,
     events: Option<mpsc::UnboundedSender<IngestEvent>>,
+    sink: Option<Arc<dyn IngestSink>>,
     stats: Mutex<IngestStats>,
     /// The live connection of each authenticated edge: one entry per slot of
     /// `max_connections` (see [`claim_slot`]).
@@ -465,8 +483,16 @@ impl Shared {
     }
 
     fn emit(&self, event: IngestEvent) {
-        if let Some(events) = &self.events {
-            let _ = events.send(event);
+        match (&self.sink, &self.events) {
+            (Some(sink), Some(events)) => {
+                sink.on_event(event.clone());
+                let _ = events.send(event);
+            }
+            (Some(sink), None) => sink.on_event(event),
+            (None, Some(events)) => {
+                let _ = events.send(event);
+            }
+            (None, None) => {}
         }
     }
 

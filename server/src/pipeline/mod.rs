@@ -7,6 +7,8 @@
 //! offline `scan3d assemble` / `scan3d map` feed it a recorded session frame by frame. So the
 //! live products and the replayed ones are the same bytes.
 
+pub mod live;
+
 use std::path::PathBuf;
 
 use serde::Serialize;
