@@ -553,6 +553,33 @@ pub fn request_products(path: &Path, request: &ProductRequest) -> anyhow::Result
     request_with(path, request, std::time::Duration::from_secs(60))
 }
 
+/// Asks the daemon listening on `socket` for a snapshot (what `scan3d snapshot` does, for the
+/// simulator and tests); a refusal is an error with the daemon's reason. `out` is made absolute against this process's working
+/// directory first.
+pub fn request_snapshot(
+    socket: &Path,
+    edge: &str,
+    session: Option<&str>,
+    position: Option<&str>,
+    out: &Path,
+) -> anyhow::Result<ControlReply> {
+    let out = std::path::absolute(out)
+        .map_err(|e| anyhow::anyhow!("snapshot directory {}: {e}", out.display()))?;
+    let reply = request_products(
+        socket,
+        &ProductRequest::Snapshot {
+            edge: edge.to_owned(),
+            session: session.map(str::to_owned),
+            position: position.map(str::to_owned),
+            out,
+        },
+    )?;
+    if !reply.ok {
+        anyhow::bail!("{}", reply.detail);
+    }
+    Ok(reply)
+}
+
 fn request_with(
     path: &Path,
     request: &impl Serialize,

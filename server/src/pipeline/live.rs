@@ -827,6 +827,20 @@ mod stand_in {
 
     impl SessionPipeline {
         pub fn new(settings: &PipelineSettings) -> Result<Self, PipelineError> {
+            if let Some(path) = &settings.reference {
+                let bytes = std::fs::read(path).map_err(|e| {
+                    anyhow::anyhow!("reference map {}: cannot read: {e}", path.display())
+                })?;
+                let tree = scan3d_map::octree::Octree::read(&bytes, settings.sensor)
+                    .map_err(|e| anyhow::anyhow!("reference map {}: {e}", path.display()))?;
+                let res = tree.resolution().meters();
+                anyhow::ensure!(
+                    (res - settings.resolution_m).abs() < 1e-9,
+                    "reference map {} has resolution {res} m, the pipeline {} m",
+                    path.display(),
+                    settings.resolution_m
+                );
+            }
             Ok(SessionPipeline {
                 settings: settings.clone(),
                 assembler: StaticScanAssembler::new(),
