@@ -14,10 +14,11 @@ use scan3d_edge::daemon::{self, DaemonReport, I2cHardware};
 use scan3d_edge::drivers::rplidar::RplidarConfig;
 use scan3d_edge::drivers::sweep::SweepConfig;
 use scan3d_protocol::{Body, SensorId};
-use scan3d_server::ingest::control::{EdgeControl, serve_socket, socket_path};
+use scan3d_server::ingest::control::{ControlLimits, ControlSocket, EdgeControl, socket_path};
 use scan3d_server::ingest::pki::{self, PairRequest};
 use scan3d_server::ingest::recorder::read_session;
 use scan3d_server::ingest::server::{IngestConfig, IngestEvent, IngestServer, IngestStats};
+use scan3d_server::pipeline::live::{LivePipelines, LiveSettings};
 use tokio::sync::{mpsc, oneshot, watch};
 
 use crate::faults::{FaultConfig, SentSample};
@@ -177,6 +178,7 @@ pub fn ingest_config(pki_dir: &Path, data_dir: &Path, port: u16) -> IngestConfig
 pub struct ServerThread {
     addr: std::net::SocketAddr,
     control: EdgeControl,
+    live: Option<LivePipelines>,
     stop: Option<oneshot::Sender<()>>,
     thread: Option<JoinHandle<IngestStats>>,
     /// Everything the server reports (recorded frames, connections, time sync).
@@ -185,15 +187,37 @@ pub struct ServerThread {
 
 impl ServerThread {
     /// Binds and starts serving, with the operator's control socket in the data directory
-    /// (`data_dir/control.sock`, as `scan3d serve` has it).
+    /// (`data_dir/control.sock`, as `scan3d serve` has it); records only.
     pub fn start(config: IngestConfig) -> anyhow::Result<Self> {
+        Self::start_with(config, None)
+    }
+
+    /// [`ServerThread::start`] with the live pipeline, as `scan3d serve` runs with `[pipeline]`:
+    /// the control socket also answers `scan3d status` and `scan3d snapshot`.
+    pub fn start_live(config: IngestConfig, live: LiveSettings) -> anyhow::Result<Self> {
+        Self::start_with(config, Some(live))
+    }
+
+    fn start_with(config: IngestConfig, live: Option<LiveSettings>) -> anyhow::Result<Self> {
         std::fs::create_dir_all(&config.data_dir)?;
-        let socket = socket_path(&config.data_dir);
+        let socket_file = socket_path(&config.data_dir);
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(2)
             .enable_all()
             .build()?;
-        let server = runtime.block_on(async { IngestServer::bind(config) })?;
+        let live = live
+            .map(LivePipelines::new)
+            .transpose()
+            .map_err(|e| anyhow::anyhow!("[pipeline]: {e}"))?;
+        let mut server = runtime.block_on(async { IngestServer::bind(config) })?;
+        let mut socket = runtime.block_on(ControlSocket::bind(
+            socket_file.clone(),
+            ControlLimits::default(),
+        ))?;
+        if let Some(live) = &live {
+            server = server.with_sink(Arc::new(live.clone()));
+            socket = socket.with_live(Arc::new(live.clone()));
+        }
         let addr = server.local_addr()?;
         let control = server.control();
         let (events_tx, events) = mpsc::unbounded_channel();
@@ -203,24 +227,30 @@ impl ServerThread {
             .name("ingest server".into())
             .spawn(move || {
                 runtime.block_on(async move {
-                    let control = tokio::spawn(serve_socket(socket.clone(), socket_control));
+                    let control = tokio::spawn(socket.serve(socket_control));
                     let stats = server
                         .run(Some(events_tx), async {
                             let _ = stopped.await;
                         })
                         .await;
                     control.abort();
-                    let _ = std::fs::remove_file(&socket);
+                    let _ = std::fs::remove_file(&socket_file);
                     stats
                 })
             })?;
         Ok(Self {
             addr,
             control,
+            live,
             stop: Some(stop),
             thread: Some(thread),
             events,
         })
+    }
+
+    /// The live pipeline, when started with [`ServerThread::start_live`].
+    pub fn live(&self) -> Option<&LivePipelines> {
+        self.live.as_ref()
     }
 
     /// Where edges connect.
@@ -242,10 +272,15 @@ impl ServerThread {
         if let Some(stop) = self.stop.take() {
             let _ = stop.send(());
         }
-        self.thread
+        let stats = self
+            .thread
             .take()
             .and_then(|t| t.join().ok())
-            .unwrap_or_default()
+            .unwrap_or_default();
+        if let Some(live) = &self.live {
+            live.shutdown();
+        }
+        stats
     }
 }
 
