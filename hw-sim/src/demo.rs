@@ -26,7 +26,7 @@ use anyhow::Context;
 use clap::Parser;
 use scan3d_edge::clock::{ScaledClock, SharedClock};
 use scan3d_edge::daemon::DaemonReport;
-use scan3d_map::cloud::scans::ScanCollector;
+use scan3d_map::cloud::scans::RevolutionCollector;
 use scan3d_protocol::{Body, SensorId};
 use scan3d_server::ingest::recorder::{session_dir, topic};
 use scan3d_server::ingest::server::{IngestEvent, IngestStats};
@@ -369,7 +369,7 @@ fn run_in(
 /// What the server reported while the demo ran.
 #[derive(Default)]
 struct Received {
-    scans: ScanCollector,
+    scans: RevolutionCollector,
     frames_per_topic: BTreeMap<String, u64>,
     sensor_ns: BTreeMap<SensorId, u64>,
     time_sync: Option<Estimate>,

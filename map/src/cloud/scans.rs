@@ -1,7 +1,7 @@
-//! 2D scans as the server received them: every lidar revolution's samples as points in the
+//! Lidar revolutions as the server received them: every revolution's samples as points in the
 //! sensor's own scan plane, collected per sensor and exported as PLY.
 //!
-//! This is the first consumer of the server pipeline: the demo writes `scans/*.ply` with it from
+//! The server pipeline's revolution stage wraps it: the demo writes `scans/*.ply` with it from
 //! live frames, and `scan3d replay` from a recording, so the two can be compared byte for byte.
 
 use std::collections::BTreeMap;
@@ -40,12 +40,12 @@ pub struct SensorTotals {
 
 /// Collects lidar revolutions into per-sensor point sets.
 #[derive(Debug, Default)]
-pub struct ScanCollector {
+pub struct RevolutionCollector {
     points: BTreeMap<SensorId, Vec<CloudPoint>>,
     totals: BTreeMap<SensorId, SensorTotals>,
 }
 
-impl ScanCollector {
+impl RevolutionCollector {
     /// An empty collector.
     pub fn new() -> Self {
         Self::default()
@@ -109,7 +109,7 @@ mod tests {
         rev.push(0.0, 1.0, 100, 0).unwrap();
         rev.push(90.0, 0.0, 0, 1_000).unwrap();
         rev.push(180.0, 2.0, 90, 2_000).unwrap();
-        let mut collector = ScanCollector::new();
+        let mut collector = RevolutionCollector::new();
         collector.on_frame(&Frame::new(1, 0, rev));
         let totals = collector.totals()[&SensorId::SWEEP];
         assert_eq!(

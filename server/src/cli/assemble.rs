@@ -10,9 +10,9 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 
-use crate::ingest::recorder::read_session_checked;
+use crate::pipeline::offline;
 use scan3d_map::cloud::OriginScan;
-use scan3d_map::cloud::assembly::{AssembledScan, StaticScanAssembler, cut_range};
+use scan3d_map::cloud::assembly::{AssembledScan, cut_range};
 use scan3d_map::cloud::io;
 
 /// Options of `scan3d assemble`.
@@ -36,29 +36,19 @@ pub struct AssembleArgs {
 }
 
 /// The scans of a session directory, assembled; fails if part of the recording is damaged.
+/// (For the simulator until it calls [`crate::pipeline::offline::assemble_session`] itself.)
 pub fn assemble_session(session_dir: &std::path::Path) -> anyhow::Result<Vec<AssembledScan>> {
     assemble_session_checked(session_dir, false)
 }
 
-/// The scans of a session directory, assembled; with `lenient`, from what is readable of a
-/// damaged recording (see [`read_session_checked`]).
-pub fn assemble_session_checked(
+/// The scans of a session directory, assembled by the pipeline's assembly stage, streaming;
+/// with `lenient`, from what is readable of a damaged recording.
+fn assemble_session_checked(
     session_dir: &std::path::Path,
     lenient: bool,
 ) -> anyhow::Result<Vec<AssembledScan>> {
-    let frames = read_session_checked(session_dir, lenient)
-        .context("cannot assemble the session (--lenient assembles what is readable)")?;
-    let mut assembler = StaticScanAssembler::new();
-    for recorded in &frames {
-        assembler.on_body(&recorded.frame.body);
-    }
-    if assembler.orphan_samples() > 0 {
-        tracing::warn!(
-            samples = assembler.orphan_samples(),
-            "static-scan samples without a recorded start were skipped"
-        );
-    }
-    Ok(assembler.finish())
+    offline::assemble_session(session_dir, lenient)
+        .context("cannot assemble the session (--lenient assembles what is readable)")
 }
 
 /// Runs `scan3d assemble`.

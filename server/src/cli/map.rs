@@ -1,5 +1,8 @@
 //! `scan3d map INPUT --res R … --out OUT.bt|OUT.ot`: a point cloud (OctoMap `.graph`, `.scans`,
-//! PLY or PCD) filtered as asked and inserted into an OctoMap-identical occupancy octree.
+//! PLY or PCD) filtered as asked and inserted into an OctoMap-identical occupancy octree; or a
+//! recorded session directory, streamed through the server pipeline (assembly by eq. 1, the
+//! filters per revolution, insertion per half revolution), which gives the same map as
+//! assembling the session to `.scans` and mapping that, without holding the session.
 //!
 //! Each scan is inserted from its own sensor origin with OctoMap's `insertPointCloud`
 //! semantics (`--max-range` cuts rays, `--hit/--miss/--clamp` set the sensor model), so the
@@ -11,6 +14,8 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
 
+use crate::pipeline::PipelineSettings;
+use crate::pipeline::offline::{MAP_ONLY, run_session as run_session_pipeline};
 use scan3d_map::cloud::OriginScan;
 use scan3d_map::cloud::filter::{Filter, apply_all};
 use scan3d_map::cloud::io::{self, LoadedScans};
@@ -65,7 +70,8 @@ fn parse_probability(text: &str) -> Result<f64, String> {
 /// Options of `scan3d map`.
 #[derive(Debug, clap::Args)]
 pub struct MapArgs {
-    /// The cloud: `.graph` (OctoMap ScanGraph), `.scans`, `.ply` or `.pcd`.
+    /// The cloud: `.graph` (OctoMap ScanGraph), `.scans`, `.ply` or `.pcd`; or a session
+    /// directory (`data_dir/sessions/<edge>/<session-id>`).
     pub input: PathBuf,
     /// Voxel edge length, metres.
     #[arg(long)]
@@ -217,6 +223,9 @@ pub fn run(args: &MapArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         anyhow::bail!("{}: a map must end in .bt or .ot", args.out.display());
     }
     Resolution::new(args.res)?;
+    if args.input.is_dir() {
+        return run_session(args, out);
+    }
     let cloud = load_cloud(&args.input, args.origin)?;
     let loaded: usize = cloud.scans.iter().map(|s| s.points.len()).sum();
     writeln!(
@@ -234,6 +243,82 @@ pub fn run(args: &MapArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         writeln!(out, "filters {}: {kept} points kept", names.join(" → "))?;
     }
     let (map, stats) = build_map(&scans, args.res, args.max_range, args.model(), !args.quiet)?;
+    write_map(args, &map, &stats, out)
+}
+
+/// The pipeline settings `scan3d map SESSION_DIR` maps with: the per-revolution filters are
+/// the voxel grid and the pass-through boxes; SOR and Gaussian need the whole cloud, which a
+/// streaming map never holds, so they are refused (assemble to `.scans` and map that instead).
+pub fn session_settings(args: &MapArgs) -> anyhow::Result<PipelineSettings> {
+    if let Some(f) = args
+        .filters
+        .iter()
+        .find(|f| matches!(f, Filter::Sor { .. } | Filter::Gauss { .. }))
+    {
+        anyhow::bail!(
+            "--filter {f}: a session is mapped revolution by revolution, and this filter needs              the whole cloud (use `scan3d assemble … --out cloud.scans`, then map the cloud)"
+        );
+    }
+    if args.origin.is_some() {
+        anyhow::bail!("--origin is for PLY/PCD clouds; a session carries its sensor origins");
+    }
+    Ok(PipelineSettings {
+        resolution_m: args.res,
+        max_range_m: (args.max_range >= 0.0).then_some(args.max_range),
+        sensor: args.model(),
+        revolution_filters: args.filters.clone(),
+        ..PipelineSettings::default()
+    })
+}
+
+/// `scan3d map SESSION_DIR`: the session streamed through the pipeline's assembly, filters and
+/// octree stages (memory bounded by the map).
+fn run_session(args: &MapArgs, out: &mut dyn Write) -> anyhow::Result<()> {
+    let settings = session_settings(args)?;
+    if args.max_range == 0.0 {
+        anyhow::bail!("--max-range 0 would cut every ray (use a negative value for no limit)");
+    }
+    let (pipeline, _report) = run_session_pipeline(&args.input, &settings, MAP_ONLY, false)
+        .with_context(|| format!("cannot map the session {}", args.input.display()))?;
+    let mut pipeline = pipeline;
+    let status = pipeline.status();
+    writeln!(
+        out,
+        "{}: {} frames, {} static scans at {} positions, {} points",
+        args.input.display(),
+        status.frames,
+        pipeline.assembly().static_scans(),
+        status.positions.len(),
+        status.points
+    )?;
+    if status.missing_frames + status.undecodable_frames + status.orphan_samples > 0 {
+        writeln!(
+            out,
+            "skipped: {} frames missing from the session, {} undecodable frames, {} static-scan \
+             samples without their scan",
+            status.missing_frames, status.undecodable_frames, status.orphan_samples
+        )?;
+    }
+    if !args.filters.is_empty() {
+        let names: Vec<String> = args.filters.iter().map(ToString::to_string).collect();
+        writeln!(
+            out,
+            "filters {} per revolution: {} points kept",
+            names.join(" → "),
+            status.points
+        )?;
+    }
+    let map = pipeline.maps().session_map();
+    write_map(args, map, &map.totals(), out)
+}
+
+/// Prints what the insertion skipped and writes the map.
+fn write_map(
+    args: &MapArgs,
+    map: &VoxelMap,
+    stats: &InsertStats,
+    out: &mut dyn Write,
+) -> anyhow::Result<()> {
     if stats.skipped_nonfinite > 0 {
         writeln!(
             out,

@@ -1,5 +1,5 @@
 //! `scan3d replay SESSION_DIR`: feeds a recorded session back through the server pipeline as
-//! if it arrived live, in recorded order (optionally at the recorded pace).
+//! if it arrived live, in recorded order (optionally at the recorded pace), streaming.
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -7,15 +7,18 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 
-use crate::ingest::recorder::read_session_checked;
-use scan3d_map::cloud::scans::ScanCollector;
+use crate::pipeline::offline::feed_session;
+use crate::pipeline::{PipelineSettings, Products, SessionPipeline};
+use scan3d_map::cloud::filter::Filter;
 
 /// Options of `scan3d replay`.
 #[derive(Debug, clap::Args)]
 pub struct ReplayArgs {
     /// A session directory: `data_dir/sessions/<edge>/<session-id>`.
     pub session_dir: PathBuf,
-    /// Write the pipeline's outputs here (today: `scans/<lidar>.ply`).
+    /// Write the pipeline's outputs here: `scans/<lidar>.ply` (every revolution in its sensor's
+    /// plane) and the session's snapshot (`map.bt`, `map.ot`, `cloud.ply`, with `--reference`
+    /// `metrics.json` and `metrics.txt`).
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Replay at the recorded pace instead of as fast as possible.
@@ -24,30 +27,65 @@ pub struct ReplayArgs {
     /// Go on with the readable rest of a damaged recording (with a warning) instead of failing.
     #[arg(long)]
     pub lenient: bool,
+    /// Voxel edge length of the octree, metres.
+    #[arg(long, default_value_t = 0.05)]
+    pub res: f64,
+    /// Rays longer than this are cut (free up to the cut, no hit), metres.
+    #[arg(long)]
+    pub max_range: Option<f64>,
+    /// Per-revolution filters, in order: `voxel:LEAF`, `box:x0,y0,z0,x1,y1,z1`, `box-out:…`.
+    #[arg(long = "filter", value_name = "FILTER", allow_hyphen_values = true)]
+    pub filters: Vec<Filter>,
+    /// Filters of the snapshot's cloud, in order: `sor:K,ALPHA`, `gauss:SIGMA,RADIUS`, ….
+    #[arg(
+        long = "snapshot-filter",
+        value_name = "FILTER",
+        allow_hyphen_values = true
+    )]
+    pub snapshot_filters: Vec<Filter>,
+    /// A reference map (`.bt`/`.ot`, same resolution) to compute the metrics against.
+    #[arg(long)]
+    pub reference: Option<PathBuf>,
 }
 
 /// Runs `scan3d replay`.
 pub fn run(args: &ReplayArgs, out: &mut dyn Write) -> anyhow::Result<()> {
-    let frames = read_session_checked(&args.session_dir, args.lenient)
-        .context("cannot replay the session (--lenient replays what is readable)")?;
-    let mut collector = ScanCollector::new();
+    let settings = PipelineSettings {
+        resolution_m: args.res,
+        max_range_m: args.max_range,
+        revolution_filters: args.filters.clone(),
+        snapshot_filters: args.snapshot_filters.clone(),
+        reference: args.reference.clone(),
+        ..PipelineSettings::default()
+    };
+    let products = Products {
+        revolution_points: true,
+        ..Products::default()
+    };
+    let mut pipeline = SessionPipeline::with_products(&settings, products)?;
     let started = Instant::now();
-    let first_log_time = frames.first().map_or(0, |f| f.log_time_ns);
-    for recorded in &frames {
+    let mut first_log_time = None;
+    let mut frames = 0u64;
+    // Losses are checked by feed_session (an error unless --lenient).
+    let _report = feed_session(&mut pipeline, &args.session_dir, args.lenient, |recorded| {
+        frames += 1;
         if args.realtime {
-            let due = Duration::from_nanos(recorded.log_time_ns.saturating_sub(first_log_time));
+            let first = *first_log_time.get_or_insert(recorded.log_time_ns);
+            let due = Duration::from_nanos(recorded.log_time_ns.saturating_sub(first));
             if let Some(wait) = due.checked_sub(started.elapsed()) {
                 std::thread::sleep(wait);
             }
         }
-        collector.on_frame(&recorded.frame);
-    }
+    })
+    .context("cannot replay the session (--lenient replays what is readable)")?;
     writeln!(
         out,
-        "replayed {} frames from {}",
-        frames.len(),
+        "replayed {frames} frames from {}",
         args.session_dir.display()
     )?;
+    let collector = pipeline
+        .revolution_points()
+        .context("the replay pipeline collects revolutions")?;
     for (sensor, totals) in collector.totals() {
         writeln!(
             out,
@@ -57,6 +95,19 @@ pub fn run(args: &ReplayArgs, out: &mut dyn Write) -> anyhow::Result<()> {
     }
     if let Some(dir) = &args.out {
         for path in collector.write_ply_files(&dir.join("scans"))? {
+            writeln!(out, "wrote {}", path.display())?;
+        }
+        let snapshot = pipeline.write_snapshot(dir, None)?;
+        writeln!(
+            out,
+            "snapshot: {} static scans, {} points, {} nodes ({} occupied, {} free voxels)",
+            pipeline.assembly().static_scans(),
+            snapshot.points,
+            snapshot.nodes,
+            snapshot.occupied_voxels,
+            snapshot.free_voxels
+        )?;
+        for path in &snapshot.files {
             writeln!(out, "wrote {}", path.display())?;
         }
     }

@@ -1306,6 +1306,30 @@ pub fn list_sessions(data_dir: &Path) -> Result<Vec<SessionSummary>, RecorderErr
         .collect()
 }
 
+/// One item of a session for [`visit_session_items`]: a frame, or an edge frame the server
+/// recorded without being able to decode it (its seq was received, so it is no gap).
+#[derive(Debug)]
+pub enum SessionItem {
+    /// A decoded frame.
+    Frame(RecordedFrame),
+    /// A frame recorded on [`UNDECODABLE_TOPIC`].
+    Undecodable(UndecodableFrame),
+}
+
+/// [`visit_session`], visiting the undecodable frames too (in recording order, each seq once),
+/// for readers that tell a gap in the sequence numbers from a frame they cannot read.
+pub fn visit_session_items(
+    session_dir: &Path,
+    mut visit: impl FnMut(SessionItem) -> Result<(), RecorderError>,
+) -> Result<SessionReport, RecorderError> {
+    let files = session_files(session_dir)?;
+    let scan = visit_files(&files, &mut |item| match item {
+        Item::Frame(recorded) => visit(SessionItem::Frame(recorded)),
+        Item::Undecodable(undecodable) => visit(SessionItem::Undecodable(undecodable)),
+    })?;
+    Ok(scan.report)
+}
+
 /// Whether `edge` is safe as one directory name.
 fn valid_edge_name(edge: &str) -> bool {
     !edge.is_empty()

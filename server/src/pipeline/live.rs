@@ -24,12 +24,10 @@ use std::time::{Duration, Instant};
 use scan3d_protocol::{Body, Frame};
 use serde::Serialize;
 
-use super::{PipelineSettings, SessionStatus};
+use super::{PipelineError, PipelineSettings, SessionPipeline, SessionStatus, Snapshot};
 use crate::ingest::control::{ControlReply, LiveProducts, ProductRequest};
-use crate::ingest::recorder::{SeqSet, session_dir, visit_session};
+use crate::ingest::recorder::{SeqSet, SessionItem, session_dir, visit_session_items};
 use crate::ingest::server::{IngestEvent, IngestSink};
-
-use stand_in::{PipelineError, SessionPipeline, Snapshot};
 
 /// How the live driver runs: the `[pipeline]` section of `server.toml` beyond the pipeline's
 /// own settings.
@@ -145,11 +143,9 @@ impl Sequencer {
 pub struct LiveSessionStatus {
     /// The session id, 16 hex digits (its directory's name).
     pub id: String,
-    /// What the pipeline has built.
+    /// What the pipeline has built (frames, samples, revolutions, voxels, metrics, positions).
     #[serde(flatten)]
     pub pipeline: SessionStatus,
-    /// Named static-scan positions seen.
-    pub positions: Vec<String>,
     /// How long the oldest frame not yet processed has waited, ms (0 when caught up).
     pub lag_ms: u64,
     /// Frames accepted by the recorder and not yet processed.
@@ -473,16 +469,12 @@ impl LivePipelines {
             })
             .collect();
         for shared in workers {
-            let (pipeline, positions) = {
-                let mut pipeline = lock(&shared.pipeline);
-                (pipeline.status(), pipeline.positions())
-            };
+            let pipeline = lock(&shared.pipeline).status();
             let (lag_frames, lag_ms) = shared.lag();
             let progress = lock(&shared.progress);
             let session = LiveSessionStatus {
                 id: format!("{:016x}", shared.session_id),
                 pipeline,
-                positions,
                 lag_ms,
                 lag_frames,
                 max_lag_frames: progress.max_lag_frames.max(lag_frames),
@@ -738,25 +730,26 @@ impl WorkerRun {
     /// Reads the recording and processes, in its order, every frame not processed yet.
     fn catch_up(&mut self) {
         lock(&self.shared.progress).catch_ups += 1;
-        let mut taken = Vec::new();
         let session_dir = self.session_dir.clone();
-        let visited = visit_session(&session_dir, |recorded| {
-            // Server commands share the session but number separately; they carry no data.
-            if !matches!(recorded.frame.body, Body::Command(_))
-                && self.sequencer.from_recording(recorded.frame.seq)
-            {
-                taken.push(recorded.frame);
-                if taken.len() >= 64 {
-                    for frame in taken.drain(..) {
-                        self.process(&frame);
+        let visited = visit_session_items(&session_dir, |item| {
+            match item {
+                // Server commands share the session but number separately; they carry no data.
+                SessionItem::Frame(recorded) => {
+                    if !matches!(recorded.frame.body, Body::Command(_))
+                        && self.sequencer.from_recording(recorded.frame.seq)
+                    {
+                        self.process(&recorded.frame);
+                    }
+                }
+                // Recorded raw (a body this server cannot decode): its seq is no gap.
+                SessionItem::Undecodable(frame) => {
+                    if self.sequencer.from_recording(frame.seq) {
+                        lock(&self.shared.pipeline).on_undecodable(frame.seq);
                     }
                 }
             }
             Ok(())
         });
-        for frame in taken {
-            self.process(&frame);
-        }
         match visited {
             Ok(report) => {
                 if let Some(line) = report.loss_line() {
@@ -789,132 +782,6 @@ impl WorkerRun {
         if let Err(e) = written {
             tracing::error!(edge = %self.shared.edge, session = format!("{:016x}", self.shared.session_id),
                 dir = %self.snapshot_dir.display(), error = %e, "periodic snapshot failed; recording goes on");
-        }
-    }
-}
-
-/// A stand-in for the pipeline core (`SessionPipeline`, being written in `pipeline/` at the
-/// same time), with its API: static-scan assembly, revolution filters, octree insertion,
-/// snapshots. Removed when the core lands.
-mod stand_in {
-    use std::path::{Path, PathBuf};
-
-    use scan3d_map::cloud::OriginScan;
-    use scan3d_map::cloud::assembly::StaticScanAssembler;
-    use scan3d_map::cloud::filter::apply_all;
-    use scan3d_map::cloud::io;
-    use scan3d_map::octree::{Resolution, VoxelMap};
-    use scan3d_protocol::{Body, Frame};
-    use serde::Serialize;
-
-    use super::super::{PipelineSettings, SessionStatus};
-
-    pub type PipelineError = anyhow::Error;
-
-    /// The files a snapshot wrote.
-    #[derive(Debug, Clone, Serialize)]
-    pub struct Snapshot {
-        pub files: Vec<PathBuf>,
-    }
-
-    pub struct SessionPipeline {
-        settings: PipelineSettings,
-        assembler: StaticScanAssembler,
-        map: VoxelMap,
-        cloud: Vec<OriginScan>,
-        status: SessionStatus,
-    }
-
-    impl SessionPipeline {
-        pub fn new(settings: &PipelineSettings) -> Result<Self, PipelineError> {
-            if let Some(path) = &settings.reference {
-                let bytes = std::fs::read(path).map_err(|e| {
-                    anyhow::anyhow!("reference map {}: cannot read: {e}", path.display())
-                })?;
-                let tree = scan3d_map::octree::Octree::read(&bytes, settings.sensor)
-                    .map_err(|e| anyhow::anyhow!("reference map {}: {e}", path.display()))?;
-                let res = tree.resolution().meters();
-                anyhow::ensure!(
-                    (res - settings.resolution_m).abs() < 1e-9,
-                    "reference map {} has resolution {res} m, the pipeline {} m",
-                    path.display(),
-                    settings.resolution_m
-                );
-            }
-            Ok(SessionPipeline {
-                settings: settings.clone(),
-                assembler: StaticScanAssembler::new(),
-                map: VoxelMap::new(Resolution::new(settings.resolution_m)?, settings.sensor),
-                cloud: Vec::new(),
-                status: SessionStatus {
-                    frames: 0,
-                    samples: 0,
-                    revolutions: 0,
-                    occupied_voxels: 0,
-                    free_voxels: 0,
-                    metrics: None,
-                },
-            })
-        }
-
-        pub fn on_frame(&mut self, frame: &Frame) {
-            self.status.frames += 1;
-            if let Body::Revolution(rev) = &frame.body {
-                self.status.revolutions += 1;
-                self.status.samples += rev.samples.len() as u64;
-            }
-            self.assembler.on_body(&frame.body);
-            for new in self.assembler.take_new() {
-                let Ok(filtered) = apply_all(&self.settings.revolution_filters, vec![new.rays])
-                else {
-                    continue;
-                };
-                for scan in filtered {
-                    self.map
-                        .insert_scan(&scan, self.settings.max_range_m.unwrap_or(-1.0));
-                    self.cloud.push(scan);
-                }
-            }
-        }
-
-        pub fn status(&mut self) -> SessionStatus {
-            let tree = self.map.to_octree();
-            self.status.occupied_voxels = tree.num_occupied();
-            self.status.free_voxels = tree.num_free();
-            self.status.clone()
-        }
-
-        pub fn positions(&self) -> Vec<String> {
-            let mut names: Vec<String> = self
-                .assembler
-                .scans()
-                .iter()
-                .map(|s| s.position.name.clone())
-                .collect();
-            names.dedup();
-            names
-        }
-
-        pub fn write_snapshot(
-            &mut self,
-            dir: &Path,
-            _position: Option<&str>,
-        ) -> Result<Snapshot, PipelineError> {
-            std::fs::create_dir_all(dir)
-                .map_err(|e| anyhow::anyhow!("cannot create {}: {e}", dir.display()))?;
-            let tree = self.map.to_octree();
-            let bt = dir.join("map.bt");
-            let ot = dir.join("map.ot");
-            let ply = dir.join("cloud.ply");
-            std::fs::write(&bt, tree.to_bt_bytes())
-                .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", bt.display()))?;
-            std::fs::write(&ot, tree.to_ot_bytes())
-                .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", ot.display()))?;
-            let cloud = apply_all(&self.settings.snapshot_filters, self.cloud.clone())?;
-            io::save(&ply, &cloud)?;
-            Ok(Snapshot {
-                files: vec![bt, ot, ply],
-            })
         }
     }
 }

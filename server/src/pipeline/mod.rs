@@ -1,21 +1,56 @@
-//! The server's mapping pipeline: per session, frames in sample-time order go through stages
+//! The server's mapping pipeline: per session, frames in sequence order go through stages
 //! (static-scan assembly by eq. 1, the Table II filters, octree insertion, metrics against a
 //! reference), and the products (cloud, octree, metrics) grow as the frames come in.
 //!
 //! One pipeline, three drivers: `scan3d serve` feeds it live from ingest (through a bounded
 //! queue; it catches up from the recording when it falls behind), `scan3d replay` and the
-//! offline `scan3d assemble` / `scan3d map` feed it a recorded session frame by frame. So the
-//! live products and the replayed ones are the same bytes.
+//! offline `scan3d assemble` / `scan3d map` feed it a recorded session frame by frame
+//! ([`offline`]). So the live products and the replayed ones are the same bytes.
+//!
+//! # Stages
+//!
+//! A [`Stage`] takes frames and keeps its products. The stages of a [`SessionPipeline`] run in
+//! this order for every frame; a [`StageContext`] carries what one stage hands to the next:
+//!
+//! | stage | takes | hands on / keeps |
+//! | --- | --- | --- |
+//! | [`RevolutionStage`] (optional) | lidar revolutions | per-sensor 2D points, `scans/<lidar>.ply` |
+//! | [`AssemblyStage`] | every body (eq. 1 joins Sweep revolutions and static-scan messages) | the origin groups (one per half revolution) completed by this frame, in [`StageContext::rays`] |
+//! | [`FilterStage`] | [`StageContext::rays`] | the same groups through `revolution_filters` (voxel grid, pass-through) |
+//! | [`MapStage`] | [`StageContext::rays`] | one octree per session and per named position (OctoMap's `insertPointCloud`, `max_range` cut), the growing cloud |
+//!
+//! Metrics against the reference are computed from the session's (or a position's) octree when
+//! [`SessionPipeline::status`] asks (at most once per [`METRICS_INTERVAL`]) and at every
+//! snapshot. The snapshot filters (SOR, Gaussian: they need neighbours across revolutions) only
+//! touch the cloud a snapshot writes, never the octree.
+//!
+//! # Memory
+//!
+//! Bounded by the map, not the session: no frame is kept; the assembler forgets a static scan
+//! once it has finished and its rays were handed on (unless [`Products::static_scans`] asks to
+//! keep them, as `scan3d assemble` does); the cloud holds the filtered points (turn it off with
+//! [`Products::cloud`] when only the octree is wanted, as `scan3d map` does).
 
 pub mod live;
+mod metrics;
+pub mod offline;
+mod snapshot;
+mod stages;
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
+use scan3d_map::cloud::assembly::NewRays;
 use scan3d_map::cloud::filter::Filter;
-use scan3d_map::eval::Metrics;
-use scan3d_map::octree::SensorModel;
+use scan3d_map::eval::{EvalError, LeafMap, Metrics};
+use scan3d_map::octree::{OctreeError, Resolution, SensorModel};
+use scan3d_protocol::{Body, Frame};
+
+pub use metrics::{load_reference, write_metrics_table};
+pub use snapshot::Snapshot;
+pub use stages::{AssemblyStage, FilterStage, MapStage, PositionMap, RevolutionStage};
 
 /// What the pipeline builds and how: the `[pipeline]` section of `server.toml`, or the offline
 /// commands' options.
@@ -59,10 +94,405 @@ pub struct SessionStatus {
     pub samples: u64,
     /// Lidar revolutions in those frames (both lidars).
     pub revolutions: u64,
-    /// Occupied leaves of the session's octree (all positions).
+    /// Occupied voxels (depth 16) of the session's octree (all positions), as of the last
+    /// refresh (at most [`METRICS_INTERVAL`] old).
     pub occupied_voxels: u64,
-    /// Free leaves of the session's octree.
+    /// Free voxels of the session's octree, as of the last refresh.
     pub free_voxels: u64,
     /// The latest metrics against the reference, when one is configured and there is a map.
     pub metrics: Option<Metrics>,
+    /// Edge sequence numbers skipped over (a gap in the session: frames never received or lost
+    /// from the recording); the frames after a gap are processed.
+    pub missing_frames: u64,
+    /// Frames that arrived with a sequence number already passed (duplicates, late resends):
+    /// skipped.
+    pub stale_frames: u64,
+    /// Frames the server could not decode (e.g. a body of a newer protocol): skipped.
+    pub undecodable_frames: u64,
+    /// Static-scan samples that could not be placed (their scan start or revolution was never
+    /// seen): skipped.
+    pub orphan_samples: u64,
+    /// Points inserted into the session's octree (after the revolution filters).
+    pub points: u64,
+    /// Named static-scan positions seen, in first-seen order.
+    pub positions: Vec<String>,
 }
+
+/// How often [`SessionPipeline::status`] recomputes voxel counts and metrics at most.
+pub const METRICS_INTERVAL: Duration = Duration::from_secs(1);
+
+/// Why a pipeline could not be built or a snapshot written.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum PipelineError {
+    /// The resolution is not a finite positive number.
+    #[error("pipeline resolution: {0}")]
+    Resolution(#[from] OctreeError),
+    /// The max range is NaN or not positive.
+    #[error("pipeline max range must be a positive number of metres, got {0}")]
+    MaxRange(f64),
+    /// The reference map cannot be read.
+    #[error("reference map {path}: {reason}")]
+    Reference {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        reason: String,
+    },
+    /// The reference map's voxels differ from the pipeline's resolution.
+    #[error(
+        "reference map {path} has {found} m voxels, the pipeline builds {expected} m ones \
+         (metrics need equal resolutions)"
+    )]
+    ReferenceResolution {
+        /// The file.
+        path: PathBuf,
+        /// The reference's resolution.
+        found: f64,
+        /// The pipeline's resolution.
+        expected: f64,
+    },
+    /// A snapshot was asked for a position the session has not seen.
+    #[error("no static scan at position {name:?} in this session (positions: {known})")]
+    UnknownPosition {
+        /// The name asked for.
+        name: String,
+        /// The positions seen, comma-separated.
+        known: String,
+    },
+    /// A snapshot file or directory could not be written.
+    #[error("cannot write {path}: {source}")]
+    Write {
+        /// The file or directory.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// A snapshot filter failed on the cloud.
+    #[error("snapshot filter: {0}")]
+    Filter(#[from] scan3d_map::cloud::filter::FilterError),
+    /// The metrics could not be computed.
+    #[error("metrics: {0}")]
+    Metrics(#[from] EvalError),
+}
+
+/// Which products a pipeline keeps beyond the session's octree.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Products {
+    /// The per-sensor 2D points of every revolution (`scan3d replay --out`'s `scans/*.ply`).
+    /// Grows with the session: off by default.
+    pub revolution_points: bool,
+    /// One octree per named position besides the session's.
+    pub position_maps: bool,
+    /// The growing world-frame cloud (filtered points with their origins) for `cloud.ply`.
+    pub cloud: bool,
+    /// Every assembled static scan with its points (`scan3d assemble`): grows with the session.
+    pub static_scans: bool,
+    /// The session's octree (and the positions' ones with `position_maps`); `scan3d assemble`
+    /// needs none.
+    pub octrees: bool,
+}
+
+impl Default for Products {
+    /// What the live daemon keeps: octrees per session and position, and the cloud.
+    fn default() -> Self {
+        Products {
+            revolution_points: false,
+            position_maps: true,
+            cloud: true,
+            static_scans: false,
+            octrees: true,
+        }
+    }
+}
+
+/// What a frame hands from one stage to the next.
+#[derive(Debug, Default)]
+pub struct StageContext {
+    /// Origin groups (one per half revolution of a static scan, world frame) completed by the
+    /// current frame, with their position; the assembly stage fills it, later stages transform
+    /// or consume it. Emptied after each frame.
+    pub rays: Vec<NewRays>,
+}
+
+/// One stage: takes frames, keeps its products.
+pub trait Stage {
+    /// Takes one frame of the session (in sequence order) and what the earlier stages handed
+    /// on for it in `ctx`.
+    fn on_frame(&mut self, ctx: &mut StageContext, frame: &Frame);
+    /// Called when the session's frames end (or before a snapshot): hand on what is pending.
+    fn flush(&mut self, ctx: &mut StageContext) {
+        let _ = ctx;
+    }
+}
+
+/// Where the edge's sequence numbers stand.
+#[derive(Debug, Default, Clone, Copy)]
+struct SeqTrack {
+    /// The next edge sequence number expected (`None` before the first frame).
+    next: Option<u64>,
+    missing: u64,
+    stale: u64,
+    undecodable: u64,
+}
+
+impl SeqTrack {
+    /// Accounts for edge seq `seq`; `false` if it was already passed (to be skipped).
+    fn take(&mut self, seq: u64) -> bool {
+        let next = self.next.unwrap_or(0);
+        if self.next.is_some() && seq < next {
+            self.stale += 1;
+            return false;
+        }
+        if seq > next {
+            let gap = seq - next;
+            self.missing = self.missing.saturating_add(gap);
+            tracing::warn!(
+                from = next,
+                to = seq - 1,
+                frames = gap,
+                "gap in the session's sequence numbers; going on after it"
+            );
+        }
+        self.next = Some(seq.saturating_add(1));
+        true
+    }
+}
+
+/// Voxel counts and metrics as of the last refresh.
+#[derive(Debug, Default)]
+struct Refreshed {
+    at: Option<Instant>,
+    /// Points inserted when it was computed (nothing new since: no recompute).
+    points: u64,
+    occupied: u64,
+    free: u64,
+    metrics: Option<Metrics>,
+}
+
+/// One session's pipeline: feed its frames in sequence order with [`SessionPipeline::on_frame`],
+/// read [`SessionPipeline::status`], write products with [`SessionPipeline::write_snapshot`].
+/// `Send`, so a daemon can run it on a worker thread.
+pub struct SessionPipeline {
+    settings: PipelineSettings,
+    products: Products,
+    reference: Option<LeafMap>,
+    revolutions_2d: Option<RevolutionStage>,
+    assembly: AssemblyStage,
+    filters: FilterStage,
+    maps: MapStage,
+    /// Stages added with [`SessionPipeline::add_stage`], run after the built-in ones.
+    extra: Vec<Box<dyn Stage + Send>>,
+    ctx: StageContext,
+    seqs: SeqTrack,
+    frames: u64,
+    samples: u64,
+    revolutions: u64,
+    refreshed: Refreshed,
+}
+
+impl std::fmt::Debug for SessionPipeline {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SessionPipeline")
+            .field("settings", &self.settings)
+            .field("products", &self.products)
+            .field("frames", &self.frames)
+            .field("extra_stages", &self.extra.len())
+            .finish_non_exhaustive()
+    }
+}
+
+impl SessionPipeline {
+    /// A pipeline keeping the live daemon's [`Products`]; loads the reference map and checks
+    /// that its resolution is the pipeline's.
+    pub fn new(settings: &PipelineSettings) -> Result<Self, PipelineError> {
+        Self::with_products(settings, Products::default())
+    }
+
+    /// A pipeline keeping `products`.
+    pub fn with_products(
+        settings: &PipelineSettings,
+        products: Products,
+    ) -> Result<Self, PipelineError> {
+        let res = Resolution::new(settings.resolution_m)?;
+        if let Some(max) = settings.max_range_m
+            && !(max > 0.0)
+        {
+            return Err(PipelineError::MaxRange(max));
+        }
+        let reference = match &settings.reference {
+            Some(path) => Some(load_reference(path, &res)?),
+            None => None,
+        };
+        Ok(SessionPipeline {
+            settings: settings.clone(),
+            products,
+            reference,
+            revolutions_2d: products.revolution_points.then(RevolutionStage::new),
+            assembly: AssemblyStage::new(products.static_scans),
+            filters: FilterStage::new(settings.revolution_filters.clone()),
+            maps: MapStage::new(res, settings, products),
+            extra: Vec::new(),
+            ctx: StageContext::default(),
+            seqs: SeqTrack::default(),
+            frames: 0,
+            samples: 0,
+            revolutions: 0,
+            refreshed: Refreshed::default(),
+        })
+    }
+
+    /// The settings it was built with.
+    pub fn settings(&self) -> &PipelineSettings {
+        &self.settings
+    }
+
+    /// Adds a stage that runs after the built-in ones for every later frame.
+    pub fn add_stage(&mut self, stage: Box<dyn Stage + Send>) {
+        self.extra.push(stage);
+    }
+
+    /// Takes the session's next frame. Frames must come in sequence order: one whose edge
+    /// sequence number was already passed is skipped and counted
+    /// ([`SessionStatus::stale_frames`]); a jump is a gap, counted
+    /// ([`SessionStatus::missing_frames`]) and logged, and the frame is processed. Server
+    /// commands (their own numbering) are not processed.
+    pub fn on_frame(&mut self, frame: &Frame) {
+        if matches!(frame.body, Body::Command(_)) || !self.seqs.take(frame.seq) {
+            return;
+        }
+        self.frames += 1;
+        if let Body::Revolution(rev) = &frame.body {
+            self.revolutions += 1;
+            self.samples += rev.samples.len() as u64;
+        }
+        let ctx = &mut self.ctx;
+        if let Some(stage) = &mut self.revolutions_2d {
+            stage.on_frame(ctx, frame);
+        }
+        self.assembly.on_frame(ctx, frame);
+        self.filters.on_frame(ctx, frame);
+        self.maps.on_frame(ctx, frame);
+        for stage in &mut self.extra {
+            stage.on_frame(ctx, frame);
+        }
+        ctx.rays.clear();
+    }
+
+    /// Takes note of an edge frame the server recorded but could not decode (its seq counts as
+    /// received, so it is not a gap): counted in [`SessionStatus::undecodable_frames`].
+    pub fn on_undecodable(&mut self, seq: u64) {
+        if self.seqs.take(seq) {
+            self.seqs.undecodable += 1;
+        }
+    }
+
+    /// Hands on whatever the stages hold back (nothing today: every origin group is complete
+    /// once the body that made it was taken). Call at the end of a session.
+    pub fn flush(&mut self) {
+        let ctx = &mut self.ctx;
+        if let Some(stage) = &mut self.revolutions_2d {
+            stage.flush(ctx);
+        }
+        self.assembly.flush(ctx);
+        self.filters.flush(ctx);
+        self.maps.flush(ctx);
+        for stage in &mut self.extra {
+            stage.flush(ctx);
+        }
+        ctx.rays.clear();
+    }
+
+    /// What the pipeline has done; voxel counts and metrics are recomputed when the map grew,
+    /// at most once per [`METRICS_INTERVAL`] (cheap otherwise).
+    pub fn status(&mut self) -> SessionStatus {
+        self.status_at(Instant::now())
+    }
+
+    /// [`SessionPipeline::status`] with the caller's clock.
+    pub fn status_at(&mut self, now: Instant) -> SessionStatus {
+        let due = self
+            .refreshed
+            .at
+            .is_none_or(|at| now.saturating_duration_since(at) >= METRICS_INTERVAL);
+        if due && self.refreshed.points != self.maps.points() {
+            self.refresh(now);
+        }
+        SessionStatus {
+            frames: self.frames,
+            samples: self.samples,
+            revolutions: self.revolutions,
+            occupied_voxels: self.refreshed.occupied,
+            free_voxels: self.refreshed.free,
+            metrics: self.refreshed.metrics.clone(),
+            missing_frames: self.seqs.missing,
+            stale_frames: self.seqs.stale,
+            undecodable_frames: self.seqs.undecodable,
+            orphan_samples: self.assembly.orphan_samples(),
+            points: self.maps.points(),
+            positions: self.positions(),
+        }
+    }
+
+    fn refresh(&mut self, now: Instant) {
+        let leaves = metrics::leaf_map(&self.maps.session_map().to_octree());
+        self.refreshed.occupied = leaves.occupied_voxels();
+        self.refreshed.free = leaves.free_voxels();
+        self.refreshed.metrics = self.reference.as_ref().and_then(|reference| {
+            scan3d_map::eval::evaluate(reference, &leaves, None)
+                .inspect_err(|e| tracing::debug!("no metrics yet: {e}"))
+                .ok()
+        });
+        self.refreshed.points = self.maps.points();
+        self.refreshed.at = Some(now);
+    }
+
+    /// Named static-scan positions seen, in first-seen order.
+    pub fn positions(&self) -> Vec<String> {
+        self.maps.positions().to_vec()
+    }
+
+    /// Writes the current products into `dir` (created if missing): `map.bt`, `map.ot`,
+    /// `cloud.ply` (the cloud through the snapshot filters) and, with a reference, `metrics.json`
+    /// and `metrics.txt`; of the whole session, or of one `position`. With no 3D data yet the
+    /// `.bt`/`.ot` are valid empty trees and the PLY has no vertex (no metrics then). Each file
+    /// is written under a temporary name and renamed, so a reader never sees half a file.
+    pub fn write_snapshot(
+        &mut self,
+        dir: &Path,
+        position: Option<&str>,
+    ) -> Result<Snapshot, PipelineError> {
+        snapshot::write(self, dir, position)
+    }
+
+    /// The session's octree stage (its maps and cloud).
+    pub fn maps(&self) -> &MapStage {
+        &self.maps
+    }
+
+    /// The assembly stage (its static scans, when [`Products::static_scans`] keeps them).
+    pub fn assembly(&self) -> &AssemblyStage {
+        &self.assembly
+    }
+
+    /// The 2D revolution collector, when [`Products::revolution_points`] is on.
+    pub fn revolution_points(&self) -> Option<&RevolutionStage> {
+        self.revolutions_2d.as_ref()
+    }
+
+    /// The reference map, when one is configured.
+    pub fn reference(&self) -> Option<&LeafMap> {
+        self.reference.as_ref()
+    }
+
+    /// Takes the assembly stage's static scans (with [`Products::static_scans`]), in start order.
+    pub fn into_static_scans(self) -> Vec<scan3d_map::cloud::assembly::AssembledScan> {
+        self.assembly.into_scans()
+    }
+}
+
+// The daemon runs each session's pipeline on a worker thread.
+const _: fn() = || {
+    fn is_send<T: Send>() {}
+    is_send::<SessionPipeline>();
+};

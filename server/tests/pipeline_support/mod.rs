@@ -1,0 +1,244 @@
+//! Synthetic recorded sessions for the pipeline tests: static scans of a box room by eq. (1)'s
+//! geometry (ranges ray-cast against the room's walls) and RPLidar revolutions, written with the
+//! real recorder. Every static-scan message is built in [`SessionBuilder::static_scan`], so a
+//! protocol change touches one place.
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+
+use scan3d_map::cloud::assembly::{MountGeometry, Position, sensor_origin};
+use scan3d_protocol::{
+    Body, Frame, LidarRevolution, MountInfo, SensorId, StaticScan, StaticScanEnd,
+    StaticScanOutcome, StaticScanSamples, StaticScanStart, TaggedSweepSample, encode,
+};
+use scan3d_server::ingest::recorder::{SessionRecorder, session_dir};
+
+/// The room: an axis-aligned box, metres.
+pub const ROOM: ([f64; 3], [f64; 3]) = ([0.0, 0.0, 0.0], [4.0, 3.0, 2.5]);
+
+/// The mount every synthetic static scan uses.
+pub const MOUNT: MountGeometry = MountGeometry {
+    axis_offset_m: 0.05,
+    height_m: 1.0,
+    azimuth_zero_deg: 0.0,
+};
+
+/// Distance from `o` along the unit vector `d` to the room's walls (from inside).
+pub fn range_to_walls(o: [f64; 3], d: [f64; 3]) -> f64 {
+    let (lo, hi) = ROOM;
+    (0..3)
+        .filter(|&a| d[a].abs() > 1e-12)
+        .map(|a| {
+            let wall = if d[a] > 0.0 { hi[a] } else { lo[a] };
+            (wall - o[a]) / d[a]
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
+/// One thing to record.
+#[derive(Debug, Clone)]
+pub enum Recorded {
+    /// A decodable frame.
+    Frame(Frame),
+    /// A frame the server could not decode, under this edge seq.
+    Undecodable(u64),
+}
+
+/// Builds a session's frames in sequence order.
+#[derive(Debug)]
+pub struct SessionBuilder {
+    pub session_id: u64,
+    seq: u64,
+    t_ns: u64,
+    scan_id: u32,
+    pub items: Vec<Recorded>,
+}
+
+impl SessionBuilder {
+    /// An empty session.
+    pub fn new(session_id: u64) -> Self {
+        SessionBuilder {
+            session_id,
+            seq: 0,
+            t_ns: 1_000_000_000,
+            scan_id: 0,
+            items: Vec::new(),
+        }
+    }
+
+    fn push(&mut self, body: impl Into<Body>) {
+        self.items
+            .push(Recorded::Frame(Frame::new(self.session_id, self.seq, body)));
+        self.seq += 1;
+    }
+
+    /// Leaves out the next `n` sequence numbers (a gap).
+    pub fn skip_seqs(&mut self, n: u64) {
+        self.seq += n;
+    }
+
+    /// An undecodable frame.
+    pub fn undecodable(&mut self) {
+        self.items.push(Recorded::Undecodable(self.seq));
+        self.seq += 1;
+    }
+
+    /// `n` RPLidar revolutions of `samples` samples each, seen from (2, 1.5, 0.2), heading 0.
+    pub fn rplidar_revolutions(&mut self, n: usize, samples: usize) {
+        for _ in 0..n {
+            let mut rev =
+                LidarRevolution::new(SensorId::RPLIDAR, self.t_ns, self.t_ns + 100_000_000);
+            for i in 0..samples {
+                let angle = 360.0 * i as f64 / samples as f64;
+                // RPLidar angles are clockwise.
+                let a = (-angle).to_radians();
+                let r = range_to_walls([2.0, 1.5, 0.2], [a.cos(), a.sin(), 0.0]);
+                let range = if i % 17 == 0 { 0.0 } else { r as f32 };
+                rev.push(
+                    angle as f32,
+                    range,
+                    40,
+                    self.t_ns + (i as u64) * 100_000_000 / samples as u64,
+                )
+                .expect("sample time");
+            }
+            self.t_ns += 100_000_000;
+            self.push(rev);
+        }
+    }
+
+    /// A static scan at `position`: `revolutions` Sweep revolutions of `samples` samples, the
+    /// turntable stepping `180 / revolutions` degrees in each blocked sector (θ in (150°, 210°)
+    /// is blocked); every sample's range ray-cast against the room.
+    pub fn static_scan(&mut self, position: &Position, revolutions: u32, samples: u32) {
+        let scan_id = self.scan_id;
+        self.scan_id += 1;
+        let step = 180.0 / f64::from(revolutions);
+        self.push(StaticScan::Started(StaticScanStart {
+            scan_id,
+            t_ns: self.t_ns,
+            position: position.name.clone(),
+            x_m: position.x_m,
+            y_m: position.y_m,
+            heading_deg: position.heading_deg,
+            step_deg: step,
+            total_deg: 180.0,
+            blocked_sector_deg: 60.0,
+            mount: MountInfo {
+                axis_offset_m: MOUNT.axis_offset_m,
+                height_m: MOUNT.height_m,
+                azimuth_zero_deg: MOUNT.azimuth_zero_deg,
+            },
+        }));
+        let mut tagged_total = 0u64;
+        for r in 0..revolutions {
+            let mut sweep =
+                LidarRevolution::new(SensorId::SWEEP, self.t_ns, self.t_ns + 200_000_000);
+            let mut tagged = Vec::new();
+            for i in 0..samples {
+                let azimuth = 360.0 * f64::from(i) / f64::from(samples);
+                let t = self.t_ns + u64::from(i) * 200_000_000 / u64::from(samples);
+                let yaw = if azimuth < 180.0 {
+                    step * f64::from(r)
+                } else {
+                    step * f64::from(r + 1)
+                };
+                let theta = (azimuth - MOUNT.azimuth_zero_deg).to_radians();
+                let phi = (position.heading_deg + yaw).to_radians();
+                let o = sensor_origin(position, &MOUNT, yaw);
+                let d = [
+                    -theta.sin() * phi.sin(),
+                    theta.sin() * phi.cos(),
+                    theta.cos(),
+                ];
+                let range = if i % 23 == 5 {
+                    0.0
+                } else {
+                    range_to_walls(o, d) as f32
+                };
+                sweep
+                    .push(azimuth as f32, range, 90, t)
+                    .expect("sample time");
+                if (150.0..=210.0).contains(&azimuth) {
+                    continue;
+                }
+                tagged.push(TaggedSweepSample {
+                    azimuth_deg: azimuth as f32,
+                    range_m: range,
+                    quality: 90,
+                    yaw_deg: yaw as f32,
+                });
+            }
+            tagged_total += tagged.len() as u64;
+            self.push(sweep);
+            self.push(StaticScan::Samples(StaticScanSamples {
+                scan_id,
+                revolution: r,
+                t_ns: self.t_ns,
+                samples: tagged,
+            }));
+            self.t_ns += 200_000_000;
+        }
+        self.push(StaticScan::Finished(StaticScanEnd {
+            scan_id,
+            t_ns: self.t_ns,
+            outcome: StaticScanOutcome::Completed,
+            yaw_deg: 180.0,
+            revolutions,
+            tagged: tagged_total,
+            blocked: 0,
+            untrusted: 0,
+            late_steps: 0,
+            failed_steps: 0,
+        }));
+    }
+
+    /// The decodable frames, in order.
+    pub fn frames(&self) -> impl Iterator<Item = &Frame> {
+        self.items.iter().filter_map(|i| match i {
+            Recorded::Frame(f) => Some(f),
+            Recorded::Undecodable(_) => None,
+        })
+    }
+
+    /// Records the session under `data_dir` (edge `edge`) with the real recorder; returns the
+    /// session directory.
+    pub fn record(&self, data_dir: &Path, edge: &str) -> PathBuf {
+        let mut rec =
+            SessionRecorder::open(data_dir, edge, self.session_id).expect("open recorder");
+        for (n, item) in self.items.iter().enumerate() {
+            let log_time = 1_000 + n as u64;
+            match item {
+                Recorded::Frame(frame) => {
+                    rec.append(&encode(frame).expect("encode"), frame, log_time)
+                        .expect("append");
+                }
+                Recorded::Undecodable(seq) => {
+                    rec.append_undecodable(
+                        *seq,
+                        b"S3DP\x02\x00\x03\x00\x00\x00\x2a\x00\x00",
+                        "unknown body tag 42",
+                        log_time,
+                    )
+                    .expect("append undecodable");
+                }
+            }
+            if n % 64 == 63 {
+                rec.commit().expect("commit");
+            }
+        }
+        rec.commit().expect("commit");
+        rec.close().expect("close");
+        session_dir(data_dir, edge, self.session_id)
+    }
+}
+
+/// A named position.
+pub fn position(name: &str, x_m: f64, y_m: f64, heading_deg: f64) -> Position {
+    Position {
+        name: name.into(),
+        x_m,
+        y_m,
+        heading_deg,
+    }
+}
