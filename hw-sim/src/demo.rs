@@ -9,9 +9,11 @@
 //!    which steps the emulated turntable (PCA9685 on the emulated I2C bus) during the Sweep's
 //!    blind sector. Clouds assembled from the recordings go to `DIR/clouds/*.ply|.scans`, with
 //!    their accuracy against the true surface; the truth itself goes to `DIR/truth/`.
-//! 3. **Maps.** Each cloud, filtered as in the paper's Table II, is inserted into the
-//!    OctoMap-identical octree at `--resolution` (0.05 m): `DIR/maps/{map2,map3,ref}.bt`, with
-//!    the ground-truth map `DIR/maps/truth.bt` beside them.
+//! 3. **Maps.** The server runs the live pipeline while the edge scans (Table II filters per
+//!    revolution, the OctoMap-identical octree at `--resolution`, 0.05 m); the maps are the live
+//!    daemon's, taken with `scan3d snapshot` through its control socket
+//!    (`DIR/snapshots/<map>/`, copied to `DIR/maps/{map2,map3,ref}.bt`), with the ground-truth
+//!    map `DIR/maps/truth.bt` beside them.
 //! 4. **Evaluation** (the paper's §IV): every map against `ref` and against the truth inside
 //!    the room's box, with `scan3d report` → `DIR/report/` (`table.md`, `metrics.json`,
 //!    `fig11.svg|png`) and `scan3d sweep` on `ref`'s filtered cloud → `fig12.svg|png`.
@@ -35,7 +37,7 @@ use scan3d_server::ingest::timesync::Estimate;
 use scan3d_map::cloud::OriginScan;
 use scan3d_map::cloud::io;
 
-use crate::maps::{MapPlan, MapResult, MapSetup, build_map, paper_maps, scan_map};
+use crate::maps::{MapPlan, MapResult, MapSetup, paper_maps, scan_map};
 use crate::noise::RangeNoise;
 use crate::rig::{self, Delivery, EdgeThread, LidarOptions, ServerThread, SimLidars};
 use crate::truth::{GroundTruth, truth_map, write_world_description};
@@ -152,6 +154,7 @@ pub fn run_demo(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         &args.out.join("clouds"),
         &args.out.join("truth"),
         &args.out.join("maps"),
+        &args.out.join("snapshots"),
         &args.out.join("static-sessions"),
     ] {
         // Each run starts afresh: an old recording would mix two runs' sessions.
@@ -175,6 +178,9 @@ pub fn run_demo(args: &DemoArgs) -> anyhow::Result<DemoReport> {
             time_scale: args.time_scale,
             seed: args.seed,
             noise: RangeNoise::SWEEP,
+            resolution_m: args.resolution,
+            queue_frames: 256,
+            snapshots_dir: &args.out.join("snapshots"),
         };
         for plan in &plans {
             println!(
@@ -187,13 +193,12 @@ pub fn run_demo(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         }
         let maps_dir = args.out.join("maps");
         for result in &report.maps {
-            let (filtered, tree) = build_map(result.plan.name, &result.cloud, args.resolution)?;
-            if result.plan.name == "ref" {
-                io::save(&args.out.join("clouds/ref.filtered.scans"), &filtered)?;
-            }
+            // The live daemon's map, named after the plan for the report.
+            let live = result.snapshot_dir.join("map.bt");
             let path = maps_dir.join(format!("{}.bt", result.plan.name));
-            std::fs::write(&path, tree.to_bt_bytes())
-                .with_context(|| format!("cannot write {}", path.display()))?;
+            std::fs::copy(&live, &path).with_context(|| {
+                format!("cannot copy {} to {}", live.display(), path.display())
+            })?;
             report.octrees.push(path);
         }
         if !report.maps.is_empty() {
@@ -212,7 +217,8 @@ pub fn run_demo(args: &DemoArgs) -> anyhow::Result<DemoReport> {
 }
 
 /// Scores every map against `ref` (when made) and the truth with `scan3d report`, inside the
-/// room's box, and runs `scan3d sweep` on `ref`'s filtered cloud; returns `table.md`.
+/// room's box, and runs `scan3d sweep` on `ref`'s filtered cloud (the live snapshot's); returns
+/// `table.md`.
 fn evaluate_maps(out: &Path, maps: &[MapResult], world: &World) -> anyhow::Result<String> {
     let report_dir = out.join("report");
     let room = world.room();
@@ -247,7 +253,8 @@ fn evaluate_maps(out: &Path, maps: &[MapResult], world: &World) -> anyhow::Resul
         report_dir.display().to_string(),
     ]);
     run_scan3d(&args)?;
-    let cloud = out.join("clouds/ref.filtered.scans");
+    // The live daemon's filtered cloud of `ref`.
+    let cloud = out.join("snapshots/ref/cloud.ply");
     if cloud.exists() {
         run_scan3d(&[
             "scan3d".into(),

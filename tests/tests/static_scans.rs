@@ -72,6 +72,9 @@ fn run(name: &'static str, positions: Vec<Position>, noise: RangeNoise) -> Vec<C
         time_scale: 10.0,
         seed: 5,
         noise,
+        resolution_m: 0.05,
+        queue_frames: 256,
+        snapshots_dir: &dir.path().join("snapshots"),
     };
     let plan = MapPlan {
         name,
