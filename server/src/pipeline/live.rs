@@ -21,13 +21,13 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use scan3d_protocol::{Body, Frame};
+use scan3d_protocol::{Body, Frame, SensorId};
 use serde::Serialize;
 
 use super::{PipelineError, PipelineSettings, SessionPipeline, SessionStatus, Snapshot};
 use crate::ingest::control::{ControlReply, LiveProducts, ProductRequest};
 use crate::ingest::recorder::{SeqSet, SessionItem, session_dir, visit_session_items};
-use crate::ingest::server::{IngestEvent, IngestSink};
+use crate::ingest::server::{IngestEvent, IngestSink, unix_now_ns};
 
 /// How the live driver runs: the `[pipeline]` section of `server.toml` beyond the pipeline's
 /// own settings.
@@ -162,6 +162,43 @@ pub struct LiveSessionStatus {
     pub abandoned: u64,
     /// The edge's clock against the server's, latest estimate.
     pub timesync: Option<TimeSyncStatus>,
+    /// How old the newest Sweep sample was when its points reached the octree, over the last
+    /// [`LATENCY_WINDOW`] insertions (needs a time-sync estimate).
+    pub sample_to_voxel: Option<LatencySummary>,
+}
+
+/// Insertions [`LiveSessionStatus::sample_to_voxel`] summarises.
+pub const LATENCY_WINDOW: usize = 4096;
+
+/// Percentiles of a latency, ms.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct LatencySummary {
+    /// Insertions measured.
+    pub count: usize,
+    /// Median, ms.
+    pub p50_ms: f64,
+    /// 99th percentile, ms.
+    pub p99_ms: f64,
+    /// Largest, ms.
+    pub max_ms: f64,
+}
+
+impl LatencySummary {
+    /// The summary of `latencies_ns` (`None` if empty).
+    pub fn of(latencies_ns: &[i64]) -> Option<Self> {
+        let mut sorted = latencies_ns.to_vec();
+        sorted.sort_unstable();
+        let at = |q: f64| {
+            let i = ((sorted.len() as f64 - 1.0) * q).round() as usize;
+            sorted[i.min(sorted.len() - 1)] as f64 / 1e6
+        };
+        (!sorted.is_empty()).then(|| LatencySummary {
+            count: sorted.len(),
+            p50_ms: at(0.5),
+            p99_ms: at(0.99),
+            max_ms: at(1.0),
+        })
+    }
 }
 
 /// A time-sync estimate as `scan3d status` shows it.
@@ -280,6 +317,10 @@ struct WorkerShared {
     missed: Mutex<Vec<u64>>,
     pipeline: Mutex<SessionPipeline>,
     progress: Mutex<Progress>,
+    /// The edge clock minus the server's (unix) clock, ns, from the latest time-sync estimate.
+    clock_offset_ns: Mutex<Option<i64>>,
+    /// Sample-to-voxel latencies, ns, the last [`LATENCY_WINDOW`].
+    latencies: Mutex<std::collections::VecDeque<i64>>,
 }
 
 #[derive(Debug, Default)]
@@ -365,9 +406,15 @@ impl LivePipelines {
                     skew_ppm: None,
                     error_bound_ns: (estimate.delay_ns.max(0.0) / 2.0).ceil() as u64,
                 };
-                lock(&self.inner.state)
-                    .timesync
-                    .insert((edge, session_id), status);
+                let mut state = lock(&self.inner.state);
+                if let Some(worker) = state
+                    .workers
+                    .iter()
+                    .find(|w| w.edge == edge && w.session_id == session_id)
+                {
+                    *lock(&worker.shared.clock_offset_ns) = Some(status.offset_ns);
+                }
+                state.timesync.insert((edge, session_id), status);
             }
         }
     }
@@ -423,6 +470,8 @@ impl LivePipelines {
             missed: Mutex::new(Vec::new()),
             pipeline: Mutex::new(pipeline),
             progress: Mutex::new(Progress::default()),
+            clock_offset_ns: Mutex::new(None),
+            latencies: Mutex::new(std::collections::VecDeque::with_capacity(LATENCY_WINDOW)),
         });
         let (queue, frames) = std::sync::mpsc::sync_channel(settings.queue_frames.max(1));
         let run = WorkerRun {
@@ -438,6 +487,7 @@ impl LivePipelines {
             settings: settings.clone(),
             changed: false,
             last_snapshot: Instant::now(),
+            newest_sweep_ns: None,
         };
         let thread = std::thread::Builder::new()
             .name(format!("pipeline {edge}/{session_id:016x}"))
@@ -485,6 +535,7 @@ impl LivePipelines {
                 timesync: timesync
                     .get(&(shared.edge.clone(), shared.session_id))
                     .copied(),
+                sample_to_voxel: LatencySummary::of(lock(&shared.latencies).make_contiguous()),
             };
             match edges.iter_mut().find(|e| e.name == shared.edge) {
                 Some(edge) => edge.sessions.push(session),
@@ -631,6 +682,8 @@ struct WorkerRun {
     /// Frames processed since the last periodic snapshot.
     changed: bool,
     last_snapshot: Instant,
+    /// Edge time (ns) of the end of the newest Sweep revolution processed.
+    newest_sweep_ns: Option<u64>,
 }
 
 impl WorkerRun {
@@ -723,8 +776,31 @@ impl WorkerRun {
         if matches!(frame.body, Body::Command(_)) {
             return;
         }
-        lock(&self.shared.pipeline).on_frame(frame);
+        if let Body::Revolution(rev) = &frame.body
+            && rev.sensor == SensorId::SWEEP
+        {
+            self.newest_sweep_ns = Some(rev.t1_ns);
+        }
+        let grew = {
+            let mut pipeline = lock(&self.shared.pipeline);
+            let before = pipeline.maps().points();
+            pipeline.on_frame(frame);
+            pipeline.maps().points() > before
+        };
         self.changed = true;
+        // Sample-to-voxel latency: the newest Sweep sample's age (its revolution's end, mapped
+        // to server time) when the points reached the octree. TIME SYNC SPOT: the offset-only
+        // mapping gives way to the drift model's when it lands.
+        let offset = *lock(&self.shared.clock_offset_ns);
+        if grew && let (Some(edge_ns), Some(offset)) = (self.newest_sweep_ns, offset) {
+            let sample_server_ns = edge_ns as i128 - i128::from(offset);
+            let latency = i128::from(unix_now_ns()) - sample_server_ns;
+            let mut latencies = lock(&self.shared.latencies);
+            if latencies.len() == LATENCY_WINDOW {
+                latencies.pop_front();
+            }
+            latencies.push_back(latency.clamp(i128::from(i64::MIN), i128::from(i64::MAX)) as i64);
+        }
     }
 
     /// Reads the recording and processes, in its order, every frame not processed yet.
@@ -789,6 +865,17 @@ impl WorkerRun {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn latency_percentiles_come_from_the_sorted_window() {
+        let latencies: Vec<i64> = (1..=100).rev().map(|ms| ms * 1_000_000).collect();
+        let summary = LatencySummary::of(&latencies).unwrap();
+        assert_eq!(summary.count, 100);
+        assert_eq!(summary.p50_ms, 51.0);
+        assert_eq!(summary.p99_ms, 99.0);
+        assert_eq!(summary.max_ms, 100.0);
+        assert_eq!(LatencySummary::of(&[]), None);
+    }
 
     #[test]
     fn frames_in_sequence_are_processed_as_they_come() {
