@@ -181,6 +181,7 @@ pub fn run_demo(args: &DemoArgs) -> anyhow::Result<DemoReport> {
             resolution_m: args.resolution,
             queue_frames: 256,
             snapshots_dir: &args.out.join("snapshots"),
+            full_rates: false,
         };
         for plan in &plans {
             println!(

@@ -20,6 +20,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use scan3d_edge::clock::{Clock, ScaledClock, SharedClock};
+use scan3d_edge::config::RplidarSection;
 use scan3d_map::cloud::OriginScan;
 use scan3d_map::cloud::assembly::{Position, cut_range};
 use scan3d_map::cloud::filter::Filter;
@@ -171,6 +172,10 @@ pub struct MapSetup<'a> {
     pub queue_frames: usize,
     /// The live snapshots go to `snapshots_dir/<map>/`.
     pub snapshots_dir: &'a Path,
+    /// Both lidars at their full rates, as in the field: an RPLidar (4 kHz) streams beside the
+    /// Sweep, which samples at 1 kHz (the live pipeline benchmark); otherwise the Sweep alone at
+    /// its power-on rate.
+    pub full_rates: bool,
 }
 
 /// Runs one map: starts a server, the rig and the edge, scans every position, assembles the
@@ -188,6 +193,7 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
         resolution_m,
         queue_frames,
         snapshots_dir,
+        full_rates,
     } = *setup;
     let first = plan
         .positions
@@ -216,10 +222,28 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
     )?;
     let clock = ScaledClock::new(time_scale);
     let shared: SharedClock = Arc::new(clock);
-    let config = rig.edge_config(
+    let mut config = rig.edge_config(
         &work.join("edge-state"),
         Some(rig::uplink_section(server.addr(), &bundle)),
     );
+    let rplidar = if full_rates {
+        let options = rig::LidarOptions {
+            time_scale,
+            seed,
+            ..Default::default()
+        };
+        let pty = rig::spawn_rplidar(&work.join("links"), world.clone(), &options)?;
+        config.rplidar = Some(RplidarSection {
+            path: pty.link().to_path_buf(),
+            driver: Default::default(),
+        });
+        if let Some(sweep) = &mut config.sweep {
+            sweep.driver.sample_rate_code = Some(3);
+        }
+        Some(pty)
+    } else {
+        None
+    };
     let session_id = rand::random::<u64>();
     let edge = EdgeThread::start_with_i2c(config, shared, session_id, Some(rig.bus()))?;
     let bus_start = (rig.bus_stats().transactions, clock.now_ns());
@@ -311,6 +335,9 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
         .with_context(|| format!("scan3d status has no line for session {session_hex}"))?;
     server.stop();
     rig.shutdown();
+    if let Some(pty) = rplidar {
+        pty.shutdown();
+    }
 
     let session = session_dir(data_dir, EDGE_NAME, session_id);
     let assembled = assemble_session(&session, false)?;

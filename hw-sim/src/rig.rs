@@ -76,22 +76,16 @@ impl SimLidars {
             seed: options.seed.wrapping_add(seed_offset),
             epoch: None,
         };
-        let rplidar = RplidarEmulator::new(
-            RplidarEmulatorConfig::default(),
-            RplidarEmulator::default_scanner(world.clone(), mounts::rplidar()),
-            options.seed,
-        );
         let sweep = SweepEmulator::new(
             SweepEmulatorConfig {
                 settle_ms: options.sweep_settle_ms,
                 ..Default::default()
             },
-            SweepEmulator::default_scanner(world, mounts::sweep()),
+            SweepEmulator::default_scanner(world.clone(), mounts::sweep()),
             options.seed.wrapping_add(1),
         );
         Ok(Self {
-            rplidar: PtyDevice::spawn(links_dir.join("rplidar"), Box::new(rplidar), pty(100))
-                .context("cannot start the emulated RPLidar")?,
+            rplidar: spawn_rplidar(links_dir, world.clone(), options)?,
             sweep: PtyDevice::spawn(links_dir.join("sweep"), Box::new(sweep), pty(101))
                 .context("cannot start the emulated Sweep")?,
         })
@@ -137,6 +131,27 @@ impl SimLidars {
         self.rplidar.shutdown();
         self.sweep.shutdown();
     }
+}
+
+/// An emulated RPLidar A1 (express) in `world` on a pty linked at `links_dir/rplidar`.
+pub fn spawn_rplidar(
+    links_dir: &Path,
+    world: Arc<World>,
+    options: &LidarOptions,
+) -> anyhow::Result<PtyHandle> {
+    let rplidar = RplidarEmulator::new(
+        RplidarEmulatorConfig::default(),
+        RplidarEmulator::default_scanner(world, mounts::rplidar()),
+        options.seed,
+    );
+    let pty = PtyOptions {
+        time_scale: options.time_scale,
+        faults: FaultConfig::corrupt(options.corrupt),
+        seed: options.seed.wrapping_add(100),
+        epoch: None,
+    };
+    PtyDevice::spawn(links_dir.join("rplidar"), Box::new(rplidar), pty)
+        .context("cannot start the emulated RPLidar")
 }
 
 /// Pairs a CA, a `localhost` server certificate and the [`EDGE_NAME`] bundle in `pki_dir`.

@@ -61,6 +61,7 @@ fn a_live_snapshot_after_a_static_scan_is_the_offline_map_byte_for_byte_even_thr
         resolution_m: resolution,
         queue_frames: 1,
         snapshots_dir: &dir.path().join("snapshots"),
+        full_rates: false,
     };
     let plan = MapPlan {
         name: "live",

@@ -75,6 +75,7 @@ fn run(name: &'static str, positions: Vec<Position>, noise: RangeNoise) -> Vec<C
         resolution_m: 0.05,
         queue_frames: 256,
         snapshots_dir: &dir.path().join("snapshots"),
+        full_rates: false,
     };
     let plan = MapPlan {
         name,

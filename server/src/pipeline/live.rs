@@ -162,6 +162,10 @@ pub struct LiveSessionStatus {
     pub abandoned: u64,
     /// The edge's clock against the server's, latest estimate.
     pub timesync: Option<TimeSyncStatus>,
+    /// CPU time the session's worker thread has used, ms (processing and catching up).
+    pub worker_cpu_ms: u64,
+    /// Memory of the session's octree (all positions' points in one), bytes.
+    pub map_memory_bytes: u64,
     /// How old the newest Sweep sample was when its points reached the octree, over the last
     /// [`LATENCY_WINDOW`] insertions (needs a time-sync estimate).
     pub sample_to_voxel: Option<LatencySummary>,
@@ -335,6 +339,8 @@ struct Progress {
     max_lag_ms: u64,
     catch_ups: u64,
     abandoned: u64,
+    /// The worker thread's CPU time, ns.
+    cpu_ns: u64,
 }
 
 fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -519,7 +525,11 @@ impl LivePipelines {
             })
             .collect();
         for shared in workers {
-            let pipeline = lock(&shared.pipeline).status();
+            let (pipeline, map_memory_bytes) = {
+                let mut pipeline = lock(&shared.pipeline);
+                let memory = pipeline.maps().session_map().memory_bytes() as u64;
+                (pipeline.status(), memory)
+            };
             let (lag_frames, lag_ms) = shared.lag();
             let progress = lock(&shared.progress);
             let session = LiveSessionStatus {
@@ -532,6 +542,8 @@ impl LivePipelines {
                 catch_ups: progress.catch_ups,
                 queue_overflows: shared.overflowed.load(Ordering::Acquire),
                 abandoned: progress.abandoned,
+                worker_cpu_ms: progress.cpu_ns / 1_000_000,
+                map_memory_bytes,
                 timesync: timesync
                     .get(&(shared.edge.clone(), shared.session_id))
                     .copied(),
@@ -671,6 +683,13 @@ impl LiveProducts for LivePipelines {
     }
 }
 
+/// The calling thread's CPU time, ns (0 if the clock cannot be read, which Linux never does).
+fn thread_cpu_ns() -> u64 {
+    nix::time::clock_gettime(nix::time::ClockId::CLOCK_THREAD_CPUTIME_ID)
+        .map(|t| u64::try_from(Duration::from(t).as_nanos()).unwrap_or(u64::MAX))
+        .unwrap_or(0)
+}
+
 /// A worker thread's state.
 struct WorkerRun {
     shared: Arc<WorkerShared>,
@@ -745,6 +764,7 @@ impl WorkerRun {
                 std::thread::sleep(wait);
             }
             self.periodic_snapshot();
+            lock(&self.shared.progress).cpu_ns = thread_cpu_ns();
         }
         self.periodic_snapshot_now();
     }
