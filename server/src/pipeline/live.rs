@@ -21,7 +21,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use scan3d_protocol::{Body, Frame, SensorId};
+use scan3d_protocol::{Body, Frame, SensorId, StaticScan};
 use serde::Serialize;
 
 use super::{PipelineError, PipelineSettings, SessionPipeline, SessionStatus, Snapshot};
@@ -169,6 +169,10 @@ pub struct LiveSessionStatus {
     /// How old the newest Sweep sample was when its points reached the octree, over the last
     /// [`LATENCY_WINDOW`] insertions (needs a time-sync estimate).
     pub sample_to_voxel: Option<LatencySummary>,
+    /// From the recorder's acceptance of a frame to its points in the octree (the server's
+    /// share of [`sample_to_voxel`](Self::sample_to_voxel): queue and processing), frames from
+    /// the queue only, over the last [`LATENCY_WINDOW`] insertions.
+    pub accept_to_voxel: Option<LatencySummary>,
 }
 
 /// Insertions [`LiveSessionStatus::sample_to_voxel`] summarises.
@@ -325,6 +329,17 @@ struct WorkerShared {
     clock_offset_ns: Mutex<Option<i64>>,
     /// Sample-to-voxel latencies, ns, the last [`LATENCY_WINDOW`].
     latencies: Mutex<std::collections::VecDeque<i64>>,
+    /// Accept-to-voxel latencies, ns, the last [`LATENCY_WINDOW`].
+    server_latencies: Mutex<std::collections::VecDeque<i64>>,
+}
+
+/// Appends `latency_ns` to a window of at most [`LATENCY_WINDOW`].
+fn push_latency(window: &Mutex<std::collections::VecDeque<i64>>, latency_ns: i64) {
+    let mut window = lock(window);
+    if window.len() == LATENCY_WINDOW {
+        window.pop_front();
+    }
+    window.push_back(latency_ns);
 }
 
 #[derive(Debug, Default)]
@@ -478,6 +493,9 @@ impl LivePipelines {
             progress: Mutex::new(Progress::default()),
             clock_offset_ns: Mutex::new(None),
             latencies: Mutex::new(std::collections::VecDeque::with_capacity(LATENCY_WINDOW)),
+            server_latencies: Mutex::new(std::collections::VecDeque::with_capacity(
+                LATENCY_WINDOW,
+            )),
         });
         let (queue, frames) = std::sync::mpsc::sync_channel(settings.queue_frames.max(1));
         let run = WorkerRun {
@@ -493,7 +511,7 @@ impl LivePipelines {
             settings: settings.clone(),
             changed: false,
             last_snapshot: Instant::now(),
-            newest_sweep_ns: None,
+            recent_sweeps: std::collections::VecDeque::with_capacity(RECENT_SWEEPS),
         };
         let thread = std::thread::Builder::new()
             .name(format!("pipeline {edge}/{session_id:016x}"))
@@ -548,6 +566,9 @@ impl LivePipelines {
                     .get(&(shared.edge.clone(), shared.session_id))
                     .copied(),
                 sample_to_voxel: LatencySummary::of(lock(&shared.latencies).make_contiguous()),
+                accept_to_voxel: LatencySummary::of(
+                    lock(&shared.server_latencies).make_contiguous(),
+                ),
             };
             match edges.iter_mut().find(|e| e.name == shared.edge) {
                 Some(edge) => edge.sessions.push(session),
@@ -701,9 +722,12 @@ struct WorkerRun {
     /// Frames processed since the last periodic snapshot.
     changed: bool,
     last_snapshot: Instant,
-    /// Edge time (ns) of the end of the newest Sweep revolution processed.
-    newest_sweep_ns: Option<u64>,
+    /// `(start, end)` edge times (ns) of the latest Sweep revolutions processed, oldest first.
+    recent_sweeps: std::collections::VecDeque<(u64, u64)>,
 }
+
+/// Sweep revolutions [`WorkerRun`] remembers to date the static-scan samples that refer to them.
+const RECENT_SWEEPS: usize = 16;
 
 impl WorkerRun {
     fn run(mut self) {
@@ -783,7 +807,7 @@ impl WorkerRun {
             progress.queue_delay = queued.accepted_at.elapsed();
         }
         match self.sequencer.offer(queued.frame.seq) {
-            Offer::Process => self.process(&queued.frame),
+            Offer::Process => self.process(&queued.frame, Some(queued.accepted_at)),
             Offer::Skip => {}
             Offer::Owe => {
                 lock(&self.shared.progress).owed = self.sequencer.owed() as u64;
@@ -792,14 +816,19 @@ impl WorkerRun {
         self.shared.note_lag();
     }
 
-    fn process(&mut self, frame: &Frame) {
+    /// Puts one frame through the pipeline; `accepted_at`: when the recorder accepted it, for
+    /// a frame from the queue.
+    fn process(&mut self, frame: &Frame, accepted_at: Option<Instant>) {
         if matches!(frame.body, Body::Command(_)) {
             return;
         }
         if let Body::Revolution(rev) = &frame.body
             && rev.sensor == SensorId::SWEEP
         {
-            self.newest_sweep_ns = Some(rev.t1_ns);
+            if self.recent_sweeps.len() == RECENT_SWEEPS {
+                self.recent_sweeps.pop_front();
+            }
+            self.recent_sweeps.push_back((rev.t0_ns, rev.t1_ns));
         }
         let grew = {
             let mut pipeline = lock(&self.shared.pipeline);
@@ -808,18 +837,37 @@ impl WorkerRun {
             pipeline.maps().points() > before
         };
         self.changed = true;
-        // Sample-to-voxel latency: the newest Sweep sample's age (its revolution's end, mapped
-        // to server time) when the points reached the octree. TIME SYNC SPOT: the offset-only
-        // mapping gives way to the drift model's when it lands.
+        // Sample-to-voxel latency: the age of the newest sample whose points this frame put into
+        // the octree (the end of its Sweep revolution, mapped to server time). TIME SYNC SPOT:
+        // the offset-only mapping gives way to the drift model's when it lands.
         let offset = *lock(&self.shared.clock_offset_ns);
-        if grew && let (Some(edge_ns), Some(offset)) = (self.newest_sweep_ns, offset) {
+        if grew && let (Some(edge_ns), Some(offset)) = (self.newest_inserted_ns(frame), offset) {
             let sample_server_ns = edge_ns as i128 - i128::from(offset);
             let latency = i128::from(unix_now_ns()) - sample_server_ns;
-            let mut latencies = lock(&self.shared.latencies);
-            if latencies.len() == LATENCY_WINDOW {
-                latencies.pop_front();
-            }
-            latencies.push_back(latency.clamp(i128::from(i64::MIN), i128::from(i64::MAX)) as i64);
+            let latency = latency.clamp(i128::from(i64::MIN), i128::from(i64::MAX)) as i64;
+            push_latency(&self.shared.latencies, latency);
+        }
+        if grew && let Some(accepted_at) = accepted_at {
+            let latency = i64::try_from(accepted_at.elapsed().as_nanos()).unwrap_or(i64::MAX);
+            push_latency(&self.shared.server_latencies, latency);
+        }
+    }
+
+    /// Edge time of the newest sample `frame` inserted: the end of the Sweep revolution its
+    /// static-scan samples belong to (the one starting at their first sample), else of the
+    /// latest Sweep revolution.
+    fn newest_inserted_ns(&self, frame: &Frame) -> Option<u64> {
+        let latest = self.recent_sweeps.back().map(|&(_, t1)| t1);
+        match &frame.body {
+            Body::StaticScan(StaticScan::Samples(batch)) => self
+                .recent_sweeps
+                .iter()
+                .rev()
+                .find(|&&(t0, t1)| (t0..t1).contains(&batch.t_ns))
+                .map(|&(_, t1)| t1)
+                .or(latest),
+            Body::Revolution(rev) if rev.sensor == SensorId::SWEEP => Some(rev.t1_ns),
+            _ => latest,
         }
     }
 
@@ -834,7 +882,7 @@ impl WorkerRun {
                     if !matches!(recorded.frame.body, Body::Command(_))
                         && self.sequencer.from_recording(recorded.frame.seq)
                     {
-                        self.process(&recorded.frame);
+                        self.process(&recorded.frame, None);
                     }
                 }
                 // Recorded raw (a body this server cannot decode): its seq is no gap.
