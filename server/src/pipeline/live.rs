@@ -266,6 +266,16 @@ pub enum LiveError {
         /// Why it failed.
         source: PipelineError,
     },
+    /// The session's pipeline is not running.
+    #[error("session {edge}/{session:016x} has no live products: {reason}")]
+    NotRunning {
+        /// The edge.
+        edge: String,
+        /// The session.
+        session: u64,
+        /// Why.
+        reason: String,
+    },
     /// The session's worker did not catch up in time.
     #[error("session {edge}/{session:016x} is {lag_frames} frames behind after {waited:?}; try again")]
     Behind {
@@ -313,6 +323,23 @@ struct Queued {
     accepted_at: Instant,
 }
 
+/// A session's pipeline: built on the worker's thread (loading the reference map there, not on
+/// ingest's task).
+enum Slot {
+    Starting,
+    Running(Box<SessionPipeline>),
+    Failed(String),
+}
+
+impl Slot {
+    fn running(&mut self) -> Option<&mut SessionPipeline> {
+        match self {
+            Slot::Running(pipeline) => Some(pipeline),
+            Slot::Starting | Slot::Failed(_) => None,
+        }
+    }
+}
+
 /// What a worker shares with ingest (counters) and the control socket (pipeline, progress).
 struct WorkerShared {
     edge: String,
@@ -323,7 +350,7 @@ struct WorkerShared {
     overflowed: AtomicU64,
     /// Their seqs, for the worker to read back.
     missed: Mutex<Vec<u64>>,
-    pipeline: Mutex<SessionPipeline>,
+    pipeline: Mutex<Slot>,
     progress: Mutex<Progress>,
     /// The edge clock minus the server's (unix) clock, ns, from the latest time-sync estimate.
     clock_offset_ns: Mutex<Option<i64>>,
@@ -473,7 +500,11 @@ impl LivePipelines {
         };
         match queue.try_send(queued) {
             Ok(()) => {}
-            Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => {
+            // The worker is gone (its pipeline could not be built, logged): recording only.
+            Err(TrySendError::Disconnected(_)) => {
+                shared.accepted.fetch_sub(1, Ordering::AcqRel);
+            }
+            Err(TrySendError::Full(_)) => {
                 lock(&shared.missed).push(seq);
                 shared.overflowed.fetch_add(1, Ordering::AcqRel);
             }
@@ -481,15 +512,15 @@ impl LivePipelines {
     }
 
     fn spawn(&self, edge: &str, session_id: u64) -> std::io::Result<Worker> {
+        // The pipeline itself is built on the worker's thread.
         let settings = &self.inner.settings;
-        let pipeline = SessionPipeline::new(&settings.pipeline).map_err(std::io::Error::other)?;
         let shared = Arc::new(WorkerShared {
             edge: edge.to_owned(),
             session_id,
             accepted: AtomicU64::new(0),
             overflowed: AtomicU64::new(0),
             missed: Mutex::new(Vec::new()),
-            pipeline: Mutex::new(pipeline),
+            pipeline: Mutex::new(Slot::Starting),
             progress: Mutex::new(Progress::default()),
             clock_offset_ns: Mutex::new(None),
             latencies: Mutex::new(std::collections::VecDeque::with_capacity(LATENCY_WINDOW)),
@@ -544,7 +575,11 @@ impl LivePipelines {
             .collect();
         for shared in workers {
             let (pipeline, map_memory_bytes) = {
-                let mut pipeline = lock(&shared.pipeline);
+                let mut slot = lock(&shared.pipeline);
+                // Not built yet (a few ms) or failed (logged): no line.
+                let Some(pipeline) = slot.running() else {
+                    continue;
+                };
                 let memory = pipeline.maps().session_map().memory_bytes() as u64;
                 (pipeline.status(), memory)
             };
@@ -622,6 +657,13 @@ impl LivePipelines {
                 }
             }
         };
+        if let Slot::Failed(reason) = &*lock(&shared.pipeline) {
+            return Err(LiveError::NotRunning {
+                edge: edge.to_owned(),
+                session: shared.session_id,
+                reason: reason.clone(),
+            });
+        }
         let started = Instant::now();
         loop {
             let (lag_frames, _) = shared.lag();
@@ -639,7 +681,25 @@ impl LivePipelines {
             }
             std::thread::sleep(Duration::from_millis(5));
         }
-        let snapshot = lock(&shared.pipeline)
+        let mut slot = lock(&shared.pipeline);
+        let pipeline = match &mut *slot {
+            Slot::Running(pipeline) => pipeline,
+            Slot::Starting => {
+                return Err(LiveError::NotRunning {
+                    edge: edge.to_owned(),
+                    session: shared.session_id,
+                    reason: "its pipeline is still starting".into(),
+                });
+            }
+            Slot::Failed(reason) => {
+                return Err(LiveError::NotRunning {
+                    edge: edge.to_owned(),
+                    session: shared.session_id,
+                    reason: reason.clone(),
+                });
+            }
+        };
+        let snapshot = pipeline
             .write_snapshot(dir, position)
             .map_err(|source| LiveError::Write {
                 edge: edge.to_owned(),
@@ -731,6 +791,15 @@ const RECENT_SWEEPS: usize = 16;
 
 impl WorkerRun {
     fn run(mut self) {
+        match SessionPipeline::new(&self.settings.pipeline) {
+            Ok(pipeline) => *lock(&self.shared.pipeline) = Slot::Running(Box::new(pipeline)),
+            Err(e) => {
+                tracing::error!(edge = %self.shared.edge, session = format!("{:016x}", self.shared.session_id),
+                    error = %e, "cannot build the session's pipeline; the session is recorded only");
+                *lock(&self.shared.pipeline) = Slot::Failed(e.to_string());
+                return;
+            }
+        }
         let mut owed_since: Option<Instant> = None;
         let mut last_catch_up: Option<Instant> = None;
         let mut open = true;
@@ -831,7 +900,10 @@ impl WorkerRun {
             self.recent_sweeps.push_back((rev.t0_ns, rev.t1_ns));
         }
         let grew = {
-            let mut pipeline = lock(&self.shared.pipeline);
+            let mut slot = lock(&self.shared.pipeline);
+            let Some(pipeline) = slot.running() else {
+                return;
+            };
             let before = pipeline.maps().points();
             pipeline.on_frame(frame);
             pipeline.maps().points() > before
@@ -887,8 +959,10 @@ impl WorkerRun {
                 }
                 // Recorded raw (a body this server cannot decode): its seq is no gap.
                 SessionItem::Undecodable(frame) => {
-                    if self.sequencer.from_recording(frame.seq) {
-                        lock(&self.shared.pipeline).on_undecodable(frame.seq);
+                    if self.sequencer.from_recording(frame.seq)
+                        && let Some(pipeline) = lock(&self.shared.pipeline).running()
+                    {
+                        pipeline.on_undecodable(frame.seq);
                     }
                 }
             }
@@ -922,8 +996,11 @@ impl WorkerRun {
         }
         self.last_snapshot = Instant::now();
         self.changed = false;
-        let written = lock(&self.shared.pipeline).write_snapshot(&self.snapshot_dir, None);
-        if let Err(e) = written {
+        let mut slot = lock(&self.shared.pipeline);
+        let Some(pipeline) = slot.running() else {
+            return;
+        };
+        if let Err(e) = pipeline.write_snapshot(&self.snapshot_dir, None) {
             tracing::error!(edge = %self.shared.edge, session = format!("{:016x}", self.shared.session_id),
                 dir = %self.snapshot_dir.display(), error = %e, "periodic snapshot failed; recording goes on");
         }
