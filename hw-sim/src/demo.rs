@@ -197,9 +197,8 @@ pub fn run_demo(args: &DemoArgs) -> anyhow::Result<DemoReport> {
             // The live daemon's map, named after the plan for the report.
             let live = result.snapshot_dir.join("map.bt");
             let path = maps_dir.join(format!("{}.bt", result.plan.name));
-            std::fs::copy(&live, &path).with_context(|| {
-                format!("cannot copy {} to {}", live.display(), path.display())
-            })?;
+            std::fs::copy(&live, &path)
+                .with_context(|| format!("cannot copy {} to {}", live.display(), path.display()))?;
             report.octrees.push(path);
         }
         if !report.maps.is_empty() {

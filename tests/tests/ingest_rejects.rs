@@ -17,18 +17,18 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
 
+use clap::Parser;
 use scan3d_edge::clock::{ScaledClock, SharedClock};
 use scan3d_edge::uplink::client::{Uplink, UplinkConfig};
 use scan3d_edge::uplink::spool::SpoolConfig;
 use scan3d_edge::uplink::tls::client_config;
+use scan3d_hw_sim::maps::session_status;
 use scan3d_hw_sim::rig::{self, ServerThread};
+use scan3d_map::octree::{Octree, SensorModel};
 use scan3d_protocol::{
     Ack, Body, Command, Frame, FrameReader, HEADER_LEN, Heartbeat, LidarRevolution, MAGIC,
     PROTOCOL_VERSION, SensorId, encode,
 };
-use clap::Parser;
-use scan3d_hw_sim::maps::session_status;
-use scan3d_map::octree::{Octree, SensorModel};
 use scan3d_server::ingest::control::{
     ProductRequest, request_products, request_snapshot, socket_path,
 };
@@ -686,7 +686,10 @@ fn a_live_session_with_a_gap_and_an_unknown_body_is_processed_around_them_and_al
         "missing_frames",
         "undecodable_frames",
     ] {
-        assert_eq!(live[key], offline[key], "{key}: live {live}, offline {offline}");
+        assert_eq!(
+            live[key], offline[key],
+            "{key}: live {live}, offline {offline}"
+        );
     }
     site.server.stop();
 }
@@ -714,7 +717,9 @@ fn a_snapshot_into_an_unwritable_directory_fails_and_the_daemon_keeps_recording(
         let error = request_snapshot(&socket, rig::EDGE_NAME, None, None, &unwritable)
             .expect_err("the snapshot must fail");
         assert!(
-            error.to_string().contains(&unwritable.display().to_string()),
+            error
+                .to_string()
+                .contains(&unwritable.display().to_string()),
             "{error}"
         );
         // Recording and acknowledging go on.

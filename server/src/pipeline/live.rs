@@ -277,7 +277,9 @@ pub enum LiveError {
         reason: String,
     },
     /// The session's worker did not catch up in time.
-    #[error("session {edge}/{session:016x} is {lag_frames} frames behind after {waited:?}; try again")]
+    #[error(
+        "session {edge}/{session:016x} is {lag_frames} frames behind after {waited:?}; try again"
+    )]
     Behind {
         /// The edge.
         edge: String,
@@ -524,9 +526,7 @@ impl LivePipelines {
             progress: Mutex::new(Progress::default()),
             clock_offset_ns: Mutex::new(None),
             latencies: Mutex::new(std::collections::VecDeque::with_capacity(LATENCY_WINDOW)),
-            server_latencies: Mutex::new(std::collections::VecDeque::with_capacity(
-                LATENCY_WINDOW,
-            )),
+            server_latencies: Mutex::new(std::collections::VecDeque::with_capacity(LATENCY_WINDOW)),
         });
         let (queue, frames) = std::sync::mpsc::sync_channel(settings.queue_frames.max(1));
         let run = WorkerRun {
@@ -699,14 +699,15 @@ impl LivePipelines {
                 });
             }
         };
-        let snapshot = pipeline
-            .write_snapshot(dir, position)
-            .map_err(|source| LiveError::Write {
-                edge: edge.to_owned(),
-                session: shared.session_id,
-                dir: dir.to_path_buf(),
-                source,
-            })?;
+        let snapshot =
+            pipeline
+                .write_snapshot(dir, position)
+                .map_err(|source| LiveError::Write {
+                    edge: edge.to_owned(),
+                    session: shared.session_id,
+                    dir: dir.to_path_buf(),
+                    source,
+                })?;
         Ok((shared.session_id, snapshot))
     }
 
@@ -1081,7 +1082,9 @@ mod tests {
         let mut sequencer = Sequencer::default();
         // The first frame this daemon sees is 120: 0..120 are in the recording already.
         assert_eq!(sequencer.offer(120), Offer::Owe);
-        let taken = (0..=120).filter(|&seq| sequencer.from_recording(seq)).count();
+        let taken = (0..=120)
+            .filter(|&seq| sequencer.from_recording(seq))
+            .count();
         assert_eq!(taken, 121);
         assert_eq!(sequencer.offer(121), Offer::Process);
     }
