@@ -651,6 +651,47 @@ mod tests {
         assert!(control.connected().is_empty());
     }
 
+    #[test]
+    fn product_requests_are_told_from_commands_by_their_request_key() {
+        let control = EdgeControl::default();
+        let _rx = control.register("pi");
+        // Without a live pipeline, a product request is refused with the reason.
+        let reply = handle_request(&control, r#"{"request":"status"}"#);
+        assert_eq!(reply, ControlReply::failed(NO_PIPELINE.into()));
+        // A product request with an unknown key or kind is malformed, not taken for a command.
+        for line in [
+            r#"{"request":"reboot"}"#,
+            r#"{"request":"snapshot","edge":"pi"}"#,
+        ] {
+            let reply = handle_request(&control, line);
+            assert!(
+                reply.detail.starts_with("malformed request"),
+                "{line}: {reply:?}"
+            );
+        }
+        assert_eq!(
+            parse_request(r#"{"request":"snapshot","edge":"pi","out":"/tmp/s"}"#)
+                .map(|r| match r {
+                    Request::Products(p) => Some(p),
+                    Request::Command(_) => None,
+                })
+                .ok()
+                .flatten(),
+            Some(ProductRequest::Snapshot {
+                edge: "pi".into(),
+                session: None,
+                position: None,
+                out: PathBuf::from("/tmp/s"),
+            })
+        );
+        // Commands are answered as before, without a `data` key on the wire.
+        let reply = handle_request(&control, r#"{"edge":"pi","command":"StopStaticScan"}"#);
+        assert_eq!(
+            reply_line(&reply),
+            "{\"ok\":true,\"detail\":\"sent to pi\"}\n"
+        );
+    }
+
     #[tokio::test]
     async fn socket_round_trip() {
         let dir = tempfile::tempdir().unwrap();
