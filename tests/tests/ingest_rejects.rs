@@ -573,15 +573,18 @@ fn after_a_reconnect_the_server_acknowledges_again_what_it_already_holds() {
 /// The server with the live pipeline on, its queue `queue_frames` long (1: every frame beyond
 /// the first in a burst is read back from the recording).
 fn start_live_server(queue_frames: usize) -> Site {
+    start_live_server_with(|live| live.queue_frames = queue_frames)
+}
+
+/// The server with the live pipeline on, its settings tuned by `tune`.
+fn start_live_server_with(tune: impl FnOnce(&mut LiveSettings)) -> Site {
     let dir = tempfile::tempdir().expect("temp dir");
     let pki = dir.path().join("pki");
     let bundle = rig::pair_certificates(&pki).expect("pairing");
     let data = dir.path().join("data");
     let config = rig::ingest_config(&pki, &data, 0);
-    let live = LiveSettings {
-        queue_frames,
-        ..LiveSettings::new(PipelineSettings::default(), data)
-    };
+    let mut live = LiveSettings::new(PipelineSettings::default(), data);
+    tune(&mut live);
     let server = ServerThread::start_live(config, live).expect("server");
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -765,5 +768,42 @@ fn a_snapshot_into_an_unwritable_directory_fails_and_the_daemon_keeps_recording(
     .expect("arguments");
     scan3d_server::cli::execute(cli, &mut std::io::sink()).expect("scan3d map");
     assert_eq!(bt, std::fs::read(&offline).expect("offline map"));
+    site.server.stop();
+}
+
+#[test]
+fn periodic_snapshots_are_written_into_the_data_directory_while_the_session_streams() {
+    let site =
+        start_live_server_with(|live| live.snapshot_every = Some(Duration::from_millis(200)));
+    let session = 0x0000_5a95;
+    let snapshots = site
+        .dir
+        .path()
+        .join("data/snapshots")
+        .join(rig::EDGE_NAME)
+        .join(format!("{session:016x}"));
+    site.runtime.block_on(async {
+        let mut client = connect(site.server.addr(), &site.bundle).await;
+        for seq in 0..3 {
+            client
+                .send
+                .write_all(&revolution(session, seq))
+                .await
+                .expect("write");
+        }
+        assert!(client.acknowledged(session, &[0, 1, 2]).await);
+    });
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    while !snapshots.join("map.bt").exists() {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "no periodic snapshot in {}",
+            snapshots.display()
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    for file in ["map.bt", "map.ot", "cloud.ply"] {
+        assert!(snapshots.join(file).exists(), "{file} missing");
+    }
     site.server.stop();
 }
