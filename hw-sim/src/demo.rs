@@ -15,8 +15,9 @@
 //!    (`DIR/snapshots/<map>/`, copied to `DIR/maps/{map2,map3,ref}.bt`), with the ground-truth
 //!    map `DIR/maps/truth.bt` beside them.
 //! 4. **Evaluation** (the paper's §IV): every map against `ref` and against the truth inside
-//!    the room's box, with `scan3d report` → `DIR/report/` (`table.md`, `metrics.json`,
-//!    `fig11.svg|png`) and `scan3d sweep` on `ref`'s filtered cloud → `fig12.svg|png`.
+//!    the room's box, as `scan3d report` makes it (`scan3d_server::report`) → `DIR/report/`
+//!    (`table.md`, `metrics.json`, `fig11.svg|png`) and `scan3d sweep`'s Fig. 12 on `ref`'s
+//!    filtered cloud → `fig12.svg|png`.
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -25,7 +26,6 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use clap::Parser;
 use scan3d_edge::clock::{ScaledClock, SharedClock};
 use scan3d_edge::daemon::DaemonReport;
 use scan3d_map::cloud::scans::RevolutionCollector;
@@ -33,6 +33,7 @@ use scan3d_protocol::{Body, SensorId};
 use scan3d_server::ingest::recorder::{session_dir, topic};
 use scan3d_server::ingest::server::{IngestEvent, IngestStats};
 use scan3d_server::ingest::timesync::Estimate;
+use scan3d_server::report::{MetricBox, SWEEP_RESOLUTIONS, write_report, write_sweep};
 
 use scan3d_map::cloud::OriginScan;
 use scan3d_map::cloud::io;
@@ -216,65 +217,47 @@ pub fn run_demo(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     result
 }
 
-/// Scores every map against `ref` (when made) and the truth with `scan3d report`, inside the
-/// room's box, and runs `scan3d sweep` on `ref`'s filtered cloud (the live snapshot's); returns
-/// `table.md`.
+/// Scores every map against `ref` (when made) and the truth as `scan3d report` does, inside
+/// the room's box, and makes `scan3d sweep`'s Fig. 12 from `ref`'s filtered cloud (the live
+/// snapshot's); returns `table.md`.
 fn evaluate_maps(out: &Path, maps: &[MapResult], world: &World) -> anyhow::Result<String> {
     let report_dir = out.join("report");
     let room = world.room();
-    let bbox = format!(
-        "{},{},{},{},{},{}",
-        room.min.x, room.min.y, room.min.z, room.max.x, room.max.y, room.max.z
-    );
+    let bbox = MetricBox {
+        min: [room.min.x, room.min.y, room.min.z],
+        max: [room.max.x, room.max.y, room.max.z],
+    };
     let map_path = |name: &str| out.join("maps").join(format!("{name}.bt"));
     let reference = if maps.iter().any(|m| m.plan.name == "ref") {
         map_path("ref")
     } else {
         map_path(maps.first().map_or("ref", |m| m.plan.name))
     };
-    let mut args: Vec<String> = ["scan3d", "report", "--ref"]
+    let targets: Vec<PathBuf> = maps
         .iter()
-        .map(ToString::to_string)
+        .map(|m| map_path(m.plan.name))
+        .filter(|path| *path != reference || maps.len() == 1)
         .collect();
-    args.push(reference.display().to_string());
-    args.push("--maps".into());
-    args.extend(
-        maps.iter()
-            .map(|m| map_path(m.plan.name))
-            .filter(|path| *path != reference || maps.len() == 1)
-            .map(|path| path.display().to_string()),
-    );
-    args.extend([
-        "--truth".into(),
-        map_path("truth").display().to_string(),
-        "--bbox".into(),
-        bbox,
-        "--out".into(),
-        report_dir.display().to_string(),
-    ]);
-    run_scan3d(&args)?;
+    let written = write_report(
+        &reference,
+        &targets,
+        Some(&map_path("truth")),
+        Some(bbox),
+        &report_dir,
+    )?;
     // The live daemon's filtered cloud of `ref`.
     let cloud = out.join("snapshots/ref/cloud.ply");
     if cloud.exists() {
-        run_scan3d(&[
-            "scan3d".into(),
-            "sweep".into(),
-            cloud.display().to_string(),
-            "--reps".into(),
-            "1".into(),
-            "--out".into(),
-            report_dir.display().to_string(),
-        ])?;
+        write_sweep(
+            &cloud,
+            &SWEEP_RESOLUTIONS,
+            -1.0,
+            1,
+            &report_dir,
+            &mut std::io::sink(),
+        )?;
     }
-    let table = report_dir.join("table.md");
-    std::fs::read_to_string(&table).with_context(|| format!("cannot read {}", table.display()))
-}
-
-/// Runs a `scan3d` command line in-process (the same code as the binary).
-fn run_scan3d(args: &[String]) -> anyhow::Result<()> {
-    let cli = scan3d_server::cli::Cli::try_parse_from(args)?;
-    let mut sink = Vec::new();
-    scan3d_server::cli::execute(cli, &mut sink)
+    Ok(written.table)
 }
 
 /// Writes the ground truth for evaluation: the world description (`world.toml`, loadable with

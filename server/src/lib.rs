@@ -4,6 +4,7 @@
 //! - [`ingest`]: QUIC server with mutual TLS, durable MCAP session recordings, time sync.
 //! - [`pipeline`]: per session, frames through assembly, filters, octree and metrics.
 //! - the octree, clouds and metrics are the pure `scan3d-map` crate, used here.
+//! - [`report`]: map comparison reports (Table III, metrics, Fig. 11/12) from map files.
 //! - [`config`]: the daemon's `server.toml`.
 //! - [`cli`]: the `scan3d` subcommands.
 #![warn(missing_docs)]
@@ -12,3 +13,4 @@ pub mod cli;
 pub mod config;
 pub mod ingest;
 pub mod pipeline;
+pub mod report;
