@@ -248,7 +248,7 @@ pub fn write_report(
         truth: truth_path.map(Path::to_path_buf),
         maps,
     };
-    std::fs::create_dir_all(&out_dir)
+    std::fs::create_dir_all(out_dir)
         .with_context(|| format!("cannot create {}", out_dir.display()))?;
     let write = |name: &str, bytes: &[u8]| -> anyhow::Result<PathBuf> {
         let p = out_dir.join(name);
@@ -412,10 +412,10 @@ pub fn write_sweep(
         cloud: cloud_path.to_path_buf(),
         scans: scans.len(),
         points,
-        max_range: max_range,
+        max_range,
         rows,
     };
-    std::fs::create_dir_all(&out_dir)
+    std::fs::create_dir_all(out_dir)
         .with_context(|| format!("cannot create {}", out_dir.display()))?;
     let fig: Vec<Fig12Row> = sweep
         .rows
