@@ -9,12 +9,15 @@
 //!    which steps the emulated turntable (PCA9685 on the emulated I2C bus) during the Sweep's
 //!    blind sector. Clouds assembled from the recordings go to `DIR/clouds/*.ply|.scans`, with
 //!    their accuracy against the true surface; the truth itself goes to `DIR/truth/`.
-//! 3. **Maps.** Each cloud, filtered as in the paper's Table II, is inserted into the
-//!    OctoMap-identical octree at `--resolution` (0.05 m): `DIR/maps/{map2,map3,ref}.bt`, with
-//!    the ground-truth map `DIR/maps/truth.bt` beside them.
+//! 3. **Maps.** The server runs the live pipeline while the edge scans (Table II filters per
+//!    revolution, the OctoMap-identical octree at `--resolution`, 0.05 m); the maps are the live
+//!    daemon's, taken with `scan3d snapshot` through its control socket
+//!    (`DIR/snapshots/<map>/`, copied to `DIR/maps/{map2,map3,ref}.bt`), with the ground-truth
+//!    map `DIR/maps/truth.bt` beside them.
 //! 4. **Evaluation** (the paper's §IV): every map against `ref` and against the truth inside
-//!    the room's box, with `scan3d report` → `DIR/report/` (`table.md`, `metrics.json`,
-//!    `fig11.svg|png`) and `scan3d sweep` on `ref`'s filtered cloud → `fig12.svg|png`.
+//!    the room's box, as `scan3d report` makes it (`scan3d_server::report`) → `DIR/report/`
+//!    (`table.md`, `metrics.json`, `fig11.svg|png`) and `scan3d sweep`'s Fig. 12 on `ref`'s
+//!    filtered cloud → `fig12.svg|png`.
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -23,7 +26,6 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use clap::Parser;
 use scan3d_edge::clock::{ScaledClock, SharedClock};
 use scan3d_edge::daemon::DaemonReport;
 use scan3d_map::cloud::scans::RevolutionCollector;
@@ -31,11 +33,12 @@ use scan3d_protocol::{Body, SensorId};
 use scan3d_server::ingest::recorder::{session_dir, topic};
 use scan3d_server::ingest::server::{IngestEvent, IngestStats};
 use scan3d_server::pose::timesync::ClockModel;
+use scan3d_server::report::{MetricBox, SWEEP_RESOLUTIONS, write_report, write_sweep};
 
 use scan3d_map::cloud::OriginScan;
 use scan3d_map::cloud::io;
 
-use crate::maps::{MapPlan, MapResult, MapSetup, build_map, paper_maps, scan_map};
+use crate::maps::{MapPlan, MapResult, MapSetup, paper_maps, scan_map};
 use crate::noise::RangeNoise;
 use crate::rig::{self, Delivery, EdgeThread, LidarOptions, ServerThread, SimLidars};
 use crate::truth::{GroundTruth, truth_map, write_world_description};
@@ -152,6 +155,7 @@ pub fn run_demo(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         &args.out.join("clouds"),
         &args.out.join("truth"),
         &args.out.join("maps"),
+        &args.out.join("snapshots"),
         &args.out.join("static-sessions"),
     ] {
         // Each run starts afresh: an old recording would mix two runs' sessions.
@@ -175,6 +179,10 @@ pub fn run_demo(args: &DemoArgs) -> anyhow::Result<DemoReport> {
             time_scale: args.time_scale,
             seed: args.seed,
             noise: RangeNoise::SWEEP,
+            resolution_m: args.resolution,
+            queue_frames: 256,
+            snapshots_dir: &args.out.join("snapshots"),
+            full_rates: false,
         };
         for plan in &plans {
             println!(
@@ -187,13 +195,11 @@ pub fn run_demo(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         }
         let maps_dir = args.out.join("maps");
         for result in &report.maps {
-            let (filtered, tree) = build_map(result.plan.name, &result.cloud, args.resolution)?;
-            if result.plan.name == "ref" {
-                io::save(&args.out.join("clouds/ref.filtered.scans"), &filtered)?;
-            }
+            // The live daemon's map, named after the plan for the report.
+            let live = result.snapshot_dir.join("map.bt");
             let path = maps_dir.join(format!("{}.bt", result.plan.name));
-            std::fs::write(&path, tree.to_bt_bytes())
-                .with_context(|| format!("cannot write {}", path.display()))?;
+            std::fs::copy(&live, &path)
+                .with_context(|| format!("cannot copy {} to {}", live.display(), path.display()))?;
             report.octrees.push(path);
         }
         if !report.maps.is_empty() {
@@ -211,63 +217,47 @@ pub fn run_demo(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     result
 }
 
-/// Scores every map against `ref` (when made) and the truth with `scan3d report`, inside the
-/// room's box, and runs `scan3d sweep` on `ref`'s filtered cloud; returns `table.md`.
+/// Scores every map against `ref` (when made) and the truth as `scan3d report` does, inside
+/// the room's box, and makes `scan3d sweep`'s Fig. 12 from `ref`'s filtered cloud (the live
+/// snapshot's); returns `table.md`.
 fn evaluate_maps(out: &Path, maps: &[MapResult], world: &World) -> anyhow::Result<String> {
     let report_dir = out.join("report");
     let room = world.room();
-    let bbox = format!(
-        "{},{},{},{},{},{}",
-        room.min.x, room.min.y, room.min.z, room.max.x, room.max.y, room.max.z
-    );
+    let bbox = MetricBox {
+        min: [room.min.x, room.min.y, room.min.z],
+        max: [room.max.x, room.max.y, room.max.z],
+    };
     let map_path = |name: &str| out.join("maps").join(format!("{name}.bt"));
     let reference = if maps.iter().any(|m| m.plan.name == "ref") {
         map_path("ref")
     } else {
         map_path(maps.first().map_or("ref", |m| m.plan.name))
     };
-    let mut args: Vec<String> = ["scan3d", "report", "--ref"]
+    let targets: Vec<PathBuf> = maps
         .iter()
-        .map(ToString::to_string)
+        .map(|m| map_path(m.plan.name))
+        .filter(|path| *path != reference || maps.len() == 1)
         .collect();
-    args.push(reference.display().to_string());
-    args.push("--maps".into());
-    args.extend(
-        maps.iter()
-            .map(|m| map_path(m.plan.name))
-            .filter(|path| *path != reference || maps.len() == 1)
-            .map(|path| path.display().to_string()),
-    );
-    args.extend([
-        "--truth".into(),
-        map_path("truth").display().to_string(),
-        "--bbox".into(),
-        bbox,
-        "--out".into(),
-        report_dir.display().to_string(),
-    ]);
-    run_scan3d(&args)?;
-    let cloud = out.join("clouds/ref.filtered.scans");
+    let written = write_report(
+        &reference,
+        &targets,
+        Some(&map_path("truth")),
+        Some(bbox),
+        &report_dir,
+    )?;
+    // The live daemon's filtered cloud of `ref`.
+    let cloud = out.join("snapshots/ref/cloud.ply");
     if cloud.exists() {
-        run_scan3d(&[
-            "scan3d".into(),
-            "sweep".into(),
-            cloud.display().to_string(),
-            "--reps".into(),
-            "1".into(),
-            "--out".into(),
-            report_dir.display().to_string(),
-        ])?;
+        write_sweep(
+            &cloud,
+            &SWEEP_RESOLUTIONS,
+            -1.0,
+            1,
+            &report_dir,
+            &mut std::io::sink(),
+        )?;
     }
-    let table = report_dir.join("table.md");
-    std::fs::read_to_string(&table).with_context(|| format!("cannot read {}", table.display()))
-}
-
-/// Runs a `scan3d` command line in-process (the same code as the binary).
-fn run_scan3d(args: &[String]) -> anyhow::Result<()> {
-    let cli = scan3d_server::cli::Cli::try_parse_from(args)?;
-    let mut sink = Vec::new();
-    scan3d_server::cli::execute(cli, &mut sink)
+    Ok(written.table)
 }
 
 /// Writes the ground truth for evaluation: the world description (`world.toml`, loadable with

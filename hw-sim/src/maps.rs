@@ -1,9 +1,12 @@
 //! The paper's static maps of the conference room, made through the whole system: for each map
 //! a [`ScanRig`] (Sweep on the turntable, IMU and HAT on I2C), the edge daemon, and the server;
 //! at each position the operator's `StartStaticScan` goes server → edge over QUIC, the edge
-//! steps the turntable during the blind sector and streams yaw-tagged samples, and the cloud is
-//! assembled by eq. (1) from the **recorded session** (`scan3d assemble`'s code), then scored
-//! against the world's true surface.
+//! steps the turntable during the blind sector and streams yaw-tagged samples. The server runs
+//! the live pipeline as `scan3d serve` does, and the map is the daemon's own: a
+//! `scan3d snapshot` request on its control socket once the scans are done writes its octree
+//! (`map.bt`, `map.ot`) and filtered cloud. The raw cloud is assembled by eq. (1) from the
+//! **recorded session** (the pipeline's offline driver), then scored against the world's true
+//! surface.
 //!
 //! | map | positions | Sweep | range cut |
 //! | --- | --- | --- | --- |
@@ -17,17 +20,20 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use scan3d_edge::clock::{Clock, ScaledClock, SharedClock};
+use scan3d_edge::config::RplidarSection;
 use scan3d_map::cloud::OriginScan;
 use scan3d_map::cloud::assembly::{Position, cut_range};
-use scan3d_map::cloud::filter::{Filter, apply_all};
+use scan3d_map::cloud::filter::Filter;
 use scan3d_map::cloud::io;
-use scan3d_map::octree::{Octree, Resolution, SensorModel, VoxelMap};
-use scan3d_protocol::{Body, StaticScan, StaticScanOutcome};
-use scan3d_server::cli::DataDirArgs;
-use scan3d_server::cli::assemble::assemble_session;
-use scan3d_server::cli::scan::{At, ScanArgs};
+use scan3d_protocol::{Body, Command, StaticScan, StaticScanOutcome};
+use scan3d_server::ingest::control::{
+    ControlRequest, ProductRequest, request, request_products, request_snapshot, socket_path,
+};
 use scan3d_server::ingest::recorder::session_dir;
 use scan3d_server::ingest::server::IngestEvent;
+use scan3d_server::pipeline::PipelineSettings;
+use scan3d_server::pipeline::live::LiveSettings;
+use scan3d_server::pipeline::offline::assemble_session;
 
 use crate::noise::RangeNoise;
 use crate::rig::{self, EDGE_NAME, EdgeThread, ServerThread};
@@ -118,6 +124,11 @@ pub struct MapResult {
     pub i2c_per_s: f64,
     /// The recorded session.
     pub session_dir: PathBuf,
+    /// Where the live daemon's snapshot of the session went (`map.bt`, `map.ot`, `cloud.ply`).
+    pub snapshot_dir: PathBuf,
+    /// The session's line of `scan3d status` (JSON) just before the snapshot: frames, voxels,
+    /// the pipeline's lag.
+    pub live_status: serde_json::Value,
 }
 
 impl MapResult {
@@ -155,6 +166,16 @@ pub struct MapSetup<'a> {
     pub seed: u64,
     /// The Sweep's range noise ([`RangeNoise::SWEEP`] for the paper's device).
     pub noise: RangeNoise,
+    /// Octree resolution of the live daemon's maps, metres.
+    pub resolution_m: f64,
+    /// The live pipeline's queue per session (`[pipeline] queue_frames`).
+    pub queue_frames: usize,
+    /// The live snapshots go to `snapshots_dir/<map>/`.
+    pub snapshots_dir: &'a Path,
+    /// Both lidars at their full rates, as in the field: an RPLidar (4 kHz) streams beside the
+    /// Sweep, which samples at 1 kHz (the live pipeline benchmark); otherwise the Sweep alone at
+    /// its power-on rate.
+    pub full_rates: bool,
 }
 
 /// Runs one map: starts a server, the rig and the edge, scans every position, assembles the
@@ -169,6 +190,10 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
         time_scale,
         seed,
         noise,
+        resolution_m,
+        queue_frames,
+        snapshots_dir,
+        full_rates,
     } = *setup;
     let first = plan
         .positions
@@ -177,7 +202,12 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
     let work = work.join(plan.name);
     let pki = work.join("pki");
     let bundle = rig::pair_certificates(&pki)?;
-    let mut server = ServerThread::start(rig::ingest_config(&pki, data_dir, 0))?;
+    let live = LiveSettings {
+        queue_frames,
+        ..LiveSettings::new(map_pipeline(plan, resolution_m), data_dir.to_path_buf())
+    };
+    let mut server = ServerThread::start_live(rig::ingest_config(&pki, data_dir, 0), live)?;
+    let socket = socket_path(data_dir);
     let rig = ScanRig::start(
         &work.join("links"),
         world.clone(),
@@ -192,10 +222,28 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
     )?;
     let clock = ScaledClock::new(time_scale);
     let shared: SharedClock = Arc::new(clock);
-    let config = rig.edge_config(
+    let mut config = rig.edge_config(
         &work.join("edge-state"),
         Some(rig::uplink_section(server.addr(), &bundle)),
     );
+    let rplidar = if full_rates {
+        let options = rig::LidarOptions {
+            time_scale,
+            seed,
+            ..Default::default()
+        };
+        let pty = rig::spawn_rplidar(&work.join("links"), world.clone(), &options)?;
+        config.rplidar = Some(RplidarSection {
+            path: pty.link().to_path_buf(),
+            driver: Default::default(),
+        });
+        if let Some(sweep) = &mut config.sweep {
+            sweep.driver.sample_rate_code = Some(3);
+        }
+        Some(pty)
+    } else {
+        None
+    };
     let session_id = rand::random::<u64>();
     let edge = EdgeThread::start_with_i2c(config, shared, session_id, Some(rig.bus()))?;
     let bus_start = (rig.bus_stats().transactions, clock.now_ns());
@@ -215,23 +263,24 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
         rig.move_to(position.clone());
         // What the operator types: `scan3d scan --edge sim-edge --at X,Y,HEADING --name POS`,
         // through the server's control socket.
-        let scan = ScanArgs {
+        let command = ControlRequest {
             edge: EDGE_NAME.into(),
-            at: Some(At {
+            command: Command::StartStaticScan {
+                position: position.name.clone(),
                 x_m: position.x_m,
                 y_m: position.y_m,
                 heading_deg: Some(position.heading_deg),
-            }),
-            name: Some(position.name.clone()),
-            stop: false,
-            data: DataDirArgs {
-                data_dir: Some(data_dir.to_path_buf()),
-                config: PathBuf::from("/nonexistent/server.toml"),
             },
         };
         let started = clock.now_ns();
-        scan3d_server::cli::scan::run(&scan, &mut std::io::sink())
+        let reply = request(&socket, &command)
             .with_context(|| format!("scan3d scan at {}", position.name))?;
+        anyhow::ensure!(
+            reply.ok,
+            "scan3d scan at {}: {}",
+            position.name,
+            reply.detail
+        );
         // 100 revolutions plus the way home; generous for a loaded machine.
         let sim_budget = 130.0 / f64::from(plan.motor_hz) + 10.0;
         let deadline = Instant::now() + Duration::from_secs_f64(sim_budget / time_scale + 30.0);
@@ -271,13 +320,27 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
         clock.now_ns() - bus_start.1,
     );
     let steps_lost = rig.steps_lost();
+    // Everything the edge sent is acknowledged once it has stopped.
     edge.stop()?;
     drain(&mut server);
+    // The map is the live daemon's: `scan3d status`, then `scan3d snapshot` of this session.
+    let session_hex = format!("{session_id:016x}");
+    let status = request_products(&socket, &ProductRequest::Status)?;
+    anyhow::ensure!(status.ok, "scan3d status: {}", status.detail);
+    let snapshot_dir = snapshots_dir.join(plan.name);
+    let snapshot = request_snapshot(&socket, EDGE_NAME, Some(&session_hex), None, &snapshot_dir)
+        .with_context(|| format!("scan3d snapshot of {}", plan.name))?;
+    tracing::info!(map = plan.name, detail = %snapshot.detail, "live snapshot");
+    let live_status = session_status(status.data.as_ref(), &session_hex)
+        .with_context(|| format!("scan3d status has no line for session {session_hex}"))?;
     server.stop();
     rig.shutdown();
+    if let Some(pty) = rplidar {
+        pty.shutdown();
+    }
 
     let session = session_dir(data_dir, EDGE_NAME, session_id);
-    let assembled = assemble_session(&session)?;
+    let assembled = assemble_session(&session, false)?;
     let mut cloud: Vec<OriginScan> = assembled.into_iter().flat_map(|scan| scan.scans).collect();
     let cut = cut_range(&mut cloud, plan.max_range_m);
     let accuracy = truth.accuracy(
@@ -303,42 +366,55 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
         imu,
         i2c_per_s: transactions as f64 / (bus_ns.max(1) as f64 / 1e9),
         session_dir: session,
+        snapshot_dir,
+        live_status,
     })
+}
+
+/// The line of session `id` in a `scan3d status` report.
+pub fn session_status(report: Option<&serde_json::Value>, id: &str) -> Option<serde_json::Value> {
+    report?["edges"]
+        .as_array()?
+        .iter()
+        .flat_map(|edge| edge["sessions"].as_array().into_iter().flatten())
+        .find(|session| session["id"] == id)
+        .cloned()
 }
 
 /// The paper's Table II filters for a map of the conference room: down-sampling and a
 /// pass-through box that keeps the room and cuts the glass wall (y ≥ 5.9 m) and what was seen
-/// through it or the doorway away; `ref` is also Gaussian-smoothed.
-pub fn table_ii_filters(name: &str) -> Vec<Filter> {
-    let mut filters = vec![
+/// through it or the doorway away, per revolution; `ref`'s cloud is also Gaussian-smoothed
+/// when a snapshot is written (it needs neighbours across revolutions).
+pub fn table_ii_filters(name: &str) -> (Vec<Filter>, Vec<Filter>) {
+    let revolution = vec![
         Filter::Voxel { leaf: 0.02 },
         Filter::Box {
             min: [-0.2, -0.2, -0.2],
             max: [8.05, 5.9, 3.2],
         },
     ];
-    if name == "ref" {
-        filters.push(Filter::Gauss {
+    let snapshot = if name == "ref" {
+        vec![Filter::Gauss {
             sigma: 0.02,
             radius: 0.05,
-        });
-    }
-    filters
+        }]
+    } else {
+        Vec::new()
+    };
+    (revolution, snapshot)
 }
 
-/// Filters a map's cloud (Table II) and inserts it, each half revolution from its own sensor
-/// origin, into an OctoMap-identical occupancy map at `resolution`.
-pub fn build_map(
-    name: &str,
-    cloud: &[OriginScan],
-    resolution: f64,
-) -> anyhow::Result<(Vec<OriginScan>, Octree)> {
-    let filtered = apply_all(&table_ii_filters(name), cloud.to_vec())?;
-    let mut map = VoxelMap::new(Resolution::new(resolution)?, SensorModel::default());
-    for scan in &filtered {
-        map.insert_scan(scan, -1.0);
+/// The live daemon's `[pipeline]` for a map: Table II filters, the plan's range cut, octrees at
+/// `resolution_m` with OctoMap's sensor model.
+pub fn map_pipeline(plan: &MapPlan, resolution_m: f64) -> PipelineSettings {
+    let (revolution_filters, snapshot_filters) = table_ii_filters(plan.name);
+    PipelineSettings {
+        resolution_m,
+        max_range_m: Some(plan.max_range_m),
+        revolution_filters,
+        snapshot_filters,
+        ..PipelineSettings::default()
     }
-    Ok((filtered, map.to_octree()))
 }
 
 /// Waits until the server records a frame whose body satisfies `done`.

@@ -14,10 +14,11 @@ use scan3d_edge::daemon::{self, DaemonReport, I2cHardware};
 use scan3d_edge::drivers::rplidar::RplidarConfig;
 use scan3d_edge::drivers::sweep::SweepConfig;
 use scan3d_protocol::{Body, SensorId};
-use scan3d_server::ingest::control::{EdgeControl, serve_socket, socket_path};
+use scan3d_server::ingest::control::{ControlLimits, ControlSocket, EdgeControl, socket_path};
 use scan3d_server::ingest::pki::{self, PairRequest};
 use scan3d_server::ingest::recorder::read_session;
 use scan3d_server::ingest::server::{IngestConfig, IngestEvent, IngestServer, IngestStats};
+use scan3d_server::pipeline::live::{LivePipelines, LiveSettings};
 use tokio::sync::{mpsc, oneshot, watch};
 
 use crate::faults::{FaultConfig, SentSample};
@@ -75,22 +76,16 @@ impl SimLidars {
             seed: options.seed.wrapping_add(seed_offset),
             epoch: None,
         };
-        let rplidar = RplidarEmulator::new(
-            RplidarEmulatorConfig::default(),
-            RplidarEmulator::default_scanner(world.clone(), mounts::rplidar()),
-            options.seed,
-        );
         let sweep = SweepEmulator::new(
             SweepEmulatorConfig {
                 settle_ms: options.sweep_settle_ms,
                 ..Default::default()
             },
-            SweepEmulator::default_scanner(world, mounts::sweep()),
+            SweepEmulator::default_scanner(world.clone(), mounts::sweep()),
             options.seed.wrapping_add(1),
         );
         Ok(Self {
-            rplidar: PtyDevice::spawn(links_dir.join("rplidar"), Box::new(rplidar), pty(100))
-                .context("cannot start the emulated RPLidar")?,
+            rplidar: spawn_rplidar(links_dir, world.clone(), options)?,
             sweep: PtyDevice::spawn(links_dir.join("sweep"), Box::new(sweep), pty(101))
                 .context("cannot start the emulated Sweep")?,
         })
@@ -138,6 +133,27 @@ impl SimLidars {
     }
 }
 
+/// An emulated RPLidar A1 (express) in `world` on a pty linked at `links_dir/rplidar`.
+pub fn spawn_rplidar(
+    links_dir: &Path,
+    world: Arc<World>,
+    options: &LidarOptions,
+) -> anyhow::Result<PtyHandle> {
+    let rplidar = RplidarEmulator::new(
+        RplidarEmulatorConfig::default(),
+        RplidarEmulator::default_scanner(world, mounts::rplidar()),
+        options.seed,
+    );
+    let pty = PtyOptions {
+        time_scale: options.time_scale,
+        faults: FaultConfig::corrupt(options.corrupt),
+        seed: options.seed.wrapping_add(100),
+        epoch: None,
+    };
+    PtyDevice::spawn(links_dir.join("rplidar"), Box::new(rplidar), pty)
+        .context("cannot start the emulated RPLidar")
+}
+
 /// Pairs a CA, a `localhost` server certificate and the [`EDGE_NAME`] bundle in `pki_dir`.
 pub fn pair_certificates(pki_dir: &Path) -> anyhow::Result<PathBuf> {
     let outcome = pki::pair(&PairRequest {
@@ -177,6 +193,7 @@ pub fn ingest_config(pki_dir: &Path, data_dir: &Path, port: u16) -> IngestConfig
 pub struct ServerThread {
     addr: std::net::SocketAddr,
     control: EdgeControl,
+    live: Option<LivePipelines>,
     stop: Option<oneshot::Sender<()>>,
     thread: Option<JoinHandle<IngestStats>>,
     /// Everything the server reports (recorded frames, connections, time sync).
@@ -185,15 +202,37 @@ pub struct ServerThread {
 
 impl ServerThread {
     /// Binds and starts serving, with the operator's control socket in the data directory
-    /// (`data_dir/control.sock`, as `scan3d serve` has it).
+    /// (`data_dir/control.sock`, as `scan3d serve` has it); records only.
     pub fn start(config: IngestConfig) -> anyhow::Result<Self> {
+        Self::start_with(config, None)
+    }
+
+    /// [`ServerThread::start`] with the live pipeline, as `scan3d serve` runs with `[pipeline]`:
+    /// the control socket also answers `scan3d status` and `scan3d snapshot`.
+    pub fn start_live(config: IngestConfig, live: LiveSettings) -> anyhow::Result<Self> {
+        Self::start_with(config, Some(live))
+    }
+
+    fn start_with(config: IngestConfig, live: Option<LiveSettings>) -> anyhow::Result<Self> {
         std::fs::create_dir_all(&config.data_dir)?;
-        let socket = socket_path(&config.data_dir);
+        let socket_file = socket_path(&config.data_dir);
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(2)
             .enable_all()
             .build()?;
-        let server = runtime.block_on(async { IngestServer::bind(config) })?;
+        let live = live
+            .map(LivePipelines::new)
+            .transpose()
+            .map_err(|e| anyhow::anyhow!("[pipeline]: {e}"))?;
+        let mut server = runtime.block_on(async { IngestServer::bind(config) })?;
+        let mut socket = runtime.block_on(ControlSocket::bind(
+            socket_file.clone(),
+            ControlLimits::default(),
+        ))?;
+        if let Some(live) = &live {
+            server = server.with_sink(Arc::new(live.clone()));
+            socket = socket.with_live(Arc::new(live.clone()));
+        }
         let addr = server.local_addr()?;
         let control = server.control();
         let (events_tx, events) = mpsc::unbounded_channel();
@@ -203,24 +242,30 @@ impl ServerThread {
             .name("ingest server".into())
             .spawn(move || {
                 runtime.block_on(async move {
-                    let control = tokio::spawn(serve_socket(socket.clone(), socket_control));
+                    let control = tokio::spawn(socket.serve(socket_control));
                     let stats = server
                         .run(Some(events_tx), async {
                             let _ = stopped.await;
                         })
                         .await;
                     control.abort();
-                    let _ = std::fs::remove_file(&socket);
+                    let _ = std::fs::remove_file(&socket_file);
                     stats
                 })
             })?;
         Ok(Self {
             addr,
             control,
+            live,
             stop: Some(stop),
             thread: Some(thread),
             events,
         })
+    }
+
+    /// The live pipeline, when started with [`ServerThread::start_live`].
+    pub fn live(&self) -> Option<&LivePipelines> {
+        self.live.as_ref()
     }
 
     /// Where edges connect.
@@ -242,10 +287,15 @@ impl ServerThread {
         if let Some(stop) = self.stop.take() {
             let _ = stop.send(());
         }
-        self.thread
+        let stats = self
+            .thread
             .take()
             .and_then(|t| t.join().ok())
-            .unwrap_or_default()
+            .unwrap_or_default();
+        if let Some(live) = &self.live {
+            live.shutdown();
+        }
+        stats
     }
 }
 

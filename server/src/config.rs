@@ -10,10 +10,15 @@ use std::time::Duration;
 
 use serde::{Deserialize, Deserializer};
 
+use scan3d_map::cloud::filter::Filter;
+use scan3d_map::octree::SensorModel;
+
 use crate::ingest::server::IngestLimits;
+use crate::pipeline::PipelineSettings;
+use crate::pipeline::live::LiveSettings;
 
 /// The whole `server.toml`.
-#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ServerConfig {
     /// UDP address the QUIC endpoint binds to.
@@ -60,6 +65,186 @@ pub struct ServerConfig {
     /// received nothing for this long (ms); until then the new one is refused.
     #[serde(deserialize_with = "positive_u64")]
     pub replace_after_silence_ms: u64,
+
+    /// The live mapping pipeline (`[pipeline]`).
+    pub pipeline: PipelineSection,
+}
+
+/// `[pipeline]`: what the daemon builds from every session while it streams (see
+/// `deploy/server.toml` for each key).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PipelineSection {
+    /// Whether the daemon runs the pipeline at all (it always records).
+    pub enabled: bool,
+    /// Voxel edge length of the octrees, metres (0.001–10).
+    #[serde(deserialize_with = "resolution")]
+    pub resolution_m: f64,
+    /// Rays longer than this are cut, metres; absent: no limit.
+    #[serde(deserialize_with = "positive_f64")]
+    pub max_range_m: Option<f64>,
+    /// Per-revolution filters, `scan3d map --filter` syntax: `voxel:…`, `box:…`, `box-out:…`.
+    #[serde(deserialize_with = "revolution_filters")]
+    pub filters: Vec<Filter>,
+    /// Filters applied to the whole cloud when a snapshot is written: `sor:…`, `gauss:…` (and
+    /// any of the per-revolution ones).
+    #[serde(deserialize_with = "any_filters")]
+    pub snapshot_filters: Vec<Filter>,
+    /// Hit probability of the octree insertion (OctoMap's 0.7).
+    #[serde(deserialize_with = "probability")]
+    pub hit: f64,
+    /// Miss probability (OctoMap's 0.4).
+    #[serde(deserialize_with = "probability")]
+    pub miss: f64,
+    /// Clamping probabilities `[min, max]` (OctoMap's 0.1192, 0.971).
+    #[serde(deserialize_with = "clamp")]
+    pub clamp: [f64; 2],
+    /// A reference map (`.bt` / `.ot`, same resolution) the live metrics compare against.
+    pub reference: Option<PathBuf>,
+    /// Write every session's products into `data_dir/snapshots/<edge>/<session>/` this often,
+    /// seconds; absent: only on request (`scan3d snapshot`).
+    #[serde(deserialize_with = "positive_u64_opt")]
+    pub snapshot_every_s: Option<u64>,
+    /// Frames each session's processing queue holds (1–1048576); beyond, the pipeline catches
+    /// up from the recording.
+    #[serde(deserialize_with = "queue_frames")]
+    pub queue_frames: usize,
+}
+
+impl Default for PipelineSection {
+    fn default() -> Self {
+        let defaults = PipelineSettings::default();
+        PipelineSection {
+            enabled: true,
+            resolution_m: defaults.resolution_m,
+            max_range_m: None,
+            filters: Vec::new(),
+            snapshot_filters: Vec::new(),
+            hit: 0.7,
+            miss: 0.4,
+            clamp: [0.1192, 0.971],
+            reference: None,
+            snapshot_every_s: None,
+            queue_frames: 256,
+        }
+    }
+}
+
+impl PipelineSection {
+    /// The pipeline's settings these keys give.
+    pub fn settings(&self) -> PipelineSettings {
+        PipelineSettings {
+            resolution_m: self.resolution_m,
+            max_range_m: self.max_range_m,
+            sensor: SensorModel::from_probabilities(
+                self.hit,
+                self.miss,
+                self.clamp[0],
+                self.clamp[1],
+                0.5,
+            ),
+            revolution_filters: self.filters.clone(),
+            snapshot_filters: self.snapshot_filters.clone(),
+            reference: self.reference.clone(),
+        }
+    }
+}
+
+/// Accepts a voxel size in metres from 1 mm to 10 m.
+fn resolution<'de, D: Deserializer<'de>>(deserializer: D) -> Result<f64, D::Error> {
+    let value = f64::deserialize(deserializer)?;
+    if !(0.001..=10.0).contains(&value) {
+        return Err(serde::de::Error::invalid_value(
+            serde::de::Unexpected::Float(value),
+            &"a resolution from 0.001 to 10 m",
+        ));
+    }
+    Ok(value)
+}
+
+/// Accepts a positive, finite number of metres.
+fn positive_f64<'de, D: Deserializer<'de>>(deserializer: D) -> Result<Option<f64>, D::Error> {
+    let value = f64::deserialize(deserializer)?;
+    if !(value.is_finite() && value > 0.0) {
+        return Err(serde::de::Error::invalid_value(
+            serde::de::Unexpected::Float(value),
+            &"a positive number of metres",
+        ));
+    }
+    Ok(Some(value))
+}
+
+/// Accepts a probability strictly between 0 and 1.
+fn probability<'de, D: Deserializer<'de>>(deserializer: D) -> Result<f64, D::Error> {
+    let value = f64::deserialize(deserializer)?;
+    if !(value > 0.0 && value < 1.0) {
+        return Err(serde::de::Error::invalid_value(
+            serde::de::Unexpected::Float(value),
+            &"a probability between 0 and 1 (exclusive)",
+        ));
+    }
+    Ok(value)
+}
+
+/// Accepts `[min, max]`, two probabilities with min < max.
+fn clamp<'de, D: Deserializer<'de>>(deserializer: D) -> Result<[f64; 2], D::Error> {
+    let [lo, hi] = <[f64; 2]>::deserialize(deserializer)?;
+    if !(lo > 0.0 && hi < 1.0 && lo < hi) {
+        return Err(serde::de::Error::custom(format!(
+            "clamp [{lo}, {hi}]: expected [min, max], probabilities with 0 < min < max < 1"
+        )));
+    }
+    Ok([lo, hi])
+}
+
+/// Parses filters in `scan3d map --filter` syntax.
+fn parse_filters<E: serde::de::Error>(texts: Vec<String>) -> Result<Vec<Filter>, E> {
+    texts
+        .iter()
+        .map(|text| {
+            text.parse::<Filter>()
+                .map_err(|e| E::custom(format!("filter {text:?}: {e}")))
+        })
+        .collect()
+}
+
+/// Filters that work revolution by revolution (no neighbours across revolutions needed).
+fn revolution_filters<'de, D: Deserializer<'de>>(deserializer: D) -> Result<Vec<Filter>, D::Error> {
+    let texts = Vec::<String>::deserialize(deserializer)?;
+    let filters = parse_filters(texts.clone())?;
+    if let Some((text, _)) = texts
+        .iter()
+        .zip(&filters)
+        .find(|(_, f)| matches!(f, Filter::Sor { .. } | Filter::Gauss { .. }))
+    {
+        return Err(serde::de::Error::custom(format!(
+            "filter {text:?} needs neighbours across revolutions: put it in snapshot_filters"
+        )));
+    }
+    Ok(filters)
+}
+
+fn any_filters<'de, D: Deserializer<'de>>(deserializer: D) -> Result<Vec<Filter>, D::Error> {
+    parse_filters(Vec::<String>::deserialize(deserializer)?)
+}
+
+/// Rejects 0 (a period of 0 s would spin).
+fn positive_u64_opt<'de, D: Deserializer<'de>>(deserializer: D) -> Result<Option<u64>, D::Error> {
+    positive_u64(deserializer).map(Some)
+}
+
+/// The largest [`PipelineSection::queue_frames`].
+const MAX_QUEUE_FRAMES: usize = 1 << 20;
+
+fn queue_frames<'de, D: Deserializer<'de>>(deserializer: D) -> Result<usize, D::Error> {
+    let value = usize::deserialize(deserializer)?;
+    if value == 0 || value > MAX_QUEUE_FRAMES {
+        return Err(serde::de::Error::invalid_value(
+            serde::de::Unexpected::Unsigned(value as u64),
+            &"a number of frames from 1 to 1048576",
+        ));
+    }
+    Ok(value)
 }
 
 impl Default for ServerConfig {
@@ -79,6 +264,7 @@ impl Default for ServerConfig {
             session_idle_timeout_ms: 60_000,
             max_buffered_mib_per_edge: 16,
             replace_after_silence_ms: 5000,
+            pipeline: PipelineSection::default(),
         }
     }
 }
@@ -159,6 +345,18 @@ impl ServerConfig {
                 .unwrap_or(usize::MAX),
             replace_after_silence: Duration::from_millis(self.replace_after_silence_ms),
         }
+    }
+
+    /// The live driver's settings, or `None` with `[pipeline] enabled = false`.
+    pub fn live_settings(&self) -> Option<LiveSettings> {
+        let section = &self.pipeline;
+        section.enabled.then(|| LiveSettings {
+            queue_frames: section.queue_frames,
+            snapshot_every: section.snapshot_every_s.map(Duration::from_secs),
+            // Owed frames appear in the recording at the next commit.
+            catch_up_retry: self.commit_interval().max(Duration::from_millis(10)),
+            ..LiveSettings::new(section.settings(), self.data_dir.clone())
+        })
     }
 
     /// Where the recordings live: `data_dir/sessions`.
@@ -275,6 +473,70 @@ mod tests {
                 message.starts_with("server.toml: line 2:"),
                 "{text}: {message}"
             );
+        }
+    }
+
+    #[test]
+    fn every_pipeline_key_is_read_and_converted_to_the_pipelines_settings() {
+        let text = "data_dir = \"/d\"\n[pipeline]\nresolution_m = 0.1\nmax_range_m = 6.0\n\
+                    filters = [\"voxel:0.02\", \"box:0,0,0,8,6,3\"]\n\
+                    snapshot_filters = [\"sor:8,1.0\", \"gauss:0.02,0.05\"]\n\
+                    hit = 0.8\nmiss = 0.3\nclamp = [0.2, 0.9]\nreference = \"/r/ref.bt\"\n\
+                    snapshot_every_s = 30\nqueue_frames = 1\n";
+        let config = parse(text).unwrap();
+        let settings = config.pipeline.settings();
+        assert_eq!(settings.resolution_m, 0.1);
+        assert_eq!(settings.max_range_m, Some(6.0));
+        assert_eq!(
+            settings.revolution_filters,
+            vec![
+                "voxel:0.02".parse().unwrap(),
+                "box:0,0,0,8,6,3".parse().unwrap()
+            ]
+        );
+        assert_eq!(settings.snapshot_filters.len(), 2);
+        assert_eq!(
+            settings.sensor,
+            SensorModel::from_probabilities(0.8, 0.3, 0.2, 0.9, 0.5)
+        );
+        assert_eq!(settings.reference, Some(PathBuf::from("/r/ref.bt")));
+        let live = config.live_settings().expect("enabled by default");
+        assert_eq!(live.queue_frames, 1);
+        assert_eq!(live.snapshot_every, Some(Duration::from_secs(30)));
+        assert_eq!(live.data_dir, Path::new("/d"));
+        assert_eq!(live.pipeline, settings);
+        let off = parse("[pipeline]\nenabled = false\n").unwrap();
+        assert_eq!(off.live_settings(), None);
+        // No [pipeline]: the defaults (on, 0.05 m, OctoMap's sensor model).
+        let default = parse("").unwrap().pipeline.settings();
+        assert_eq!(default, crate::pipeline::PipelineSettings::default());
+    }
+
+    #[test]
+    fn bad_pipeline_keys_are_refused_with_their_line() {
+        for (text, says) in [
+            ("resolution_m = 0", "resolution"),
+            ("resolution_m = 11.0", "resolution"),
+            ("max_range_m = -1.0", "positive"),
+            ("filters = [\"voxel:x\"]", "voxel:x"),
+            ("filters = [\"sor:8,1.0\"]", "snapshot_filters"),
+            ("snapshot_filters = [\"blur:1\"]", "blur:1"),
+            ("hit = 1.0", "probability"),
+            ("miss = 0", "probability"),
+            ("clamp = [0.9, 0.2]", "min < max"),
+            ("snapshot_every_s = 0", "positive"),
+            ("queue_frames = 0", "frames"),
+            ("queue_frames = 2000000", "frames"),
+            ("resolution = 0.05", "resolution"),
+        ] {
+            let message = parse(&format!("[pipeline]\n\n{text}\n"))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                message.starts_with("server.toml: line 3:"),
+                "{text}: {message}"
+            );
+            assert!(message.contains(says), "{text}: {message}");
         }
     }
 

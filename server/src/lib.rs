@@ -5,6 +5,7 @@
 //! - [`pose`]: the edge clock's mapping to server time (time sync); scan matching comes here.
 //! - [`pipeline`]: per session, frames through assembly, filters, octree and metrics.
 //! - the octree, clouds and metrics are the pure `scan3d-map` crate, used here.
+//! - [`report`]: map comparison reports (Table III, metrics, Fig. 11/12) from map files.
 //! - [`config`]: the daemon's `server.toml`.
 //! - [`cli`]: the `scan3d` subcommands.
 #![warn(missing_docs)]
@@ -14,3 +15,4 @@ pub mod config;
 pub mod ingest;
 pub mod pipeline;
 pub mod pose;
+pub mod report;

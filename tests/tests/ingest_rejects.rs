@@ -7,24 +7,36 @@
 //! - a second connection under a connected edge name replaces a silent old one and is refused
 //!   while the old one is alive;
 //! - an idle session recording is closed and reopened when its frames come back; an edge that
-//!   buffers more than its limit is committed (and acknowledged) early.
+//!   buffers more than its limit is committed (and acknowledged) early;
+//! - with the live pipeline on, a session with a gap and an unknown body is processed around
+//!   them (through a one-frame queue, caught up from the recording), and a snapshot that cannot
+//!   be written is an error while recording goes on.
 
 use std::net::{SocketAddr, UdpSocket};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
 
+use clap::Parser;
 use scan3d_edge::clock::{ScaledClock, SharedClock};
 use scan3d_edge::uplink::client::{Uplink, UplinkConfig};
 use scan3d_edge::uplink::spool::SpoolConfig;
 use scan3d_edge::uplink::tls::client_config;
+use scan3d_hw_sim::maps::session_status;
 use scan3d_hw_sim::rig::{self, ServerThread};
+use scan3d_map::octree::{Octree, SensorModel};
 use scan3d_protocol::{
     Ack, Body, Command, Frame, FrameReader, HEADER_LEN, Heartbeat, LidarRevolution, MAGIC,
     PROTOCOL_VERSION, SensorId, encode,
 };
+use scan3d_server::ingest::control::{
+    ProductRequest, request_products, request_snapshot, socket_path,
+};
 use scan3d_server::ingest::recorder::{session_dir, summarize_session};
 use scan3d_server::ingest::server::{IngestConfig, close_code};
+use scan3d_server::pipeline::PipelineSettings;
+use scan3d_server::pipeline::live::LiveSettings;
+use scan3d_server::pipeline::offline::run_session;
 
 struct Client {
     _endpoint: quinn::Endpoint,
@@ -556,4 +568,242 @@ fn after_a_reconnect_the_server_acknowledges_again_what_it_already_holds() {
     });
     let stats = site.server.stop();
     assert_eq!((stats.frames, stats.duplicates), (3, 2), "{stats:?}");
+}
+
+/// The server with the live pipeline on, its queue `queue_frames` long (1: every frame beyond
+/// the first in a burst is read back from the recording).
+fn start_live_server(queue_frames: usize) -> Site {
+    start_live_server_with(|live| live.queue_frames = queue_frames)
+}
+
+/// The server with the live pipeline on, its settings tuned by `tune`.
+fn start_live_server_with(tune: impl FnOnce(&mut LiveSettings)) -> Site {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let pki = dir.path().join("pki");
+    let bundle = rig::pair_certificates(&pki).expect("pairing");
+    let data = dir.path().join("data");
+    let config = rig::ingest_config(&pki, &data, 0);
+    let mut live = LiveSettings::new(PipelineSettings::default(), data);
+    tune(&mut live);
+    let server = ServerThread::start_live(config, live).expect("server");
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .expect("runtime");
+    Site {
+        dir,
+        bundle,
+        server,
+        runtime,
+    }
+}
+
+/// A revolution frame of eight RPLidar samples.
+fn revolution(session_id: u64, seq: u64) -> Vec<u8> {
+    let t0 = seq * 100_000_000;
+    let mut rev = LidarRevolution::new(SensorId::RPLIDAR, t0, t0 + 100_000_000);
+    for i in 0..8u8 {
+        rev.push(f32::from(i) * 45.0, 2.0, 40, t0 + u64::from(i) * 1_000_000)
+            .expect("sample time");
+    }
+    encode(&Frame::new(session_id, seq, rev)).expect("encode")
+}
+
+/// The session's line of `scan3d status` once its pipeline has taken `frames` frames and caught
+/// up (at most 10 s).
+fn live_session_status(site: &Site, session_id: u64, frames: u64) -> serde_json::Value {
+    let socket = socket_path(&site.dir.path().join("data"));
+    let id = format!("{session_id:016x}");
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    loop {
+        let reply = request_products(&socket, &ProductRequest::Status).expect("status");
+        assert!(reply.ok, "{reply:?}");
+        let line = session_status(reply.data.as_ref(), &id);
+        if let Some(line) = &line
+            && line["frames"] == frames
+            && line["lag_frames"] == 0
+        {
+            return line.clone();
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "session {id} never reached {frames} frames: {line:?}"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[test]
+fn a_live_session_with_a_gap_and_an_unknown_body_is_processed_around_them_and_all_acknowledged() {
+    let site = start_live_server(1);
+    let session = 0x0001_1fe0;
+    // 2 is a body no version has, 5 never comes: 19 frames the pipeline can use.
+    let sent: Vec<u64> = (0..=20).filter(|&seq| seq != 2 && seq != 5).collect();
+    site.runtime.block_on(async {
+        let mut client = connect(site.server.addr(), &site.bundle).await;
+        for &seq in &sent {
+            if seq == 3 {
+                client
+                    .send
+                    .write_all(&undecodable_frame(session, 2))
+                    .await
+                    .expect("write");
+            }
+            client
+                .send
+                .write_all(&revolution(session, seq))
+                .await
+                .expect("write");
+        }
+        let mut acknowledged = sent.clone();
+        acknowledged.push(2);
+        assert!(
+            client.acknowledged(session, &acknowledged).await,
+            "acks received: {:?}",
+            client.acks
+        );
+    });
+    let live = live_session_status(&site, session, 19);
+    assert_eq!(live["revolutions"], 19, "{live}");
+    assert_eq!(live["samples"], 19 * 8, "{live}");
+    assert_eq!(live["missing_frames"], 1, "{live}");
+    assert_eq!(live["undecodable_frames"], 1, "{live}");
+    // The one-frame queue overflowed: the worker caught up from the recording, and said so.
+    assert!(live["queue_overflows"].as_u64() > Some(0), "{live}");
+    assert!(live["catch_ups"].as_u64() > Some(0), "{live}");
+    assert!(live["max_lag_frames"].as_u64() > Some(0), "{live}");
+    // The same counts as the recording replayed offline.
+    let dir = session_dir(&site.dir.path().join("data"), rig::EDGE_NAME, session);
+    let (mut offline, _) = run_session(
+        &dir,
+        &PipelineSettings::default(),
+        Default::default(),
+        false,
+    )
+    .expect("replay");
+    let offline = serde_json::to_value(offline.status()).expect("json");
+    for key in [
+        "frames",
+        "samples",
+        "revolutions",
+        "missing_frames",
+        "undecodable_frames",
+    ] {
+        assert_eq!(
+            live[key], offline[key],
+            "{key}: live {live}, offline {offline}"
+        );
+    }
+    site.server.stop();
+}
+
+#[test]
+fn a_snapshot_into_an_unwritable_directory_fails_and_the_daemon_keeps_recording() {
+    let site = start_live_server(256);
+    let session = 0x0005_11a9;
+    let data = site.dir.path().join("data");
+    let socket = socket_path(&data);
+    site.runtime.block_on(async {
+        let mut client = connect(site.server.addr(), &site.bundle).await;
+        for seq in 0..5 {
+            client
+                .send
+                .write_all(&revolution(session, seq))
+                .await
+                .expect("write");
+        }
+        assert!(client.acknowledged(session, &[0, 1, 2, 3, 4]).await);
+        // A directory below a regular file cannot be created, whoever runs the test.
+        let blocker = site.dir.path().join("not-a-dir");
+        std::fs::write(&blocker, b"x").expect("file");
+        let unwritable = blocker.join("snapshot");
+        let error = request_snapshot(&socket, rig::EDGE_NAME, None, None, &unwritable)
+            .expect_err("the snapshot must fail");
+        assert!(
+            error
+                .to_string()
+                .contains(&unwritable.display().to_string()),
+            "{error}"
+        );
+        // Recording and acknowledging go on.
+        for seq in 5..10 {
+            client
+                .send
+                .write_all(&revolution(session, seq))
+                .await
+                .expect("write");
+        }
+        assert!(client.acknowledged(session, &[5, 6, 7, 8, 9]).await);
+    });
+    live_session_status(&site, session, 10);
+    // A lidar-only session: `scan3d snapshot` exits 0 with a valid empty map and cloud, the
+    // same map the offline `scan3d map SESSION_DIR` makes.
+    let out = site.dir.path().join("snapshot");
+    let args = ["scan3d", "snapshot", "--edge", rig::EDGE_NAME, "--out"];
+    let mut args: Vec<String> = args.iter().map(ToString::to_string).collect();
+    args.extend([
+        out.display().to_string(),
+        "--data-dir".into(),
+        data.display().to_string(),
+    ]);
+    let cli = scan3d_server::cli::Cli::try_parse_from(&args).expect("arguments");
+    scan3d_server::cli::execute(cli, &mut std::io::sink()).expect("scan3d snapshot");
+    let bt = std::fs::read(out.join("map.bt")).expect("map.bt");
+    let tree = Octree::read(&bt, SensorModel::default()).expect("a valid .bt");
+    assert_eq!(tree.num_leaves(), 0);
+    let ply = std::fs::read_to_string(out.join("cloud.ply")).expect("cloud.ply");
+    assert!(ply.contains("element vertex 0"), "{ply}");
+    let offline = site.dir.path().join("offline.bt");
+    let dir = session_dir(&data, rig::EDGE_NAME, session);
+    let cli = scan3d_server::cli::Cli::try_parse_from([
+        "scan3d".to_owned(),
+        "map".into(),
+        dir.display().to_string(),
+        "--res".into(),
+        "0.05".into(),
+        "--quiet".into(),
+        "--out".into(),
+        offline.display().to_string(),
+    ])
+    .expect("arguments");
+    scan3d_server::cli::execute(cli, &mut std::io::sink()).expect("scan3d map");
+    assert_eq!(bt, std::fs::read(&offline).expect("offline map"));
+    site.server.stop();
+}
+
+#[test]
+fn periodic_snapshots_are_written_into_the_data_directory_while_the_session_streams() {
+    let site =
+        start_live_server_with(|live| live.snapshot_every = Some(Duration::from_millis(200)));
+    let session = 0x0000_5a95;
+    let snapshots = site
+        .dir
+        .path()
+        .join("data/snapshots")
+        .join(rig::EDGE_NAME)
+        .join(format!("{session:016x}"));
+    site.runtime.block_on(async {
+        let mut client = connect(site.server.addr(), &site.bundle).await;
+        for seq in 0..3 {
+            client
+                .send
+                .write_all(&revolution(session, seq))
+                .await
+                .expect("write");
+        }
+        assert!(client.acknowledged(session, &[0, 1, 2]).await);
+    });
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    while !snapshots.join("map.bt").exists() {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "no periodic snapshot in {}",
+            snapshots.display()
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    for file in ["map.bt", "map.ot", "cloud.ply"] {
+        assert!(snapshots.join(file).exists(), "{file} missing");
+    }
+    site.server.stop();
 }

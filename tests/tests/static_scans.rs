@@ -76,6 +76,10 @@ fn run(name: &'static str, positions: Vec<Position>, noise: RangeNoise) -> Vec<C
         time_scale: 10.0,
         seed: 5,
         noise,
+        resolution_m: 0.05,
+        queue_frames: 256,
+        snapshots_dir: &dir.path().join("snapshots"),
+        full_rates: false,
     };
     let plan = MapPlan {
         name,

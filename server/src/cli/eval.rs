@@ -4,10 +4,9 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use anyhow::Context;
+use scan3d_map::eval::Metrics;
 
-use scan3d_map::eval::{self, LeafMap, Metrics, Role, VoxelBox};
-use scan3d_map::octree::SensorModel;
+pub use crate::report::{MetricBox, evaluate_maps, key_box, load_map, opt, parse_bbox};
 
 /// Options of `scan3d eval`.
 #[derive(Debug, clap::Args)]
@@ -28,63 +27,6 @@ pub struct EvalArgs {
     pub json: bool,
 }
 
-/// A box in metres, `(min corner, max corner)`.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct MetricBox {
-    /// `x0, y0, z0`.
-    pub min: [f64; 3],
-    /// `x1, y1, z1`.
-    pub max: [f64; 3],
-}
-
-/// Parses `x0,y0,z0,x1,y1,z1`.
-pub fn parse_bbox(s: &str) -> Result<MetricBox, String> {
-    let v: Vec<f64> = s
-        .split(',')
-        .map(|t| t.trim().parse::<f64>())
-        .collect::<Result<_, _>>()
-        .map_err(|e| format!("bbox: {e} (want x0,y0,z0,x1,y1,z1 in metres)"))?;
-    match v.as_slice() {
-        &[x0, y0, z0, x1, y1, z1] => Ok(MetricBox {
-            min: [x0, y0, z0],
-            max: [x1, y1, z1],
-        }),
-        _ => Err(format!(
-            "bbox: {} numbers given, want 6: x0,y0,z0,x1,y1,z1",
-            v.len()
-        )),
-    }
-}
-
-/// Reads a `.bt` / `.ot` map for evaluation (OctoMap's default sensor model).
-pub fn load_map(path: &Path) -> anyhow::Result<LeafMap> {
-    let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
-    LeafMap::read(&bytes, SensorModel::default())
-        .with_context(|| format!("{}: not a readable OctoMap .bt/.ot file", path.display()))
-}
-
-/// The key box of a metric box at the reference's resolution.
-pub fn key_box(reference: &LeafMap, bbox: Option<MetricBox>) -> anyhow::Result<Option<VoxelBox>> {
-    bbox.map(|b| VoxelBox::from_metric(reference.resolution(), b.min, b.max))
-        .transpose()
-        .context("--bbox")
-}
-
-/// All metrics of `target` against `reference`, with the truth scores if `truth` is given.
-pub fn evaluate_maps(
-    reference: &LeafMap,
-    target: &LeafMap,
-    bbox: Option<VoxelBox>,
-    truth: Option<&LeafMap>,
-) -> anyhow::Result<Metrics> {
-    let mut m = eval::evaluate(reference, target, bbox)?;
-    if let Some(t) = truth {
-        eval::check_resolution(reference, t, Role::Truth)?;
-        m.truth = Some(eval::evaluate_truth(target, t, m.bbox)?);
-    }
-    Ok(m)
-}
-
 /// Runs `scan3d eval`.
 pub fn run(args: &EvalArgs, out: &mut dyn Write) -> anyhow::Result<()> {
     let reference = load_map(&args.reference)?;
@@ -99,11 +41,6 @@ pub fn run(args: &EvalArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         write_table(&m, &args.reference, &args.target, out)?;
     }
     Ok(())
-}
-
-/// A number, or `-` for an undefined one.
-pub fn opt(v: Option<f64>, digits: usize) -> String {
-    v.map_or_else(|| "-".to_string(), |x| format!("{x:.digits$}"))
 }
 
 /// Writes the metrics as a readable text table.

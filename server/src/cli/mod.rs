@@ -16,6 +16,8 @@ pub mod report;
 pub mod scan;
 pub mod serve;
 pub mod sessions;
+pub mod snapshot;
+pub mod status;
 pub mod sweep;
 
 /// scan3d server and offline tools (laptop side).
@@ -34,6 +36,10 @@ pub enum Command {
     Pair(pair::PairArgs),
     /// Run the server daemon: accept edges over QUIC and record their sessions.
     Serve(serve::ServeArgs),
+    /// What the daemon's live pipeline has built, per connected edge and session.
+    Status(status::StatusArgs),
+    /// Have the daemon write a session's live octree, cloud and metrics into a directory.
+    Snapshot(snapshot::SnapshotArgs),
     /// List the recorded sessions.
     Sessions(sessions::SessionsArgs),
     /// Feed a recorded session back through the server pipeline as if live.
@@ -83,6 +89,8 @@ pub fn execute(cli: Cli, out: &mut dyn Write) -> anyhow::Result<()> {
     match cli.command {
         Command::Pair(args) => pair::run(&args, out),
         Command::Serve(args) => serve::run(&args),
+        Command::Status(args) => status::run(&args, out),
+        Command::Snapshot(args) => snapshot::run(&args, out),
         Command::Sessions(args) => sessions::run(&args, out),
         Command::Replay(args) => replay::run(&args, out),
         Command::Scan(args) => scan::run(&args, out),

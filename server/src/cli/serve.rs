@@ -1,7 +1,9 @@
 //! `scan3d serve --config server.toml`: the server daemon. Records every edge's frames and
 //! acknowledges them once durable; takes operator commands on `data_dir/control.sock`
 //! (`scan3d scan`); SIGHUP re-reads the certificate revocation list (`pki_dir/crl.pem`);
-//! SIGTERM commits, closes every recording and exits 0. If the control socket cannot be
+//! SIGTERM commits, closes every recording and exits 0. With `[pipeline]` on (the default) every
+//! session also goes through the live pipeline (`scan3d status`, `scan3d snapshot`); a bad
+//! `[pipeline]` (e.g. a reference map of another resolution) stops the daemon at start. If the control socket cannot be
 //! opened the daemon does not start, and if its task ever ends the daemon exits non-zero
 //! (systemd restarts it) rather than run on without it.
 
@@ -14,6 +16,7 @@ use crate::config::ServerConfig;
 use crate::ingest::control::{ControlLimits, ControlSocket, socket_path};
 use crate::ingest::server::{IngestConfig, IngestServer};
 use crate::ingest::tls;
+use crate::pipeline::live::LivePipelines;
 
 /// Options of `scan3d serve`.
 #[derive(Debug, clap::Args)]
@@ -50,9 +53,20 @@ fn serve(config_path: &Path) -> anyhow::Result<()> {
     runtime.block_on(async {
         std::fs::create_dir_all(&config.data_dir)
             .with_context(|| format!("data_dir {}", config.data_dir.display()))?;
-        let server = IngestServer::bind(IngestConfig::from(&config))?;
-        let socket =
+        let live = match config.live_settings() {
+            Some(settings) => Some(
+                LivePipelines::new(settings)
+                    .map_err(|e| anyhow::anyhow!("[pipeline]: {e}"))?,
+            ),
+            None => None,
+        };
+        let mut server = IngestServer::bind(IngestConfig::from(&config))?;
+        let mut socket =
             ControlSocket::bind(socket_path(&config.data_dir), ControlLimits::default()).await?;
+        if let Some(live) = &live {
+            server = server.with_sink(std::sync::Arc::new(live.clone()));
+            socket = socket.with_live(std::sync::Arc::new(live.clone()));
+        }
         let mut control = tokio::spawn(socket.serve(server.control()));
         // Installed before READY: SIGHUP's default action would kill the daemon.
         let mut hangup =
@@ -87,6 +101,10 @@ fn serve(config_path: &Path) -> anyhow::Result<()> {
         reloader.abort();
         control.abort();
         let _ = std::fs::remove_file(socket_path(&config.data_dir));
+        if let Some(live) = &live {
+            // Everything recorded is processed (and the periodic snapshots written) first.
+            tokio::task::block_in_place(|| live.shutdown());
+        }
         tracing::info!(
             connections = stats.connections,
             refused = stats.refused,

@@ -8,6 +8,16 @@
 //! ← {"ok":true,"detail":"sent to pi"}
 //! ```
 //!
+//! The same socket answers requests for the live products ([`ProductRequest`], answered by the
+//! pipeline's live driver through [`LiveProducts`]): `scan3d status` and `scan3d snapshot`.
+//!
+//! ```text
+//! → {"request":"status"}
+//! ← {"ok":true,"detail":"1 edge(s)","data":{"edges":[...]}}
+//! → {"request":"snapshot","edge":"pi","out":"/tmp/snap"}
+//! ← {"ok":true,"detail":"wrote ...","data":{...}}
+//! ```
+//!
 //! The socket lives at `data_dir/control.sock` (see [`socket_path`]), so only users who can
 //! write the recordings can command the edges.
 
@@ -119,35 +129,119 @@ pub struct ControlRequest {
     pub command: Command,
 }
 
-/// The answer to a [`ControlRequest`].
+/// A request for the live products (the pipeline's), told apart from a [`ControlRequest`] by
+/// its `"request"` key.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "request", rename_all = "snake_case", deny_unknown_fields)]
+pub enum ProductRequest {
+    /// Every edge and session: frames, samples, voxels, lag, time sync, metrics.
+    Status,
+    /// Write a session's octree (`.bt`, `.ot`), cloud (PLY) and metric table into `out`.
+    Snapshot {
+        /// The edge's name.
+        edge: String,
+        /// The session id (16 hex digits); default: the edge's latest session.
+        #[serde(default)]
+        session: Option<String>,
+        /// Only this static-scan position's products.
+        #[serde(default)]
+        position: Option<String>,
+        /// The directory to write into (absolute: the daemon's working directory is not the
+        /// client's).
+        out: PathBuf,
+    },
+}
+
+/// What answers [`ProductRequest`]s: the pipeline's live driver. Answers may take a while (a
+/// snapshot waits for its session to catch up and writes files): they run on a blocking
+/// thread, never on the socket's task.
+pub trait LiveProducts: Send + Sync {
+    /// The reply to one request.
+    fn answer(&self, request: &ProductRequest) -> ControlReply;
+}
+
+/// The answer to a [`ControlRequest`] or a [`ProductRequest`].
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ControlReply {
-    /// Whether the command was queued on the edge's connection.
+    /// Whether the command was queued on the edge's connection (the request answered).
     pub ok: bool,
     /// What happened, for a human.
     pub detail: String,
+    /// What a [`ProductRequest`] asked for (the status, the files a snapshot wrote).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub data: Option<serde_json::Value>,
 }
 
-/// The reply to one request line.
-pub fn handle_request(control: &EdgeControl, line: &str) -> ControlReply {
-    let request: ControlRequest = match serde_json::from_str(line) {
-        Ok(request) => request,
-        Err(e) => {
-            return ControlReply {
-                ok: false,
-                detail: format!("malformed request: {e}"),
-            };
+impl ControlReply {
+    fn failed(detail: String) -> Self {
+        ControlReply {
+            ok: false,
+            detail,
+            data: None,
         }
-    };
+    }
+}
+
+/// A parsed request line.
+enum Request {
+    Command(ControlRequest),
+    Products(ProductRequest),
+}
+
+fn parse_request(line: &str) -> Result<Request, String> {
+    let value: serde_json::Value =
+        serde_json::from_str(line).map_err(|e| format!("malformed request: {e}"))?;
+    if value.get("request").is_some() {
+        serde_json::from_value(value)
+            .map(Request::Products)
+            .map_err(|e| format!("malformed request: {e}"))
+    } else {
+        serde_json::from_value(value)
+            .map(Request::Command)
+            .map_err(|e| format!("malformed request: {e}"))
+    }
+}
+
+fn send_command(control: &EdgeControl, request: ControlRequest) -> ControlReply {
     match control.send(&request.edge, request.command) {
         Ok(()) => ControlReply {
             ok: true,
             detail: format!("sent to {}", request.edge),
+            data: None,
         },
-        Err(e) => ControlReply {
-            ok: false,
-            detail: e.to_string(),
+        Err(e) => ControlReply::failed(e.to_string()),
+    }
+}
+
+/// The reply to one request line, without live products (a [`ProductRequest`] is refused).
+pub fn handle_request(control: &EdgeControl, line: &str) -> ControlReply {
+    match parse_request(line) {
+        Ok(Request::Command(request)) => send_command(control, request),
+        Ok(Request::Products(_)) => ControlReply::failed(NO_PIPELINE.into()),
+        Err(detail) => ControlReply::failed(detail),
+    }
+}
+
+const NO_PIPELINE: &str = "the server runs without the live pipeline ([pipeline] enabled = false)";
+
+/// The reply to one request line; product requests go to `live` on a blocking thread.
+async fn handle_line(
+    control: &EdgeControl,
+    live: Option<&Arc<dyn LiveProducts>>,
+    line: &str,
+) -> ControlReply {
+    match parse_request(line) {
+        Ok(Request::Command(request)) => send_command(control, request),
+        Ok(Request::Products(request)) => match live {
+            None => ControlReply::failed(NO_PIPELINE.into()),
+            Some(live) => {
+                let live = live.clone();
+                tokio::task::spawn_blocking(move || live.answer(&request))
+                    .await
+                    .unwrap_or_else(|e| ControlReply::failed(format!("request failed: {e}")))
+            }
         },
+        Err(detail) => ControlReply::failed(detail),
     }
 }
 
@@ -233,6 +327,13 @@ pub struct ControlSocket {
     listener: UnixListener,
     path: PathBuf,
     limits: ControlLimits,
+    live: Option<Arc<dyn LiveProducts>>,
+}
+
+impl std::fmt::Debug for dyn LiveProducts {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("LiveProducts")
+    }
 }
 
 impl ControlSocket {
@@ -266,7 +367,14 @@ impl ControlSocket {
             listener,
             path,
             limits,
+            live: None,
         })
+    }
+
+    /// Also answers [`ProductRequest`]s, with `live`.
+    pub fn with_live(mut self, live: Arc<dyn LiveProducts>) -> Self {
+        self.live = Some(live);
+        self
     }
 
     /// The socket's path.
@@ -281,7 +389,7 @@ impl ControlSocket {
         let accept = move || -> AcceptFuture<'_> {
             Box::pin(async move { listener.accept().await.map(|(stream, _)| stream) })
         };
-        accept_loop(accept, &self.path, self.limits, control).await
+        accept_loop(accept, &self.path, self.limits, control, self.live.clone()).await
     }
 }
 
@@ -306,6 +414,7 @@ async fn accept_loop<'a>(
     path: &Path,
     limits: ControlLimits,
     control: EdgeControl,
+    live: Option<Arc<dyn LiveProducts>>,
 ) -> std::convert::Infallible {
     let slots = Arc::new(tokio::sync::Semaphore::new(limits.max_connections));
     let own_uid = nix::unistd::geteuid().as_raw();
@@ -341,15 +450,15 @@ async fn accept_loop<'a>(
                 });
                 tracing::warn!(%detail, "control connection refused");
                 // Best effort and never blocking: a refusal costs one write at most.
-                let _ =
-                    stream.try_write(reply_line(&ControlReply { ok: false, detail }).as_bytes());
+                let _ = stream.try_write(reply_line(&ControlReply::failed(detail)).as_bytes());
                 continue;
             }
         };
         let control = control.clone();
+        let live = live.clone();
         tokio::spawn(async move {
             let _permit = permit;
-            if let Err(e) = answer(stream, &control, &limits).await {
+            if let Err(e) = answer(stream, &control, live.as_ref(), &limits).await {
                 tracing::warn!(error = %e, "control connection failed");
             }
         });
@@ -376,6 +485,7 @@ fn reply_line(reply: &ControlReply) -> String {
 async fn answer(
     stream: UnixStream,
     control: &EdgeControl,
+    live: Option<&Arc<dyn LiveProducts>>,
     limits: &ControlLimits,
 ) -> std::io::Result<()> {
     use tokio::io::AsyncReadExt;
@@ -410,14 +520,11 @@ async fn answer(
                 "request line longer than {} bytes; closing the connection",
                 limits.max_line_len
             );
-            (ControlReply { ok: false, detail }, true)
+            (ControlReply::failed(detail), true)
         } else {
             let reply = match std::str::from_utf8(&line) {
-                Ok(text) => handle_request(control, text),
-                Err(e) => ControlReply {
-                    ok: false,
-                    detail: format!("malformed request: not UTF-8 ({e})"),
-                },
+                Ok(text) => handle_line(control, live, text).await,
+                Err(e) => ControlReply::failed(format!("malformed request: not UTF-8 ({e})")),
             };
             // A last line without newline is answered, then the peer's end of stream closes.
             (reply, false)
@@ -437,6 +544,47 @@ async fn answer(
 /// Sends one request to the server's control socket and waits for the reply (blocking; for
 /// the CLI).
 pub fn request(path: &Path, request: &ControlRequest) -> anyhow::Result<ControlReply> {
+    request_with(path, request, std::time::Duration::from_secs(10))
+}
+
+/// Sends one [`ProductRequest`] and waits for the reply (blocking): up to a minute, as a
+/// snapshot waits for its session to catch up and writes files.
+pub fn request_products(path: &Path, request: &ProductRequest) -> anyhow::Result<ControlReply> {
+    request_with(path, request, std::time::Duration::from_secs(60))
+}
+
+/// Asks the daemon listening on `socket` for a snapshot (what `scan3d snapshot` does, for the
+/// simulator and tests); a refusal is an error with the daemon's reason. `out` is made absolute against this process's working
+/// directory first.
+pub fn request_snapshot(
+    socket: &Path,
+    edge: &str,
+    session: Option<&str>,
+    position: Option<&str>,
+    out: &Path,
+) -> anyhow::Result<ControlReply> {
+    let out = std::path::absolute(out)
+        .map_err(|e| anyhow::anyhow!("snapshot directory {}: {e}", out.display()))?;
+    let reply = request_products(
+        socket,
+        &ProductRequest::Snapshot {
+            edge: edge.to_owned(),
+            session: session.map(str::to_owned),
+            position: position.map(str::to_owned),
+            out,
+        },
+    )?;
+    if !reply.ok {
+        anyhow::bail!("{}", reply.detail);
+    }
+    Ok(reply)
+}
+
+fn request_with(
+    path: &Path,
+    request: &impl Serialize,
+    timeout: std::time::Duration,
+) -> anyhow::Result<ControlReply> {
     use std::io::{BufRead, Write};
     let mut stream = std::os::unix::net::UnixStream::connect(path).map_err(|e| {
         anyhow::anyhow!(
@@ -444,7 +592,7 @@ pub fn request(path: &Path, request: &ControlRequest) -> anyhow::Result<ControlR
             path.display()
         )
     })?;
-    stream.set_read_timeout(Some(std::time::Duration::from_secs(10)))?;
+    stream.set_read_timeout(Some(timeout))?;
     let mut line = serde_json::to_string(request)?;
     line.push('\n');
     // A server that refuses a request before reading all of it (too long) answers and closes:
@@ -501,6 +649,47 @@ mod tests {
         drop(rx);
         control.unregister("pi");
         assert!(control.connected().is_empty());
+    }
+
+    #[test]
+    fn product_requests_are_told_from_commands_by_their_request_key() {
+        let control = EdgeControl::default();
+        let _rx = control.register("pi");
+        // Without a live pipeline, a product request is refused with the reason.
+        let reply = handle_request(&control, r#"{"request":"status"}"#);
+        assert_eq!(reply, ControlReply::failed(NO_PIPELINE.into()));
+        // A product request with an unknown key or kind is malformed, not taken for a command.
+        for line in [
+            r#"{"request":"reboot"}"#,
+            r#"{"request":"snapshot","edge":"pi"}"#,
+        ] {
+            let reply = handle_request(&control, line);
+            assert!(
+                reply.detail.starts_with("malformed request"),
+                "{line}: {reply:?}"
+            );
+        }
+        assert_eq!(
+            parse_request(r#"{"request":"snapshot","edge":"pi","out":"/tmp/s"}"#)
+                .map(|r| match r {
+                    Request::Products(p) => Some(p),
+                    Request::Command(_) => None,
+                })
+                .ok()
+                .flatten(),
+            Some(ProductRequest::Snapshot {
+                edge: "pi".into(),
+                session: None,
+                position: None,
+                out: PathBuf::from("/tmp/s"),
+            })
+        );
+        // Commands are answered as before, without a `data` key on the wire.
+        let reply = handle_request(&control, r#"{"edge":"pi","command":"StopStaticScan"}"#);
+        assert_eq!(
+            reply_line(&reply),
+            "{\"ok\":true,\"detail\":\"sent to pi\"}\n"
+        );
     }
 
     #[tokio::test]
@@ -693,7 +882,7 @@ mod tests {
                     listener.accept().await.map(|(stream, _)| stream)
                 })
             };
-            accept_loop(accept, &socket.path, socket.limits, control).await
+            accept_loop(accept, &socket.path, socket.limits, control, None).await
         });
         let reply = exchange_one(&path, &stop_line()).await;
         assert!(reply.starts_with("{\"ok\":true"), "{reply}");
@@ -721,6 +910,7 @@ mod tests {
             Path::new("test.sock"),
             limits,
             EdgeControl::default(),
+            None,
         );
         // Ten seconds of (virtual) time: 10+20+...+640 ms, then one try a second.
         let _ = tokio::time::timeout(Duration::from_secs(10), looping).await;

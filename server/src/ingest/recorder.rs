@@ -307,13 +307,13 @@ fn edge_time_ns(body: &Body) -> Option<u64> {
 /// size grows with the number of gaps, not with the number of members (a session with a
 /// permanent hole early on must not cost a few bytes per later frame).
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
-struct SeqSet {
+pub(crate) struct SeqSet {
     /// `start -> end` (inclusive) of each range.
     ranges: BTreeMap<u64, u64>,
 }
 
 impl SeqSet {
-    fn contains(&self, seq: u64) -> bool {
+    pub(crate) fn contains(&self, seq: u64) -> bool {
         self.ranges
             .range(..=seq)
             .next_back()
@@ -321,7 +321,7 @@ impl SeqSet {
     }
 
     /// Adds `seq`; `false` if it was already there.
-    fn insert(&mut self, seq: u64) -> bool {
+    pub(crate) fn insert(&mut self, seq: u64) -> bool {
         if self.contains(seq) {
             return false;
         }
@@ -358,6 +358,11 @@ impl SeqSet {
         }
         self.ranges.insert(start, end);
         true
+    }
+
+    /// The largest member.
+    pub(crate) fn last(&self) -> Option<u64> {
+        self.ranges.last_key_value().map(|(_, &end)| end)
     }
 
     /// The highest `S` such that every seq `<= S` is in the set.

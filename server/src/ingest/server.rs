@@ -181,6 +181,14 @@ pub enum IngestEvent {
     },
 }
 
+/// A consumer of what ingest reports that must never make ingest wait (the live pipeline,
+/// `pipeline::live`, which queues frames with `try_send`). Called on the connection's task, in
+/// recording order: a frame is reported once, when the recorder accepted it (not a duplicate).
+pub trait IngestSink: Send + Sync {
+    /// Takes one event; must return at once.
+    fn on_event(&self, event: IngestEvent);
+}
+
 /// Counters over the server's lifetime.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct IngestStats {
@@ -231,6 +239,7 @@ pub struct IngestServer {
     control: EdgeControl,
     clock: Arc<dyn ServerClock>,
     time_sync: TimeSyncConfig,
+    sink: Option<Arc<dyn IngestSink>>,
 }
 
 impl IngestServer {
@@ -245,6 +254,7 @@ impl IngestServer {
             control: EdgeControl::default(),
             clock: Arc::new(MonotonicServerClock::new()),
             time_sync: TimeSyncConfig::default(),
+            sink: None,
         })
     }
 
@@ -257,6 +267,12 @@ impl IngestServer {
     /// Uses these time-sync estimator settings (e.g. another window) instead of the defaults.
     pub fn with_time_sync(mut self, config: TimeSyncConfig) -> Self {
         self.time_sync = config;
+        self
+    }
+
+    /// Also reports every event to `sink` (besides the `events` channel of [`run`](Self::run)).
+    pub fn with_sink(mut self, sink: Arc<dyn IngestSink>) -> Self {
+        self.sink = Some(sink);
         self
     }
 
@@ -280,6 +296,7 @@ impl IngestServer {
         let shared = Arc::new(Shared {
             config: self.config,
             events,
+            sink: self.sink,
             stats: Mutex::new(IngestStats::default()),
             edges: Mutex::new(HashMap::new()),
             control: self.control,
@@ -374,6 +391,7 @@ fn admission(
 struct Shared {
     config: IngestConfig,
     events: Option<mpsc::UnboundedSender<IngestEvent>>,
+    sink: Option<Arc<dyn IngestSink>>,
     stats: Mutex<IngestStats>,
     /// The live connection of each authenticated edge: one entry per slot of
     /// `max_connections` (see [`claim_slot`]).
@@ -497,8 +515,16 @@ impl Shared {
     }
 
     fn emit(&self, event: IngestEvent) {
-        if let Some(events) = &self.events {
-            let _ = events.send(event);
+        match (&self.sink, &self.events) {
+            (Some(sink), Some(events)) => {
+                sink.on_event(event.clone());
+                let _ = events.send(event);
+            }
+            (Some(sink), None) => sink.on_event(event),
+            (None, Some(events)) => {
+                let _ = events.send(event);
+            }
+            (None, None) => {}
         }
     }
 

@@ -1,0 +1,1102 @@
+//! The live driver of the pipeline (`scan3d serve`): ingest hands every frame the recorder
+//! accepted to [`LivePipelines`], which queues it for its session's worker, one thread per
+//! session owning a [`SessionPipeline`].
+//!
+//! Ingest never waits for processing: each session's queue is bounded
+//! ([`LiveSettings::queue_frames`]) and filled with `try_send`. A frame that finds the queue full
+//! is not dropped silently: its seq is noted as owed, and the worker reads it back from the
+//! session's recording once committed (`visit_session`) — the recording is the source of truth,
+//! the queue only a fast path. The same happens when frames arrive out of sequence (resends
+//! after a reconnect, a gap, a session already recorded before this daemon started): the worker
+//! catches up from the recording, in the recording's order, skipping the seqs it already
+//! processed, so the live products are those of a replay of the recording. [`Sequencer`] is the
+//! pure core of that decision; the worker's lag (frames and ms) is reported in
+//! [`StatusReport`].
+
+use std::collections::{BTreeSet, HashMap};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use scan3d_protocol::{Body, Frame, SensorId, StaticScan};
+use serde::Serialize;
+
+use super::{PipelineError, PipelineSettings, SessionPipeline, SessionStatus, Snapshot};
+use crate::ingest::control::{ControlReply, LiveProducts, ProductRequest};
+use crate::ingest::recorder::{SeqSet, SessionItem, session_dir, visit_session_items};
+use crate::ingest::server::{IngestEvent, IngestSink, unix_now_ns};
+use scan3d_protocol::ClockModel;
+
+/// How the live driver runs: the `[pipeline]` section of `server.toml` beyond the pipeline's
+/// own settings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LiveSettings {
+    /// What each session's pipeline builds.
+    pub pipeline: PipelineSettings,
+    /// Frames each session's queue holds; more make the worker catch up from the recording.
+    pub queue_frames: usize,
+    /// Write every session's products into `data_dir/snapshots/<edge>/<session>/` this often
+    /// (when something changed); `None`: only on request.
+    pub snapshot_every: Option<Duration>,
+    /// The server's data directory (recordings under `sessions/`, periodic snapshots under
+    /// `snapshots/`).
+    pub data_dir: PathBuf,
+    /// How often a worker that owes frames looks for them in the recording (they appear there
+    /// when ingest commits, every `commit_interval`).
+    pub catch_up_retry: Duration,
+    /// An owed frame not found in the recording for this long is given up (logged and counted
+    /// in the status): the recorder lost it, and the edge will resend it if it was never
+    /// acknowledged.
+    pub give_up_after: Duration,
+    /// How long a snapshot request waits for its session's worker to catch up.
+    pub snapshot_wait: Duration,
+}
+
+impl LiveSettings {
+    /// Live settings with the defaults beyond `pipeline` and `data_dir`.
+    pub fn new(pipeline: PipelineSettings, data_dir: PathBuf) -> Self {
+        LiveSettings {
+            pipeline,
+            queue_frames: 256,
+            snapshot_every: None,
+            data_dir,
+            catch_up_retry: Duration::from_millis(50),
+            give_up_after: Duration::from_secs(30),
+            snapshot_wait: Duration::from_secs(20),
+        }
+    }
+}
+
+/// What a frame offered from the queue means to the worker.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Offer {
+    /// The next frame in sequence: process it now.
+    Process,
+    /// Already processed (from the recording): nothing to do.
+    Skip,
+    /// Out of sequence, or behind frames the worker still owes: it is read back from the
+    /// recording, in the recording's order.
+    Owe,
+}
+
+/// Which seqs of one session the worker has processed and which it owes (accepted by the
+/// recorder, not yet processed): the pure core of the live driver's ordering.
+///
+/// The queue's frames are processed as they come while they follow each other (seq = last + 1,
+/// the first being 0); anything else, and everything after it until the debt is paid, is owed
+/// and taken from the recording with [`Sequencer::from_recording`]. So the frames go through
+/// the pipeline in the recording's order whatever the queue did.
+#[derive(Debug, Clone, Default)]
+pub struct Sequencer {
+    done: SeqSet,
+    owed: BTreeSet<u64>,
+}
+
+impl Sequencer {
+    /// A frame from the queue.
+    pub fn offer(&mut self, seq: u64) -> Offer {
+        if self.done.contains(seq) {
+            return Offer::Skip;
+        }
+        let next = match self.done.last() {
+            None => 0,
+            Some(last) => last.saturating_add(1),
+        };
+        if self.owed.is_empty() && seq == next {
+            self.done.insert(seq);
+            Offer::Process
+        } else {
+            self.owed.insert(seq);
+            Offer::Owe
+        }
+    }
+
+    /// A frame the queue had no room for.
+    pub fn owe(&mut self, seq: u64) {
+        if !self.done.contains(seq) {
+            self.owed.insert(seq);
+        }
+    }
+
+    /// A frame read back from the recording, in recording order: whether to process it.
+    pub fn from_recording(&mut self, seq: u64) -> bool {
+        self.owed.remove(&seq);
+        self.done.insert(seq)
+    }
+
+    /// Frames owed.
+    pub fn owed(&self) -> usize {
+        self.owed.len()
+    }
+
+    /// Gives up the owed frames (they never reached the recording); returns them.
+    pub fn forgive(&mut self) -> Vec<u64> {
+        std::mem::take(&mut self.owed).into_iter().collect()
+    }
+}
+
+/// One session's line in `scan3d status`: the pipeline's counters, the worker's lag and the
+/// edge's time sync.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct LiveSessionStatus {
+    /// The session id, 16 hex digits (its directory's name).
+    pub id: String,
+    /// What the pipeline has built (frames, samples, revolutions, voxels, metrics, positions).
+    #[serde(flatten)]
+    pub pipeline: SessionStatus,
+    /// How long the oldest frame not yet processed has waited, ms (0 when caught up).
+    pub lag_ms: u64,
+    /// Frames accepted by the recorder and not yet processed.
+    pub lag_frames: u64,
+    /// The largest `lag_frames` seen.
+    pub max_lag_frames: u64,
+    /// The largest `lag_ms` seen.
+    pub max_lag_ms: u64,
+    /// Times the worker read frames back from the recording.
+    pub catch_ups: u64,
+    /// Frames that found the queue full (each read back from the recording).
+    pub queue_overflows: u64,
+    /// Owed frames never found in the recording, given up after `give_up_after`.
+    pub abandoned: u64,
+    /// The edge's clock against the server's, latest estimate.
+    pub timesync: Option<TimeSyncStatus>,
+    /// CPU time the session's worker thread has used, ms (processing and catching up).
+    pub worker_cpu_ms: u64,
+    /// Memory of the session's octree (all positions' points in one), bytes.
+    pub map_memory_bytes: u64,
+    /// How old the newest Sweep sample was when its points reached the octree, over the last
+    /// [`LATENCY_WINDOW`] insertions (needs a time-sync estimate).
+    pub sample_to_voxel: Option<LatencySummary>,
+    /// From the recorder's acceptance of a frame to its points in the octree (the server's
+    /// share of [`sample_to_voxel`](Self::sample_to_voxel): queue and processing), frames from
+    /// the queue only, over the last [`LATENCY_WINDOW`] insertions.
+    pub accept_to_voxel: Option<LatencySummary>,
+}
+
+/// Insertions [`LiveSessionStatus::sample_to_voxel`] summarises.
+pub const LATENCY_WINDOW: usize = 4096;
+
+/// Percentiles of a latency, ms.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct LatencySummary {
+    /// Insertions measured.
+    pub count: usize,
+    /// Median, ms.
+    pub p50_ms: f64,
+    /// 99th percentile, ms.
+    pub p99_ms: f64,
+    /// Largest, ms.
+    pub max_ms: f64,
+}
+
+impl LatencySummary {
+    /// The summary of `latencies_ns` (`None` if empty).
+    pub fn of(latencies_ns: &[i64]) -> Option<Self> {
+        let mut sorted = latencies_ns.to_vec();
+        sorted.sort_unstable();
+        let at = |q: f64| {
+            let i = ((sorted.len() as f64 - 1.0) * q).round() as usize;
+            sorted[i.min(sorted.len() - 1)] as f64 / 1e6
+        };
+        (!sorted.is_empty()).then(|| LatencySummary {
+            count: sorted.len(),
+            p50_ms: at(0.5),
+            p99_ms: at(0.99),
+            max_ms: at(1.0),
+        })
+    }
+}
+
+/// A time-sync estimate as `scan3d status` shows it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct TimeSyncStatus {
+    /// Edge clock minus server clock, ns.
+    pub offset_ns: i64,
+    /// Edge clock rate error against the server's, parts per million.
+    pub skew_ppm: Option<f64>,
+    /// Bound on the offset's error, ns.
+    pub error_bound_ns: u64,
+}
+
+/// One edge in `scan3d status`.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct EdgeStatus {
+    /// The edge's name (its certificate's).
+    pub name: String,
+    /// Whether it is connected now.
+    pub connected: bool,
+    /// Its sessions the daemon has seen since it started, oldest first.
+    pub sessions: Vec<LiveSessionStatus>,
+}
+
+/// The answer to `scan3d status`.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct StatusReport {
+    /// Every edge connected now or with a session since the daemon started, by name.
+    pub edges: Vec<EdgeStatus>,
+}
+
+/// Why a snapshot could not be taken.
+#[derive(Debug, thiserror::Error)]
+pub enum LiveError {
+    /// No session of that edge (or not that one) since the daemon started.
+    #[error("no live session {session} of edge {edge:?} (known: {known})")]
+    NoSession {
+        /// The edge asked for.
+        edge: String,
+        /// The session asked for, or "any".
+        session: String,
+        /// The sessions there are, as `edge/session`.
+        known: String,
+    },
+    /// `--session` is not 16 hex digits.
+    #[error("session {0:?} is not a session id (16 hex digits)")]
+    BadSession(String),
+    /// The pipeline could not write (unwritable directory, ...).
+    #[error("snapshot of {edge}/{session:016x} into {}: {source}", dir.display())]
+    Write {
+        /// The edge.
+        edge: String,
+        /// The session.
+        session: u64,
+        /// Where it was to go.
+        dir: PathBuf,
+        /// Why it failed.
+        source: PipelineError,
+    },
+    /// The session's pipeline is not running.
+    #[error("session {edge}/{session:016x} has no live products: {reason}")]
+    NotRunning {
+        /// The edge.
+        edge: String,
+        /// The session.
+        session: u64,
+        /// Why.
+        reason: String,
+    },
+    /// The session's worker did not catch up in time.
+    #[error(
+        "session {edge}/{session:016x} is {lag_frames} frames behind after {waited:?}; try again"
+    )]
+    Behind {
+        /// The edge.
+        edge: String,
+        /// The session.
+        session: u64,
+        /// Frames still to process.
+        lag_frames: u64,
+        /// How long the request waited.
+        waited: Duration,
+    },
+}
+
+/// The live pipelines of every session; cheap to clone. Ingest feeds it
+/// ([`IngestSink`]), the control socket asks it for status and snapshots ([`LiveProducts`]).
+#[derive(Clone)]
+pub struct LivePipelines {
+    inner: Arc<Inner>,
+}
+
+struct Inner {
+    settings: LiveSettings,
+    state: Mutex<State>,
+}
+
+#[derive(Default)]
+struct State {
+    /// By `(edge, session)`, in order of first frame.
+    workers: Vec<Worker>,
+    connected: BTreeSet<String>,
+    timesync: HashMap<(String, u64), TimeSyncStatus>,
+}
+
+struct Worker {
+    edge: String,
+    session_id: u64,
+    queue: Option<SyncSender<Queued>>,
+    shared: Arc<WorkerShared>,
+    thread: Option<JoinHandle<()>>,
+}
+
+struct Queued {
+    frame: Frame,
+    accepted_at: Instant,
+}
+
+/// A session's pipeline: built on the worker's thread (loading the reference map there, not on
+/// ingest's task).
+enum Slot {
+    Starting,
+    Running(Box<SessionPipeline>),
+    Failed(String),
+}
+
+impl Slot {
+    fn running(&mut self) -> Option<&mut SessionPipeline> {
+        match self {
+            Slot::Running(pipeline) => Some(pipeline),
+            Slot::Starting | Slot::Failed(_) => None,
+        }
+    }
+}
+
+/// What a worker shares with ingest (counters) and the control socket (pipeline, progress).
+struct WorkerShared {
+    edge: String,
+    session_id: u64,
+    /// Frames handed to the driver.
+    accepted: AtomicU64,
+    /// Of those, frames that found the queue full.
+    overflowed: AtomicU64,
+    /// Their seqs, for the worker to read back.
+    missed: Mutex<Vec<u64>>,
+    pipeline: Mutex<Slot>,
+    progress: Mutex<Progress>,
+    /// The session's latest edge → server clock model (time sync).
+    clock: Mutex<Option<ClockModel>>,
+    /// Sample-to-voxel latencies, ns, the last [`LATENCY_WINDOW`].
+    latencies: Mutex<std::collections::VecDeque<i64>>,
+    /// Accept-to-voxel latencies, ns, the last [`LATENCY_WINDOW`].
+    server_latencies: Mutex<std::collections::VecDeque<i64>>,
+}
+
+/// Appends `latency_ns` to a window of at most [`LATENCY_WINDOW`].
+fn push_latency(window: &Mutex<std::collections::VecDeque<i64>>, latency_ns: i64) {
+    let mut window = lock(window);
+    if window.len() == LATENCY_WINDOW {
+        window.pop_front();
+    }
+    window.push_back(latency_ns);
+}
+
+#[derive(Debug, Default)]
+struct Progress {
+    /// Frames taken out of the queue.
+    received: u64,
+    owed: u64,
+    behind_since: Option<Instant>,
+    /// How long the last frame from the queue waited in it.
+    queue_delay: Duration,
+    max_lag_frames: u64,
+    max_lag_ms: u64,
+    catch_ups: u64,
+    abandoned: u64,
+    /// The worker thread's CPU time, ns.
+    cpu_ns: u64,
+}
+
+fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
+    mutex.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+impl WorkerShared {
+    /// `(lag_frames, lag_ms)` now.
+    fn lag(&self) -> (u64, u64) {
+        let accepted = self.accepted.load(Ordering::Acquire);
+        let overflowed = self.overflowed.load(Ordering::Acquire);
+        let missed = lock(&self.missed).len() as u64;
+        let progress = lock(&self.progress);
+        let queued = accepted.saturating_sub(overflowed + progress.received);
+        let frames = queued + progress.owed + missed;
+        let behind = progress
+            .behind_since
+            .map_or(Duration::ZERO, |since| since.elapsed());
+        let ms = if frames == 0 {
+            0
+        } else {
+            behind.max(progress.queue_delay).as_millis() as u64
+        };
+        (frames, ms)
+    }
+
+    fn note_lag(&self) {
+        let (frames, ms) = self.lag();
+        let mut progress = lock(&self.progress);
+        progress.max_lag_frames = progress.max_lag_frames.max(frames);
+        progress.max_lag_ms = progress.max_lag_ms.max(ms);
+    }
+}
+
+impl LivePipelines {
+    /// Checks the settings by building one pipeline (a reference map that cannot be read or
+    /// has another resolution fails here, at start) and makes an empty driver.
+    pub fn new(settings: LiveSettings) -> Result<Self, PipelineError> {
+        SessionPipeline::new(&settings.pipeline)?;
+        Ok(LivePipelines {
+            inner: Arc::new(Inner {
+                settings,
+                state: Mutex::new(State::default()),
+            }),
+        })
+    }
+
+    /// Takes one event from ingest; never blocks on processing.
+    pub fn on_event(&self, event: IngestEvent) {
+        match event {
+            IngestEvent::Frame { edge, frame } => self.on_frame(&edge, frame),
+            IngestEvent::Connected { edge, .. } => {
+                lock(&self.inner.state).connected.insert(edge);
+            }
+            IngestEvent::Disconnected { edge, .. } => {
+                lock(&self.inner.state).connected.remove(&edge);
+            }
+            IngestEvent::TimeSync {
+                edge,
+                session_id,
+                model,
+            } => {
+                let status = TimeSyncStatus {
+                    offset_ns: model.offset_ns,
+                    skew_ppm: Some(model.skew_ppm),
+                    error_bound_ns: model.error_bound_ns,
+                };
+                let mut state = lock(&self.inner.state);
+                if let Some(worker) = state
+                    .workers
+                    .iter()
+                    .find(|w| w.edge == edge && w.session_id == session_id)
+                {
+                    *lock(&worker.shared.clock) = Some(model);
+                }
+                state.timesync.insert((edge, session_id), status);
+            }
+        }
+    }
+
+    fn on_frame(&self, edge: &str, frame: Frame) {
+        let (queue, shared) = {
+            let mut state = lock(&self.inner.state);
+            let index = match state
+                .workers
+                .iter()
+                .position(|w| w.edge == edge && w.session_id == frame.session_id)
+            {
+                Some(index) => index,
+                None => match self.spawn(edge, frame.session_id) {
+                    Ok(worker) => {
+                        state.workers.push(worker);
+                        state.workers.len() - 1
+                    }
+                    Err(e) => {
+                        tracing::error!(%edge, session = format!("{:016x}", frame.session_id), error = %e,
+                            "cannot start the session's pipeline; the session is recorded only");
+                        return;
+                    }
+                },
+            };
+            let worker = &state.workers[index];
+            (worker.queue.clone(), worker.shared.clone())
+        };
+        let Some(queue) = queue else { return };
+        shared.accepted.fetch_add(1, Ordering::AcqRel);
+        let seq = frame.seq;
+        let queued = Queued {
+            frame,
+            accepted_at: Instant::now(),
+        };
+        match queue.try_send(queued) {
+            Ok(()) => {}
+            // The worker is gone (its pipeline could not be built, logged): recording only.
+            Err(TrySendError::Disconnected(_)) => {
+                shared.accepted.fetch_sub(1, Ordering::AcqRel);
+            }
+            Err(TrySendError::Full(_)) => {
+                lock(&shared.missed).push(seq);
+                shared.overflowed.fetch_add(1, Ordering::AcqRel);
+            }
+        }
+    }
+
+    fn spawn(&self, edge: &str, session_id: u64) -> std::io::Result<Worker> {
+        // The pipeline itself is built on the worker's thread.
+        let settings = &self.inner.settings;
+        let shared = Arc::new(WorkerShared {
+            edge: edge.to_owned(),
+            session_id,
+            accepted: AtomicU64::new(0),
+            overflowed: AtomicU64::new(0),
+            missed: Mutex::new(Vec::new()),
+            pipeline: Mutex::new(Slot::Starting),
+            progress: Mutex::new(Progress::default()),
+            clock: Mutex::new(None),
+            latencies: Mutex::new(std::collections::VecDeque::with_capacity(LATENCY_WINDOW)),
+            server_latencies: Mutex::new(std::collections::VecDeque::with_capacity(LATENCY_WINDOW)),
+        });
+        let (queue, frames) = std::sync::mpsc::sync_channel(settings.queue_frames.max(1));
+        let run = WorkerRun {
+            shared: shared.clone(),
+            frames,
+            sequencer: Sequencer::default(),
+            session_dir: session_dir(&settings.data_dir, edge, session_id),
+            snapshot_dir: settings
+                .data_dir
+                .join("snapshots")
+                .join(edge)
+                .join(format!("{session_id:016x}")),
+            settings: settings.clone(),
+            changed: false,
+            last_snapshot: Instant::now(),
+            recent_sweeps: std::collections::VecDeque::with_capacity(RECENT_SWEEPS),
+        };
+        let thread = std::thread::Builder::new()
+            .name(format!("pipeline {edge}/{session_id:016x}"))
+            .spawn(move || run.run())?;
+        tracing::info!(%edge, session = format!("{session_id:016x}"), "live pipeline started");
+        Ok(Worker {
+            edge: edge.to_owned(),
+            session_id,
+            queue: Some(queue),
+            shared,
+            thread: Some(thread),
+        })
+    }
+
+    /// Every edge and session: counters, lag, time sync, metrics.
+    pub fn status(&self) -> StatusReport {
+        let (workers, connected, timesync) = {
+            let state = lock(&self.inner.state);
+            let workers: Vec<Arc<WorkerShared>> =
+                state.workers.iter().map(|w| w.shared.clone()).collect();
+            (workers, state.connected.clone(), state.timesync.clone())
+        };
+        let mut edges: Vec<EdgeStatus> = connected
+            .iter()
+            .map(|name| EdgeStatus {
+                name: name.clone(),
+                connected: true,
+                sessions: Vec::new(),
+            })
+            .collect();
+        for shared in workers {
+            let (pipeline, map_memory_bytes) = {
+                let mut slot = lock(&shared.pipeline);
+                // Not built yet (a few ms) or failed (logged): no line.
+                let Some(pipeline) = slot.running() else {
+                    continue;
+                };
+                let memory = pipeline.maps().session_map().memory_bytes() as u64;
+                (pipeline.status(), memory)
+            };
+            let (lag_frames, lag_ms) = shared.lag();
+            let progress = lock(&shared.progress);
+            let session = LiveSessionStatus {
+                id: format!("{:016x}", shared.session_id),
+                pipeline,
+                lag_ms,
+                lag_frames,
+                max_lag_frames: progress.max_lag_frames.max(lag_frames),
+                max_lag_ms: progress.max_lag_ms.max(lag_ms),
+                catch_ups: progress.catch_ups,
+                queue_overflows: shared.overflowed.load(Ordering::Acquire),
+                abandoned: progress.abandoned,
+                worker_cpu_ms: progress.cpu_ns / 1_000_000,
+                map_memory_bytes,
+                timesync: timesync
+                    .get(&(shared.edge.clone(), shared.session_id))
+                    .copied(),
+                sample_to_voxel: LatencySummary::of(lock(&shared.latencies).make_contiguous()),
+                accept_to_voxel: LatencySummary::of(
+                    lock(&shared.server_latencies).make_contiguous(),
+                ),
+            };
+            match edges.iter_mut().find(|e| e.name == shared.edge) {
+                Some(edge) => edge.sessions.push(session),
+                None => edges.push(EdgeStatus {
+                    name: shared.edge.clone(),
+                    connected: connected.contains(&shared.edge),
+                    sessions: vec![session],
+                }),
+            }
+        }
+        edges.sort_by(|a, b| a.name.cmp(&b.name));
+        StatusReport { edges }
+    }
+
+    /// Writes the products of `edge`'s session (`session`, 16 hex digits, or its latest) into
+    /// `dir`, once the session's worker has caught up with what was accepted so far.
+    pub fn snapshot(
+        &self,
+        edge: &str,
+        session: Option<&str>,
+        position: Option<&str>,
+        dir: &Path,
+    ) -> Result<(u64, Snapshot), LiveError> {
+        let wanted = session
+            .map(|s| u64::from_str_radix(s, 16).map_err(|_| LiveError::BadSession(s.to_owned())))
+            .transpose()?;
+        let shared = {
+            let state = lock(&self.inner.state);
+            let found = state
+                .workers
+                .iter()
+                .rev()
+                .find(|w| w.edge == edge && wanted.is_none_or(|id| id == w.session_id));
+            match found {
+                Some(worker) => worker.shared.clone(),
+                None => {
+                    let known: Vec<String> = state
+                        .workers
+                        .iter()
+                        .map(|w| format!("{}/{:016x}", w.edge, w.session_id))
+                        .collect();
+                    return Err(LiveError::NoSession {
+                        edge: edge.to_owned(),
+                        session: wanted.map_or("any".into(), |id| format!("{id:016x}")),
+                        known: if known.is_empty() {
+                            "none".into()
+                        } else {
+                            known.join(", ")
+                        },
+                    });
+                }
+            }
+        };
+        if let Slot::Failed(reason) = &*lock(&shared.pipeline) {
+            return Err(LiveError::NotRunning {
+                edge: edge.to_owned(),
+                session: shared.session_id,
+                reason: reason.clone(),
+            });
+        }
+        let started = Instant::now();
+        loop {
+            let (lag_frames, _) = shared.lag();
+            if lag_frames == 0 {
+                break;
+            }
+            let waited = started.elapsed();
+            if waited >= self.inner.settings.snapshot_wait {
+                return Err(LiveError::Behind {
+                    edge: edge.to_owned(),
+                    session: shared.session_id,
+                    lag_frames,
+                    waited,
+                });
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        let mut slot = lock(&shared.pipeline);
+        let pipeline = match &mut *slot {
+            Slot::Running(pipeline) => pipeline,
+            Slot::Starting => {
+                return Err(LiveError::NotRunning {
+                    edge: edge.to_owned(),
+                    session: shared.session_id,
+                    reason: "its pipeline is still starting".into(),
+                });
+            }
+            Slot::Failed(reason) => {
+                return Err(LiveError::NotRunning {
+                    edge: edge.to_owned(),
+                    session: shared.session_id,
+                    reason: reason.clone(),
+                });
+            }
+        };
+        let snapshot =
+            pipeline
+                .write_snapshot(dir, position)
+                .map_err(|source| LiveError::Write {
+                    edge: edge.to_owned(),
+                    session: shared.session_id,
+                    dir: dir.to_path_buf(),
+                    source,
+                })?;
+        Ok((shared.session_id, snapshot))
+    }
+
+    /// Stops every worker after it has processed what it was given (and read back what it
+    /// owes, within `give_up_after`).
+    pub fn shutdown(&self) {
+        let workers = std::mem::take(&mut lock(&self.inner.state).workers);
+        for mut worker in workers {
+            worker.queue = None;
+            if let Some(thread) = worker.thread.take() {
+                let _ = thread.join();
+            }
+        }
+    }
+}
+
+impl IngestSink for LivePipelines {
+    fn on_event(&self, event: IngestEvent) {
+        LivePipelines::on_event(self, event);
+    }
+}
+
+impl LiveProducts for LivePipelines {
+    fn answer(&self, request: &ProductRequest) -> ControlReply {
+        match request {
+            ProductRequest::Status => {
+                let status = self.status();
+                ControlReply {
+                    ok: true,
+                    detail: format!("{} edge(s)", status.edges.len()),
+                    data: serde_json::to_value(&status).ok(),
+                }
+            }
+            ProductRequest::Snapshot {
+                edge,
+                session,
+                position,
+                out,
+            } => match self.snapshot(edge, session.as_deref(), position.as_deref(), out) {
+                Ok((session_id, snapshot)) => ControlReply {
+                    ok: true,
+                    detail: format!(
+                        "wrote the products of {edge}/{session_id:016x} into {}",
+                        out.display()
+                    ),
+                    data: serde_json::to_value(&snapshot).ok(),
+                },
+                Err(e) => ControlReply {
+                    ok: false,
+                    detail: e.to_string(),
+                    data: None,
+                },
+            },
+        }
+    }
+}
+
+/// The calling thread's CPU time, ns (0 if the clock cannot be read, which Linux never does).
+fn thread_cpu_ns() -> u64 {
+    nix::time::clock_gettime(nix::time::ClockId::CLOCK_THREAD_CPUTIME_ID)
+        .map(|t| u64::try_from(Duration::from(t).as_nanos()).unwrap_or(u64::MAX))
+        .unwrap_or(0)
+}
+
+/// A worker thread's state.
+struct WorkerRun {
+    shared: Arc<WorkerShared>,
+    frames: Receiver<Queued>,
+    sequencer: Sequencer,
+    session_dir: PathBuf,
+    snapshot_dir: PathBuf,
+    settings: LiveSettings,
+    /// Frames processed since the last periodic snapshot.
+    changed: bool,
+    last_snapshot: Instant,
+    /// `(start, end)` edge times (ns) of the latest Sweep revolutions processed, oldest first.
+    recent_sweeps: std::collections::VecDeque<(u64, u64)>,
+}
+
+/// Sweep revolutions [`WorkerRun`] remembers to date the static-scan samples that refer to them.
+const RECENT_SWEEPS: usize = 16;
+
+impl WorkerRun {
+    fn run(mut self) {
+        match SessionPipeline::new(&self.settings.pipeline) {
+            Ok(pipeline) => *lock(&self.shared.pipeline) = Slot::Running(Box::new(pipeline)),
+            Err(e) => {
+                tracing::error!(edge = %self.shared.edge, session = format!("{:016x}", self.shared.session_id),
+                    error = %e, "cannot build the session's pipeline; the session is recorded only");
+                *lock(&self.shared.pipeline) = Slot::Failed(e.to_string());
+                return;
+            }
+        }
+        let mut owed_since: Option<Instant> = None;
+        let mut last_catch_up: Option<Instant> = None;
+        let mut open = true;
+        loop {
+            for seq in std::mem::take(&mut *lock(&self.shared.missed)) {
+                self.sequencer.owe(seq);
+            }
+            let due = last_catch_up.is_none_or(|at| at.elapsed() >= self.settings.catch_up_retry);
+            if self.sequencer.owed() > 0 && due {
+                let since = *owed_since.get_or_insert_with(Instant::now);
+                self.set_owed(Some(since));
+                self.shared.note_lag();
+                last_catch_up = Some(Instant::now());
+                self.catch_up();
+                if self.sequencer.owed() == 0 {
+                    owed_since = None;
+                } else if since.elapsed() >= self.settings.give_up_after {
+                    let lost = self.sequencer.forgive();
+                    tracing::error!(edge = %self.shared.edge, session = format!("{:016x}", self.shared.session_id),
+                        frames = lost.len(), first = lost.first().copied(), last = lost.last().copied(),
+                        "accepted frames never appeared in the recording; the live products lack them");
+                    lock(&self.shared.progress).abandoned += lost.len() as u64;
+                    owed_since = None;
+                }
+            } else if self.sequencer.owed() > 0 {
+                owed_since.get_or_insert_with(Instant::now);
+            }
+            self.set_owed(owed_since);
+            if !open && self.sequencer.owed() == 0 {
+                break;
+            }
+            let wait = if self.sequencer.owed() > 0 || !open {
+                self.settings.catch_up_retry
+            } else {
+                self.settings
+                    .snapshot_every
+                    .map_or(self.settings.catch_up_retry, |every| {
+                        every
+                            .saturating_sub(self.last_snapshot.elapsed())
+                            .min(self.settings.catch_up_retry)
+                    })
+            };
+            if open {
+                match self.frames.recv_timeout(wait) {
+                    Ok(queued) => {
+                        self.take(queued);
+                        while let Ok(queued) = self.frames.try_recv() {
+                            self.take(queued);
+                        }
+                    }
+                    Err(RecvTimeoutError::Timeout) => {}
+                    Err(RecvTimeoutError::Disconnected) => open = false,
+                }
+            } else {
+                std::thread::sleep(wait);
+            }
+            self.periodic_snapshot();
+            lock(&self.shared.progress).cpu_ns = thread_cpu_ns();
+        }
+        self.periodic_snapshot_now();
+    }
+
+    fn set_owed(&self, since: Option<Instant>) {
+        let mut progress = lock(&self.shared.progress);
+        progress.owed = self.sequencer.owed() as u64;
+        progress.behind_since = since;
+    }
+
+    /// A frame from the queue.
+    fn take(&mut self, queued: Queued) {
+        {
+            let mut progress = lock(&self.shared.progress);
+            progress.received += 1;
+            progress.queue_delay = queued.accepted_at.elapsed();
+        }
+        match self.sequencer.offer(queued.frame.seq) {
+            Offer::Process => self.process(&queued.frame, Some(queued.accepted_at)),
+            Offer::Skip => {}
+            Offer::Owe => {
+                lock(&self.shared.progress).owed = self.sequencer.owed() as u64;
+            }
+        }
+        self.shared.note_lag();
+    }
+
+    /// Puts one frame through the pipeline; `accepted_at`: when the recorder accepted it, for
+    /// a frame from the queue.
+    fn process(&mut self, frame: &Frame, accepted_at: Option<Instant>) {
+        if matches!(frame.body, Body::Command(_)) {
+            return;
+        }
+        if let Body::Revolution(rev) = &frame.body
+            && rev.sensor == SensorId::SWEEP
+        {
+            if self.recent_sweeps.len() == RECENT_SWEEPS {
+                self.recent_sweeps.pop_front();
+            }
+            self.recent_sweeps.push_back((rev.t0_ns, rev.t1_ns));
+        }
+        let grew = {
+            let mut slot = lock(&self.shared.pipeline);
+            let Some(pipeline) = slot.running() else {
+                return;
+            };
+            let before = pipeline.maps().points();
+            pipeline.on_frame(frame);
+            pipeline.maps().points() > before
+        };
+        self.changed = true;
+        // Sample-to-voxel latency: the age of the newest sample whose points this frame put into
+        // the octree (the end of its Sweep revolution, mapped to server time by the session's
+        // clock model; the server's time-sync clock is UNIX time at start plus monotonic time).
+        let clock = *lock(&self.shared.clock);
+        if grew && let (Some(edge_ns), Some(clock)) = (self.newest_inserted_ns(frame), clock) {
+            let sample_server_ns = i128::from(clock.to_server_ns(edge_ns));
+            let latency = i128::from(unix_now_ns()) - sample_server_ns;
+            let latency = latency.clamp(i128::from(i64::MIN), i128::from(i64::MAX)) as i64;
+            push_latency(&self.shared.latencies, latency);
+        }
+        if grew && let Some(accepted_at) = accepted_at {
+            let latency = i64::try_from(accepted_at.elapsed().as_nanos()).unwrap_or(i64::MAX);
+            push_latency(&self.shared.server_latencies, latency);
+        }
+    }
+
+    /// Edge time of the newest sample `frame` inserted: the end of the Sweep revolution its
+    /// static-scan samples belong to (the one starting at their first sample), else of the
+    /// latest Sweep revolution.
+    fn newest_inserted_ns(&self, frame: &Frame) -> Option<u64> {
+        let latest = self.recent_sweeps.back().map(|&(_, t1)| t1);
+        match &frame.body {
+            Body::StaticScan(StaticScan::Samples(batch)) => self
+                .recent_sweeps
+                .iter()
+                .rev()
+                .find(|&&(t0, t1)| (t0..t1).contains(&batch.t_ns))
+                .map(|&(_, t1)| t1)
+                .or(latest),
+            Body::Revolution(rev) if rev.sensor == SensorId::SWEEP => Some(rev.t1_ns),
+            _ => latest,
+        }
+    }
+
+    /// Reads the recording and processes, in its order, every frame not processed yet.
+    fn catch_up(&mut self) {
+        lock(&self.shared.progress).catch_ups += 1;
+        let session_dir = self.session_dir.clone();
+        let visited = visit_session_items(&session_dir, |item| {
+            match item {
+                // Server commands share the session but number separately; they carry no data.
+                SessionItem::Frame(recorded) => {
+                    if !matches!(recorded.frame.body, Body::Command(_))
+                        && self.sequencer.from_recording(recorded.frame.seq)
+                    {
+                        self.process(&recorded.frame, None);
+                    }
+                }
+                // Recorded raw (a body this server cannot decode): its seq is no gap.
+                SessionItem::Undecodable(frame) => {
+                    if self.sequencer.from_recording(frame.seq)
+                        && let Some(pipeline) = lock(&self.shared.pipeline).running()
+                    {
+                        pipeline.on_undecodable(frame.seq);
+                    }
+                }
+            }
+            Ok(())
+        });
+        match visited {
+            Ok(report) => {
+                if let Some(line) = report.loss_line() {
+                    tracing::warn!(edge = %self.shared.edge, session = format!("{:016x}", self.shared.session_id),
+                        "{line}; catching up from what is readable");
+                }
+            }
+            Err(e) => {
+                tracing::warn!(edge = %self.shared.edge, session = format!("{:016x}", self.shared.session_id),
+                    error = %e, "cannot read the recording to catch up; retrying");
+            }
+        }
+    }
+
+    fn periodic_snapshot(&mut self) {
+        if let Some(every) = self.settings.snapshot_every
+            && self.last_snapshot.elapsed() >= every
+        {
+            self.periodic_snapshot_now();
+        }
+    }
+
+    fn periodic_snapshot_now(&mut self) {
+        if self.settings.snapshot_every.is_none() || !self.changed {
+            return;
+        }
+        self.last_snapshot = Instant::now();
+        self.changed = false;
+        let mut slot = lock(&self.shared.pipeline);
+        let Some(pipeline) = slot.running() else {
+            return;
+        };
+        if let Err(e) = pipeline.write_snapshot(&self.snapshot_dir, None) {
+            tracing::error!(edge = %self.shared.edge, session = format!("{:016x}", self.shared.session_id),
+                dir = %self.snapshot_dir.display(), error = %e, "periodic snapshot failed; recording goes on");
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn latency_percentiles_come_from_the_sorted_window() {
+        let latencies: Vec<i64> = (1..=100).rev().map(|ms| ms * 1_000_000).collect();
+        let summary = LatencySummary::of(&latencies).unwrap();
+        assert_eq!(summary.count, 100);
+        assert_eq!(summary.p50_ms, 51.0);
+        assert_eq!(summary.p99_ms, 99.0);
+        assert_eq!(summary.max_ms, 100.0);
+        assert_eq!(LatencySummary::of(&[]), None);
+    }
+
+    #[test]
+    fn frames_in_sequence_are_processed_as_they_come() {
+        let mut sequencer = Sequencer::default();
+        for seq in 0..5 {
+            assert_eq!(sequencer.offer(seq), Offer::Process);
+        }
+        assert_eq!(sequencer.owed(), 0);
+    }
+
+    #[test]
+    fn a_frame_after_an_overflow_is_owed_until_the_recording_gives_both_in_its_order() {
+        let mut sequencer = Sequencer::default();
+        assert_eq!(sequencer.offer(0), Offer::Process);
+        sequencer.owe(1);
+        // 2 follows 1, which is owed: it must wait behind it.
+        assert_eq!(sequencer.offer(2), Offer::Owe);
+        assert_eq!(sequencer.owed(), 2);
+        // The recording, in its order: 0 was processed, 1 and 2 are taken, 3 as well (committed
+        // before its queue entry was read).
+        let taken: Vec<u64> = (0..4)
+            .filter(|&seq| sequencer.from_recording(seq))
+            .collect();
+        assert_eq!(taken, [1, 2, 3]);
+        assert_eq!(sequencer.owed(), 0);
+        // 3's queue entry arrives late: already done. 4 is next in sequence.
+        assert_eq!(sequencer.offer(3), Offer::Skip);
+        assert_eq!(sequencer.offer(4), Offer::Process);
+    }
+
+    #[test]
+    fn a_resend_after_a_gap_is_read_back_in_recording_order() {
+        let mut sequencer = Sequencer::default();
+        for seq in [0, 1, 2] {
+            assert_eq!(sequencer.offer(seq), Offer::Process);
+        }
+        // 3 was lost on the way (it comes again after a reconnect); 4 and 5 come first.
+        assert_eq!(sequencer.offer(4), Offer::Owe);
+        assert_eq!(sequencer.offer(5), Offer::Owe);
+        // The recording holds 0, 1, 2, 4, 5 so far.
+        let taken: Vec<u64> = [0, 1, 2, 4, 5]
+            .into_iter()
+            .filter(|&seq| sequencer.from_recording(seq))
+            .collect();
+        assert_eq!(taken, [4, 5]);
+        // Then the resend: out of sequence again, read back after 5 as the recording has it.
+        assert_eq!(sequencer.offer(3), Offer::Owe);
+        let taken: Vec<u64> = [0, 1, 2, 4, 5, 3, 6]
+            .into_iter()
+            .filter(|&seq| sequencer.from_recording(seq))
+            .collect();
+        assert_eq!(taken, [3, 6]);
+        assert_eq!(sequencer.offer(7), Offer::Process);
+    }
+
+    #[test]
+    fn a_session_recorded_before_the_daemon_started_is_read_from_its_beginning() {
+        let mut sequencer = Sequencer::default();
+        // The first frame this daemon sees is 120: 0..120 are in the recording already.
+        assert_eq!(sequencer.offer(120), Offer::Owe);
+        let taken = (0..=120)
+            .filter(|&seq| sequencer.from_recording(seq))
+            .count();
+        assert_eq!(taken, 121);
+        assert_eq!(sequencer.offer(121), Offer::Process);
+    }
+
+    #[test]
+    fn owed_frames_that_never_reach_the_recording_are_given_up_once() {
+        let mut sequencer = Sequencer::default();
+        assert_eq!(sequencer.offer(0), Offer::Process);
+        sequencer.owe(1);
+        sequencer.owe(2);
+        assert!(!sequencer.from_recording(0));
+        assert_eq!(sequencer.forgive(), [1, 2]);
+        assert_eq!(sequencer.owed(), 0);
+        // A frame owed but already done (a late overflow report) is not owed.
+        sequencer.owe(0);
+        assert_eq!(sequencer.owed(), 0);
+    }
+}
