@@ -2,6 +2,7 @@
 
 pub mod assembly;
 pub mod filter;
+pub mod flat;
 pub mod io;
 pub mod pcd;
 pub mod ply;

@@ -21,7 +21,7 @@
 use std::io::{self, Write};
 
 use super::OriginScan;
-use super::io::{Encoding, FlatCloud, Origins};
+use super::flat::{Encoding, FlatCloud, Origins};
 
 /// Most `FIELDS` a header may declare (PCL's largest point types have a few dozen).
 pub const MAX_FIELDS: usize = 4096;

@@ -15,7 +15,7 @@
 
 use std::io::{self, Write};
 
-use super::io::{Encoding, FlatCloud, Origins};
+use super::flat::{Encoding, FlatCloud, Origins};
 use super::{CloudPoint, OriginScan};
 
 /// Writes `points` as a binary little-endian PLY with `float x, y, z, intensity` per vertex.
