@@ -17,6 +17,7 @@ use std::str::FromStr;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 
 use super::OriginScan;
+use crate::octree::morton;
 
 /// One filter step.
 #[derive(Debug, Clone, PartialEq)]
@@ -383,20 +384,14 @@ impl SpatialIndex {
         let scale = (0..3)
             .map(|a| 1023.0 / f64::from(hi[a] - lo[a]).max(1e-9))
             .collect::<Vec<_>>();
-        let morton = |p: &[f32; 3]| {
-            let mut code = 0u32;
-            for a in 0..3 {
-                let q = (f64::from(p[a] - lo[a]) * scale[a]).clamp(0.0, 1023.0) as u32;
-                for bit in 0..10 {
-                    code |= ((q >> bit) & 1) << (3 * bit + a);
-                }
-            }
-            code
+        // 10 bits per axis: the order only needs to be local, not exact.
+        let quantised = |p: &[f32; 3]| {
+            morton([0, 1, 2].map(|a| (f64::from(p[a] - lo[a]) * scale[a]).clamp(0.0, 1023.0) as u16))
         };
-        let mut keyed: Vec<(u32, u32)> = points
+        let mut keyed: Vec<(u64, u32)> = points
             .iter()
             .enumerate()
-            .map(|(i, p)| (morton(p), i as u32))
+            .map(|(i, p)| (quantised(p), i as u32))
             .collect();
         keyed.sort_unstable();
         let order: Vec<u32> = keyed.into_iter().map(|(_, i)| i).collect();

@@ -11,7 +11,7 @@
 use super::VoxelBox;
 use crate::octree::{
     BT_MAGIC, Header, OT_MAGIC, Octree, OctreeError, Resolution, SensorModel, TREE_DEPTH,
-    parse_header,
+    compact3, morton, parse_header, spread3, unmorton,
 };
 
 /// Bits of a packed code that hold the Morton index of the leaf's first voxel.
@@ -19,39 +19,6 @@ const MORTON_BITS: u32 = 48;
 const MORTON_MASK: u64 = (1 << MORTON_BITS) - 1;
 /// Depths 0..=16 of open inner nodes while reading (only 0..16 can be inner).
 const DEPTHS: usize = 17;
-
-/// Spreads the low 16 bits of `v` so that bit i lands at bit 3i.
-#[inline]
-pub(super) fn spread3(v: u64) -> u64 {
-    let mut x = v & 0xffff;
-    x = (x | (x << 16)) & 0x0000_ff00_00ff;
-    x = (x | (x << 8)) & 0x00f0_0f00_f00f;
-    x = (x | (x << 4)) & 0x0c30_c30c_30c3;
-    (x | (x << 2)) & 0x2492_4924_9249
-}
-
-/// Inverse of [`spread3`]: gathers bits 0, 3, 6, … into the low 16 bits.
-#[inline]
-fn compact3(v: u64) -> u16 {
-    let mut x = v & 0x2492_4924_9249;
-    x = (x ^ (x >> 2)) & 0x0c30_c30c_30c3;
-    x = (x ^ (x >> 4)) & 0x00f0_0f00_f00f;
-    x = (x ^ (x >> 8)) & 0x0000_ff00_00ff;
-    x = (x ^ (x >> 16)) & 0xffff;
-    x as u16
-}
-
-/// Morton index with x in the lowest bit (OctoMap's child order, so preorder = Morton order).
-#[inline]
-pub(super) fn morton(k: [u16; 3]) -> u64 {
-    spread3(u64::from(k[0])) | (spread3(u64::from(k[1])) << 1) | (spread3(u64::from(k[2])) << 2)
-}
-
-/// The key of a Morton index.
-#[inline]
-pub(super) fn unmorton(m: u64) -> [u16; 3] {
-    [compact3(m), compact3(m >> 1), compact3(m >> 2)]
-}
 
 /// One leaf: the first voxel of its cube, the cube's level (edge `2^level` voxels,
 /// `level = 16 - depth`) and its log-odds.
@@ -90,7 +57,7 @@ pub struct LeafMap {
 }
 
 /// Spread (Morton-masked) x coordinate bits; `<< 1` for y, `<< 2` for z.
-const AXIS: u64 = 0x2492_4924_9249;
+const AXIS: u64 = spread3(0xffff);
 
 /// Collects leaves in preorder and, on the way, the bounds, voxel totals and any non-finite
 /// value (one pass instead of three over the arrays afterwards).
@@ -355,26 +322,4 @@ impl LeafMap {
 #[inline]
 pub(super) fn split_code(c: u64) -> (u64, u64) {
     (c & MORTON_MASK, 1u64 << (3 * (c >> MORTON_BITS)))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn morton_puts_x_lowest_and_round_trips() {
-        assert_eq!(morton([1, 0, 0]), 1);
-        assert_eq!(morton([0, 1, 0]), 2);
-        assert_eq!(morton([0, 0, 1]), 4);
-        assert_eq!(morton([2, 0, 0]), 8);
-        assert_eq!(morton([0xffff, 0xffff, 0xffff]), MORTON_MASK);
-        for k in [
-            [0, 0, 0],
-            [1, 2, 3],
-            [32768, 32767, 65535],
-            [0xabcd, 0x1234, 0x8001],
-        ] {
-            assert_eq!(unmorton(morton(k)), k);
-        }
-    }
 }

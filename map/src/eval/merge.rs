@@ -5,7 +5,8 @@ use std::hash::BuildHasherDefault;
 
 use serde::Serialize;
 
-use super::leafmap::{LeafMap, split_code, unmorton};
+use super::leafmap::{LeafMap, split_code};
+use crate::octree::unmorton;
 use super::{EvalError, FREE, OCCUPIED, Role, UNKNOWN, VoxelBox};
 use crate::octree::U64Hasher;
 

@@ -39,6 +39,7 @@ pub use graph::{read_graph, transform_point};
 pub use io::format_resolution;
 pub(crate) use io::{BT_MAGIC, Header, OT_MAGIC, parse_header};
 pub use key::{KEY_CENTER, Key, Resolution, TREE_DEPTH};
+pub(crate) use key::{compact3, morton, spread3, unmorton};
 pub use model::{SensorModel, logodds};
 pub use ray::{KERNEL_ENV, Kernel, ray_keys};
 pub use tree::{Leaf, Leaves, Octree};

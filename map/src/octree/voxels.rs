@@ -11,7 +11,7 @@
 use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
 
-use super::key::{Key, Resolution, morton3};
+use super::key::{Key, Resolution, morton};
 use super::model::SensorModel;
 use super::ray::{BIAS, FIELD, FreeMarks, Kernel, mark_free, pack, ray_length, unpack};
 use super::tree::{Octree, TreeBuilder};
@@ -48,14 +48,7 @@ fn brick_coords(bk: u64) -> [u16; 3] {
 /// Morton index (0..64) of a voxel inside its brick: bits x0 y0 z0 x1 y1 z1.
 #[inline]
 fn local_bit(k: [u16; 3]) -> u64 {
-    let (x, y, z) = (u32::from(k[0]), u32::from(k[1]), u32::from(k[2]));
-    let m = (x & 1)
-        | ((y & 1) << 1)
-        | ((z & 1) << 2)
-        | ((x & 2) << 2)
-        | ((y & 2) << 3)
-        | ((z & 2) << 4);
-    1u64 << m
+    1u64 << morton(k.map(|a| a & 3))
 }
 
 /// A cheap multiplicative hasher for packed `u64` keys (bricks here, value pairs in `eval`):
@@ -115,12 +108,7 @@ const LIN_TO_MORTON: [u8; 64] = {
     let mut i = 0;
     while i < 64 {
         let (x, y, z) = (i & 3, (i >> 2) & 3, i >> 4);
-        t[i] = ((x & 1)
-            | ((y & 1) << 1)
-            | ((z & 1) << 2)
-            | ((x & 2) << 2)
-            | ((y & 2) << 3)
-            | ((z & 2) << 4)) as u8;
+        t[i] = morton([x as u16, y as u16, z as u16]) as u8;
         i += 1;
     }
     t
@@ -529,10 +517,7 @@ impl VoxelMap {
             .index
             .iter()
             .filter(|(_, i)| self.blocks.get(**i as usize).is_some_and(|b| b.known != 0))
-            .map(|(bk, i)| {
-                let b = brick_coords(*bk);
-                (morton3(b[0], b[1], b[2]), *i)
-            })
+            .map(|(bk, i)| (morton(brick_coords(*bk)), *i))
             .collect();
         order.sort_unstable();
         let mut tb = TreeBuilder::with_capacity(order.len() * 4);
