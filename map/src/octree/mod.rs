@@ -34,6 +34,7 @@ mod model;
 mod ray;
 mod tree;
 mod voxels;
+mod walk;
 
 pub use graph::{read_graph, transform_point};
 pub use io::format_resolution;
@@ -44,6 +45,7 @@ pub use model::{SensorModel, logodds};
 pub use ray::{KERNEL_ENV, Kernel, ray_keys};
 pub use tree::{Leaf, Leaves, Octree};
 pub(crate) use voxels::U64Hasher;
+pub(crate) use walk::{NodeVisitor, walk_bt, walk_ot};
 pub use voxels::{InsertStats, VoxelMap};
 
 /// Why a file could not be read (or a parameter was rejected).
