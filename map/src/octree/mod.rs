@@ -10,7 +10,7 @@
 //! **One deviation from OctoMap:** a ray whose f32 length is 0 or not finite although its end
 //! is in another voxel (e.g. from (0,0,0) to (−1e-30, −1e-30, 0)) is skipped and counted in
 //! [`InsertStats::degenerate_rays`]; OctoMap asserts there (and hangs with `-DNDEBUG`). See
-//! the `ray` module docs. Insertion has a scalar and an AVX2 [`Kernel`] giving the same
+//! the `ray` module docs. Insertion has scalar, AVX2 and AVX-512 [`Kernel`]s giving the same
 //! keys; `SCAN3D_OCTREE_KERNEL=scalar` forces the scalar one.
 //!
 //! ```no_run

@@ -851,7 +851,7 @@ mod tests {
         pts[15] = [0.0, 0.0, -f32::INFINITY];
         pts[36] = [0.0, -5000.0, 0.0];
         let mut bytes = Vec::new();
-        for kernel in [Kernel::Scalar, Kernel::Avx2] {
+        for kernel in [Kernel::Scalar, Kernel::Avx2, Kernel::Avx512] {
             let new = || {
                 VoxelMap::with_kernel(
                     Resolution::new(0.1).unwrap(),
@@ -869,6 +869,7 @@ mod tests {
             bytes.push(a.to_octree().to_ot_bytes());
         }
         assert_eq!(bytes[0], bytes[1], "scalar and AVX2 kernels differ");
+        assert_eq!(bytes[0], bytes[2], "scalar and AVX-512 kernels differ");
     }
 
     #[test]
