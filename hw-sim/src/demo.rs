@@ -32,7 +32,7 @@ use scan3d_server::ingest::recorder::{session_dir, topic};
 use scan3d_server::ingest::server::{IngestEvent, IngestStats};
 use scan3d_server::ingest::timesync::Estimate;
 
-use scan3d_map::cloud::OriginScan;
+use scan3d_map::cloud::RayBundle;
 use scan3d_map::cloud::io;
 
 use crate::maps::{MapPlan, MapResult, MapSetup, build_map, paper_maps, scan_map};
@@ -283,7 +283,7 @@ fn write_truth(world: &World, truth: &GroundTruth, dir: &Path) -> anyhow::Result
         .collect();
     io::save(
         &surface,
-        &[OriginScan {
+        &[RayBundle {
             origin: [0.0; 3],
             points,
         }],

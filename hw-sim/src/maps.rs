@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use scan3d_edge::clock::{Clock, ScaledClock, SharedClock};
-use scan3d_map::cloud::OriginScan;
+use scan3d_map::cloud::RayBundle;
 use scan3d_map::cloud::assembly::{Position, cut_range};
 use scan3d_map::cloud::filter::{Filter, apply_all};
 use scan3d_map::cloud::io;
@@ -99,7 +99,7 @@ pub struct MapResult {
     /// The plan.
     pub plan: MapPlan,
     /// The cloud with its sensor origins (after the range cut).
-    pub cloud: Vec<OriginScan>,
+    pub cloud: Vec<RayBundle>,
     /// Files written (`.ply`, `.scans`).
     pub files: Vec<PathBuf>,
     /// Accuracy against the true surface.
@@ -278,7 +278,7 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
 
     let session = session_dir(data_dir, EDGE_NAME, session_id);
     let assembled = assemble_session(&session)?;
-    let mut cloud: Vec<OriginScan> = assembled.into_iter().flat_map(|scan| scan.scans).collect();
+    let mut cloud: Vec<RayBundle> = assembled.into_iter().flat_map(|scan| scan.scans).collect();
     let cut = cut_range(&mut cloud, plan.max_range_m);
     let accuracy = truth.accuracy(
         cloud
@@ -330,13 +330,13 @@ pub fn table_ii_filters(name: &str) -> Vec<Filter> {
 /// origin, into an OctoMap-identical occupancy map at `resolution`.
 pub fn build_map(
     name: &str,
-    cloud: &[OriginScan],
+    cloud: &[RayBundle],
     resolution: f64,
-) -> anyhow::Result<(Vec<OriginScan>, Octree)> {
+) -> anyhow::Result<(Vec<RayBundle>, Octree)> {
     let filtered = apply_all(&table_ii_filters(name), cloud.to_vec())?;
     let mut map = VoxelMap::new(Resolution::new(resolution)?, SensorModel::default());
     for scan in &filtered {
-        map.insert_scan(scan, -1.0);
+        map.insert_bundle(scan, -1.0);
     }
     Ok((filtered, map.to_octree()))
 }

@@ -200,8 +200,14 @@ fn any_mix_of_tiny_huge_subnormal_infinite_and_nan_coordinates_finishes_identica
                 let (s, b, _) = insert(Kernel::Scalar, res, points.clone(), origin, max_range);
                 for kernel in [Kernel::Avx2, Kernel::Avx512] {
                     let (v, bv, _) = insert(kernel, res, points.clone(), origin, max_range);
-                    assert_eq!(s, v, "res {res} case {case} max range {max_range} {kernel:?}");
-                    assert_eq!(b, bv, "res {res} case {case} max range {max_range} {kernel:?}");
+                    assert_eq!(
+                        s, v,
+                        "res {res} case {case} max range {max_range} {kernel:?}"
+                    );
+                    assert_eq!(
+                        b, bv,
+                        "res {res} case {case} max range {max_range} {kernel:?}"
+                    );
                 }
                 assert_eq!(s.points, 37);
                 assert!(s.skipped_nonfinite + s.out_of_bounds <= s.points);

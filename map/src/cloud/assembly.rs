@@ -24,7 +24,7 @@
 use scan3d_protocol::{Body, StaticScan, StaticScanOutcome, StaticScanSamples, StaticScanWarning};
 use serde::{Deserialize, Serialize};
 
-pub use super::OriginScan;
+pub use super::RayBundle;
 
 /// How the Sweep sits on the turntable.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -114,7 +114,7 @@ pub struct AssembledScan {
     pub mount: MountGeometry,
     /// Points grouped by sensor origin: one group per half revolution (each half has one yaw,
     /// hence one optical centre), in recorded order.
-    pub scans: Vec<OriginScan>,
+    pub scans: Vec<RayBundle>,
     /// How it ended, if the end was recorded.
     pub outcome: Option<StaticScanOutcome>,
     /// Warnings the edge sent (late or failed steps, missed sectors).
@@ -150,7 +150,7 @@ pub struct NewRays {
     /// The operator's name of the scan's position.
     pub position: String,
     /// The points and their origin, world frame.
-    pub rays: OriginScan,
+    pub rays: RayBundle,
 }
 
 impl StaticScanAssembler {
@@ -253,7 +253,7 @@ impl AssembledScan {
             };
             if current_yaw != Some(sample.yaw_deg) {
                 current_yaw = Some(sample.yaw_deg);
-                self.scans.push(OriginScan {
+                self.scans.push(RayBundle {
                     origin: sensor_origin(&self.position, &self.mount, static_sample.yaw_deg),
                     points: Vec::new(),
                 });
@@ -267,7 +267,7 @@ impl AssembledScan {
 
 /// Drops points farther than `max_range_m` from their scan's sensor origin (a range limit
 /// applied after assembly, e.g. the paper's 6 m / 10 m maps); returns how many were dropped.
-pub fn cut_range(scans: &mut [OriginScan], max_range_m: f64) -> usize {
+pub fn cut_range(scans: &mut [RayBundle], max_range_m: f64) -> usize {
     let mut cut = 0;
     for scan in scans {
         let o = scan.origin;
@@ -414,10 +414,20 @@ mod tests {
             ],
         ));
         let new = assembler.take_new();
-        assert_eq!(new.len(), 2, "both half revolutions are complete once their batch is in");
-        assert!(new.iter().all(|n| n.scan_index == 0 && n.position == "door"));
+        assert_eq!(
+            new.len(),
+            2,
+            "both half revolutions are complete once their batch is in"
+        );
+        assert!(
+            new.iter()
+                .all(|n| n.scan_index == 0 && n.position == "door")
+        );
         assert_eq!(new[1].rays, assembler.scans()[0].scans[1]);
-        assert!(assembler.take_new().is_empty(), "each group is handed out once");
+        assert!(
+            assembler.take_new().is_empty(),
+            "each group is handed out once"
+        );
         assembler.on_body(&Body::StaticScan(StaticScan::Finished(StaticScanEnd {
             scan_id: 0,
             t_ns: 1,

@@ -1,13 +1,13 @@
 //! What the point-cloud readers and writers share: the flat point list PLY and PCD store
 //! ([`FlatCloud`]) with its origins, the body [`Encoding`], the [`CloudFormat`]s by extension,
-//! and the grouping of flat points into per-origin bundles ([`LoadedScans`], [`OriginError`]).
+//! and the grouping of flat points into per-origin bundles ([`LoadedBundles`], [`OriginError`]).
 //!
 //! It sits below [`super::ply`], [`super::pcd`] and [`super::io`]: the readers use these types
 //! and never [`super::io`], which picks the format and calls them.
 
 use std::path::Path;
 
-use super::OriginScan;
+use super::RayBundle;
 
 /// Text or binary body, for the formats that have both (PLY, PCD).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -39,18 +39,18 @@ pub struct FlatCloud {
     pub origins: Origins,
 }
 
-/// Scans read from a cloud, and how many of the file's points did not make it into them.
+/// Bundles read from a cloud, and how many of the file's points did not make it into them.
 #[derive(Debug, Clone, PartialEq)]
-pub struct LoadedScans {
-    /// The scans, in file order.
-    pub scans: Vec<OriginScan>,
+pub struct LoadedBundles {
+    /// The bundles, in file order.
+    pub bundles: Vec<RayBundle>,
     /// Points dropped because a coordinate or their origin was NaN or infinite (PCL marks
     /// "no return" with NaN in organised clouds). `.scans` files keep such points (the octree
     /// skips and counts them), so this is 0 for them.
     pub dropped_nonfinite: u64,
 }
 
-/// Why a flat cloud could not be turned into scans.
+/// Why a flat cloud could not be turned into bundles.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum OriginError {
     /// No origin in the file and none given by the caller.
@@ -67,15 +67,15 @@ pub enum OriginError {
 }
 
 impl FlatCloud {
-    /// Flattens scans into a point list with one origin per point (scan order, then point
-    /// order). Empty scans vanish: a flat cloud cannot carry an origin without a point.
-    pub fn from_scans(scans: &[OriginScan]) -> Self {
-        let total = scans.iter().map(|s| s.points.len()).sum();
+    /// Flattens bundles into a point list with one origin per point (bundle order, then point
+    /// order). Empty bundles vanish: a flat cloud cannot carry an origin without a point.
+    pub fn from_bundles(bundles: &[RayBundle]) -> Self {
+        let total = bundles.iter().map(|s| s.points.len()).sum();
         let mut points = Vec::with_capacity(total);
         let mut origins = Vec::with_capacity(total);
-        for scan in scans {
-            points.extend_from_slice(&scan.points);
-            origins.extend(std::iter::repeat_n(scan.origin, scan.points.len()));
+        for bundle in bundles {
+            points.extend_from_slice(&bundle.points);
+            origins.extend(std::iter::repeat_n(bundle.origin, bundle.points.len()));
         }
         Self {
             points,
@@ -83,34 +83,37 @@ impl FlatCloud {
         }
     }
 
-    /// Groups the points into scans, dropping (and counting) points with a non-finite
+    /// Groups the points into bundles, dropping (and counting) points with a non-finite
     /// coordinate or origin (PCL marks "no return" with NaN in organised clouds).
     ///
     /// - Per-point origins: each maximal run of consecutive points with bit-identical origins
-    ///   becomes one scan, in file order (so [`FlatCloud::from_scans`] round-trips, except
-    ///   that adjacent scans with equal origins merge).
-    /// - A cloud-wide viewpoint: one scan from it, except that an all-zero viewpoint
+    ///   becomes one bundle, in file order (so [`FlatCloud::from_bundles`] round-trips, except
+    ///   that adjacent bundles with equal origins merge).
+    /// - A cloud-wide viewpoint: one bundle from it, except that an all-zero viewpoint
     ///   (PCL's default, written by every PCL tool whatever the sensor was) yields to
     ///   `default_origin` when one is given.
-    /// - No origin: one scan from `default_origin`, or [`OriginError::Missing`].
-    pub fn into_scans(self, default_origin: Option<[f64; 3]>) -> Result<LoadedScans, OriginError> {
+    /// - No origin: one bundle from `default_origin`, or [`OriginError::Missing`].
+    pub fn into_bundles(
+        self,
+        default_origin: Option<[f64; 3]>,
+    ) -> Result<LoadedBundles, OriginError> {
         let total = self.points.len() as u64;
-        let scans = self.into_finite_scans(default_origin)?;
-        let kept: u64 = scans.iter().map(|s| s.points.len() as u64).sum();
-        Ok(LoadedScans {
-            scans,
+        let bundles = self.into_finite_bundles(default_origin)?;
+        let kept: u64 = bundles.iter().map(|s| s.points.len() as u64).sum();
+        Ok(LoadedBundles {
+            bundles,
             dropped_nonfinite: total - kept,
         })
     }
 
-    fn into_finite_scans(
+    fn into_finite_bundles(
         self,
         default_origin: Option<[f64; 3]>,
-    ) -> Result<Vec<OriginScan>, OriginError> {
+    ) -> Result<Vec<RayBundle>, OriginError> {
         let finite3 = |p: &[f32; 3]| p.iter().all(|c| c.is_finite());
         let single = |origin: [f64; 3], points: Vec<[f32; 3]>| {
             let points: Vec<_> = points.into_iter().filter(finite3).collect();
-            vec![OriginScan { origin, points }]
+            vec![RayBundle { origin, points }]
         };
         match self.origins {
             Origins::PerPoint(origins) => {
@@ -120,7 +123,7 @@ impl FlatCloud {
                         points: self.points.len(),
                     });
                 }
-                let mut scans: Vec<OriginScan> = Vec::new();
+                let mut bundles: Vec<RayBundle> = Vec::new();
                 for (p, o) in self.points.into_iter().zip(origins) {
                     // Per-point origins are written as f32 fields (PLY `sx sy sz`, PCD `vp_*`),
                     // so one beyond f32's range is dropped here, counted, like an infinite one,
@@ -128,15 +131,15 @@ impl FlatCloud {
                     if !finite3(&p) || !o.iter().all(|&c| (c as f32).is_finite()) {
                         continue;
                     }
-                    match scans.last_mut() {
+                    match bundles.last_mut() {
                         Some(last) if same_origin(&last.origin, &o) => last.points.push(p),
-                        _ => scans.push(OriginScan {
+                        _ => bundles.push(RayBundle {
                             origin: o,
                             points: vec![p],
                         }),
                     }
                 }
-                Ok(scans)
+                Ok(bundles)
             }
             Origins::Viewpoint(v) => match default_origin {
                 Some(d) if v == [0.0; 3] => Ok(single(d, self.points)),
@@ -151,7 +154,7 @@ impl FlatCloud {
     }
 }
 
-/// Bit-identical origins (so `-0.0` and `0.0` are different scans, and NaN never matches).
+/// Bit-identical origins (so `-0.0` and `0.0` are different bundles, and NaN never matches).
 fn same_origin(a: &[f64; 3], b: &[f64; 3]) -> bool {
     a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())
 }
@@ -184,13 +187,13 @@ impl CloudFormat {
 mod tests {
     use super::*;
 
-    fn two_scans() -> Vec<OriginScan> {
+    fn two_bundles() -> Vec<RayBundle> {
         vec![
-            OriginScan {
+            RayBundle {
                 origin: [1.0, 2.0, 0.5],
                 points: vec![[1.5, 2.0, 0.25], [0.0, -1.0, 3.0]],
             },
-            OriginScan {
+            RayBundle {
                 origin: [-4.0, 0.25, 1.0],
                 points: vec![[7.0, 8.0, 9.0]],
             },
@@ -199,13 +202,13 @@ mod tests {
 
     #[test]
     fn flat_round_trip_keeps_scans_and_origins() {
-        let flat = FlatCloud::from_scans(&two_scans());
+        let flat = FlatCloud::from_bundles(&two_bundles());
         assert_eq!(flat.points.len(), 3);
         assert_eq!(
             flat.origins,
             Origins::PerPoint(vec![[1.0, 2.0, 0.5], [1.0, 2.0, 0.5], [-4.0, 0.25, 1.0]])
         );
-        assert_eq!(flat.into_scans(None).unwrap().scans, two_scans());
+        assert_eq!(flat.into_bundles(None).unwrap().bundles, two_bundles());
     }
 
     #[test]
@@ -215,13 +218,16 @@ mod tests {
             points: pts.clone(),
             origins: Origins::Unknown,
         };
-        assert_eq!(unknown.clone().into_scans(None), Err(OriginError::Missing));
+        assert_eq!(
+            unknown.clone().into_bundles(None),
+            Err(OriginError::Missing)
+        );
         assert!(OriginError::Missing.to_string().contains("--origin"));
-        let got = unknown.into_scans(Some([0.0, 0.0, 2.0])).unwrap();
+        let got = unknown.into_bundles(Some([0.0, 0.0, 2.0])).unwrap();
         assert_eq!(got.dropped_nonfinite, 1);
         assert_eq!(
-            got.scans,
-            vec![OriginScan {
+            got.bundles,
+            vec![RayBundle {
                 origin: [0.0, 0.0, 2.0],
                 points: vec![[1.0, 1.0, 1.0]] // NaN point dropped
             }]
@@ -231,11 +237,11 @@ mod tests {
             origins: Origins::Viewpoint([0.0; 3]),
         };
         assert_eq!(
-            zero_vp.clone().into_scans(None).unwrap().scans[0].origin,
+            zero_vp.clone().into_bundles(None).unwrap().bundles[0].origin,
             [0.0; 3]
         );
         assert_eq!(
-            zero_vp.into_scans(Some([5.0, 0.0, 0.0])).unwrap().scans[0].origin,
+            zero_vp.into_bundles(Some([5.0, 0.0, 0.0])).unwrap().bundles[0].origin,
             [5.0, 0.0, 0.0]
         );
         let vp = FlatCloud {
@@ -243,7 +249,7 @@ mod tests {
             origins: Origins::Viewpoint([1.0, 0.0, 0.0]),
         };
         assert_eq!(
-            vp.into_scans(Some([5.0, 0.0, 0.0])).unwrap().scans[0].origin,
+            vp.into_bundles(Some([5.0, 0.0, 0.0])).unwrap().bundles[0].origin,
             [1.0, 0.0, 0.0]
         );
         let bad = FlatCloud {
@@ -251,7 +257,7 @@ mod tests {
             origins: Origins::PerPoint(vec![]),
         };
         assert_eq!(
-            bad.into_scans(None),
+            bad.into_bundles(None),
             Err(OriginError::CountMismatch {
                 origins: 0,
                 points: 1
@@ -277,11 +283,11 @@ mod tests {
                 [0.0; 3],
             ]),
         };
-        let got = flat.into_scans(None).unwrap();
+        let got = flat.into_bundles(None).unwrap();
         assert_eq!(got.dropped_nonfinite, 3);
         assert_eq!(
-            got.scans,
-            vec![OriginScan {
+            got.bundles,
+            vec![RayBundle {
                 origin: [0.0; 3],
                 points: vec![[1.0, 0.0, 0.0], [3.0, 0.0, 0.0]]
             }]
@@ -296,17 +302,17 @@ mod tests {
             points: vec![[1.0, 0.0, 0.0], [2.0, 0.0, 0.0], [3.0, 0.0, 0.0]],
             origins: Origins::PerPoint(vec![[0.0; 3], [1e39, 0.0, 0.0], [0.5, 0.0, 0.0]]),
         };
-        let got = flat.into_scans(None).unwrap();
+        let got = flat.into_bundles(None).unwrap();
         assert_eq!(got.dropped_nonfinite, 1);
-        let kept: Vec<_> = got.scans.iter().flat_map(|s| s.points.clone()).collect();
+        let kept: Vec<_> = got.bundles.iter().flat_map(|s| s.points.clone()).collect();
         assert_eq!(kept, vec![[1.0, 0.0, 0.0], [3.0, 0.0, 0.0]]);
         let mut pcd = Vec::new();
-        crate::cloud::pcd::write_pcd_scans(&mut pcd, &got.scans, Encoding::Binary).unwrap();
+        crate::cloud::pcd::write_pcd_bundles(&mut pcd, &got.bundles, Encoding::Binary).unwrap();
         let back = crate::cloud::pcd::parse_pcd(&pcd)
             .unwrap()
-            .into_scans(None)
+            .into_bundles(None)
             .unwrap();
         assert_eq!(back.dropped_nonfinite, 0);
-        assert_eq!(back.scans, got.scans);
+        assert_eq!(back.bundles, got.bundles);
     }
 }

@@ -2,7 +2,7 @@
 //! extension ([`CloudFormat`]): `.scans` ([`super::scans_file`]), `.ply` ([`super::ply`]) and
 //! `.pcd` ([`super::pcd`]).
 //!
-//! The in-memory form everywhere is `Vec<OriginScan>`: points grouped by the sensor origin
+//! The in-memory form everywhere is `Vec<RayBundle>`: points grouped by the sensor origin
 //! they were seen from, which is exactly what octree insertion consumes (one ray origin per
 //! bundle) and what the filters in [`super::filter`] keep. PLY and PCD carry a flat point list
 //! with optional per-point (or one cloud-wide) origins: [`FlatCloud`] (in [`super::flat`],
@@ -10,8 +10,8 @@
 
 use std::path::{Path, PathBuf};
 
-use super::OriginScan;
-pub use super::flat::{CloudFormat, Encoding, FlatCloud, LoadedScans, OriginError, Origins};
+use super::RayBundle;
+pub use super::flat::{CloudFormat, Encoding, FlatCloud, LoadedBundles, OriginError, Origins};
 use super::pcd::{self, PcdError};
 use super::ply::{self, PlyError};
 use super::scans_file::{self, ScansError};
@@ -80,18 +80,15 @@ fn format_of(path: &Path) -> Result<CloudFormat, CloudIoError> {
 /// not carry origins (and overrides a PCD's all-zero default `VIEWPOINT`); `.scans` always
 /// carries its own. PLY/PCD points with non-finite coordinates are dropped; [`load_counted`]
 /// says how many.
-pub fn load(
-    path: &Path,
-    default_origin: Option<[f64; 3]>,
-) -> Result<Vec<OriginScan>, CloudIoError> {
-    load_counted(path, default_origin).map(|l| l.scans)
+pub fn load(path: &Path, default_origin: Option<[f64; 3]>) -> Result<Vec<RayBundle>, CloudIoError> {
+    load_counted(path, default_origin).map(|l| l.bundles)
 }
 
 /// [`load`], with the number of points dropped for non-finite coordinates or origins.
 pub fn load_counted(
     path: &Path,
     default_origin: Option<[f64; 3]>,
-) -> Result<LoadedScans, CloudIoError> {
+) -> Result<LoadedBundles, CloudIoError> {
     let format = format_of(path)?;
     let bytes = std::fs::read(path).map_err(|reason| CloudIoError::Io {
         path: path.to_owned(),
@@ -101,8 +98,8 @@ pub fn load_counted(
     let flat = match format {
         CloudFormat::Scans => {
             return scans_file::parse_scans(&bytes)
-                .map(|scans| LoadedScans {
-                    scans,
+                .map(|bundles| LoadedBundles {
+                    bundles,
                     dropped_nonfinite: 0,
                 })
                 .map_err(|reason| CloudIoError::Scans { path: p(), reason });
@@ -114,19 +111,19 @@ pub fn load_counted(
             pcd::parse_pcd(&bytes).map_err(|reason| CloudIoError::Pcd { path: p(), reason })?
         }
     };
-    flat.into_scans(default_origin)
+    flat.into_bundles(default_origin)
         .map_err(|reason| CloudIoError::Origin { path: p(), reason })
 }
 
-/// Saves `scans` in the format named by the extension, binary where there is a choice.
-pub fn save(path: &Path, scans: &[OriginScan]) -> Result<(), CloudIoError> {
-    save_with(path, scans, Encoding::Binary)
+/// Saves `bundles` in the format named by the extension, binary where there is a choice.
+pub fn save(path: &Path, bundles: &[RayBundle]) -> Result<(), CloudIoError> {
+    save_with(path, bundles, Encoding::Binary)
 }
 
-/// Saves `scans` with an explicit body encoding (ignored for `.scans`, which is binary only).
+/// Saves `bundles` with an explicit body encoding (ignored for `.scans`, which is binary only).
 pub fn save_with(
     path: &Path,
-    scans: &[OriginScan],
+    bundles: &[RayBundle],
     encoding: Encoding,
 ) -> Result<(), CloudIoError> {
     let format = format_of(path)?;
@@ -134,10 +131,14 @@ pub fn save_with(
     let io_err = |reason| CloudIoError::Io { path: p(), reason };
     let mut bytes = Vec::new();
     match format {
-        CloudFormat::Scans => scans_file::write_scans(&mut bytes, scans)
+        CloudFormat::Scans => scans_file::write_scans(&mut bytes, bundles)
             .map_err(|reason| CloudIoError::Scans { path: p(), reason })?,
-        CloudFormat::Ply => ply::write_ply_scans(&mut bytes, scans, encoding).map_err(io_err)?,
-        CloudFormat::Pcd => pcd::write_pcd_scans(&mut bytes, scans, encoding).map_err(io_err)?,
+        CloudFormat::Ply => {
+            ply::write_ply_bundles(&mut bytes, bundles, encoding).map_err(io_err)?
+        }
+        CloudFormat::Pcd => {
+            pcd::write_pcd_bundles(&mut bytes, bundles, encoding).map_err(io_err)?
+        }
     }
     std::fs::write(path, bytes).map_err(io_err)
 }
@@ -145,15 +146,15 @@ pub fn save_with(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::cloud::OriginScan;
+    use crate::cloud::RayBundle;
 
-    fn two_scans() -> Vec<OriginScan> {
+    fn two_bundles() -> Vec<RayBundle> {
         vec![
-            OriginScan {
+            RayBundle {
                 origin: [1.0, 2.0, 0.5],
                 points: vec![[1.5, 2.0, 0.25], [0.0, -1.0, 3.0]],
             },
-            OriginScan {
+            RayBundle {
                 origin: [-4.0, 0.25, 1.0],
                 points: vec![[7.0, 8.0, 9.0]],
             },
@@ -166,11 +167,11 @@ mod tests {
         for name in ["a.scans", "a.ply", "a.PCD"] {
             for enc in [Encoding::Binary, Encoding::Ascii] {
                 let path = dir.path().join(name);
-                save_with(&path, &two_scans(), enc).unwrap();
-                assert_eq!(load(&path, None).unwrap(), two_scans(), "{name} {enc:?}");
+                save_with(&path, &two_bundles(), enc).unwrap();
+                assert_eq!(load(&path, None).unwrap(), two_bundles(), "{name} {enc:?}");
             }
         }
-        let e = save(&dir.path().join("a.graph"), &two_scans()).unwrap_err();
+        let e = save(&dir.path().join("a.graph"), &two_bundles()).unwrap_err();
         assert!(matches!(e, CloudIoError::UnknownExtension { .. }), "{e}");
         let e = load(&dir.path().join("missing.ply"), None).unwrap_err();
         assert!(matches!(e, CloudIoError::Io { .. }), "{e}");
@@ -188,10 +189,10 @@ mod tests {
         .unwrap();
         let e = load(&path, None).unwrap_err();
         assert!(e.to_string().contains("pass --origin"), "{e}");
-        let scans = load(&path, Some([0.0, 0.0, 1.0])).unwrap();
+        let bundles = load(&path, Some([0.0, 0.0, 1.0])).unwrap();
         assert_eq!(
-            scans,
-            vec![OriginScan {
+            bundles,
+            vec![RayBundle {
                 origin: [0.0, 0.0, 1.0],
                 points: vec![[1.0, 2.0, 3.0]]
             }]

@@ -21,7 +21,7 @@ pub struct CloudPoint {
 /// Points of one revolution with the sensor origin they were seen from, as OctoMap's ray
 /// casting needs them.
 #[derive(Debug, Clone, PartialEq)]
-pub struct OriginScan {
+pub struct RayBundle {
     /// The sensor origin, world frame.
     pub origin: [f64; 3],
     /// The points, world frame.

@@ -6,9 +6,9 @@ use std::hash::BuildHasherDefault;
 use serde::Serialize;
 
 use super::leafmap::{LeafMap, split_code};
-use crate::octree::unmorton;
 use super::{EvalError, FREE, OCCUPIED, Role, UNKNOWN, VoxelBox};
 use crate::octree::U64Hasher;
+use crate::octree::unmorton;
 
 /// Voxels known in both maps that share one (first map, second map) log-odds pair.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]

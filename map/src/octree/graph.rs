@@ -1,8 +1,8 @@
-//! OctoMap's binary ScanGraph (`.graph`, research/octomap.md §6.3) read into world-frame scans
+//! OctoMap's binary ScanGraph (`.graph`, research/octomap.md §6.3) read into world-frame bundles
 //! with OctoMap's own f32 pose transform, so inserting them gives graph2tree's tree.
 
 use super::OctreeError;
-use crate::cloud::OriginScan;
+use crate::cloud::RayBundle;
 
 /// Bytes of a serialized `Vector3` (i32 count, 3 × f64) and `Quaternion` (i32 count, 4 × f64).
 const VEC3_BYTES: usize = 28;
@@ -71,14 +71,14 @@ pub fn transform_point(t: [f32; 3], q: [f32; 4], v: [f32; 3]) -> [f32; 3] {
     [r[1] + t[0], r[2] + t[1], r[3] + t[2]]
 }
 
-/// Reads a binary `.graph` into one world-frame scan per node, exactly as graph2tree (and
+/// Reads a binary `.graph` into one world-frame bundle per node, exactly as graph2tree (and
 /// `octomap_bench -export-scans`) transforms them: points by the node pose in f32, origin =
 /// the pose translation. Edges are checked for completeness and ignored.
-pub fn read_graph(bytes: &[u8]) -> Result<Vec<OriginScan>, OctreeError> {
+pub fn read_graph(bytes: &[u8]) -> Result<Vec<RayBundle>, OctreeError> {
     let mut r = Reader { rest: bytes };
     // A node is at least a point count, a pose and an id.
     let nodes = r.count(4 + VEC3_BYTES + QUAT_BYTES + 4, ".graph node count")?;
-    let mut scans = Vec::with_capacity(nodes);
+    let mut bundles = Vec::with_capacity(nodes);
     for _ in 0..nodes {
         let n = r.count(VEC3_BYTES, ".graph point cloud")?;
         let mut local = Vec::with_capacity(n);
@@ -92,14 +92,14 @@ pub fn read_graph(bytes: &[u8]) -> Result<Vec<OriginScan>, OctreeError> {
             .into_iter()
             .map(|p| transform_point(t, q, p))
             .collect();
-        scans.push(OriginScan {
+        bundles.push(RayBundle {
             origin: t.map(f64::from),
             points,
         });
     }
     let edges = r.count(EDGE_BYTES, ".graph edge count")?;
     r.take(edges * EDGE_BYTES, ".graph edges")?;
-    Ok(scans)
+    Ok(bundles)
 }
 
 #[cfg(test)]

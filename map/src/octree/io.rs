@@ -228,7 +228,11 @@ impl NodeVisitor for TreeReader {
             // (OctoMap's getNumLeafNodes counts it) of value -FLT_MAX (getMaxChildLogOdds of
             // no children); a childless root is a leaf at clamp max. OctoMap never writes
             // one; a hand-made `.bt` can hold it.
-            let v = if depth == 0 { self.model.clamp_max } else { max };
+            let v = if depth == 0 {
+                self.model.clamp_max
+            } else {
+                max
+            };
             self.leaves += 1;
             self.occupied += u64::from(self.model.is_occupied(v));
         }

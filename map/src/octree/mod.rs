@@ -1,9 +1,9 @@
 //! OctoMap-compatible occupancy octree: keys, ray stepping, voxel storage and `.bt`/`.ot`/`.graph` I/O.
 //!
 //! Semantics follow OctoMap 1.9.7's `insertPointCloud` bit for bit (research/octomap.md): the
-//! same keys, rays, per-scan de-duplication, f32 log-odds and pruning, so written `.bt`/`.ot`
+//! same keys, rays, per-bundle de-duplication, f32 log-odds and pruning, so written `.bt`/`.ot`
 //! files are byte-identical to OctoMap's. The design is not OctoMap's pointer tree:
-//! [`VoxelMap`] keeps one value per known voxel in 4×4×4 blocks and marks each scan's rays in
+//! [`VoxelMap`] keeps one value per known voxel in 4×4×4 bricks and marks each bundle's rays in
 //! a dense window, and the [`Octree`] (flat preorder arrays) is derived only when a file is
 //! written or a tree query is needed.
 //!
@@ -18,8 +18,8 @@
 //! # fn main() -> Result<(), OctreeError> {
 //! let bytes = std::fs::read("map.graph").unwrap_or_default();
 //! let mut map = VoxelMap::new(Resolution::new(0.1)?, SensorModel::default());
-//! for scan in read_graph(&bytes)? {
-//!     map.insert_scan(&scan, -1.0);
+//! for bundle in read_graph(&bytes)? {
+//!     map.insert_bundle(&bundle, -1.0);
 //! }
 //! let tree = map.to_octree();
 //! let ot = tree.to_ot_bytes(); // OcTree::write
@@ -45,8 +45,8 @@ pub use model::{SensorModel, logodds};
 pub use ray::{KERNEL_ENV, Kernel, ray_keys};
 pub use tree::{Leaf, Leaves, Octree};
 pub(crate) use voxels::U64Hasher;
-pub(crate) use walk::{NodeVisitor, walk_bt, walk_ot};
 pub use voxels::{InsertStats, VoxelMap};
+pub(crate) use walk::{NodeVisitor, walk_bt, walk_ot};
 
 /// Why a file could not be read (or a parameter was rejected).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

@@ -49,7 +49,9 @@ impl Kernel {
         static KERNEL: OnceLock<Kernel> = OnceLock::new();
         *KERNEL.get_or_init(|| {
             let unknown = |v: &dyn std::fmt::Debug| {
-                tracing::warn!("{KERNEL_ENV}={v:?} is not scalar, avx2, avx512 or auto: using auto");
+                tracing::warn!(
+                    "{KERNEL_ENV}={v:?} is not scalar, avx2, avx512 or auto: using auto"
+                );
                 Kernel::Avx512
             };
             match std::env::var(KERNEL_ENV) {
@@ -743,8 +745,14 @@ mod avx512 {
             if let (Some(c), Some(b)) = (self.cell.get_mut(n..n + 8), self.bits.get_mut(n..n + 8)) {
                 // SAFETY: `c` and `b` are 8 u64s each, the 64 bytes the unaligned stores write.
                 unsafe {
-                    _mm512_storeu_si512(c.as_mut_ptr().cast(), _mm512_maskz_compress_epi64(lanes, cell));
-                    _mm512_storeu_si512(b.as_mut_ptr().cast(), _mm512_maskz_compress_epi64(lanes, bits));
+                    _mm512_storeu_si512(
+                        c.as_mut_ptr().cast(),
+                        _mm512_maskz_compress_epi64(lanes, cell),
+                    );
+                    _mm512_storeu_si512(
+                        b.as_mut_ptr().cast(),
+                        _mm512_maskz_compress_epi64(lanes, bits),
+                    );
                 }
                 self.n = n + lanes.count_ones() as usize;
             }
@@ -790,7 +798,10 @@ mod avx512 {
         let num = [0, 1, 2].map(|i| {
             let c = res.key_to_coord_axis(key_origin.0[i]);
             let o = f64::from(origin[i]);
-            (_mm512_set1_pd((c + half) - o), _mm512_set1_pd((c + -half) - o))
+            (
+                _mm512_set1_pd((c + half) - o),
+                _mm512_set1_pd((c + -half) - o),
+            )
         });
         let o8 = [0, 1, 2].map(|i| _mm256_set1_ps(origin[i]));
         let rv = _mm512_set1_pd(r);
@@ -896,11 +907,15 @@ mod avx512 {
                 t0 = _mm512_mask_add_pd(t0, cx, t0, dt[0]);
                 t1 = _mm512_mask_add_pd(t1, cy, t1, dt[1]);
                 t2 = _mm512_mask_add_pd(t2, cz, t2, dt[2]);
-                let step = _mm512_mask_blend_epi64(cx, _mm512_mask_blend_epi64(cy, inc[2], inc[1]), inc[0]);
+                let step = _mm512_mask_blend_epi64(
+                    cx,
+                    _mm512_mask_blend_epi64(cy, inc[2], inc[1]),
+                    inc[0],
+                );
                 k = _mm512_add_epi64(k, step);
                 let m = _mm512_min_pd(t2, _mm512_min_pd(t1, t0));
-                let done = _mm512_cmpeq_epi64_mask(k, end)
-                    | _mm512_cmp_pd_mask::<_CMP_GT_OQ>(m, length);
+                let done =
+                    _mm512_cmpeq_epi64_mask(k, end) | _mm512_cmp_pd_mask::<_CMP_GT_OQ>(m, length);
                 live &= !done;
                 let go = live;
 
@@ -948,7 +963,11 @@ mod avx512 {
                     break;
                 }
             }
-            pending.push(cur_cell, cur_bits, _mm512_test_epi64_mask(cur_bits, cur_bits));
+            pending.push(
+                cur_cell,
+                cur_bits,
+                _mm512_test_epi64_mask(cur_bits, cur_bits),
+            );
             if pending.n > PENDING - 16 {
                 pending.drain(marks);
             }
@@ -1114,7 +1133,7 @@ mod tests {
 
     #[test]
     fn batched_stepping_equals_the_transcription() {
-        // Bundles of rays from one origin (as in a scan): random lengths from 0 to ~40 m, many
+        // Bundles of rays from one origin (as one insertion takes them): random lengths from 0 to ~40 m, many
         // ends and origins on voxel borders (ties, the length stop rule), for every kernel.
         let mut s = 0x9e37_79b9_7f4a_7c15u64;
         let mut rnd = move || {

@@ -11,9 +11,9 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use scan3d_map::cloud::OriginScan;
+use scan3d_map::cloud::RayBundle;
 use scan3d_map::cloud::filter::{Filter, apply_all};
-use scan3d_map::cloud::io::{self, LoadedScans};
+use scan3d_map::cloud::io::{self, LoadedBundles};
 use scan3d_map::octree::{InsertStats, Octree, Resolution, SensorModel, VoxelMap, read_graph};
 
 /// A point `x,y,z` on the command line (clap value parser).
@@ -108,7 +108,7 @@ impl MapArgs {
 /// Loads any cloud the CLI accepts, with sensor origins: `.graph` through OctoMap's pose
 /// transform, `.scans`/`.ply`/`.pcd` through [`scan3d_map::cloud::io`], with the count of points
 /// the reader dropped for non-finite values.
-pub fn load_cloud(path: &Path, origin: Option<[f64; 3]>) -> anyhow::Result<LoadedScans> {
+pub fn load_cloud(path: &Path, origin: Option<[f64; 3]>) -> anyhow::Result<LoadedBundles> {
     let is_graph = path
         .extension()
         .and_then(|e| e.to_str())
@@ -117,8 +117,8 @@ pub fn load_cloud(path: &Path, origin: Option<[f64; 3]>) -> anyhow::Result<Loade
         let bytes =
             std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
         let scans = read_graph(&bytes).with_context(|| format!("{}", path.display()))?;
-        Ok(LoadedScans {
-            scans,
+        Ok(LoadedBundles {
+            bundles: scans,
             dropped_nonfinite: 0,
         })
     } else {
@@ -127,7 +127,7 @@ pub fn load_cloud(path: &Path, origin: Option<[f64; 3]>) -> anyhow::Result<Loade
 }
 
 /// Prints the reader's count of dropped non-finite points, if any.
-pub fn report_dropped(loaded: &LoadedScans, out: &mut dyn Write) -> std::io::Result<()> {
+pub fn report_dropped(loaded: &LoadedBundles, out: &mut dyn Write) -> std::io::Result<()> {
     if loaded.dropped_nonfinite > 0 {
         writeln!(
             out,
@@ -179,7 +179,7 @@ pub fn write_tree(path: &Path, tree: &Octree) -> anyhow::Result<()> {
 
 /// Inserts every scan, with a progress bar over points when `progress` is set.
 pub fn build_map(
-    scans: &[OriginScan],
+    scans: &[RayBundle],
     res: f64,
     max_range: f64,
     model: SensorModel,
@@ -199,7 +199,7 @@ pub fn build_map(
         None
     };
     for scan in scans {
-        map.insert_scan(scan, max_range);
+        map.insert_bundle(scan, max_range);
         if let Some(bar) = &bar {
             bar.inc(scan.points.len() as u64);
         }
@@ -218,15 +218,15 @@ pub fn run(args: &MapArgs, out: &mut dyn Write) -> anyhow::Result<()> {
     }
     Resolution::new(args.res)?;
     let cloud = load_cloud(&args.input, args.origin)?;
-    let loaded: usize = cloud.scans.iter().map(|s| s.points.len()).sum();
+    let loaded: usize = cloud.bundles.iter().map(|s| s.points.len()).sum();
     writeln!(
         out,
         "{}: {} scans, {loaded} points",
         args.input.display(),
-        cloud.scans.len()
+        cloud.bundles.len()
     )?;
     report_dropped(&cloud, out)?;
-    let mut scans = cloud.scans;
+    let mut scans = cloud.bundles;
     if !args.filters.is_empty() {
         scans = apply_all(&args.filters, scans)?;
         let kept: usize = scans.iter().map(|s| s.points.len()).sum();

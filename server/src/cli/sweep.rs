@@ -9,7 +9,7 @@ use std::time::Instant;
 use anyhow::Context;
 use serde::Serialize;
 
-use scan3d_map::cloud::{OriginScan, io};
+use scan3d_map::cloud::{RayBundle, io};
 use scan3d_map::eval::plot::{Fig12Row, fig12_png, fig12_svg};
 use scan3d_map::eval::{LeafMap, evaluate};
 use scan3d_map::octree::{Resolution, SensorModel, VoxelMap, read_graph};
@@ -63,7 +63,7 @@ struct Sweep {
     rows: Vec<Row>,
 }
 
-fn load_cloud(path: &Path) -> anyhow::Result<Vec<OriginScan>> {
+fn load_cloud(path: &Path) -> anyhow::Result<Vec<RayBundle>> {
     let is_graph = path
         .extension()
         .is_some_and(|e| e.eq_ignore_ascii_case("graph"));
@@ -116,7 +116,7 @@ pub fn run(args: &SweepArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         let (build_s, tree) = best(args.reps, || {
             let mut map = VoxelMap::new(res, SensorModel::default());
             for s in &scans {
-                map.insert_scan(s, args.max_range);
+                map.insert_bundle(s, args.max_range);
             }
             Ok(map.to_octree())
         })?;
