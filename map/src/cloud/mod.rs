@@ -1,4 +1,6 @@
-//! Point clouds: static-scan assembly (eq. 1), per-sensor 2D scans, and PLY / PCD / .scans export.
+//! Point clouds: static-scan assembly (eq. 1), per-sensor revolutions ([`scans`]), filters,
+//! and the PLY / PCD / `.scans` formats ([`flat`] holds what their readers share, [`io`] picks
+//! one by extension).
 
 pub mod assembly;
 pub mod filter;
@@ -18,8 +20,9 @@ pub struct CloudPoint {
     pub intensity: f32,
 }
 
-/// Points of one revolution with the sensor origin they were seen from, as OctoMap's ray
-/// casting needs them.
+/// Points seen from one sensor origin (e.g. half a Sweep revolution of a static scan, or one
+/// node of a `.graph`), as OctoMap's ray casting needs them: one ray from `origin` to each
+/// point. One octree insertion takes one bundle.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RayBundle {
     /// The sensor origin, world frame.

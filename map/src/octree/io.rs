@@ -158,7 +158,7 @@ impl TreeReader {
     /// Raises the running max of the inner node at `depth - 1` (the parent of a node at
     /// `depth`) to `value`.
     #[inline]
-    fn to_parent(&mut self, depth: u32, value: f32) {
+    fn raise_parent(&mut self, depth: u32, value: f32) {
         if let Some(parent) = (depth as usize)
             .checked_sub(1)
             .and_then(|p| self.open.get_mut(p))
@@ -206,7 +206,7 @@ impl NodeVisitor for TreeReader {
         self.ends.push(n + 1);
         self.leaves += 1;
         self.occupied += u64::from(self.model.is_occupied(value));
-        self.to_parent(depth, value);
+        self.raise_parent(depth, value);
     }
 
     #[inline]
@@ -236,7 +236,7 @@ impl NodeVisitor for TreeReader {
             self.leaves += 1;
             self.occupied += u64::from(self.model.is_occupied(v));
         }
-        self.to_parent(depth, max);
+        self.raise_parent(depth, max);
     }
 }
 
