@@ -36,7 +36,7 @@ mod tree;
 mod voxels;
 mod walk;
 
-pub use graph::{read_graph, transform_point};
+pub use graph::{read_graph, read_graph_from, transform_point};
 pub use io::format_resolution;
 pub(crate) use io::{BT_MAGIC, Header, OT_MAGIC, parse_header};
 pub use key::{KEY_CENTER, Key, Resolution, TREE_DEPTH};
@@ -87,4 +87,12 @@ pub enum OctreeError {
     /// A node below depth 16 claims children.
     #[error("tree deeper than 16 levels")]
     TooDeep,
+    /// The stream being read failed (not an end of data, which is [`OctreeError::Truncated`]).
+    #[error("cannot read {what}: {reason}")]
+    Read {
+        /// What was being read.
+        what: &'static str,
+        /// The I/O error, as text (so the error stays `Clone` and comparable).
+        reason: String,
+    },
 }

@@ -83,7 +83,8 @@ impl Kernel {
     pub(crate) fn uses_avx512(self) -> bool {
         #[cfg(target_arch = "x86_64")]
         if self == Kernel::Avx512 {
-            return std::arch::is_x86_feature_detected!("avx512f");
+            return std::arch::is_x86_feature_detected!("avx512f")
+                && std::arch::is_x86_feature_detected!("popcnt");
         }
         false
     }
@@ -734,7 +735,7 @@ mod avx512 {
     impl Pending {
         /// Appends the lanes of `cell`/`bits` set in `lanes`, compressed to the front and
         /// stored with one vector store each. Needs `n <= PENDING - 8`.
-        #[target_feature(enable = "avx512f")]
+        #[target_feature(enable = "avx512f,popcnt")]
         fn push(&mut self, cell: __m512i, bits: __m512i, lanes: __mmask8) {
             debug_assert!(
                 self.n + 8 <= PENDING,
@@ -773,7 +774,7 @@ mod avx512 {
     const _: () = assert!(size_of::<[u64; 8]>() == size_of::<__m512i>());
 
     /// The lanes of a vector of u64.
-    #[target_feature(enable = "avx512f")]
+    #[target_feature(enable = "avx512f,popcnt")]
     fn lanes(v: __m512i) -> [u64; 8] {
         let mut out = [0u64; 8];
         // SAFETY: `out` is 8 u64s, the 64 bytes the unaligned store writes.
@@ -783,7 +784,7 @@ mod avx512 {
 
     /// [`super::avx2::mark_free`] eight lanes wide: the same operations per lane, so the same
     /// keys; see there for the steps.
-    #[target_feature(enable = "avx512f")]
+    #[target_feature(enable = "avx512f,popcnt")]
     pub(super) fn mark_free(
         res: &Resolution,
         origin: [f32; 3],

@@ -14,7 +14,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use scan3d_map::cloud::RayBundle;
 use scan3d_map::cloud::filter::{Filter, apply_all};
 use scan3d_map::cloud::io::{self, LoadedBundles};
-use scan3d_map::octree::{InsertStats, Octree, Resolution, SensorModel, VoxelMap, read_graph};
+use scan3d_map::octree::{InsertStats, Octree, Resolution, SensorModel, VoxelMap, read_graph_from};
 
 /// A point `x,y,z` on the command line (clap value parser).
 pub fn parse_xyz_arg(text: &str) -> Result<[f64; 3], String> {
@@ -114,9 +114,11 @@ pub fn load_cloud(path: &Path, origin: Option<[f64; 3]>) -> anyhow::Result<Loade
         .and_then(|e| e.to_str())
         .is_some_and(|e| e.eq_ignore_ascii_case("graph"));
     if is_graph {
-        let bytes =
-            std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
-        let scans = read_graph(&bytes).with_context(|| format!("{}", path.display()))?;
+        // Streamed: a large `.graph` is never in memory whole, only the bundles it holds.
+        let file =
+            std::fs::File::open(path).with_context(|| format!("cannot read {}", path.display()))?;
+        let scans = read_graph_from(std::io::BufReader::with_capacity(1 << 16, file))
+            .with_context(|| format!("{}", path.display()))?;
         Ok(LoadedBundles {
             bundles: scans,
             dropped_nonfinite: 0,
