@@ -14,8 +14,8 @@ const EDGE_BYTES: usize = 8 + VEC3_BYTES + QUAT_BYTES + 8;
 
 /// Points read and parsed per chunk (28 bytes each on disk).
 const CHUNK_POINTS: usize = 4096;
-/// Points reserved for a node before they are read (12 MB).
-const PREALLOC_POINTS: usize = 1 << 20;
+/// Points reserved for a node before they are read (192 kB; a hostile count costs no more).
+const PREALLOC_POINTS: usize = 1 << 14;
 /// Nodes allocated for before any is read: the node count is the file's word, not a fact.
 const PREALLOC_NODES: usize = 1024;
 
@@ -60,7 +60,7 @@ impl<R: Read> Reader<R> {
         what: &'static str,
     ) -> Result<(), OctreeError> {
         let mut buf = vec![0u8; VEC3_BYTES * n.min(CHUNK_POINTS)];
-        // Address space only until points arrive; beyond the cap the Vec grows as they do.
+        // Bounded: beyond the cap the Vec grows as points actually arrive.
         out.reserve(n.min(PREALLOC_POINTS));
         let mut left = n;
         while left > 0 {
