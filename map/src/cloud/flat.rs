@@ -201,7 +201,7 @@ mod tests {
     }
 
     #[test]
-    fn flat_round_trip_keeps_scans_and_origins() {
+    fn flat_round_trip_keeps_bundles_and_origins() {
         let flat = FlatCloud::from_bundles(&two_bundles());
         assert_eq!(flat.points.len(), 3);
         assert_eq!(
