@@ -785,7 +785,7 @@ mod tests {
     }
 
     #[test]
-    fn occupied_wins_and_one_update_per_scan() {
+    fn occupied_wins_and_one_update_per_bundle() {
         // res 1: origin voxel 0; ray A ends in voxel 3 (passes 0,1,2), ray B ends in voxel 1.
         let mut m = map(1.0);
         let model = *m.model();
@@ -882,7 +882,7 @@ mod tests {
     }
 
     #[test]
-    fn a_huge_scan_box_falls_back_beyond_the_window() {
+    fn a_huge_bundle_box_falls_back_beyond_the_window() {
         // Rays 3000 m long at 0.1 m: the brick box exceeds the window, the far part is hashed.
         let mut m = map(0.1);
         let pts = [
