@@ -600,7 +600,7 @@ mod tests {
     }
 
     #[test]
-    fn voxel_centroid_goes_to_nearest_members_scan() {
+    fn voxel_centroid_goes_to_nearest_members_bundle() {
         let bundles = [
             bundle(
                 A,
