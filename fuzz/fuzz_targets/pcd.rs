@@ -2,7 +2,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use scan3d_map::cloud::pcd::{parse_pcd, write_pcd_scans};
+use scan3d_map::cloud::pcd::{parse_pcd, write_pcd_bundles};
 
 fuzz_target!(|data: &[u8]| {
     scan3d_fuzz::with_reader_budget(data.len(), || {
@@ -10,7 +10,7 @@ fuzz_target!(|data: &[u8]| {
             return;
         };
         scan3d_fuzz::check_cloud_roundtrip(cloud, parse_pcd, |out, scans, encoding| {
-            write_pcd_scans(out, scans, encoding).expect("writing to memory")
+            write_pcd_bundles(out, scans, encoding).expect("writing to memory")
         });
     });
 });

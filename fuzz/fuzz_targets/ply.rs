@@ -2,7 +2,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use scan3d_map::cloud::ply::{parse_ply, write_ply_scans};
+use scan3d_map::cloud::ply::{parse_ply, write_ply_bundles};
 
 fuzz_target!(|data: &[u8]| {
     scan3d_fuzz::with_reader_budget(data.len(), || {
@@ -10,7 +10,7 @@ fuzz_target!(|data: &[u8]| {
             return;
         };
         scan3d_fuzz::check_cloud_roundtrip(cloud, parse_ply, |out, scans, encoding| {
-            write_ply_scans(out, scans, encoding).expect("writing to memory")
+            write_ply_bundles(out, scans, encoding).expect("writing to memory")
         });
     });
 });

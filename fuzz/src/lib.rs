@@ -262,11 +262,11 @@ pub fn check_tree(tree: &scan3d_map::octree::Octree) {
     );
 }
 
-/// The finite points of a flat cloud in file order, as `into_scans` keeps them, bit for bit.
+/// The finite points of a flat cloud in file order, as `into_bundles` keeps them, bit for bit.
 fn kept_points(cloud: scan3d_map::cloud::io::FlatCloud) -> Vec<[u32; 3]> {
     let scans = cloud
-        .into_scans(Some([0.0; 3]))
-        .map(|loaded| loaded.scans)
+        .into_bundles(Some([0.0; 3]))
+        .map(|loaded| loaded.bundles)
         .unwrap_or_default();
     scans
         .iter()
@@ -281,15 +281,15 @@ pub fn check_cloud_roundtrip<E: std::fmt::Debug>(
     parse: impl Fn(&[u8]) -> Result<scan3d_map::cloud::io::FlatCloud, E>,
     write: impl Fn(
         &mut Vec<u8>,
-        &[scan3d_map::cloud::OriginScan],
+        &[scan3d_map::cloud::RayBundle],
         scan3d_map::cloud::io::Encoding,
     ),
 ) {
     use scan3d_map::cloud::io::Encoding;
     let scans = cloud
         .clone()
-        .into_scans(Some([0.0; 3]))
-        .map(|loaded| loaded.scans)
+        .into_bundles(Some([0.0; 3]))
+        .map(|loaded| loaded.bundles)
         .unwrap_or_default();
     let expected = kept_points(cloud);
     for encoding in [Encoding::Binary, Encoding::Ascii] {

@@ -35,7 +35,7 @@ use scan3d_server::ingest::server::{IngestEvent, IngestStats};
 use scan3d_server::pose::timesync::ClockModel;
 use scan3d_server::report::{MetricBox, SWEEP_RESOLUTIONS, write_report, write_sweep};
 
-use scan3d_map::cloud::OriginScan;
+use scan3d_map::cloud::RayBundle;
 use scan3d_map::cloud::io;
 
 use crate::maps::{MapPlan, MapResult, MapSetup, paper_maps, scan_map};
@@ -273,7 +273,7 @@ fn write_truth(world: &World, truth: &GroundTruth, dir: &Path) -> anyhow::Result
         .collect();
     io::save(
         &surface,
-        &[OriginScan {
+        &[RayBundle {
             origin: [0.0; 3],
             points,
         }],

@@ -21,7 +21,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use scan3d_edge::clock::{Clock, ScaledClock, SharedClock};
 use scan3d_edge::config::RplidarSection;
-use scan3d_map::cloud::OriginScan;
+use scan3d_map::cloud::RayBundle;
 use scan3d_map::cloud::assembly::{Position, cut_range};
 use scan3d_map::cloud::filter::Filter;
 use scan3d_map::cloud::io;
@@ -105,7 +105,7 @@ pub struct MapResult {
     /// The plan.
     pub plan: MapPlan,
     /// The cloud with its sensor origins (after the range cut).
-    pub cloud: Vec<OriginScan>,
+    pub cloud: Vec<RayBundle>,
     /// Files written (`.ply`, `.scans`).
     pub files: Vec<PathBuf>,
     /// Accuracy against the true surface.
@@ -341,7 +341,7 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
 
     let session = session_dir(data_dir, EDGE_NAME, session_id);
     let assembled = assemble_session(&session, false)?;
-    let mut cloud: Vec<OriginScan> = assembled.into_iter().flat_map(|scan| scan.scans).collect();
+    let mut cloud: Vec<RayBundle> = assembled.into_iter().flat_map(|scan| scan.scans).collect();
     let cut = cut_range(&mut cloud, plan.max_range_m);
     let accuracy = truth.accuracy(
         cloud

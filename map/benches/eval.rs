@@ -40,14 +40,14 @@ fn maps(dir: &Path) -> (PathBuf, PathBuf) {
     }
     let graph = octomap_data("derived/geb079_sim.graph");
     let bytes = std::fs::read(&graph).expect("read geb079_sim.graph");
-    let scans = read_graph(&bytes).expect("geb079_sim.graph parses");
+    let bundles = read_graph(&bytes).expect("geb079_sim.graph parses");
     let t = Instant::now();
     let mut map = VoxelMap::new(
         Resolution::new(0.05).expect("valid"),
         SensorModel::default(),
     );
-    for s in &scans {
-        map.insert_scan(s, -1.0);
+    for s in &bundles {
+        map.insert_bundle(s, -1.0);
     }
     let tree = map.to_octree();
     println!(

@@ -15,7 +15,7 @@ use std::time::Instant;
 
 use common::{octomap_bench, octomap_data};
 
-use scan3d_map::cloud::OriginScan;
+use scan3d_map::cloud::RayBundle;
 use scan3d_map::octree::{Octree, Resolution, SensorModel, VoxelMap, ray_keys, read_graph};
 
 /// Process CPU time in seconds (less sensitive than wall time to other processes on the
@@ -68,10 +68,10 @@ fn run_octomap(
     Some(((wall, cpu), last))
 }
 
-fn insert_all(scans: &[OriginScan], res: f64) -> VoxelMap {
+fn insert_all(bundles: &[RayBundle], res: f64) -> VoxelMap {
     let mut map = VoxelMap::new(Resolution::new(res).expect("valid"), SensorModel::default());
-    for s in scans {
-        map.insert_scan(s, -1.0);
+    for s in bundles {
+        map.insert_bundle(s, -1.0);
     }
     map
 }
@@ -84,11 +84,11 @@ fn main() {
         .max(1);
     let graph = octomap_data("derived/geb079_sim.graph");
     let bytes = std::fs::read(&graph).expect("read geb079_sim.graph");
-    let scans = read_graph(&bytes).expect("geb079_sim.graph parses");
-    let npts: usize = scans.iter().map(|s| s.points.len()).sum();
+    let bundles = read_graph(&bytes).expect("geb079_sim.graph parses");
+    let npts: usize = bundles.iter().map(|s| s.points.len()).sum();
     println!(
-        "input geb079_sim.graph: {} scans, {npts} points; best of {reps}",
-        scans.len()
+        "input geb079_sim.graph: {} bundles, {npts} points; best of {reps}",
+        bundles.len()
     );
     let octomap = if std::env::var_os("OCTREE_BENCH_NO_OCTOMAP").is_some() {
         println!("OctoMap: skipped (OCTREE_BENCH_NO_OCTOMAP set)");
@@ -106,7 +106,7 @@ fn main() {
         let r = Resolution::new(res).expect("valid");
         let ((t_dda, _), keys) = best(reps, || {
             let mut n = 0u64;
-            for s in &scans {
+            for s in &bundles {
                 let o = s.origin.map(|c| c as f32);
                 for p in &s.points {
                     ray_keys(&r, o, *p, |_| n += 1);
@@ -119,7 +119,7 @@ fn main() {
             keys as f64 / npts as f64,
             t_dda * 1e9 / keys as f64
         );
-        let ((t_ins, c_ins), map) = best(reps, || insert_all(&scans, res));
+        let ((t_ins, c_ins), map) = best(reps, || insert_all(&bundles, res));
         let ((t_tree, _), tree) = best(reps, || map.to_octree());
         if let Some(dir) = std::env::var_os("OCTREE_BENCH_WRITE_DIR") {
             // For checking with OctoMap's own tools (convert_octree, compare_octrees).

@@ -1,14 +1,14 @@
 //! Degenerate rays (issue 10, defect 5): a ray whose end is in another voxel than its origin
 //! but whose f32 length is 0 (squares underflow) or infinite (squares overflow) made the
 //! stepping loop run for ever. Every insertion here runs in a thread with a deadline, so a
-//! regression fails instead of hanging, with both kernels.
+//! regression fails instead of hanging, with every kernel.
 
 use std::sync::mpsc;
 use std::time::Duration;
 
 use scan3d_map::octree::{InsertStats, Kernel, Resolution, SensorModel, VoxelMap, ray_keys};
 
-const KERNELS: [Kernel; 2] = [Kernel::Scalar, Kernel::Avx2];
+const KERNELS: [Kernel; 3] = [Kernel::Scalar, Kernel::Avx2, Kernel::Avx512];
 
 /// Runs `f` on another thread and returns its result, or panics if it takes longer than
 /// `secs` (a hang) or panics itself.
@@ -198,9 +198,17 @@ fn any_mix_of_tiny_huge_subnormal_infinite_and_nan_coordinates_finishes_identica
                 .collect();
             for max_range in [-1.0, 0.5, 1e30] {
                 let (s, b, _) = insert(Kernel::Scalar, res, points.clone(), origin, max_range);
-                let (v, bv, _) = insert(Kernel::Avx2, res, points.clone(), origin, max_range);
-                assert_eq!(s, v, "res {res} case {case} max range {max_range}");
-                assert_eq!(b, bv, "res {res} case {case} max range {max_range}");
+                for kernel in [Kernel::Avx2, Kernel::Avx512] {
+                    let (v, bv, _) = insert(kernel, res, points.clone(), origin, max_range);
+                    assert_eq!(
+                        s, v,
+                        "res {res} case {case} max range {max_range} {kernel:?}"
+                    );
+                    assert_eq!(
+                        b, bv,
+                        "res {res} case {case} max range {max_range} {kernel:?}"
+                    );
+                }
                 assert_eq!(s.points, 37);
                 assert!(s.skipped_nonfinite + s.out_of_bounds <= s.points);
                 degenerate += s.degenerate_rays;
@@ -225,7 +233,8 @@ fn the_default_kernel_follows_scan3d_octree_kernel() {
     // CI runs the golden tests once with SCAN3D_OCTREE_KERNEL=scalar and once without.
     let want = match std::env::var(scan3d_map::octree::KERNEL_ENV).as_deref() {
         Ok("scalar") => Kernel::Scalar,
-        _ => Kernel::Avx2,
+        Ok("avx2") => Kernel::Avx2,
+        _ => Kernel::Avx512,
     };
     assert_eq!(Kernel::from_env(), want);
     let map = VoxelMap::new(Resolution::new(0.1).unwrap(), SensorModel::default());

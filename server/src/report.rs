@@ -10,7 +10,7 @@ use std::time::Instant;
 use anyhow::Context;
 use serde::Serialize;
 
-use scan3d_map::cloud::{OriginScan, io};
+use scan3d_map::cloud::{RayBundle, io};
 use scan3d_map::eval::plot::{Fig11Group, Fig12Row, fig11_png, fig11_svg, fig12_png, fig12_svg};
 use scan3d_map::eval::{self, LeafMap, MapSummary, Metrics, Role, VoxelBox, evaluate, summarize};
 use scan3d_map::octree::{Resolution, SensorModel, VoxelMap, read_graph};
@@ -313,7 +313,7 @@ struct Sweep {
     rows: Vec<Row>,
 }
 
-fn load_cloud(path: &Path) -> anyhow::Result<Vec<OriginScan>> {
+fn load_cloud(path: &Path) -> anyhow::Result<Vec<RayBundle>> {
     let is_graph = path
         .extension()
         .is_some_and(|e| e.eq_ignore_ascii_case("graph"));
@@ -378,7 +378,7 @@ pub fn write_sweep(
         let (build_s, tree) = best(reps, || {
             let mut map = VoxelMap::new(res, SensorModel::default());
             for s in &scans {
-                map.insert_scan(s, max_range);
+                map.insert_bundle(s, max_range);
             }
             Ok(map.to_octree())
         })?;

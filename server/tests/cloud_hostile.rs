@@ -8,10 +8,10 @@
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 
-use scan3d_map::cloud::OriginScan;
+use scan3d_map::cloud::RayBundle;
 use scan3d_map::cloud::io::{Encoding, FlatCloud};
-use scan3d_map::cloud::pcd::{MAX_FIELDS, PcdError, parse_pcd, write_pcd_scans};
-use scan3d_map::cloud::ply::{PlyError, parse_ply, write_ply_scans};
+use scan3d_map::cloud::pcd::{MAX_FIELDS, PcdError, parse_pcd, write_pcd_bundles};
+use scan3d_map::cloud::ply::{PlyError, parse_ply, write_ply_bundles};
 use scan3d_map::cloud::scans_file::{ScansError, parse_scans, write_scans};
 use scan3d_map::octree::{Octree, OctreeError, Resolution, SensorModel, VoxelMap, read_graph};
 
@@ -87,13 +87,13 @@ fn bounded<T, E: std::fmt::Display>(
     r
 }
 
-fn scans() -> Vec<OriginScan> {
+fn scans() -> Vec<RayBundle> {
     vec![
-        OriginScan {
+        RayBundle {
             origin: [0.0, 0.0, 1.0],
             points: vec![[1.0, 2.0, 3.0], [-1.0, 0.5, 2.0], [0.25, -3.0, 0.0]],
         },
-        OriginScan {
+        RayBundle {
             origin: [2.0, -1.0, 0.5],
             points: vec![[4.0, 4.0, 4.0], [3.0, 2.0, 1.0]],
         },
@@ -167,13 +167,13 @@ fn truncations(file: &[u8]) -> Vec<(String, Vec<u8>)> {
 
 fn pcd(encoding: Encoding) -> Vec<u8> {
     let mut b = Vec::new();
-    write_pcd_scans(&mut b, &scans(), encoding).unwrap();
+    write_pcd_bundles(&mut b, &scans(), encoding).unwrap();
     b
 }
 
 fn ply(encoding: Encoding) -> Vec<u8> {
     let mut b = Vec::new();
-    write_ply_scans(&mut b, &scans(), encoding).unwrap();
+    write_ply_bundles(&mut b, &scans(), encoding).unwrap();
     b
 }
 
@@ -236,7 +236,7 @@ fn hostile_scans_counts_give_errors_within_the_bytes_present() {
 fn tree() -> Octree {
     let mut map = VoxelMap::new(Resolution::new(0.2).unwrap(), SensorModel::default());
     for s in scans() {
-        map.insert_scan(&s, -1.0);
+        map.insert_bundle(&s, -1.0);
     }
     map.to_octree()
 }

@@ -12,7 +12,7 @@ fn build(graph: &str, res: f64) -> Octree {
     let scans = read_graph(&read(graph)).expect("graph parses");
     let mut map = VoxelMap::new(Resolution::new(res).unwrap(), SensorModel::default());
     for s in &scans {
-        let st = map.insert_scan(s, -1.0);
+        let st = map.insert_bundle(s, -1.0);
         assert_eq!(st.skipped_nonfinite, 0);
     }
     map.to_octree()

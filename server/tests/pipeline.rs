@@ -447,7 +447,7 @@ fn snapshot_filters_touch_the_written_cloud_only() {
     );
     let expected = sor.apply(&plain.maps().cloud(None)).unwrap();
     let mut ply = Vec::new();
-    scan3d_map::cloud::ply::write_ply_scans(&mut ply, &expected, io::Encoding::Binary).unwrap();
+    scan3d_map::cloud::ply::write_ply_bundles(&mut ply, &expected, io::Encoding::Binary).unwrap();
     assert!(
         read(&b.files[2]) == ply,
         "cloud.ply is the cloud through the snapshot filters"

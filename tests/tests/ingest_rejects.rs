@@ -189,7 +189,11 @@ fn bad_frames_close_the_connection_cleanly_and_the_server_keeps_serving() {
     site.runtime.block_on(async {
         // Another protocol version: refused by the header alone.
         let mut client = connect(addr, bundle).await;
-        client.send.write_all(&header(PROTOCOL_VERSION + 1, 1)).await.expect("write");
+        client
+            .send
+            .write_all(&header(PROTOCOL_VERSION + 1, 1))
+            .await
+            .expect("write");
         // The server may have closed the connection on the header alone already.
         let _ = client.send.write_all(&[0]).await;
         let (code, reason) = client.closed_by_server().await;

@@ -24,10 +24,10 @@ use scan3d_hw_sim::pair::Pair;
 use scan3d_hw_sim::rplidar::{RplidarEmulator, RplidarEmulatorConfig, RplidarModel};
 use scan3d_hw_sim::sweep::{SweepEmulator, SweepEmulatorConfig};
 use scan3d_hw_sim::world::World;
-use scan3d_map::cloud::OriginScan;
+use scan3d_map::cloud::RayBundle;
 use scan3d_map::cloud::io::Encoding;
-use scan3d_map::cloud::pcd::write_pcd_scans;
-use scan3d_map::cloud::ply::write_ply_scans;
+use scan3d_map::cloud::pcd::write_pcd_bundles;
+use scan3d_map::cloud::ply::write_ply_bundles;
 use scan3d_map::cloud::scans_file::write_scans;
 use scan3d_map::octree::{Resolution, SensorModel, VoxelMap};
 use scan3d_protocol::{
@@ -351,7 +351,7 @@ fn driver_seeds(c: &Corpus) -> Result<()> {
 }
 
 /// A few scans of a box room seen from two origins (small enough for seeds).
-fn room_scans() -> Vec<OriginScan> {
+fn room_scans() -> Vec<RayBundle> {
     let mut scans = Vec::new();
     for (k, origin) in [[0.0, 0.0, 0.5], [0.6, -0.4, 0.5]].into_iter().enumerate() {
         let mut points = Vec::new();
@@ -363,7 +363,7 @@ fn room_scans() -> Vec<OriginScan> {
             points.push([c * t, s * t, 0.5 + (i % 3) as f32 * 0.4]);
             points.push([c * 0.7, s * 0.7, 0.0]);
         }
-        scans.push(OriginScan { origin, points });
+        scans.push(RayBundle { origin, points });
     }
     scans
 }
@@ -372,7 +372,7 @@ fn map_seeds(c: &Corpus) -> Result<()> {
     for (name, res) in [("res_0.25", 0.25), ("res_0.5", 0.5)] {
         let mut map = VoxelMap::new(Resolution::new(res)?, SensorModel::default());
         for scan in room_scans() {
-            map.insert_scan(&scan, -1.0);
+            map.insert_bundle(&scan, -1.0);
         }
         let tree = map.to_octree();
         c.put("bt", name, &tree.to_bt_bytes())?;
@@ -388,7 +388,7 @@ fn map_seeds(c: &Corpus) -> Result<()> {
 /// A binary ScanGraph (OctoMap's `ScanGraph::writeBinary`): node count; per node its point
 /// cloud (count, then `Vector3`s as i32 3 + 3 × f64), pose (`Vector3`, then a `Quaternion` as
 /// i32 4 + 4 × f64) and id; edge count; per edge two ids, a pose and a weight.
-fn graph(scans: &[OriginScan]) -> Vec<u8> {
+fn graph(scans: &[RayBundle]) -> Vec<u8> {
     fn vec3(out: &mut Vec<u8>, v: [f64; 3]) {
         out.extend_from_slice(&3i32.to_le_bytes());
         v.iter()
@@ -420,7 +420,7 @@ fn graph(scans: &[OriginScan]) -> Vec<u8> {
 }
 
 fn cloud_seeds(c: &Corpus) -> Result<()> {
-    let scans: Vec<OriginScan> = room_scans()
+    let scans: Vec<RayBundle> = room_scans()
         .into_iter()
         .map(|mut s| {
             s.points.truncate(12);
@@ -431,10 +431,10 @@ fn cloud_seeds(c: &Corpus) -> Result<()> {
     for (name, set) in [("two_origins", &scans[..]), ("one_origin", one)] {
         for (enc, encoding) in [("binary", Encoding::Binary), ("ascii", Encoding::Ascii)] {
             let mut ply = Vec::new();
-            write_ply_scans(&mut ply, set, encoding)?;
+            write_ply_bundles(&mut ply, set, encoding)?;
             c.put("ply", &format!("{name}_{enc}"), &ply)?;
             let mut pcd = Vec::new();
-            write_pcd_scans(&mut pcd, set, encoding)?;
+            write_pcd_bundles(&mut pcd, set, encoding)?;
             c.put("pcd", &format!("{name}_{enc}"), &pcd)?;
         }
         let mut bytes = Vec::new();
@@ -445,7 +445,7 @@ fn cloud_seeds(c: &Corpus) -> Result<()> {
     write_scans(
         &mut with_empty,
         &[
-            OriginScan {
+            RayBundle {
                 origin: [0.0; 3],
                 points: Vec::new(),
             },

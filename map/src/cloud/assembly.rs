@@ -33,7 +33,7 @@ use scan3d_protocol::{
 };
 use serde::{Deserialize, Serialize};
 
-pub use super::OriginScan;
+pub use super::RayBundle;
 
 /// How the Sweep sits on the turntable.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -123,7 +123,7 @@ pub struct AssembledScan {
     pub mount: MountGeometry,
     /// Points grouped by sensor origin: one group per half revolution (each half has one yaw,
     /// hence one optical centre; one run of a `StaticScan::Yaws` message), in recorded order.
-    pub scans: Vec<OriginScan>,
+    pub scans: Vec<RayBundle>,
     /// How it ended, if the end was recorded.
     pub outcome: Option<StaticScanOutcome>,
     /// Warnings the edge sent (late or failed steps, missed sectors).
@@ -174,7 +174,7 @@ pub struct NewRays {
     /// The operator's name of the scan's position.
     pub position: String,
     /// The points and their origin, world frame.
-    pub rays: OriginScan,
+    pub rays: RayBundle,
 }
 
 impl StaticScanAssembler {
@@ -364,7 +364,7 @@ impl AssembledScan {
                 };
                 if !group_open {
                     group_open = true;
-                    self.scans.push(OriginScan {
+                    self.scans.push(RayBundle {
                         origin: sensor_origin(&self.position, &self.mount, static_sample.yaw_deg),
                         points: Vec::new(),
                     });
@@ -380,7 +380,7 @@ impl AssembledScan {
 
 /// Drops points farther than `max_range_m` from their scan's sensor origin (a range limit
 /// applied after assembly, e.g. the paper's 6 m / 10 m maps); returns how many were dropped.
-pub fn cut_range(scans: &mut [OriginScan], max_range_m: f64) -> usize {
+pub fn cut_range(scans: &mut [RayBundle], max_range_m: f64) -> usize {
     let mut cut = 0;
     for scan in scans {
         let o = scan.origin;

@@ -1,7 +1,7 @@
 //! Point-cloud filters, the PCL pipeline of the paper's Table II (down-sampling, pass-through,
 //! Gaussian) plus statistical outlier removal, on clouds that keep each point's sensor origin.
 //!
-//! Every filter takes `&[OriginScan]` and returns the same scans (same count, order and
+//! Every filter takes `&[RayBundle]` and returns the same bundles (same count, order and
 //! origins) with their points filtered, so the result can go straight to octree insertion.
 //! Points with a non-finite coordinate are dropped by every filter (as PCL does for non-dense
 //! clouds). Results are deterministic: the same input gives the same output bit for bit.
@@ -16,7 +16,8 @@ use std::str::FromStr;
 
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 
-use super::OriginScan;
+use super::RayBundle;
+use crate::octree::morton;
 
 /// One filter step.
 #[derive(Debug, Clone, PartialEq)]
@@ -29,12 +30,12 @@ pub enum Filter {
     /// occupied voxel gives one point, the centroid of its members (summed in f64, PCL uses
     /// f32); output in increasing (z, y, x) voxel order, PCL's order.
     ///
-    /// Origins: the centroid is computed over the members of *all* scans (so the density is
-    /// PCL's: one point per voxel) and goes to the scan of the member nearest to the centroid
-    /// (ties: the earliest point in scan order). That member's ray is the observation closest to
+    /// Origins: the centroid is computed over the members of *all* bundles (so the density is
+    /// PCL's: one point per voxel) and goes to the bundle of the member nearest to the centroid
+    /// (ties: the earliest point in bundle order). That member's ray is the observation closest to
     /// the new point, so inserting the centroid from that origin carves almost the same free
-    /// space as the original ray did; grouping per (voxel, scan) instead would keep one point
-    /// per voxel *per scan* and hardly thin clouds made of many overlapping scans.
+    /// space as the original ray did; grouping per (voxel, bundle) instead would keep one point
+    /// per voxel *per bundle* and hardly thin clouds made of many overlapping bundles.
     Voxel {
         /// Leaf edge, metres (> 0).
         leaf: f32,
@@ -73,7 +74,7 @@ pub enum Filter {
     /// `gauss:SIGMA,RADIUS` — Gaussian smoothing, PCL's `filters::Convolution3D` with a
     /// `GaussianKernel`: each point moves to the Gaussian-weighted mean of the points within
     /// `RADIUS` of it (itself included, bound inclusive), weight `exp(−d² / (2·SIGMA²))`.
-    /// The point count and each point's scan are unchanged; positions are computed in f64.
+    /// The point count and each point's bundle are unchanged; positions are computed in f64.
     Gauss {
         /// Kernel standard deviation, metres (> 0).
         sigma: f64,
@@ -227,14 +228,14 @@ impl fmt::Display for Filter {
 }
 
 impl Filter {
-    /// Runs this filter; the output has the input's scans and origins, in order.
-    pub fn apply(&self, scans: &[OriginScan]) -> Result<Vec<OriginScan>, FilterError> {
+    /// Runs this filter; the output has the input's bundles and origins, in order.
+    pub fn apply(&self, bundles: &[RayBundle]) -> Result<Vec<RayBundle>, FilterError> {
         match self {
-            Self::Voxel { leaf } => voxel_grid(scans, *leaf),
-            Self::Box { min, max } => Ok(pass_through(scans, min, max, true)),
-            Self::BoxOut { min, max } => Ok(pass_through(scans, min, max, false)),
-            Self::Sor { k, alpha } => statistical_outlier_removal(scans, *k, *alpha),
-            Self::Gauss { sigma, radius } => gaussian(scans, *sigma, *radius),
+            Self::Voxel { leaf } => voxel_grid(bundles, *leaf),
+            Self::Box { min, max } => Ok(pass_through(bundles, min, max, true)),
+            Self::BoxOut { min, max } => Ok(pass_through(bundles, min, max, false)),
+            Self::Sor { k, alpha } => statistical_outlier_removal(bundles, *k, *alpha),
+            Self::Gauss { sigma, radius } => gaussian(bundles, *sigma, *radius),
         }
     }
 }
@@ -242,65 +243,65 @@ impl Filter {
 /// Runs `filters` one after the other, in order.
 pub fn apply_all(
     filters: &[Filter],
-    scans: Vec<OriginScan>,
-) -> Result<Vec<OriginScan>, FilterError> {
-    filters.iter().try_fold(scans, |s, f| f.apply(&s))
+    bundles: Vec<RayBundle>,
+) -> Result<Vec<RayBundle>, FilterError> {
+    filters.iter().try_fold(bundles, |s, f| f.apply(&s))
 }
 
 fn finite(p: &[f32; 3]) -> bool {
     p.iter().all(|c| c.is_finite())
 }
 
-/// Empty scans with the input's origins, to be refilled.
-fn empty_like(scans: &[OriginScan]) -> Vec<OriginScan> {
-    scans
+/// Empty bundles with the input's origins, to be refilled.
+fn empty_like(bundles: &[RayBundle]) -> Vec<RayBundle> {
+    bundles
         .iter()
-        .map(|s| OriginScan {
+        .map(|s| RayBundle {
             origin: s.origin,
             points: Vec::new(),
         })
         .collect()
 }
 
-/// All finite points in scan order with the index of their scan.
+/// All finite points in bundle order with the index of their bundle.
 struct Flat {
     points: Vec<[f32; 3]>,
-    scan: Vec<u32>,
+    bundle: Vec<u32>,
 }
 
-fn flatten(scans: &[OriginScan]) -> Result<Flat, FilterError> {
-    let total: usize = scans.iter().map(|s| s.points.len()).sum();
-    if u32::try_from(total).is_err() || u32::try_from(scans.len()).is_err() {
+fn flatten(bundles: &[RayBundle]) -> Result<Flat, FilterError> {
+    let total: usize = bundles.iter().map(|s| s.points.len()).sum();
+    if u32::try_from(total).is_err() || u32::try_from(bundles.len()).is_err() {
         return Err(FilterError::TooManyPoints(total));
     }
     let mut flat = Flat {
         points: Vec::with_capacity(total),
-        scan: Vec::with_capacity(total),
+        bundle: Vec::with_capacity(total),
     };
-    for (si, s) in scans.iter().enumerate() {
+    for (si, s) in bundles.iter().enumerate() {
         for p in s.points.iter().filter(|p| finite(p)) {
             flat.points.push(*p);
-            flat.scan.push(si as u32);
+            flat.bundle.push(si as u32);
         }
     }
     Ok(flat)
 }
 
 fn pass_through(
-    scans: &[OriginScan],
+    bundles: &[RayBundle],
     min: &[f64; 3],
     max: &[f64; 3],
     keep_inside: bool,
-) -> Vec<OriginScan> {
+) -> Vec<RayBundle> {
     let inside = |p: &[f32; 3]| {
         (0..3).all(|a| {
             let c = f64::from(p[a]);
             min[a] <= c && c <= max[a]
         })
     };
-    scans
+    bundles
         .iter()
-        .map(|s| OriginScan {
+        .map(|s| RayBundle {
             origin: s.origin,
             points: s
                 .points
@@ -312,10 +313,10 @@ fn pass_through(
         .collect()
 }
 
-fn voxel_grid(scans: &[OriginScan], leaf: f32) -> Result<Vec<OriginScan>, FilterError> {
-    let flat = flatten(scans)?;
+fn voxel_grid(bundles: &[RayBundle], leaf: f32) -> Result<Vec<RayBundle>, FilterError> {
+    let flat = flatten(bundles)?;
     let inverse = 1.0f32 / leaf;
-    // (k, j, i, flat index): sorting gives PCL's (z, y, x) voxel order, members in scan order.
+    // (k, j, i, flat index): sorting gives PCL's (z, y, x) voxel order, members in bundle order.
     let mut cells: Vec<([i32; 3], u32)> = Vec::with_capacity(flat.points.len());
     for (idx, p) in flat.points.iter().enumerate() {
         let mut kji = [0i32; 3];
@@ -332,7 +333,7 @@ fn voxel_grid(scans: &[OriginScan], leaf: f32) -> Result<Vec<OriginScan>, Filter
         cells.push((kji, idx as u32));
     }
     cells.sort_unstable();
-    let mut out = empty_like(scans);
+    let mut out = empty_like(bundles);
     for group in cells.chunk_by(|a, b| a.0 == b.0) {
         let mut sum = [0.0f64; 3];
         for &(_, idx) in group {
@@ -355,8 +356,8 @@ fn voxel_grid(scans: &[OriginScan], leaf: f32) -> Result<Vec<OriginScan>, Filter
             .map(|&(_, idx)| (d2(idx), idx))
             .min_by(|a, b| a.0.total_cmp(&b.0))
             .map_or(0, |(_, idx)| idx);
-        let scan = flat.scan[nearest as usize] as usize;
-        out[scan].points.push(centroid.map(|c| c as f32));
+        let bundle = flat.bundle[nearest as usize] as usize;
+        out[bundle].points.push(centroid.map(|c| c as f32));
     }
     Ok(out)
 }
@@ -383,20 +384,16 @@ impl SpatialIndex {
         let scale = (0..3)
             .map(|a| 1023.0 / f64::from(hi[a] - lo[a]).max(1e-9))
             .collect::<Vec<_>>();
-        let morton = |p: &[f32; 3]| {
-            let mut code = 0u32;
-            for a in 0..3 {
-                let q = (f64::from(p[a] - lo[a]) * scale[a]).clamp(0.0, 1023.0) as u32;
-                for bit in 0..10 {
-                    code |= ((q >> bit) & 1) << (3 * bit + a);
-                }
-            }
-            code
+        // 10 bits per axis: the order only needs to be local, not exact.
+        let quantised = |p: &[f32; 3]| {
+            morton(
+                [0, 1, 2].map(|a| (f64::from(p[a] - lo[a]) * scale[a]).clamp(0.0, 1023.0) as u16),
+            )
         };
-        let mut keyed: Vec<(u32, u32)> = points
+        let mut keyed: Vec<(u64, u32)> = points
             .iter()
             .enumerate()
-            .map(|(i, p)| (morton(p), i as u32))
+            .map(|(i, p)| (quantised(p), i as u32))
             .collect();
         keyed.sort_unstable();
         let order: Vec<u32> = keyed.into_iter().map(|(_, i)| i).collect();
@@ -425,15 +422,15 @@ impl SpatialIndex {
 }
 
 fn statistical_outlier_removal(
-    scans: &[OriginScan],
+    bundles: &[RayBundle],
     k: NonZeroUsize,
     alpha: f64,
-) -> Result<Vec<OriginScan>, FilterError> {
-    let flat = flatten(scans)?;
+) -> Result<Vec<RayBundle>, FilterError> {
+    let flat = flatten(bundles)?;
     let n = flat.points.len();
-    let mut out = empty_like(scans);
+    let mut out = empty_like(bundles);
     if n < 2 {
-        for (p, s) in flat.points.iter().zip(&flat.scan) {
+        for (p, s) in flat.points.iter().zip(&flat.bundle) {
             out[*s as usize].points.push(*p);
         }
         return Ok(out);
@@ -460,7 +457,7 @@ fn statistical_outlier_removal(
     let mean = sum / count;
     let variance = ((sq_sum - sum * sum / count) / (count - 1.0)).max(0.0);
     let threshold = mean + alpha * variance.sqrt();
-    for ((p, s), d) in flat.points.iter().zip(&flat.scan).zip(&mean_distances) {
+    for ((p, s), d) in flat.points.iter().zip(&flat.bundle).zip(&mean_distances) {
         if *d <= threshold {
             out[*s as usize].points.push(*p);
         }
@@ -468,9 +465,9 @@ fn statistical_outlier_removal(
     Ok(out)
 }
 
-fn gaussian(scans: &[OriginScan], sigma: f64, radius: f64) -> Result<Vec<OriginScan>, FilterError> {
-    let flat = flatten(scans)?;
-    let mut out = empty_like(scans);
+fn gaussian(bundles: &[RayBundle], sigma: f64, radius: f64) -> Result<Vec<RayBundle>, FilterError> {
+    let flat = flatten(bundles)?;
+    let mut out = empty_like(bundles);
     if flat.points.is_empty() {
         return Ok(out);
     }
@@ -499,7 +496,7 @@ fn gaussian(scans: &[OriginScan], sigma: f64, radius: f64) -> Result<Vec<OriginS
             *p
         }
     });
-    for (p, s) in moved.into_iter().zip(&flat.scan) {
+    for (p, s) in moved.into_iter().zip(&flat.bundle) {
         out[*s as usize].points.push(p);
     }
     Ok(out)
@@ -509,8 +506,8 @@ fn gaussian(scans: &[OriginScan], sigma: f64, radius: f64) -> Result<Vec<OriginS
 mod tests {
     use super::*;
 
-    fn scan(origin: [f64; 3], points: &[[f32; 3]]) -> OriginScan {
-        OriginScan {
+    fn bundle(origin: [f64; 3], points: &[[f32; 3]]) -> RayBundle {
+        RayBundle {
             origin,
             points: points.to_vec(),
         }
@@ -603,9 +600,9 @@ mod tests {
     }
 
     #[test]
-    fn voxel_centroid_goes_to_nearest_members_scan() {
-        let scans = [
-            scan(
+    fn voxel_centroid_goes_to_nearest_members_bundle() {
+        let bundles = [
+            bundle(
                 A,
                 &[
                     [0.1, 0.1, 0.1],
@@ -614,9 +611,9 @@ mod tests {
                     [-0.2, 0.0, 0.0],
                 ],
             ),
-            scan(B, &[[0.5, 0.2, 0.2], [f32::NAN, 0.0, 0.0]]),
+            bundle(B, &[[0.5, 0.2, 0.2], [f32::NAN, 0.0, 0.0]]),
         ];
-        let out = Filter::Voxel { leaf: 1.0 }.apply(&scans).unwrap();
+        let out = Filter::Voxel { leaf: 1.0 }.apply(&bundles).unwrap();
         assert_eq!(out.len(), 2);
         assert_eq!((out[0].origin, out[1].origin), (A, B));
         // Voxel (0,0,0): centroid (0.3, 0.26667, 0.4); squared distances to its members
@@ -634,15 +631,15 @@ mod tests {
     #[test]
     fn voxel_grid_is_anchored_at_world_multiples_like_pcl() {
         // floor((p - min)/leaf) would merge 0.9 and 1.1; PCL's floor(p/leaf) does not.
-        let scans = [scan(
+        let bundles = [bundle(
             A,
             &[[0.9, 0.0, 0.0], [1.1, 0.0, 0.0], [1.7, 0.0, 0.0]],
         )];
-        let out = Filter::Voxel { leaf: 1.0 }.apply(&scans).unwrap();
+        let out = Filter::Voxel { leaf: 1.0 }.apply(&bundles).unwrap();
         assert_eq!(out[0].points.len(), 2);
         assert_eq!(out[0].points[0], [0.9, 0.0, 0.0]);
         assert!(close(out[0].points[1], [1.4, 0.0, 0.0], 1e-6));
-        let far = [scan(A, &[[1e6, 0.0, 0.0]])];
+        let far = [bundle(A, &[[1e6, 0.0, 0.0]])];
         assert!(matches!(
             Filter::Voxel { leaf: 1e-4 }.apply(&far),
             Err(FilterError::LeafTooSmall { .. })
@@ -662,12 +659,15 @@ mod tests {
     #[test]
     fn box_keep_and_remove_counts() {
         // 5 × 5 grid at 0..4; the box [1, 3] × [1, 3] × [0, 0] holds 9 (its edges inclusive).
-        let scans = [scan(A, &grid(5, 1.0)[..10]), scan(B, &grid(5, 1.0)[10..])];
+        let bundles = [
+            bundle(A, &grid(5, 1.0)[..10]),
+            bundle(B, &grid(5, 1.0)[10..]),
+        ];
         let (min, max) = ([1.0, 1.0, 0.0], [3.0, 3.0, 0.0]);
-        let kept = Filter::Box { min, max }.apply(&scans).unwrap();
-        let removed = Filter::BoxOut { min, max }.apply(&scans).unwrap();
-        let counts = |s: &[OriginScan]| s.iter().map(|s| s.points.len()).collect::<Vec<_>>();
-        // Rows y = 0, 1 are scan A: row 1 has x = 1..3 inside. Rows 2..4 are scan B: 6 inside.
+        let kept = Filter::Box { min, max }.apply(&bundles).unwrap();
+        let removed = Filter::BoxOut { min, max }.apply(&bundles).unwrap();
+        let counts = |s: &[RayBundle]| s.iter().map(|s| s.points.len()).collect::<Vec<_>>();
+        // Rows y = 0, 1 are bundle A: row 1 has x = 1..3 inside. Rows 2..4 are bundle B: 6 inside.
         assert_eq!(counts(&kept), vec![3, 6]);
         assert_eq!(counts(&removed), vec![7, 9]);
         assert_eq!(
@@ -681,9 +681,9 @@ mod tests {
     fn sor_removes_planted_outlier_and_keeps_grid() {
         let mut b = vec![[2.0, 2.0, 10.0]];
         b.extend_from_slice(&grid(5, 1.0)[20..]);
-        let scans = [scan(A, &grid(5, 1.0)[..20]), scan(B, &b)];
+        let bundles = [bundle(A, &grid(5, 1.0)[..20]), bundle(B, &b)];
         let f: Filter = "sor:4,1".parse().unwrap();
-        let out = f.apply(&scans).unwrap();
+        let out = f.apply(&bundles).unwrap();
         assert_eq!(out[0].points, grid(5, 1.0)[..20].to_vec());
         assert_eq!(out[1].points, grid(5, 1.0)[20..].to_vec());
         assert_eq!(out[1].origin, B);
@@ -693,24 +693,32 @@ mod tests {
     fn sor_k_excludes_the_point_itself() {
         // k = 1: mean distances 1, 1, 2 → mean 4/3, σ = √(1/3); ALPHA 0 keeps d ≤ 4/3.
         // (Counting the point itself, every distance would be 0 and all three kept.)
-        let scans = [scan(
+        let bundles = [bundle(
             A,
             &[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [3.0, 0.0, 0.0]],
         )];
-        let out = "sor:1,0".parse::<Filter>().unwrap().apply(&scans).unwrap();
+        let out = "sor:1,0"
+            .parse::<Filter>()
+            .unwrap()
+            .apply(&bundles)
+            .unwrap();
         assert_eq!(out[0].points, vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]);
         // ALPHA 1: threshold 4/3 + 0.577 = 1.91 < 2 still removes it; ALPHA 2 (2.49) keeps it.
-        let out = "sor:1,2".parse::<Filter>().unwrap().apply(&scans).unwrap();
+        let out = "sor:1,2"
+            .parse::<Filter>()
+            .unwrap()
+            .apply(&bundles)
+            .unwrap();
         assert_eq!(out[0].points.len(), 3);
         // Duplicates and tiny clouds do not break it.
-        let dup = [scan(A, &[[1.0, 1.0, 1.0]; 50])];
+        let dup = [bundle(A, &[[1.0, 1.0, 1.0]; 50])];
         assert_eq!(
             "sor:8,1".parse::<Filter>().unwrap().apply(&dup).unwrap()[0]
                 .points
                 .len(),
             50
         );
-        let one = [scan(A, &[[1.0, 1.0, 1.0]])];
+        let one = [bundle(A, &[[1.0, 1.0, 1.0]])];
         assert_eq!(
             "sor:8,1".parse::<Filter>().unwrap().apply(&one).unwrap(),
             one.to_vec()
@@ -720,11 +728,11 @@ mod tests {
     #[test]
     fn gaussian_two_points_by_hand() {
         // d = 1, σ = 1: w = e^-0.5 = 0.606531; x0' = w / (1 + w), x1' = 1 / (1 + w).
-        let scans = [scan(A, &[[0.0, 0.0, 0.0]]), scan(B, &[[1.0, 0.0, 0.0]])];
+        let bundles = [bundle(A, &[[0.0, 0.0, 0.0]]), bundle(B, &[[1.0, 0.0, 0.0]])];
         let out = "gauss:1,1"
             .parse::<Filter>()
             .unwrap()
-            .apply(&scans)
+            .apply(&bundles)
             .unwrap();
         assert!(
             close(out[0].points[0], [0.377_541, 0.0, 0.0], 1e-6),
@@ -738,9 +746,9 @@ mod tests {
         let out = "gauss:1,0.5"
             .parse::<Filter>()
             .unwrap()
-            .apply(&scans)
+            .apply(&bundles)
             .unwrap();
-        assert_eq!(out, scans.to_vec());
+        assert_eq!(out, bundles.to_vec());
     }
 
     #[test]
@@ -754,20 +762,20 @@ mod tests {
                 -0.01
             };
         }
-        let scans = [scan(A, &noisy[..200]), scan(B, &noisy[200..])];
+        let bundles = [bundle(A, &noisy[..200]), bundle(B, &noisy[200..])];
         let out = "gauss:0.1,0.25"
             .parse::<Filter>()
             .unwrap()
-            .apply(&scans)
+            .apply(&bundles)
             .unwrap();
         assert_eq!((out[0].points.len(), out[1].points.len()), (200, 200));
         assert_eq!((out[0].origin, out[1].origin), (A, B));
-        let spread = |s: &[OriginScan]| {
+        let spread = |s: &[RayBundle]| {
             let z = s.iter().flat_map(|s| s.points.iter().map(|p| p[2]));
             let (lo, hi) = z.fold((f32::MAX, f32::MIN), |(lo, hi), z| (lo.min(z), hi.max(z)));
             hi - lo
         };
-        assert!((spread(&scans) - 0.02).abs() < 1e-6);
+        assert!((spread(&bundles) - 0.02).abs() < 1e-6);
         assert!(spread(&out) < 0.01, "{}", spread(&out));
         // x, y stay near the grid (interior points barely move in the plane).
         assert!(close(out[0].points[21], noisy[21], 0.02));
@@ -777,7 +785,7 @@ mod tests {
     fn apply_all_runs_in_order_and_is_deterministic() {
         let mut pts = grid(30, 0.0625);
         pts.push([0.7, 0.7, 5.0]);
-        let scans = vec![scan(A, &pts[..450]), scan(B, &pts[450..])];
+        let bundles = vec![bundle(A, &pts[..450]), bundle(B, &pts[450..])];
         let filters: Vec<Filter> = [
             "box:-1,-1,-1,2,2,2",
             "voxel:0.125",
@@ -787,8 +795,8 @@ mod tests {
         .iter()
         .map(|s| s.parse().unwrap())
         .collect();
-        let a = apply_all(&filters, scans.clone()).unwrap();
-        let b = apply_all(&filters, scans).unwrap();
+        let a = apply_all(&filters, bundles.clone()).unwrap();
+        let b = apply_all(&filters, bundles).unwrap();
         assert_eq!(a, b);
         // The box cuts the outlier; 30 × 30 at 1/16 m over 1/8 m leaves gives a 15 × 15 grid
         // of spacing s; SOR (k = 4) then sees interior points at s, border ones at 1.104 s and

@@ -1,166 +1,20 @@
 //! Loading and saving point clouds that keep their sensor origins, dispatching on the file
-//! extension: `.scans` ([`super::scans_file`]), `.ply` ([`super::ply`]) and `.pcd`
-//! ([`super::pcd`]).
+//! extension ([`CloudFormat`]): `.scans` ([`super::scans_file`]), `.ply` ([`super::ply`]) and
+//! `.pcd` ([`super::pcd`]).
 //!
-//! The in-memory form everywhere is `Vec<OriginScan>`: points grouped by the sensor origin
+//! The in-memory form everywhere is `Vec<RayBundle>`: points grouped by the sensor origin
 //! they were seen from, which is exactly what octree insertion consumes (one ray origin per
-//! scan) and what the filters in [`super::filter`] keep. PLY and PCD carry a flat point list
-//! with optional per-point (or one cloud-wide) origins; [`FlatCloud`] is that form, with
-//! conversions both ways.
+//! bundle) and what the filters in [`super::filter`] keep. PLY and PCD carry a flat point list
+//! with optional per-point (or one cloud-wide) origins: [`FlatCloud`] (in [`super::flat`],
+//! shared with the readers), with conversions both ways.
 
 use std::path::{Path, PathBuf};
 
-use super::OriginScan;
+use super::RayBundle;
+pub use super::flat::{CloudFormat, Encoding, FlatCloud, LoadedBundles, OriginError, Origins};
 use super::pcd::{self, PcdError};
 use super::ply::{self, PlyError};
 use super::scans_file::{self, ScansError};
-
-/// Text or binary body, for the formats that have both (PLY, PCD).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum Encoding {
-    /// Little-endian binary (PLY `binary_little_endian`, PCD `DATA binary`).
-    #[default]
-    Binary,
-    /// Human-readable text (PLY `ascii`, PCD `DATA ascii`).
-    Ascii,
-}
-
-/// Where the points of a flat cloud were seen from, as a file states it.
-#[derive(Debug, Clone, PartialEq)]
-pub enum Origins {
-    /// The file says nothing about the sensor origin.
-    Unknown,
-    /// One origin for the whole cloud (PCD `VIEWPOINT`).
-    Viewpoint([f64; 3]),
-    /// One origin per point, parallel to [`FlatCloud::points`].
-    PerPoint(Vec<[f64; 3]>),
-}
-
-/// A flat point list as PLY and PCD store it, with whatever origin information the file had.
-#[derive(Debug, Clone, PartialEq)]
-pub struct FlatCloud {
-    /// The points, in file order.
-    pub points: Vec<[f32; 3]>,
-    /// Their sensor origins.
-    pub origins: Origins,
-}
-
-/// Scans read from a cloud, and how many of the file's points did not make it into them.
-#[derive(Debug, Clone, PartialEq)]
-pub struct LoadedScans {
-    /// The scans, in file order.
-    pub scans: Vec<OriginScan>,
-    /// Points dropped because a coordinate or their origin was NaN or infinite (PCL marks
-    /// "no return" with NaN in organised clouds). `.scans` files keep such points (the octree
-    /// skips and counts them), so this is 0 for them.
-    pub dropped_nonfinite: u64,
-}
-
-/// Why a flat cloud could not be turned into scans.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum OriginError {
-    /// No origin in the file and none given by the caller.
-    #[error("the cloud has no sensor origin: pass --origin x,y,z")]
-    Missing,
-    /// Per-point origins whose count differs from the point count.
-    #[error("{origins} per-point origins for {points} points")]
-    CountMismatch {
-        /// Number of origins.
-        origins: usize,
-        /// Number of points.
-        points: usize,
-    },
-}
-
-impl FlatCloud {
-    /// Flattens scans into a point list with one origin per point (scan order, then point
-    /// order). Empty scans vanish: a flat cloud cannot carry an origin without a point.
-    pub fn from_scans(scans: &[OriginScan]) -> Self {
-        let total = scans.iter().map(|s| s.points.len()).sum();
-        let mut points = Vec::with_capacity(total);
-        let mut origins = Vec::with_capacity(total);
-        for scan in scans {
-            points.extend_from_slice(&scan.points);
-            origins.extend(std::iter::repeat_n(scan.origin, scan.points.len()));
-        }
-        Self {
-            points,
-            origins: Origins::PerPoint(origins),
-        }
-    }
-
-    /// Groups the points into scans, dropping (and counting) points with a non-finite
-    /// coordinate or origin (PCL marks "no return" with NaN in organised clouds).
-    ///
-    /// - Per-point origins: each maximal run of consecutive points with bit-identical origins
-    ///   becomes one scan, in file order (so [`FlatCloud::from_scans`] round-trips, except
-    ///   that adjacent scans with equal origins merge).
-    /// - A cloud-wide viewpoint: one scan from it, except that an all-zero viewpoint
-    ///   (PCL's default, written by every PCL tool whatever the sensor was) yields to
-    ///   `default_origin` when one is given.
-    /// - No origin: one scan from `default_origin`, or [`OriginError::Missing`].
-    pub fn into_scans(self, default_origin: Option<[f64; 3]>) -> Result<LoadedScans, OriginError> {
-        let total = self.points.len() as u64;
-        let scans = self.into_finite_scans(default_origin)?;
-        let kept: u64 = scans.iter().map(|s| s.points.len() as u64).sum();
-        Ok(LoadedScans {
-            scans,
-            dropped_nonfinite: total - kept,
-        })
-    }
-
-    fn into_finite_scans(
-        self,
-        default_origin: Option<[f64; 3]>,
-    ) -> Result<Vec<OriginScan>, OriginError> {
-        let finite3 = |p: &[f32; 3]| p.iter().all(|c| c.is_finite());
-        let single = |origin: [f64; 3], points: Vec<[f32; 3]>| {
-            let points: Vec<_> = points.into_iter().filter(finite3).collect();
-            vec![OriginScan { origin, points }]
-        };
-        match self.origins {
-            Origins::PerPoint(origins) => {
-                if origins.len() != self.points.len() {
-                    return Err(OriginError::CountMismatch {
-                        origins: origins.len(),
-                        points: self.points.len(),
-                    });
-                }
-                let mut scans: Vec<OriginScan> = Vec::new();
-                for (p, o) in self.points.into_iter().zip(origins) {
-                    // Per-point origins are written as f32 fields (PLY `sx sy sz`, PCD `vp_*`),
-                    // so one beyond f32's range is dropped here, counted, like an infinite one,
-                    // rather than turned into an infinite origin by the next write.
-                    if !finite3(&p) || !o.iter().all(|&c| (c as f32).is_finite()) {
-                        continue;
-                    }
-                    match scans.last_mut() {
-                        Some(last) if same_origin(&last.origin, &o) => last.points.push(p),
-                        _ => scans.push(OriginScan {
-                            origin: o,
-                            points: vec![p],
-                        }),
-                    }
-                }
-                Ok(scans)
-            }
-            Origins::Viewpoint(v) => match default_origin {
-                Some(d) if v == [0.0; 3] => Ok(single(d, self.points)),
-                _ => Ok(single(v, self.points)),
-            },
-            Origins::Unknown => match default_origin {
-                Some(d) => Ok(single(d, self.points)),
-                None if self.points.is_empty() => Ok(Vec::new()),
-                None => Err(OriginError::Missing),
-            },
-        }
-    }
-}
-
-/// Bit-identical origins (so `-0.0` and `0.0` are different scans, and NaN never matches).
-fn same_origin(a: &[f64; 3], b: &[f64; 3]) -> bool {
-    a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())
-}
 
 /// Why a cloud file could not be loaded or saved.
 #[derive(Debug, thiserror::Error)]
@@ -216,30 +70,6 @@ pub enum CloudIoError {
     },
 }
 
-/// The formats [`load`] and [`save`] know, by extension (case-insensitive).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum CloudFormat {
-    /// `.scans`.
-    Scans,
-    /// `.ply`.
-    Ply,
-    /// `.pcd`.
-    Pcd,
-}
-
-impl CloudFormat {
-    /// The format named by `path`'s extension, if it is one of ours.
-    pub fn from_path(path: &Path) -> Option<Self> {
-        let ext = path.extension()?.to_str()?.to_ascii_lowercase();
-        match ext.as_str() {
-            "scans" => Some(Self::Scans),
-            "ply" => Some(Self::Ply),
-            "pcd" => Some(Self::Pcd),
-            _ => None,
-        }
-    }
-}
-
 fn format_of(path: &Path) -> Result<CloudFormat, CloudIoError> {
     CloudFormat::from_path(path).ok_or_else(|| CloudIoError::UnknownExtension {
         path: path.to_owned(),
@@ -250,18 +80,15 @@ fn format_of(path: &Path) -> Result<CloudFormat, CloudIoError> {
 /// not carry origins (and overrides a PCD's all-zero default `VIEWPOINT`); `.scans` always
 /// carries its own. PLY/PCD points with non-finite coordinates are dropped; [`load_counted`]
 /// says how many.
-pub fn load(
-    path: &Path,
-    default_origin: Option<[f64; 3]>,
-) -> Result<Vec<OriginScan>, CloudIoError> {
-    load_counted(path, default_origin).map(|l| l.scans)
+pub fn load(path: &Path, default_origin: Option<[f64; 3]>) -> Result<Vec<RayBundle>, CloudIoError> {
+    load_counted(path, default_origin).map(|l| l.bundles)
 }
 
 /// [`load`], with the number of points dropped for non-finite coordinates or origins.
 pub fn load_counted(
     path: &Path,
     default_origin: Option<[f64; 3]>,
-) -> Result<LoadedScans, CloudIoError> {
+) -> Result<LoadedBundles, CloudIoError> {
     let format = format_of(path)?;
     let bytes = std::fs::read(path).map_err(|reason| CloudIoError::Io {
         path: path.to_owned(),
@@ -271,8 +98,8 @@ pub fn load_counted(
     let flat = match format {
         CloudFormat::Scans => {
             return scans_file::parse_scans(&bytes)
-                .map(|scans| LoadedScans {
-                    scans,
+                .map(|bundles| LoadedBundles {
+                    bundles,
                     dropped_nonfinite: 0,
                 })
                 .map_err(|reason| CloudIoError::Scans { path: p(), reason });
@@ -284,19 +111,19 @@ pub fn load_counted(
             pcd::parse_pcd(&bytes).map_err(|reason| CloudIoError::Pcd { path: p(), reason })?
         }
     };
-    flat.into_scans(default_origin)
+    flat.into_bundles(default_origin)
         .map_err(|reason| CloudIoError::Origin { path: p(), reason })
 }
 
-/// Saves `scans` in the format named by the extension, binary where there is a choice.
-pub fn save(path: &Path, scans: &[OriginScan]) -> Result<(), CloudIoError> {
-    save_with(path, scans, Encoding::Binary)
+/// Saves `bundles` in the format named by the extension, binary where there is a choice.
+pub fn save(path: &Path, bundles: &[RayBundle]) -> Result<(), CloudIoError> {
+    save_with(path, bundles, Encoding::Binary)
 }
 
-/// Saves `scans` with an explicit body encoding (ignored for `.scans`, which is binary only).
+/// Saves `bundles` with an explicit body encoding (ignored for `.scans`, which is binary only).
 pub fn save_with(
     path: &Path,
-    scans: &[OriginScan],
+    bundles: &[RayBundle],
     encoding: Encoding,
 ) -> Result<(), CloudIoError> {
     let format = format_of(path)?;
@@ -304,10 +131,14 @@ pub fn save_with(
     let io_err = |reason| CloudIoError::Io { path: p(), reason };
     let mut bytes = Vec::new();
     match format {
-        CloudFormat::Scans => scans_file::write_scans(&mut bytes, scans)
+        CloudFormat::Scans => scans_file::write_scans(&mut bytes, bundles)
             .map_err(|reason| CloudIoError::Scans { path: p(), reason })?,
-        CloudFormat::Ply => ply::write_ply_scans(&mut bytes, scans, encoding).map_err(io_err)?,
-        CloudFormat::Pcd => pcd::write_pcd_scans(&mut bytes, scans, encoding).map_err(io_err)?,
+        CloudFormat::Ply => {
+            ply::write_ply_bundles(&mut bytes, bundles, encoding).map_err(io_err)?
+        }
+        CloudFormat::Pcd => {
+            pcd::write_pcd_bundles(&mut bytes, bundles, encoding).map_err(io_err)?
+        }
     }
     std::fs::write(path, bytes).map_err(io_err)
 }
@@ -315,131 +146,19 @@ pub fn save_with(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::cloud::RayBundle;
 
-    fn two_scans() -> Vec<OriginScan> {
+    fn two_bundles() -> Vec<RayBundle> {
         vec![
-            OriginScan {
+            RayBundle {
                 origin: [1.0, 2.0, 0.5],
                 points: vec![[1.5, 2.0, 0.25], [0.0, -1.0, 3.0]],
             },
-            OriginScan {
+            RayBundle {
                 origin: [-4.0, 0.25, 1.0],
                 points: vec![[7.0, 8.0, 9.0]],
             },
         ]
-    }
-
-    #[test]
-    fn flat_round_trip_keeps_scans_and_origins() {
-        let flat = FlatCloud::from_scans(&two_scans());
-        assert_eq!(flat.points.len(), 3);
-        assert_eq!(
-            flat.origins,
-            Origins::PerPoint(vec![[1.0, 2.0, 0.5], [1.0, 2.0, 0.5], [-4.0, 0.25, 1.0]])
-        );
-        assert_eq!(flat.into_scans(None).unwrap().scans, two_scans());
-    }
-
-    #[test]
-    fn origin_rules() {
-        let pts = vec![[1.0, 1.0, 1.0], [f32::NAN, 0.0, 0.0]];
-        let unknown = FlatCloud {
-            points: pts.clone(),
-            origins: Origins::Unknown,
-        };
-        assert_eq!(unknown.clone().into_scans(None), Err(OriginError::Missing));
-        assert!(OriginError::Missing.to_string().contains("--origin"));
-        let got = unknown.into_scans(Some([0.0, 0.0, 2.0])).unwrap();
-        assert_eq!(got.dropped_nonfinite, 1);
-        assert_eq!(
-            got.scans,
-            vec![OriginScan {
-                origin: [0.0, 0.0, 2.0],
-                points: vec![[1.0, 1.0, 1.0]] // NaN point dropped
-            }]
-        );
-        let zero_vp = FlatCloud {
-            points: pts.clone(),
-            origins: Origins::Viewpoint([0.0; 3]),
-        };
-        assert_eq!(
-            zero_vp.clone().into_scans(None).unwrap().scans[0].origin,
-            [0.0; 3]
-        );
-        assert_eq!(
-            zero_vp.into_scans(Some([5.0, 0.0, 0.0])).unwrap().scans[0].origin,
-            [5.0, 0.0, 0.0]
-        );
-        let vp = FlatCloud {
-            points: pts,
-            origins: Origins::Viewpoint([1.0, 0.0, 0.0]),
-        };
-        assert_eq!(
-            vp.into_scans(Some([5.0, 0.0, 0.0])).unwrap().scans[0].origin,
-            [1.0, 0.0, 0.0]
-        );
-        let bad = FlatCloud {
-            points: vec![[0.0; 3]],
-            origins: Origins::PerPoint(vec![]),
-        };
-        assert_eq!(
-            bad.into_scans(None),
-            Err(OriginError::CountMismatch {
-                origins: 0,
-                points: 1
-            })
-        );
-    }
-
-    #[test]
-    fn nonfinite_points_and_origins_are_dropped_and_counted() {
-        let flat = FlatCloud {
-            points: vec![
-                [1.0, 0.0, 0.0],
-                [f32::NAN, 0.0, 0.0],
-                [2.0, 0.0, 0.0],
-                [0.0, f32::NEG_INFINITY, 0.0],
-                [3.0, 0.0, 0.0],
-            ],
-            origins: Origins::PerPoint(vec![
-                [0.0; 3],
-                [0.0; 3],
-                [0.0, f64::NAN, 0.0],
-                [0.0; 3],
-                [0.0; 3],
-            ]),
-        };
-        let got = flat.into_scans(None).unwrap();
-        assert_eq!(got.dropped_nonfinite, 3);
-        assert_eq!(
-            got.scans,
-            vec![OriginScan {
-                origin: [0.0; 3],
-                points: vec![[1.0, 0.0, 0.0], [3.0, 0.0, 0.0]]
-            }]
-        );
-    }
-
-    #[test]
-    fn a_per_point_origin_beyond_f32_is_dropped_at_read_not_lost_by_the_next_write() {
-        // Found by fuzz/fuzz_targets/pcd.rs (fuzz/regressions/pcd/): a finite f64 origin of
-        // 1e39 was kept, then written to an f32 `vp_x` as inf, and its point vanished on re-read.
-        let flat = FlatCloud {
-            points: vec![[1.0, 0.0, 0.0], [2.0, 0.0, 0.0], [3.0, 0.0, 0.0]],
-            origins: Origins::PerPoint(vec![[0.0; 3], [1e39, 0.0, 0.0], [0.5, 0.0, 0.0]]),
-        };
-        let got = flat.into_scans(None).unwrap();
-        assert_eq!(got.dropped_nonfinite, 1);
-        let kept: Vec<_> = got.scans.iter().flat_map(|s| s.points.clone()).collect();
-        assert_eq!(kept, vec![[1.0, 0.0, 0.0], [3.0, 0.0, 0.0]]);
-        let mut pcd = Vec::new();
-        crate::cloud::pcd::write_pcd_scans(&mut pcd, &got.scans, Encoding::Binary).unwrap();
-        let back = crate::cloud::pcd::parse_pcd(&pcd)
-            .unwrap()
-            .into_scans(None)
-            .unwrap();
-        assert_eq!(back.dropped_nonfinite, 0);
-        assert_eq!(back.scans, got.scans);
     }
 
     #[test]
@@ -448,11 +167,11 @@ mod tests {
         for name in ["a.scans", "a.ply", "a.PCD"] {
             for enc in [Encoding::Binary, Encoding::Ascii] {
                 let path = dir.path().join(name);
-                save_with(&path, &two_scans(), enc).unwrap();
-                assert_eq!(load(&path, None).unwrap(), two_scans(), "{name} {enc:?}");
+                save_with(&path, &two_bundles(), enc).unwrap();
+                assert_eq!(load(&path, None).unwrap(), two_bundles(), "{name} {enc:?}");
             }
         }
-        let e = save(&dir.path().join("a.graph"), &two_scans()).unwrap_err();
+        let e = save(&dir.path().join("a.graph"), &two_bundles()).unwrap_err();
         assert!(matches!(e, CloudIoError::UnknownExtension { .. }), "{e}");
         let e = load(&dir.path().join("missing.ply"), None).unwrap_err();
         assert!(matches!(e, CloudIoError::Io { .. }), "{e}");
@@ -470,10 +189,10 @@ mod tests {
         .unwrap();
         let e = load(&path, None).unwrap_err();
         assert!(e.to_string().contains("pass --origin"), "{e}");
-        let scans = load(&path, Some([0.0, 0.0, 1.0])).unwrap();
+        let bundles = load(&path, Some([0.0, 0.0, 1.0])).unwrap();
         assert_eq!(
-            scans,
-            vec![OriginScan {
+            bundles,
+            vec![RayBundle {
                 origin: [0.0, 0.0, 1.0],
                 points: vec![[1.0, 2.0, 3.0]]
             }]

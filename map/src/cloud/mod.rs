@@ -1,7 +1,10 @@
-//! Point clouds: static-scan assembly (eq. 1), per-sensor 2D scans, and PLY / PCD / .scans export.
+//! Point clouds: static-scan assembly (eq. 1), per-sensor revolutions ([`scans`]), filters,
+//! and the PLY / PCD / `.scans` formats ([`flat`] holds what their readers share, [`io`] picks
+//! one by extension).
 
 pub mod assembly;
 pub mod filter;
+pub mod flat;
 pub mod io;
 pub mod pcd;
 pub mod ply;
@@ -17,10 +20,11 @@ pub struct CloudPoint {
     pub intensity: f32,
 }
 
-/// Points of one revolution with the sensor origin they were seen from, as OctoMap's ray
-/// casting needs them.
+/// Points seen from one sensor origin (e.g. half a Sweep revolution of a static scan, or one
+/// node of a `.graph`), as OctoMap's ray casting needs them: one ray from `origin` to each
+/// point. One octree insertion takes one bundle.
 #[derive(Debug, Clone, PartialEq)]
-pub struct OriginScan {
+pub struct RayBundle {
     /// The sensor origin, world frame.
     pub origin: [f64; 3],
     /// The points, world frame.

@@ -20,8 +20,8 @@
 
 use std::io::{self, Write};
 
-use super::OriginScan;
-use super::io::{Encoding, FlatCloud, Origins};
+use super::RayBundle;
+use super::flat::{Encoding, FlatCloud, Origins};
 
 /// Most `FIELDS` a header may declare (PCL's largest point types have a few dozen).
 pub const MAX_FIELDS: usize = 4096;
@@ -527,19 +527,19 @@ fn parse_ascii(body: &[u8], header: &Header, layout: &Layout) -> Result<Decoded,
     Ok((points, origins))
 }
 
-/// Writes scans as one PCD (v0.7, `HEIGHT 1`). When every non-empty scan has the same origin
+/// Writes bundles as one PCD (v0.7, `HEIGHT 1`). When every non-empty bundle has the same origin
 /// the fields are `x y z` (`F 4`) and the origin is the `VIEWPOINT`; otherwise the fields are
 /// `x y z vp_x vp_y vp_z` (all `F 4`, origins narrowed to f32) and `VIEWPOINT` is the default
 /// `0 0 0 1 0 0 0`. ASCII bodies print values in Rust's shortest round-trip form (`nan` for
 /// NaN, as PCL writes it).
-pub fn write_pcd_scans<W: Write>(
+pub fn write_pcd_bundles<W: Write>(
     mut out: W,
-    scans: &[OriginScan],
+    bundles: &[RayBundle],
     encoding: Encoding,
 ) -> io::Result<()> {
-    let n: usize = scans.iter().map(|s| s.points.len()).sum();
-    let mut non_empty = scans.iter().filter(|s| !s.points.is_empty());
-    let first = non_empty.next().or(scans.first()).map(|s| s.origin);
+    let n: usize = bundles.iter().map(|s| s.points.len()).sum();
+    let mut non_empty = bundles.iter().filter(|s| !s.points.is_empty());
+    let first = non_empty.next().or(bundles.first()).map(|s| s.origin);
     let single =
         non_empty.all(|s| Some(s.origin.map(f64::to_bits)) == first.map(|o| o.map(f64::to_bits)));
     let (fields, size, ty, count, vp) = if single {
@@ -571,9 +571,9 @@ pub fn write_pcd_scans<W: Write>(
          POINTS {n}\nDATA {data}\n"
     )?;
     let mut body = Vec::with_capacity(n * if single { 12 } else { 24 });
-    for scan in scans {
-        let o = scan.origin.map(|c| c as f32);
-        for p in &scan.points {
+    for bundle in bundles {
+        let o = bundle.origin.map(|c| c as f32);
+        for p in &bundle.points {
             let values = if single {
                 &p[..]
             } else {
@@ -624,20 +624,20 @@ mod tests {
         )
     }
 
-    fn one_origin() -> Vec<OriginScan> {
-        vec![OriginScan {
+    fn one_origin() -> Vec<RayBundle> {
+        vec![RayBundle {
             origin: [0.1, -2.0, 1.5],
             points: vec![[1.0, -2.0, 0.5], [0.0, 0.25, 3.0]],
         }]
     }
 
-    fn two_origins() -> Vec<OriginScan> {
+    fn two_origins() -> Vec<RayBundle> {
         vec![
-            OriginScan {
+            RayBundle {
                 origin: [1.0, 0.0, 0.0],
                 points: vec![[1.0, 2.0, 3.0]],
             },
-            OriginScan {
+            RayBundle {
                 origin: [0.0, -1.0, 0.5],
                 points: vec![[0.5, 0.0, -4.0]],
             },
@@ -647,7 +647,7 @@ mod tests {
     #[test]
     fn binary_writer_single_origin_uses_viewpoint() {
         let mut bytes = Vec::new();
-        write_pcd_scans(&mut bytes, &one_origin(), Encoding::Binary).unwrap();
+        write_pcd_bundles(&mut bytes, &one_origin(), Encoding::Binary).unwrap();
         let mut expected = header(
             "x y z",
             "4 4 4",
@@ -669,7 +669,7 @@ mod tests {
     #[test]
     fn binary_writer_many_origins_uses_vp_fields() {
         let mut bytes = Vec::new();
-        write_pcd_scans(&mut bytes, &two_origins(), Encoding::Binary).unwrap();
+        write_pcd_bundles(&mut bytes, &two_origins(), Encoding::Binary).unwrap();
         let mut expected = header(
             "x y z vp_x vp_y vp_z",
             "4 4 4 4 4 4",
@@ -693,7 +693,7 @@ mod tests {
     #[test]
     fn ascii_writer_text_is_exact() {
         let mut bytes = Vec::new();
-        write_pcd_scans(&mut bytes, &two_origins(), Encoding::Ascii).unwrap();
+        write_pcd_bundles(&mut bytes, &two_origins(), Encoding::Ascii).unwrap();
         let expected = header(
             "x y z vp_x vp_y vp_z",
             "4 4 4 4 4 4",
@@ -709,11 +709,11 @@ mod tests {
     #[test]
     fn round_trips() {
         for enc in [Encoding::Binary, Encoding::Ascii] {
-            for scans in [one_origin(), two_origins()] {
+            for bundles in [one_origin(), two_origins()] {
                 let mut bytes = Vec::new();
-                write_pcd_scans(&mut bytes, &scans, enc).unwrap();
+                write_pcd_bundles(&mut bytes, &bundles, enc).unwrap();
                 let flat = parse_pcd(&bytes).unwrap();
-                assert_eq!(flat.into_scans(None).unwrap().scans, scans, "{enc:?}");
+                assert_eq!(flat.into_bundles(None).unwrap().bundles, bundles, "{enc:?}");
             }
         }
     }

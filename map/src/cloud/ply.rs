@@ -9,14 +9,14 @@
 //! **Sensor origins.** scan3d stores each point's sensor origin as three extra vertex
 //! properties `sx sy sz` (any scalar type on read; written as `float`). A PLY with all three has
 //! per-point origins; a PLY without them has no origin ([`Origins::Unknown`]); a PLY with only
-//! some of them is an error. The writer always emits them for a cloud of [`OriginScan`]s.
+//! some of them is an error. The writer always emits them for a cloud of [`RayBundle`]s.
 //! Origins are narrowed to f32 in PLY, which is what OctoMap insertion uses anyway
 //! (`research/octomap.md` §6.5); use `.scans` for exact f64 origins.
 
 use std::io::{self, Write};
 
-use super::io::{Encoding, FlatCloud, Origins};
-use super::{CloudPoint, OriginScan};
+use super::flat::{Encoding, FlatCloud, Origins};
+use super::{CloudPoint, RayBundle};
 
 /// Writes `points` as a binary little-endian PLY with `float x, y, z, intensity` per vertex.
 pub fn write_ply<W: Write>(mut out: W, points: &[CloudPoint]) -> io::Result<()> {
@@ -37,15 +37,15 @@ pub fn write_ply<W: Write>(mut out: W, points: &[CloudPoint]) -> io::Result<()> 
     out.flush()
 }
 
-/// Writes scans as one PLY vertex list with `float x y z sx sy sz` per vertex, `(sx, sy, sz)`
+/// Writes bundles as one PLY vertex list with `float x y z sx sy sz` per vertex, `(sx, sy, sz)`
 /// being the point's sensor origin (narrowed to f32). Binary bodies are little-endian; ASCII
 /// bodies print each value in Rust's shortest round-trip form.
-pub fn write_ply_scans<W: Write>(
+pub fn write_ply_bundles<W: Write>(
     mut out: W,
-    scans: &[OriginScan],
+    bundles: &[RayBundle],
     encoding: Encoding,
 ) -> io::Result<()> {
-    let n: usize = scans.iter().map(|s| s.points.len()).sum();
+    let n: usize = bundles.iter().map(|s| s.points.len()).sum();
     let format = match encoding {
         Encoding::Binary => "binary_little_endian",
         Encoding::Ascii => "ascii",
@@ -57,9 +57,9 @@ pub fn write_ply_scans<W: Write>(
          property float sx\nproperty float sy\nproperty float sz\nend_header\n"
     )?;
     let mut body = Vec::with_capacity(n * 24);
-    for scan in scans {
-        let o = scan.origin.map(|c| c as f32);
-        for p in &scan.points {
+    for bundle in bundles {
+        let o = bundle.origin.map(|c| c as f32);
+        for p in &bundle.points {
             match encoding {
                 Encoding::Binary => {
                     for v in p.iter().chain(&o) {
@@ -612,13 +612,13 @@ mod tests {
         property float x\nproperty float y\nproperty float z\n\
         property float sx\nproperty float sy\nproperty float sz\nend_header\n";
 
-    fn scans() -> Vec<OriginScan> {
+    fn bundles() -> Vec<RayBundle> {
         vec![
-            OriginScan {
+            RayBundle {
                 origin: [1.0, 0.0, -2.0],
                 points: vec![[0.5, 1.0, 2.0]],
             },
-            OriginScan {
+            RayBundle {
                 origin: [0.0, 0.25, 0.0],
                 points: vec![[-1.0, 0.0, 3.0]],
             },
@@ -628,7 +628,7 @@ mod tests {
     #[test]
     fn binary_writer_bytes_are_exact() {
         let mut bytes = Vec::new();
-        write_ply_scans(&mut bytes, &scans(), Encoding::Binary).unwrap();
+        write_ply_bundles(&mut bytes, &bundles(), Encoding::Binary).unwrap();
         let mut expected =
             format!("ply\nformat binary_little_endian 1.0\n{SCANS_HEADER}").into_bytes();
         #[rustfmt::skip]
@@ -644,7 +644,7 @@ mod tests {
     #[test]
     fn ascii_writer_text_is_exact() {
         let mut bytes = Vec::new();
-        write_ply_scans(&mut bytes, &scans(), Encoding::Ascii).unwrap();
+        write_ply_bundles(&mut bytes, &bundles(), Encoding::Ascii).unwrap();
         let expected =
             format!("ply\nformat ascii 1.0\n{SCANS_HEADER}0.5 1 2 1 0 -2\n-1 0 3 0 0.25 0\n");
         assert_eq!(String::from_utf8(bytes).unwrap(), expected);
@@ -654,13 +654,13 @@ mod tests {
     fn round_trips_keep_origins() {
         for enc in [Encoding::Binary, Encoding::Ascii] {
             let mut bytes = Vec::new();
-            let scans = vec![OriginScan {
+            let bundles = vec![RayBundle {
                 origin: [0.1, -7.5, 1e-3],
                 points: vec![[0.1, 0.2, 0.3], [1e-7, -3.4e38, 12345.679]],
             }];
-            write_ply_scans(&mut bytes, &scans, enc).unwrap();
+            write_ply_bundles(&mut bytes, &bundles, enc).unwrap();
             let flat = parse_ply(&bytes).unwrap();
-            assert_eq!(flat.points, scans[0].points, "{enc:?}");
+            assert_eq!(flat.points, bundles[0].points, "{enc:?}");
             let o = [0.1f32, -7.5, 1e-3].map(f64::from);
             assert_eq!(flat.origins, Origins::PerPoint(vec![o, o]), "{enc:?}");
         }

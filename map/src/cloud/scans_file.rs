@@ -5,15 +5,15 @@
 //! u32 n; f64 ox, oy, oz; n × (f32 x, f32 y, f32 z)
 //! ```
 //!
-//! one record per scan, points in the world frame, `(ox, oy, oz)` the sensor origin the scan was
-//! seen from. It keeps scan boundaries and f64 origins exactly, so it is the format to hand to
-//! the octree. [`parse_scans`] is pure (bytes in, scans out); [`read_scans_file`] and
+//! one record per bundle, points in the world frame, `(ox, oy, oz)` the sensor origin the bundle was
+//! seen from. It keeps bundle boundaries and f64 origins exactly, so it is the format to hand to
+//! the octree. [`parse_scans`] is pure (bytes in, bundles out); [`read_scans_file`] and
 //! [`write_scans_file`] are the thin file shells.
 
 use std::io::{self, Write};
 use std::path::Path;
 
-use super::OriginScan;
+use super::RayBundle;
 
 /// Bytes of a record header: `u32 n` and three `f64`.
 const RECORD_HEADER: usize = 4 + 3 * 8;
@@ -46,11 +46,11 @@ pub enum ScansError {
         /// Bytes left after the record header.
         available: usize,
     },
-    /// A scan has more points than a `u32` can count.
-    #[error("scan {scan} has {points} points, more than a .scans record can hold (2^32 - 1)")]
+    /// A bundle has more points than a `u32` can count.
+    #[error("bundle {bundle} has {points} points, more than a .scans record can hold (2^32 - 1)")]
     TooManyPoints {
-        /// Index of the scan.
-        scan: usize,
+        /// Index of the bundle.
+        bundle: usize,
         /// Its point count.
         points: usize,
     },
@@ -62,8 +62,8 @@ pub enum ScansError {
 /// Decodes a whole `.scans` byte stream. Empty input is an empty cloud. Never allocates more
 /// than the bytes present justify: a record's `n` is checked against the remaining length
 /// before its points are read.
-pub fn parse_scans(bytes: &[u8]) -> Result<Vec<OriginScan>, ScansError> {
-    let mut scans = Vec::new();
+pub fn parse_scans(bytes: &[u8]) -> Result<Vec<RayBundle>, ScansError> {
+    let mut bundles = Vec::new();
     let mut offset = 0;
     while offset < bytes.len() {
         let rest = &bytes[offset..];
@@ -100,28 +100,28 @@ pub fn parse_scans(bytes: &[u8]) -> Result<Vec<OriginScan>, ScansError> {
                 xyz
             })
             .collect();
-        scans.push(OriginScan { origin, points });
+        bundles.push(RayBundle { origin, points });
         offset += RECORD_HEADER + point_bytes.len();
     }
-    Ok(scans)
+    Ok(bundles)
 }
 
-/// Writes `scans` as `.scans` records, one per scan, in order (empty scans give `n = 0`
-/// records so scan indices survive a round trip).
-pub fn write_scans<W: Write>(mut out: W, scans: &[OriginScan]) -> Result<(), ScansError> {
+/// Writes `bundles` as `.scans` records, one per bundle, in order (empty bundles give `n = 0`
+/// records so bundle indices survive a round trip).
+pub fn write_scans<W: Write>(mut out: W, bundles: &[RayBundle]) -> Result<(), ScansError> {
     let mut buf = Vec::new();
-    for (i, scan) in scans.iter().enumerate() {
-        let n = u32::try_from(scan.points.len()).map_err(|_| ScansError::TooManyPoints {
-            scan: i,
-            points: scan.points.len(),
+    for (i, bundle) in bundles.iter().enumerate() {
+        let n = u32::try_from(bundle.points.len()).map_err(|_| ScansError::TooManyPoints {
+            bundle: i,
+            points: bundle.points.len(),
         })?;
         buf.clear();
-        buf.reserve(RECORD_HEADER + scan.points.len() * POINT_BYTES);
+        buf.reserve(RECORD_HEADER + bundle.points.len() * POINT_BYTES);
         buf.extend_from_slice(&n.to_le_bytes());
-        for c in scan.origin {
+        for c in bundle.origin {
             buf.extend_from_slice(&c.to_le_bytes());
         }
-        for p in &scan.points {
+        for p in &bundle.points {
             for c in p {
                 buf.extend_from_slice(&c.to_le_bytes());
             }
@@ -133,14 +133,14 @@ pub fn write_scans<W: Write>(mut out: W, scans: &[OriginScan]) -> Result<(), Sca
 }
 
 /// Reads a `.scans` file (whole file into memory, then [`parse_scans`]).
-pub fn read_scans_file(path: &Path) -> Result<Vec<OriginScan>, ScansError> {
+pub fn read_scans_file(path: &Path) -> Result<Vec<RayBundle>, ScansError> {
     parse_scans(&std::fs::read(path)?)
 }
 
 /// Writes a `.scans` file, replacing any existing file.
-pub fn write_scans_file(path: &Path, scans: &[OriginScan]) -> Result<(), ScansError> {
+pub fn write_scans_file(path: &Path, bundles: &[RayBundle]) -> Result<(), ScansError> {
     let file = std::fs::File::create(path)?;
-    write_scans(io::BufWriter::new(file), scans)
+    write_scans(io::BufWriter::new(file), bundles)
 }
 
 #[cfg(test)]
@@ -163,8 +163,8 @@ mod tests {
         b
     }
 
-    fn expected() -> OriginScan {
-        OriginScan {
+    fn expected() -> RayBundle {
+        RayBundle {
             origin: [1.0, -2.0, 0.5],
             points: vec![[1.0, 2.0, 3.0], [-0.5, 0.0, 0.25]],
         }
@@ -182,12 +182,12 @@ mod tests {
         let mut bytes = two_point_record();
         // A second, empty record with origin (0, 0, 0).
         bytes.extend_from_slice(&[0u8; 28]);
-        let scans = parse_scans(&bytes).unwrap();
+        let bundles = parse_scans(&bytes).unwrap();
         assert_eq!(
-            scans,
+            bundles,
             vec![
                 expected(),
-                OriginScan {
+                RayBundle {
                     origin: [0.0; 3],
                     points: vec![]
                 }
@@ -200,15 +200,15 @@ mod tests {
     fn round_trip_through_a_file() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("x.scans");
-        let scans = vec![
+        let bundles = vec![
             expected(),
-            OriginScan {
+            RayBundle {
                 origin: [0.1, 0.2, 0.3],
                 points: vec![[f32::MIN_POSITIVE, -1e30, 7.0]],
             },
         ];
-        write_scans_file(&path, &scans).unwrap();
-        assert_eq!(read_scans_file(&path).unwrap(), scans);
+        write_scans_file(&path, &bundles).unwrap();
+        assert_eq!(read_scans_file(&path).unwrap(), bundles);
     }
 
     #[test]

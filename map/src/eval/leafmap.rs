@@ -4,54 +4,20 @@
 //! Why not just [`Octree`]: the metrics only need each leaf's first voxel, size and value in
 //! Morton order, and `Octree::leaves()` costs ~14 ns per leaf (64 ms for the 4.4 M leaves of the
 //! geb079_sim 0.05 m pair, more than the whole 50 ms budget). Reading the files' preorder
-//! streams directly into two flat arrays costs a few ns per node. The readers accept exactly
-//! what `Octree::read_bt`/`read_ot` accept (same header rules, size check and depth limit; the
-//! tests compare the two on every reference file) and return the same [`OctreeError`]s.
+//! streams directly into two flat arrays costs a few ns per node. The readers share the header
+//! parser and the preorder walk (`octree::walk`) with `Octree::read_bt`/`read_ot`, so they
+//! accept exactly the same files (the tests also compare the two on every reference file) and
+//! return the same [`OctreeError`]s.
 
 use super::VoxelBox;
 use crate::octree::{
-    BT_MAGIC, Header, OT_MAGIC, Octree, OctreeError, Resolution, SensorModel, TREE_DEPTH,
-    parse_header,
+    BT_MAGIC, Header, NodeVisitor, OT_MAGIC, Octree, OctreeError, Resolution, SensorModel,
+    TREE_DEPTH, compact3, morton, parse_header, spread3, unmorton, walk_bt, walk_ot,
 };
 
 /// Bits of a packed code that hold the Morton index of the leaf's first voxel.
 const MORTON_BITS: u32 = 48;
 const MORTON_MASK: u64 = (1 << MORTON_BITS) - 1;
-/// Depths 0..=16 of open inner nodes while reading (only 0..16 can be inner).
-const DEPTHS: usize = 17;
-
-/// Spreads the low 16 bits of `v` so that bit i lands at bit 3i.
-#[inline]
-pub(super) fn spread3(v: u64) -> u64 {
-    let mut x = v & 0xffff;
-    x = (x | (x << 16)) & 0x0000_ff00_00ff;
-    x = (x | (x << 8)) & 0x00f0_0f00_f00f;
-    x = (x | (x << 4)) & 0x0c30_c30c_30c3;
-    (x | (x << 2)) & 0x2492_4924_9249
-}
-
-/// Inverse of [`spread3`]: gathers bits 0, 3, 6, … into the low 16 bits.
-#[inline]
-fn compact3(v: u64) -> u16 {
-    let mut x = v & 0x2492_4924_9249;
-    x = (x ^ (x >> 2)) & 0x0c30_c30c_30c3;
-    x = (x ^ (x >> 4)) & 0x00f0_0f00_f00f;
-    x = (x ^ (x >> 8)) & 0x0000_ff00_00ff;
-    x = (x ^ (x >> 16)) & 0xffff;
-    x as u16
-}
-
-/// Morton index with x in the lowest bit (OctoMap's child order, so preorder = Morton order).
-#[inline]
-pub(super) fn morton(k: [u16; 3]) -> u64 {
-    spread3(u64::from(k[0])) | (spread3(u64::from(k[1])) << 1) | (spread3(u64::from(k[2])) << 2)
-}
-
-/// The key of a Morton index.
-#[inline]
-pub(super) fn unmorton(m: u64) -> [u16; 3] {
-    [compact3(m), compact3(m >> 1), compact3(m >> 2)]
-}
 
 /// One leaf: the first voxel of its cube, the cube's level (edge `2^level` voxels,
 /// `level = 16 - depth`) and its log-odds.
@@ -90,7 +56,7 @@ pub struct LeafMap {
 }
 
 /// Spread (Morton-masked) x coordinate bits; `<< 1` for y, `<< 2` for z.
-const AXIS: u64 = 0x2492_4924_9249;
+const AXIS: u64 = spread3(0xffff);
 
 /// Collects leaves in preorder and, on the way, the bounds, voxel totals and any non-finite
 /// value (one pass instead of three over the arrays afterwards).
@@ -120,7 +86,7 @@ impl Builder {
 
     /// A leaf whose first voxel has Morton index `m`, with `8^level` voxels.
     #[inline(always)]
-    fn leaf(&mut self, m: u64, level: u32, value: f32) {
+    fn push_leaf(&mut self, m: u64, level: u32, value: f32) {
         self.codes.push(m | (u64::from(level) << MORTON_BITS));
         self.values.push(value);
         // Spread coordinates compare like the coordinates, and a leaf's first voxel is
@@ -155,13 +121,27 @@ impl Builder {
     }
 }
 
+/// Only the leaves matter to the metrics; inner nodes carry nothing they use.
+impl NodeVisitor for Builder {
+    #[inline(always)]
+    fn inner(&mut self, _depth: u32, _mask: u8, _value: f32) {}
+
+    #[inline(always)]
+    fn leaf(&mut self, depth: u32, first: u64, value: f32) {
+        self.push_leaf(first, u32::from(TREE_DEPTH).saturating_sub(depth), value);
+    }
+
+    #[inline(always)]
+    fn close(&mut self, _depth: u32) {}
+}
+
 impl LeafMap {
     /// The leaves of an in-memory tree (through `Octree::leaves`).
     pub fn from_octree(tree: &Octree) -> Self {
         let mut b = Builder::new(tree.num_leaves() as usize, tree.model());
         for leaf in tree.leaves() {
             let level = u32::from(TREE_DEPTH - leaf.depth.min(TREE_DEPTH));
-            b.leaf(morton(leaf.key_range().0), level, leaf.log_odds);
+            b.push_leaf(morton(leaf.key_range().0), level, leaf.log_odds);
         }
         b.finish(*tree.resolution(), *tree.model(), tree.num_nodes() as u64)
     }
@@ -179,121 +159,19 @@ impl LeafMap {
     /// Reads a `.bt` file (2-bit child codes per inner node in preorder).
     pub fn read_bt(bytes: &[u8], model: SensorModel) -> Result<Self, OctreeError> {
         let (Header { size, res }, data) = parse_header(bytes, BT_MAGIC)?;
-        if size == 0 {
-            return Ok(Builder::new(0, &model).finish(res, model, 0));
-        }
         // Each data byte describes at most 4 nodes.
-        let mut b = Builder::new(
-            (size as usize).min(data.len().saturating_mul(4) + 1),
-            &model,
-        );
-        let mut records = data.chunks_exact(2);
-        let mut record = || -> Result<u16, OctreeError> {
-            records
-                .next()
-                .map(|r| u16::from(r[0]) | (u16::from(r[1]) << 8))
-                .ok_or(OctreeError::Truncated {
-                    what: ".bt node record",
-                })
-        };
-        // Per open inner node (index = its depth): Morton base and the child codes left.
-        let mut codes = [0u16; DEPTHS];
-        let mut bases = [0u64; DEPTHS];
-        codes[0] = record()?;
-        let mut d = 0usize;
-        let mut read = 1u64;
-        loop {
-            while codes[d] == 0 {
-                if d == 0 {
-                    if read != size {
-                        return Err(OctreeError::SizeMismatch { header: size, read });
-                    }
-                    return Ok(b.finish(res, model, size));
-                }
-                d -= 1;
-            }
-            let c = codes[d].trailing_zeros() / 2;
-            let code = (codes[d] >> (2 * c)) & 3;
-            codes[d] &= !(3 << (2 * c));
-            // Children of a depth-d node are at depth d + 1, i.e. level 15 - d.
-            let level = 15 - d as u32;
-            let base = bases[d] | (u64::from(c) << (3 * level));
-            read += 1;
-            if read > size {
-                return Err(OctreeError::SizeMismatch { header: size, read });
-            }
-            match code {
-                1 => b.leaf(base, level, model.clamp_min),
-                2 => b.leaf(base, level, model.clamp_max),
-                _ => {
-                    if level == 0 {
-                        return Err(OctreeError::TooDeep);
-                    }
-                    d += 1;
-                    codes[d] = record()?;
-                    bases[d] = base;
-                }
-            }
-        }
+        let cap = (size as usize).min(data.len().saturating_mul(4) + 1);
+        let mut b = Builder::new(cap, &model);
+        walk_bt(data, size, [model.clamp_min, model.clamp_max], &mut b)?;
+        Ok(b.finish(res, model, size))
     }
 
     /// Reads an `.ot` file (f32 log-odds and child mask per node, in preorder).
     pub fn read_ot(bytes: &[u8], model: SensorModel) -> Result<Self, OctreeError> {
         let (Header { size, res }, data) = parse_header(bytes, OT_MAGIC)?;
-        if size == 0 {
-            return Ok(Builder::new(0, &model).finish(res, model, 0));
-        }
         let mut b = Builder::new((size as usize).min(data.len() / 5 + 1), &model);
-        let mut nodes = data.chunks_exact(5);
-        let mut node = || -> Result<(f32, u8), OctreeError> {
-            nodes
-                .next()
-                .map(|c| (f32::from_le_bytes([c[0], c[1], c[2], c[3]]), c[4]))
-                .ok_or(OctreeError::Truncated { what: ".ot node" })
-        };
-        // Per open inner node (index = its depth): Morton base and the child mask left.
-        let mut masks = [0u8; DEPTHS];
-        let mut bases = [0u64; DEPTHS];
-        let (v, m) = node()?;
-        if m == 0 {
-            b.leaf(0, u32::from(TREE_DEPTH), v);
-        }
-        masks[0] = m;
-        let mut d = 0usize;
-        let mut read = 1u64;
-        loop {
-            while masks[d] == 0 {
-                if d == 0 {
-                    if read != size {
-                        return Err(OctreeError::SizeMismatch { header: size, read });
-                    }
-                    return Ok(b.finish(res, model, size));
-                }
-                d -= 1;
-            }
-            let c = masks[d].trailing_zeros();
-            masks[d] &= masks[d] - 1;
-            let level = 15 - d as u32;
-            let base = bases[d] | (u64::from(c) << (3 * level));
-            if read >= size {
-                return Err(OctreeError::SizeMismatch {
-                    header: size,
-                    read: read + 1,
-                });
-            }
-            let (v, m) = node()?;
-            read += 1;
-            if m == 0 {
-                b.leaf(base, level, v);
-            } else {
-                if level == 0 {
-                    return Err(OctreeError::TooDeep);
-                }
-                d += 1;
-                masks[d] = m;
-                bases[d] = base;
-            }
-        }
+        walk_ot(data, size, &mut b)?;
+        Ok(b.finish(res, model, size))
     }
 
     /// Voxel size and key conversions.
@@ -355,26 +233,4 @@ impl LeafMap {
 #[inline]
 pub(super) fn split_code(c: u64) -> (u64, u64) {
     (c & MORTON_MASK, 1u64 << (3 * (c >> MORTON_BITS)))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn morton_puts_x_lowest_and_round_trips() {
-        assert_eq!(morton([1, 0, 0]), 1);
-        assert_eq!(morton([0, 1, 0]), 2);
-        assert_eq!(morton([0, 0, 1]), 4);
-        assert_eq!(morton([2, 0, 0]), 8);
-        assert_eq!(morton([0xffff, 0xffff, 0xffff]), MORTON_MASK);
-        for k in [
-            [0, 0, 0],
-            [1, 2, 3],
-            [32768, 32767, 65535],
-            [0xabcd, 0x1234, 0x8001],
-        ] {
-            assert_eq!(unmorton(morton(k)), k);
-        }
-    }
 }

@@ -5,9 +5,10 @@ use std::hash::BuildHasherDefault;
 
 use serde::Serialize;
 
-use super::leafmap::{LeafMap, split_code, unmorton};
+use super::leafmap::{LeafMap, split_code};
 use super::{EvalError, FREE, OCCUPIED, Role, UNKNOWN, VoxelBox};
 use crate::octree::U64Hasher;
+use crate::octree::unmorton;
 
 /// Voxels known in both maps that share one (first map, second map) log-odds pair.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]

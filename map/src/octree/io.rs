@@ -1,10 +1,12 @@
 //! `.bt` (binary max-likelihood) and `.ot` (full) OcTree files, byte-compatible with OctoMap
-//! (research/octomap.md §6.1/§6.2). Pure: bytes in, bytes out.
+//! (research/octomap.md §6.1/§6.2). Pure: bytes in, bytes out. Reading walks the node stream
+//! with [`super::walk`], the walker `eval::LeafMap` uses too.
 
 use super::OctreeError;
 use super::key::{Resolution, TREE_DEPTH};
 use super::model::SensorModel;
 use super::tree::Octree;
+use super::walk::{NodeVisitor, walk_bt, walk_ot};
 
 /// First line of a `.bt` file.
 pub(crate) const BT_MAGIC: &str = "# Octomap OcTree binary file";
@@ -124,28 +126,118 @@ pub(crate) fn parse_header<'a>(
     Ok((Header { size, res }, &bytes[p.min(bytes.len())..]))
 }
 
-/// Child mask (bit i: child i exists) of a `.bt` record's eight 2-bit codes.
-#[inline]
-fn child_mask(codes: u16) -> u8 {
-    const NIBBLE: [u8; 256] = {
-        let mut t = [0u8; 256];
-        let mut i = 0;
-        while i < 256 {
-            let mut m = 0;
-            let mut c = 0;
-            while c < 4 {
-                if (i >> (2 * c)) & 3 != 0 {
-                    m |= 1 << c;
-                }
-                c += 1;
-            }
-            t[i] = m;
-            i += 1;
+/// Builds an [`Octree`]'s preorder arrays (values, child masks, subtree ends) and leaf counts
+/// from a walk, in one pass.
+struct TreeReader {
+    model: SensorModel,
+    /// `.bt`: inner values are the max of their children, the root's is clamp max.
+    derive_inner: bool,
+    values: Vec<f32>,
+    masks: Vec<u8>,
+    ends: Vec<u32>,
+    /// Per open inner node (index = its depth): its index and the max of its children so far.
+    open: [(u32, f32); TREE_DEPTH as usize],
+    leaves: u64,
+    occupied: u64,
+}
+
+impl TreeReader {
+    fn new(capacity: usize, model: SensorModel, derive_inner: bool) -> Self {
+        Self {
+            model,
+            derive_inner,
+            values: Vec::with_capacity(capacity),
+            masks: Vec::with_capacity(capacity),
+            ends: Vec::with_capacity(capacity),
+            open: [(0, 0.0); TREE_DEPTH as usize],
+            leaves: 0,
+            occupied: 0,
         }
-        t
-    };
-    let [lo, hi] = codes.to_le_bytes();
-    NIBBLE[usize::from(lo)] | (NIBBLE[usize::from(hi)] << 4)
+    }
+
+    /// Raises the running max of the inner node at `depth - 1` (the parent of a node at
+    /// `depth`) to `value`.
+    #[inline]
+    fn raise_parent(&mut self, depth: u32, value: f32) {
+        if let Some(parent) = (depth as usize)
+            .checked_sub(1)
+            .and_then(|p| self.open.get_mut(p))
+        {
+            parent.1 = parent.1.max(value);
+        }
+    }
+
+    fn finish(mut self, res: Resolution) -> Octree {
+        if self.derive_inner {
+            // The root keeps clamp max (OctoMap never recomputes it after reading).
+            if let Some(root) = self.values.first_mut() {
+                *root = self.model.clamp_max;
+            }
+        }
+        Octree::from_arrays(
+            res,
+            self.model,
+            self.values,
+            self.masks,
+            self.ends,
+            self.leaves,
+            self.occupied,
+        )
+    }
+}
+
+impl NodeVisitor for TreeReader {
+    #[inline]
+    fn inner(&mut self, depth: u32, mask: u8, value: f32) {
+        let n = self.values.len() as u32;
+        self.values.push(value);
+        self.masks.push(mask);
+        self.ends.push(0);
+        if let Some(o) = self.open.get_mut(depth as usize) {
+            *o = (n, -f32::MAX);
+        }
+    }
+
+    #[inline]
+    fn leaf(&mut self, depth: u32, _first: u64, value: f32) {
+        let n = self.values.len() as u32;
+        self.values.push(value);
+        self.masks.push(0);
+        self.ends.push(n + 1);
+        self.leaves += 1;
+        self.occupied += u64::from(self.model.is_occupied(value));
+        self.raise_parent(depth, value);
+    }
+
+    #[inline]
+    fn close(&mut self, depth: u32) {
+        let Some(&(node, max)) = self.open.get(depth as usize) else {
+            return;
+        };
+        let end = self.values.len() as u32;
+        if let Some(e) = self.ends.get_mut(node as usize) {
+            *e = end;
+        }
+        if self.derive_inner
+            && let Some(v) = self.values.get_mut(node as usize)
+        {
+            *v = max;
+        }
+        if end == node + 1 {
+            // An inner-node code whose record lists no child is a childless node, a leaf
+            // (OctoMap's getNumLeafNodes counts it) of value -FLT_MAX (getMaxChildLogOdds of
+            // no children); a childless root is a leaf at clamp max. OctoMap never writes
+            // one; a hand-made `.bt` can hold it.
+            let v = if depth == 0 {
+                self.model.clamp_max
+            } else {
+                max
+            };
+            self.leaves += 1;
+            self.occupied += u64::from(self.model.is_occupied(v));
+        }
+        self.raise_parent(depth, max);
+    }
 }
 
 impl Octree {
@@ -163,166 +255,20 @@ impl Octree {
     /// clamp max, inner nodes the max of their children, and the root keeps clamp max.
     pub fn read_bt(bytes: &[u8], model: SensorModel) -> Result<Octree, OctreeError> {
         let (h, data) = parse_header(bytes, BT_MAGIC)?;
-        if h.size == 0 {
-            return Ok(Octree::empty(h.res, model));
-        }
         // Each data byte describes at most 4 nodes: no allocation beyond what the file holds.
         let cap = (h.size as usize).min(data.len().saturating_mul(4) + 1);
-        let mut values: Vec<f32> = Vec::with_capacity(cap);
-        let mut masks: Vec<u8> = Vec::with_capacity(cap);
-        let mut ends: Vec<u32> = Vec::with_capacity(cap);
-        let (mut leaves, mut occupied) = (0u64, 0u64);
-        let leaf_value = [model.clamp_min, model.clamp_max];
-        let leaf_occupied = leaf_value.map(|v| u64::from(model.is_occupied(v)));
-        let too_many = |n: usize| OctreeError::SizeMismatch {
-            header: h.size,
-            read: n as u64,
-        };
-        let mut records = data.chunks_exact(2);
-        let mut record = || -> Result<u16, OctreeError> {
-            records
-                .next()
-                .map(|r| u16::from_le_bytes([r[0], r[1]]))
-                .ok_or(OctreeError::Truncated {
-                    what: ".bt node record",
-                })
-        };
-
-        // Open inner nodes: (codes of children not yet read, node index, max child value).
-        let mut stack = [(0u16, 0u32, 0f32); TREE_DEPTH as usize];
-        let mut depth = 0usize;
-        let codes = record()?;
-        values.push(0.0);
-        masks.push(child_mask(codes));
-        ends.push(0);
-        stack[0] = (codes, 0, -f32::MAX);
-        loop {
-            let (rest, node, max) = stack[depth];
-            if rest == 0 {
-                // Close the node: value = max of its children, subtree ends here.
-                let end = values.len() as u32;
-                if let (Some(v), Some(e)) =
-                    (values.get_mut(node as usize), ends.get_mut(node as usize))
-                {
-                    *v = max;
-                    *e = end;
-                }
-                if depth == 0 {
-                    break;
-                }
-                // An inner-node code whose record lists no child is a childless node, a leaf
-                // (OctoMap's getNumLeafNodes counts it) of value -FLT_MAX (getMaxChildLogOdds
-                // of no children). OctoMap never writes one; a hand-made file can hold it.
-                if end == node + 1 {
-                    leaves += 1;
-                    occupied += u64::from(model.is_occupied(max));
-                }
-                depth -= 1;
-                let parent = &mut stack[depth].2;
-                *parent = parent.max(max);
-                continue;
-            }
-            let shift = rest.trailing_zeros() & !1;
-            let code = (rest >> shift) & 3;
-            stack[depth].0 = rest & !(3 << shift);
-            let n = values.len();
-            if n as u64 >= h.size {
-                return Err(too_many(n + 1));
-            }
-            if code == 3 {
-                if depth + 1 >= usize::from(TREE_DEPTH) {
-                    return Err(OctreeError::TooDeep);
-                }
-                let codes = record()?;
-                values.push(0.0);
-                masks.push(child_mask(codes));
-                ends.push(0);
-                depth += 1;
-                stack[depth] = (codes, n as u32, -f32::MAX);
-            } else {
-                // Code 1 (free) or 2 (occupied).
-                let i = usize::from(code == 2);
-                let v = leaf_value[i];
-                values.push(v);
-                masks.push(0);
-                ends.push(n as u32 + 1);
-                leaves += 1;
-                occupied += leaf_occupied[i];
-                let m = &mut stack[depth].2;
-                *m = m.max(v);
-            }
-        }
-        // The root keeps clamp max (OctoMap never recomputes it after reading).
-        if let Some(root) = values.first_mut() {
-            *root = model.clamp_max;
-        }
-        if values.len() == 1 {
-            // A root record without children: the root alone, a leaf at clamp max.
-            leaves += 1;
-            occupied += u64::from(model.is_occupied(model.clamp_max));
-        }
-        if values.len() as u64 != h.size {
-            return Err(OctreeError::SizeMismatch {
-                header: h.size,
-                read: values.len() as u64,
-            });
-        }
-        Ok(Octree::from_arrays(
-            h.res, model, values, masks, ends, leaves, occupied,
-        ))
+        let mut tree = TreeReader::new(cap, model, true);
+        walk_bt(data, h.size, [model.clamp_min, model.clamp_max], &mut tree)?;
+        Ok(tree.finish(h.res))
     }
 
     /// Reads an `.ot` file (`AbstractOcTree::read` of an `OcTree`): values as stored.
     pub fn read_ot(bytes: &[u8], model: SensorModel) -> Result<Octree, OctreeError> {
         let (h, data) = parse_header(bytes, OT_MAGIC)?;
-        if h.size == 0 {
-            return Ok(Octree::empty(h.res, model));
-        }
         let cap = (h.size as usize).min(data.len() / 5 + 1);
-        let mut values = Vec::with_capacity(cap);
-        let mut masks = Vec::with_capacity(cap);
-        let mut chunks = data.chunks_exact(5);
-        let mut node = |depth: usize, stack: &mut Vec<u32>| -> Result<(), OctreeError> {
-            let c = chunks
-                .next()
-                .ok_or(OctreeError::Truncated { what: ".ot node" })?;
-            let m = c[4];
-            values.push(f32::from_le_bytes([c[0], c[1], c[2], c[3]]));
-            masks.push(m);
-            if m != 0 {
-                if depth >= usize::from(TREE_DEPTH) {
-                    return Err(OctreeError::TooDeep);
-                }
-                stack.push(m.count_ones());
-            }
-            Ok(())
-        };
-        let mut stack: Vec<u32> = Vec::with_capacity(17);
-        node(0, &mut stack)?;
-        let mut read = 1u64;
-        while let Some(top) = stack.last_mut() {
-            if *top == 0 {
-                stack.pop();
-                continue;
-            }
-            *top -= 1;
-            if read >= h.size {
-                return Err(OctreeError::SizeMismatch {
-                    header: h.size,
-                    read: read + 1,
-                });
-            }
-            let depth = stack.len();
-            node(depth, &mut stack)?;
-            read += 1;
-        }
-        if read != h.size {
-            return Err(OctreeError::SizeMismatch {
-                header: h.size,
-                read,
-            });
-        }
-        Ok(Octree::from_parts(h.res, model, values, masks))
+        let mut tree = TreeReader::new(cap, model, false);
+        walk_ot(data, h.size, &mut tree)?;
+        Ok(tree.finish(h.res))
     }
 
     /// The `.ot` file of this tree as it is (`OcTree::write`).

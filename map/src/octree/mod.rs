@@ -1,16 +1,16 @@
 //! OctoMap-compatible occupancy octree: keys, ray stepping, voxel storage and `.bt`/`.ot`/`.graph` I/O.
 //!
 //! Semantics follow OctoMap 1.9.7's `insertPointCloud` bit for bit (research/octomap.md): the
-//! same keys, rays, per-scan de-duplication, f32 log-odds and pruning, so written `.bt`/`.ot`
+//! same keys, rays, per-bundle de-duplication, f32 log-odds and pruning, so written `.bt`/`.ot`
 //! files are byte-identical to OctoMap's. The design is not OctoMap's pointer tree:
-//! [`VoxelMap`] keeps one value per known voxel in 4×4×4 blocks and marks each scan's rays in
+//! [`VoxelMap`] keeps one value per known voxel in 4×4×4 bricks and marks each bundle's rays in
 //! a dense window, and the [`Octree`] (flat preorder arrays) is derived only when a file is
 //! written or a tree query is needed.
 //!
 //! **One deviation from OctoMap:** a ray whose f32 length is 0 or not finite although its end
 //! is in another voxel (e.g. from (0,0,0) to (−1e-30, −1e-30, 0)) is skipped and counted in
 //! [`InsertStats::degenerate_rays`]; OctoMap asserts there (and hangs with `-DNDEBUG`). See
-//! the `ray` module docs. Insertion has a scalar and an AVX2 [`Kernel`] giving the same
+//! the `ray` module docs. Insertion has scalar, AVX2 and AVX-512 [`Kernel`]s giving the same
 //! keys; `SCAN3D_OCTREE_KERNEL=scalar` forces the scalar one.
 //!
 //! ```no_run
@@ -18,8 +18,8 @@
 //! # fn main() -> Result<(), OctreeError> {
 //! let bytes = std::fs::read("map.graph").unwrap_or_default();
 //! let mut map = VoxelMap::new(Resolution::new(0.1)?, SensorModel::default());
-//! for scan in read_graph(&bytes)? {
-//!     map.insert_scan(&scan, -1.0);
+//! for bundle in read_graph(&bytes)? {
+//!     map.insert_bundle(&bundle, -1.0);
 //! }
 //! let tree = map.to_octree();
 //! let ot = tree.to_ot_bytes(); // OcTree::write
@@ -34,16 +34,19 @@ mod model;
 mod ray;
 mod tree;
 mod voxels;
+mod walk;
 
-pub use graph::{read_graph, transform_point};
+pub use graph::{read_graph, read_graph_from, transform_point};
 pub use io::format_resolution;
 pub(crate) use io::{BT_MAGIC, Header, OT_MAGIC, parse_header};
 pub use key::{KEY_CENTER, Key, Resolution, TREE_DEPTH};
+pub(crate) use key::{compact3, morton, spread3, unmorton};
 pub use model::{SensorModel, logodds};
 pub use ray::{KERNEL_ENV, Kernel, ray_keys};
 pub use tree::{Leaf, Leaves, Octree};
 pub(crate) use voxels::U64Hasher;
 pub use voxels::{InsertStats, VoxelMap};
+pub(crate) use walk::{NodeVisitor, walk_bt, walk_ot};
 
 /// Why a file could not be read (or a parameter was rejected).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -84,4 +87,12 @@ pub enum OctreeError {
     /// A node below depth 16 claims children.
     #[error("tree deeper than 16 levels")]
     TooDeep,
+    /// The stream being read failed (not an end of data, which is [`OctreeError::Truncated`]).
+    #[error("cannot read {what}: {reason}")]
+    Read {
+        /// What was being read.
+        what: &'static str,
+        /// The I/O error, as text (so the error stays `Clone` and comparable).
+        reason: String,
+    },
 }

@@ -12,9 +12,10 @@
 //! positive length is affected, so maps stay byte-identical to OctoMap's wherever OctoMap
 //! finishes.
 //!
-//! **Kernels.** With AVX2 (x86-64), rays are stepped four per vector; otherwise in scalar
-//! pairs. [`Kernel`] picks one explicitly (tests and CI run both on the same machine);
-//! `SCAN3D_OCTREE_KERNEL=scalar` forces the scalar kernels process-wide.
+//! **Kernels.** With AVX-512F (x86-64), rays are stepped eight per vector, with AVX2 four;
+//! otherwise in scalar pairs. [`Kernel`] picks one explicitly (tests run all of them on the
+//! same machine, each where the CPU has it); `SCAN3D_OCTREE_KERNEL=scalar` (or `avx2`) forces
+//! the narrower kernels process-wide.
 
 use std::hint::select_unpredictable;
 use std::sync::OnceLock;
@@ -22,7 +23,7 @@ use std::sync::OnceLock;
 use super::key::{Key, Resolution};
 
 /// Which implementation of the insertion kernels (ray stepping, and point-to-key conversion
-/// without a max range) runs. Both give exactly the same keys.
+/// without a max range) runs. All give exactly the same keys.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Kernel {
     /// Portable scalar code (rays stepped in interleaved pairs).
@@ -30,40 +31,60 @@ pub enum Kernel {
     /// Four rays (or points) per AVX2 vector where the CPU has AVX2 (checked at each
     /// insertion); the scalar kernels elsewhere.
     Avx2,
+    /// Eight rays per AVX-512 vector where the CPU has AVX-512F, points four per AVX2 vector;
+    /// [`Kernel::Avx2`]'s kernels on a CPU with AVX2 only, the scalar ones elsewhere.
+    Avx512,
 }
 
-/// The environment variable that forces the scalar kernels (`SCAN3D_OCTREE_KERNEL=scalar`).
+/// The environment variable that picks the kernels (`SCAN3D_OCTREE_KERNEL=scalar`, `avx2`,
+/// `avx512` or `auto`).
 pub const KERNEL_ENV: &str = "SCAN3D_OCTREE_KERNEL";
 
 impl Kernel {
-    /// The process default: [`Kernel::Scalar`] if `SCAN3D_OCTREE_KERNEL=scalar`, else
-    /// [`Kernel::Avx2`] (`avx2` or `auto` say so explicitly). The variable is read once; any
-    /// other value is reported with a warning and ignored.
+    /// The process default: [`Kernel::Scalar`] if `SCAN3D_OCTREE_KERNEL=scalar`,
+    /// [`Kernel::Avx2`] if `avx2`, else [`Kernel::Avx512`] (the widest the CPU has; `avx512`
+    /// or `auto` say so explicitly). The variable is read once; any other value is reported
+    /// with a warning and ignored.
     pub fn from_env() -> Self {
         static KERNEL: OnceLock<Kernel> = OnceLock::new();
-        *KERNEL.get_or_init(|| match std::env::var(KERNEL_ENV) {
-            Ok(v) if v.eq_ignore_ascii_case("scalar") => Kernel::Scalar,
-            Ok(v) if v.eq_ignore_ascii_case("avx2") || v.eq_ignore_ascii_case("auto") => {
-                Kernel::Avx2
-            }
-            Err(std::env::VarError::NotPresent) => Kernel::Avx2,
-            Ok(v) => {
-                tracing::warn!("{KERNEL_ENV}={v:?} is not scalar, avx2 or auto: using auto");
-                Kernel::Avx2
-            }
-            Err(std::env::VarError::NotUnicode(v)) => {
-                tracing::warn!("{KERNEL_ENV}={v:?} is not scalar, avx2 or auto: using auto");
-                Kernel::Avx2
+        *KERNEL.get_or_init(|| {
+            let unknown = |v: &dyn std::fmt::Debug| {
+                tracing::warn!(
+                    "{KERNEL_ENV}={v:?} is not scalar, avx2, avx512 or auto: using auto"
+                );
+                Kernel::Avx512
+            };
+            match std::env::var(KERNEL_ENV) {
+                Ok(v) if v.eq_ignore_ascii_case("scalar") => Kernel::Scalar,
+                Ok(v) if v.eq_ignore_ascii_case("avx2") => Kernel::Avx2,
+                Ok(v) if v.eq_ignore_ascii_case("avx512") || v.eq_ignore_ascii_case("auto") => {
+                    Kernel::Avx512
+                }
+                Err(std::env::VarError::NotPresent) => Kernel::Avx512,
+                Ok(v) => unknown(&v),
+                Err(std::env::VarError::NotUnicode(v)) => unknown(&v),
             }
         })
     }
 
-    /// Whether this choice runs the AVX2 kernels on this CPU.
+    /// Whether this choice runs the AVX2 kernels (points to keys, and rays unless
+    /// [`Kernel::uses_avx512`]) on this CPU.
     #[inline]
     pub(crate) fn uses_avx2(self) -> bool {
         #[cfg(target_arch = "x86_64")]
-        if self == Kernel::Avx2 {
+        if self != Kernel::Scalar {
             return std::arch::is_x86_feature_detected!("avx2");
+        }
+        false
+    }
+
+    /// Whether this choice steps rays with the AVX-512 kernel on this CPU.
+    #[inline]
+    pub(crate) fn uses_avx512(self) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        if self == Kernel::Avx512 {
+            return std::arch::is_x86_feature_detected!("avx512f")
+                && std::arch::is_x86_feature_detected!("popcnt");
         }
         false
     }
@@ -171,7 +192,7 @@ pub(crate) struct RayStepper {
 
 /// More steps than any ray between two in-range keys takes: each step moves one key field by
 /// one towards the end voxel (at most 65 535 per axis), plus one past it per axis at the stop
-/// rule. Debug builds assert it in both kernels, so a ray that cannot end fails loudly.
+/// rule. Debug builds assert it in every kernel, so a ray that cannot end fails loudly.
 // Only `debug_assert!`s read it, which release builds compile out.
 #[cfg_attr(not(debug_assertions), allow(dead_code))]
 pub(crate) const MAX_RAY_STEPS: u32 = 3 * 65_536 + 3;
@@ -296,6 +317,12 @@ pub(crate) fn mark_free(
     ends: impl Iterator<Item = ([f32; 3], Key)>,
     marks: &mut impl FreeMarks,
 ) -> u64 {
+    if kernel.uses_avx512() {
+        // SAFETY: `uses_avx512` checked that the CPU supports AVX-512F, the only requirement
+        // of `avx512::mark_free`'s `#[target_feature]`.
+        #[cfg(target_arch = "x86_64")]
+        return unsafe { avx512::mark_free(res, origin, key_origin, ends, marks) };
+    }
     if kernel.uses_avx2() {
         // SAFETY: `uses_avx2` checked that the CPU supports AVX2, the only requirement of
         // `avx2::mark_free`'s `#[target_feature]`.
@@ -685,6 +712,272 @@ mod avx2 {
     }
 }
 
+/// Eight rays per AVX-512 vector, one per lane: [`avx2`]'s kernel with mask registers for the
+/// lane choices and a compress for the gathered marks.
+#[cfg(target_arch = "x86_64")]
+mod avx512 {
+    use std::arch::x86_64::*;
+
+    use super::{FIELD, FreeMarks, Key, Resolution, pack};
+
+    /// Brick part of a packed key (see `voxels`): each 21-bit field shifted down by 2.
+    const PACKED_BRICK: i64 = ((FIELD >> 2) | ((FIELD >> 2) << 21) | ((FIELD >> 2) << 42)) as i64;
+    /// Capacity of the buffer of gathered (cell, marks) pairs written in batches.
+    const PENDING: usize = 512;
+
+    /// Gathered marks waiting to be written.
+    struct Pending {
+        cell: [u64; PENDING],
+        bits: [u64; PENDING],
+        n: usize,
+    }
+
+    impl Pending {
+        /// Appends the lanes of `cell`/`bits` set in `lanes`, compressed to the front and
+        /// stored with one vector store each. Needs `n <= PENDING - 8`.
+        #[target_feature(enable = "avx512f,popcnt")]
+        fn push(&mut self, cell: __m512i, bits: __m512i, lanes: __mmask8) {
+            debug_assert!(
+                self.n + 8 <= PENDING,
+                "pending buffer not drained: {} of {PENDING}",
+                self.n
+            );
+            let n = self.n;
+            if let (Some(c), Some(b)) = (self.cell.get_mut(n..n + 8), self.bits.get_mut(n..n + 8)) {
+                // SAFETY: `c` and `b` are 8 u64s each, the 64 bytes the unaligned stores write.
+                unsafe {
+                    _mm512_storeu_si512(
+                        c.as_mut_ptr().cast(),
+                        _mm512_maskz_compress_epi64(lanes, cell),
+                    );
+                    _mm512_storeu_si512(
+                        b.as_mut_ptr().cast(),
+                        _mm512_maskz_compress_epi64(lanes, bits),
+                    );
+                }
+                self.n = n + lanes.count_ones() as usize;
+            }
+        }
+
+        fn drain(&mut self, marks: &mut impl FreeMarks) {
+            let (_, [dx, dy, dz]) = marks.window();
+            let cells = u64::from(dx) * u64::from(dy) * u64::from(dz);
+            for (&c, &b) in self.cell.iter().zip(&self.bits).take(self.n) {
+                debug_assert!(c < cells, "cell {c} outside a window of {cells} cells");
+                debug_assert!(b != 0, "a pending entry without marks");
+                marks.mark_cell(c as u32, b);
+            }
+            self.n = 0;
+        }
+    }
+
+    const _: () = assert!(size_of::<[u64; 8]>() == size_of::<__m512i>());
+
+    /// The lanes of a vector of u64.
+    #[target_feature(enable = "avx512f,popcnt")]
+    fn lanes(v: __m512i) -> [u64; 8] {
+        let mut out = [0u64; 8];
+        // SAFETY: `out` is 8 u64s, the 64 bytes the unaligned store writes.
+        unsafe { _mm512_storeu_si512(out.as_mut_ptr().cast(), v) };
+        out
+    }
+
+    /// [`super::avx2::mark_free`] eight lanes wide: the same operations per lane, so the same
+    /// keys; see there for the steps.
+    #[target_feature(enable = "avx512f,popcnt")]
+    pub(super) fn mark_free(
+        res: &Resolution,
+        origin: [f32; 3],
+        key_origin: Key,
+        ends: impl Iterator<Item = ([f32; 3], Key)>,
+        marks: &mut impl FreeMarks,
+    ) -> u64 {
+        let mut ends = ends;
+        let mut degenerate = 0u64;
+        let r = res.meters();
+        let half = f64::from((r * 0.5) as f32);
+        let num = [0, 1, 2].map(|i| {
+            let c = res.key_to_coord_axis(key_origin.0[i]);
+            let o = f64::from(origin[i]);
+            (
+                _mm512_set1_pd((c + half) - o),
+                _mm512_set1_pd((c + -half) - o),
+            )
+        });
+        let o8 = [0, 1, 2].map(|i| _mm256_set1_ps(origin[i]));
+        let rv = _mm512_set1_pd(r);
+        let max = _mm512_set1_pd(f64::MAX);
+        let zero_pd = _mm512_setzero_pd();
+        let k0 = _mm512_set1_epi64(pack(key_origin) as i64);
+
+        let (lo, dim) = marks.window();
+        debug_assert!(
+            dim.iter().map(|&d| u64::from(d)).product::<u64>() < 1 << 32,
+            "window {dim:?} too large for u32 cells"
+        );
+        debug_assert!(
+            lo & !(PACKED_BRICK as u64) == 0,
+            "window origin {lo:#x} is not in packed brick fields"
+        );
+        let lo = _mm512_set1_epi64(lo as i64);
+        let [dx, dy, dz] = dim.map(|d| _mm512_set1_epi64(i64::from(d)));
+        let brick = _mm512_set1_epi64(PACKED_BRICK);
+        let field = _mm512_set1_epi64(FIELD as i64);
+        let one = _mm512_set1_epi64(1);
+        let zero = _mm512_setzero_si512();
+        let mut pending = Pending {
+            cell: [0; PENDING],
+            bits: [0; PENDING],
+            n: 0,
+        };
+        loop {
+            let mut e = [[0f32; 8]; 3];
+            let mut end = [0i64; 8];
+            let mut live: u8 = 0;
+            let mut any = false;
+            for l in 0..8 {
+                if let Some((p, k)) = ends.next() {
+                    any = true;
+                    for i in 0..3 {
+                        e[i][l] = p[i];
+                    }
+                    end[l] = pack(k) as i64;
+                    live |= u8::from(k != key_origin) << l;
+                } else {
+                    for i in 0..3 {
+                        e[i][l] = origin[i];
+                    }
+                }
+            }
+            if !any {
+                break;
+            }
+            if live == 0 {
+                continue;
+            }
+            let d = [0, 1, 2].map(|i| {
+                // SAFETY: `e[i]` is 8 f32s, the 32 bytes the unaligned load reads.
+                _mm256_sub_ps(unsafe { _mm256_loadu_ps(e[i].as_ptr()) }, o8[i])
+            });
+            let len2 = _mm256_add_ps(
+                _mm256_add_ps(_mm256_mul_ps(d[0], d[0]), _mm256_mul_ps(d[1], d[1])),
+                _mm256_mul_ps(d[2], d[2]),
+            );
+            let length32 = _mm512_cvtpd_ps(_mm512_sqrt_pd(_mm512_cvtps_pd(len2)));
+            let length = _mm512_cvtps_pd(length32);
+            let usable = _mm512_cmp_pd_mask::<_CMP_GT_OQ>(length, zero_pd)
+                & _mm512_cmp_pd_mask::<_CMP_LT_OQ>(length, _mm512_set1_pd(f64::INFINITY));
+            degenerate += u64::from((live & !usable).count_ones());
+            live &= usable;
+            if live == 0 {
+                continue;
+            }
+            let mut t = [max; 3];
+            let mut dt = [max; 3];
+            let mut inc = [zero; 3];
+            for i in 0..3 {
+                let dir = _mm512_cvtps_pd(_mm256_div_ps(d[i], length32));
+                let pos = _mm512_cmp_pd_mask::<_CMP_GT_OQ>(dir, zero_pd);
+                let neg = _mm512_cmp_pd_mask::<_CMP_LT_OQ>(dir, zero_pd);
+                let moving = pos | neg;
+                let n = _mm512_mask_blend_pd(pos, num[i].1, num[i].0);
+                t[i] = _mm512_mask_div_pd(max, moving, n, dir);
+                dt[i] = _mm512_mask_div_pd(max, moving, rv, _mm512_abs_pd(dir));
+                let unit = _mm512_set1_epi64(1i64 << (21 * i));
+                inc[i] = _mm512_mask_sub_epi64(_mm512_maskz_mov_epi64(pos, unit), neg, zero, unit);
+            }
+            // SAFETY: `end` is 8 i64s, the 64 bytes the unaligned load reads.
+            let end = unsafe { _mm512_loadu_si512(end.as_ptr().cast()) };
+            let [mut t0, mut t1, mut t2] = t;
+            let mut k = k0;
+            let mut cur_cell = _mm512_set1_epi64(-1);
+            let mut cur_bits = zero;
+            #[cfg(debug_assertions)]
+            let mut steps = 0u32;
+            loop {
+                #[cfg(debug_assertions)]
+                {
+                    steps += 1;
+                    debug_assert!(steps <= super::MAX_RAY_STEPS, "a ray that does not end");
+                }
+                // The axis of the smallest t (ties: z, then y).
+                let c01 = _mm512_cmp_pd_mask::<_CMP_LT_OQ>(t0, t1);
+                let cx = _mm512_mask_cmp_pd_mask::<_CMP_LT_OQ>(c01, t0, t2);
+                let cy = _mm512_mask_cmp_pd_mask::<_CMP_LT_OQ>(!c01, t1, t2);
+                let cz = !(cx | cy);
+                t0 = _mm512_mask_add_pd(t0, cx, t0, dt[0]);
+                t1 = _mm512_mask_add_pd(t1, cy, t1, dt[1]);
+                t2 = _mm512_mask_add_pd(t2, cz, t2, dt[2]);
+                let step = _mm512_mask_blend_epi64(
+                    cx,
+                    _mm512_mask_blend_epi64(cy, inc[2], inc[1]),
+                    inc[0],
+                );
+                k = _mm512_add_epi64(k, step);
+                let m = _mm512_min_pd(t2, _mm512_min_pd(t1, t0));
+                let done =
+                    _mm512_cmpeq_epi64_mask(k, end) | _mm512_cmp_pd_mask::<_CMP_GT_OQ>(m, length);
+                live &= !done;
+                let go = live;
+
+                let r = _mm512_sub_epi64(_mm512_and_si512(_mm512_srli_epi64::<2>(k), brick), lo);
+                let x = _mm512_and_si512(r, field);
+                let y = _mm512_and_si512(_mm512_srli_epi64::<21>(r), field);
+                let z = _mm512_srli_epi64::<42>(r);
+                let inside = _mm512_mask_cmplt_epu64_mask(
+                    _mm512_mask_cmplt_epu64_mask(_mm512_cmplt_epu64_mask(x, dx), y, dy),
+                    z,
+                    dz,
+                );
+                let cell = _mm512_add_epi64(
+                    x,
+                    _mm512_mul_epu32(dx, _mm512_add_epi64(y, _mm512_mul_epu32(dy, z))),
+                );
+                let lin = _mm512_or_si512(
+                    _mm512_or_si512(
+                        _mm512_and_si512(k, _mm512_set1_epi64(3)),
+                        _mm512_and_si512(_mm512_srli_epi64::<19>(k), _mm512_set1_epi64(0xc)),
+                    ),
+                    _mm512_and_si512(_mm512_srli_epi64::<38>(k), _mm512_set1_epi64(0x30)),
+                );
+                let bit = _mm512_sllv_epi64(one, lin);
+                let fast = go & inside;
+                let same = _mm512_cmpeq_epi64_mask(cell, cur_cell);
+                let flush = fast & !same & _mm512_test_epi64_mask(cur_bits, cur_bits);
+                pending.push(cur_cell, cur_bits, flush);
+                let gathered = _mm512_mask_or_epi64(bit, same, cur_bits, bit);
+                cur_bits = _mm512_mask_mov_epi64(cur_bits, fast, gathered);
+                cur_cell = _mm512_mask_mov_epi64(cur_cell, fast, cell);
+                let slow = go & !inside;
+                if slow != 0 {
+                    let kk = lanes(k);
+                    for (l, &key) in kk.iter().enumerate() {
+                        if slow & (1 << l) != 0 {
+                            marks.mark_key(key);
+                        }
+                    }
+                }
+                if pending.n > PENDING - 16 {
+                    pending.drain(marks);
+                }
+                if go == 0 {
+                    break;
+                }
+            }
+            pending.push(
+                cur_cell,
+                cur_bits,
+                _mm512_test_epi64_mask(cur_bits, cur_bits),
+            );
+            if pending.n > PENDING - 16 {
+                pending.drain(marks);
+            }
+        }
+        pending.drain(marks);
+        degenerate
+    }
+}
+
 /// Bias and mask of the packed 21-bit key fields of the stepping loop.
 pub(crate) const BIAS: u64 = 1 << 17;
 pub(crate) const FIELD: u64 = (1 << 21) - 1;
@@ -841,8 +1134,8 @@ mod tests {
 
     #[test]
     fn batched_stepping_equals_the_transcription() {
-        // Bundles of rays from one origin (as in a scan): random lengths from 0 to ~40 m, many
-        // ends and origins on voxel borders (ties, the length stop rule), for both kernels.
+        // Bundles of rays from one origin (as one insertion takes them): random lengths from 0 to ~40 m, many
+        // ends and origins on voxel borders (ties, the length stop rule), for every kernel.
         let mut s = 0x9e37_79b9_7f4a_7c15u64;
         let mut rnd = move || {
             s ^= s << 13;
@@ -892,7 +1185,7 @@ mod tests {
                 let Some(ko) = r.coord_to_key(origin) else {
                     continue;
                 };
-                for (kernel, (half, shift)) in [Kernel::Scalar, Kernel::Avx2]
+                for (kernel, (half, shift)) in [Kernel::Scalar, Kernel::Avx2, Kernel::Avx512]
                     .into_iter()
                     .flat_map(|k| [(50u32, 0i64), (3, 0), (2, 5), (1, 40_000)].map(|w| (k, w)))
                 {

@@ -1,25 +1,25 @@
-//! Flat voxel storage for insertion: 4×4×4 voxel blocks in a hash map, per-scan ray marks in a
-//! dense window of block slots, and the OctoMap tree derived on demand.
+//! Flat voxel storage for insertion: 4×4×4 voxel bricks in a hash map, per-bundle ray marks in a
+//! dense window of brick slots, and the OctoMap tree derived on demand.
 //!
 //! Why this gives OctoMap's tree: with eager pruning OctoMap's tree is, after every update, the
 //! canonical prune of its voxel values (a node collapses iff its 8 children are equal leaves),
 //! and its early abort at saturation leaves a voxel's value exactly as add-then-clamp would
-//! (research/octomap.md §4.3/§4.4). So storing one value per known voxel, applying each scan's
+//! (research/octomap.md §4.3/§4.4). So storing one value per known voxel, applying each bundle's
 //! de-duplicated updates per voxel with the same abort rule, and pruning canonically when the
 //! tree is needed gives the same nodes, values and bytes.
 
 use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
 
-use super::key::{Key, Resolution, morton3};
+use super::key::{Key, Resolution, morton};
 use super::model::SensorModel;
 use super::ray::{BIAS, FIELD, FreeMarks, Kernel, mark_free, pack, ray_length, unpack};
 use super::tree::{Octree, TreeBuilder};
-use crate::cloud::OriginScan;
+use crate::cloud::RayBundle;
 
 /// Bricks are 4×4×4 voxels, i.e. depth-14 nodes; one `u64` holds a bit per voxel.
 const BRICK_SHIFT: u32 = 2;
-/// Most window cells (16 bytes each) used per scan for the dense brick lookup; beyond it, a hash map.
+/// Most window cells (16 bytes each) used per bundle for the dense brick lookup; beyond it, a hash map.
 const WINDOW_MAX_CELLS: usize = 1 << 20;
 /// Largest brick coordinate (14 bits).
 const BRICK_MAX: u32 = (1 << (16 - BRICK_SHIFT)) - 1;
@@ -48,14 +48,7 @@ fn brick_coords(bk: u64) -> [u16; 3] {
 /// Morton index (0..64) of a voxel inside its brick: bits x0 y0 z0 x1 y1 z1.
 #[inline]
 fn local_bit(k: [u16; 3]) -> u64 {
-    let (x, y, z) = (u32::from(k[0]), u32::from(k[1]), u32::from(k[2]));
-    let m = (x & 1)
-        | ((y & 1) << 1)
-        | ((z & 1) << 2)
-        | ((x & 2) << 2)
-        | ((y & 2) << 3)
-        | ((z & 2) << 4);
-    1u64 << m
+    1u64 << morton(k.map(|a| a & 3))
 }
 
 /// A cheap multiplicative hasher for packed `u64` keys (bricks here, value pairs in `eval`):
@@ -83,19 +76,19 @@ type BrickMap = HashMap<u64, u32, BuildHasherDefault<U64Hasher>>;
 
 /// The values of one brick, in Morton order, and which of them are known.
 #[derive(Clone)]
-struct Block {
+struct Brick {
     values: [f32; 64],
     known: u64,
 }
 
-/// Per-scan scratch: a dense window of bricks around the scan holding each brick's free and
+/// Per-bundle scratch: a dense window of bricks around the bundle holding each brick's free and
 /// occupied marks (bit per voxel, Morton order), the list of touched cells, and a hash map for
 /// the rare keys outside the window.
 #[derive(Default)]
 struct Scratch {
     /// Per window cell: `[free, occupied]` marks.
     window: Vec<[u64; 2]>,
-    /// Cells with a mark, in first-touch order (reset after the scan).
+    /// Cells with a mark, in first-touch order (reset after the bundle).
     touched: Vec<u32>,
     /// Window origin in bricks, and the same in the brick fields of packed keys.
     lo: [u32; 3],
@@ -115,12 +108,7 @@ const LIN_TO_MORTON: [u8; 64] = {
     let mut i = 0;
     while i < 64 {
         let (x, y, z) = (i & 3, (i >> 2) & 3, i >> 4);
-        t[i] = ((x & 1)
-            | ((y & 1) << 1)
-            | ((z & 1) << 2)
-            | ((x & 2) << 2)
-            | ((y & 2) << 3)
-            | ((z & 2) << 4)) as u8;
+        t[i] = morton([x as u16, y as u16, z as u16]) as u8;
         i += 1;
     }
     t
@@ -181,7 +169,7 @@ impl Scratch {
 
     /// Marks the voxel of a packed key (see `ray::pack`) free (`occ = 0`) or occupied (1).
     /// Marks are in linear order (bit x + 4y + 16z); [`to_morton`] reorders them per brick.
-    /// All free marks of a scan must come before its occupied marks.
+    /// All free marks of a bundle must come before its occupied marks.
     #[inline(always)]
     fn mark(&mut self, k: u64, occ: usize) {
         // Each field is a u16 key plus the bias, give or take the one step a ray may take
@@ -291,7 +279,7 @@ impl InsertStats {
 pub struct VoxelMap {
     res: Resolution,
     model: SensorModel,
-    blocks: Vec<Block>,
+    bricks: Vec<Brick>,
     index: BrickMap,
     scratch: Scratch,
     totals: InsertStats,
@@ -302,7 +290,7 @@ impl std::fmt::Debug for VoxelMap {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("VoxelMap")
             .field("resolution", &self.res.meters())
-            .field("blocks", &self.blocks.len())
+            .field("bricks", &self.bricks.len())
             .field("totals", &self.totals)
             .field("kernel", &self.kernel)
             .finish()
@@ -320,7 +308,7 @@ impl VoxelMap {
         Self {
             res,
             model,
-            blocks: Vec::new(),
+            bricks: Vec::new(),
             index: BrickMap::default(),
             scratch: Scratch::default(),
             totals: InsertStats::default(),
@@ -350,37 +338,37 @@ impl VoxelMap {
 
     /// Number of known voxels.
     pub fn num_voxels(&self) -> u64 {
-        self.blocks
+        self.bricks
             .iter()
             .map(|b| u64::from(b.known.count_ones()))
             .sum()
     }
 
-    /// Approximate heap bytes held (blocks, index, scratch).
+    /// Approximate heap bytes held (bricks, index, scratch).
     pub fn memory_bytes(&self) -> usize {
-        self.blocks.capacity() * std::mem::size_of::<Block>()
+        self.bricks.capacity() * std::mem::size_of::<Brick>()
             + self.index.capacity() * (std::mem::size_of::<(u64, u32)>() + 1)
             + self.scratch.window.capacity() * 16
             + self.scratch.touched.capacity() * 4
             + self.scratch.ends.capacity() * std::mem::size_of::<([f32; 3], Key, bool)>()
     }
 
-    fn block_mut(&mut self, bk: u64) -> &mut Block {
-        let next = self.blocks.len() as u32;
+    fn brick_mut(&mut self, bk: u64) -> &mut Brick {
+        let next = self.bricks.len() as u32;
         let i = *self.index.entry(bk).or_insert(next);
         if i == next {
-            self.blocks.push(Block {
+            self.bricks.push(Brick {
                 values: [0.0; 64],
                 known: 0,
             });
         }
-        &mut self.blocks[i as usize]
+        &mut self.bricks[i as usize]
     }
 
     /// The log-odds of a voxel, or `None` if unknown.
     pub fn log_odds(&self, key: Key) -> Option<f32> {
         let i = *self.index.get(&brick_key(key.0))?;
-        let b = self.blocks.get(i as usize)?;
+        let b = self.bricks.get(i as usize)?;
         let bit = local_bit(key.0);
         (b.known & bit != 0).then(|| b.values[bit.trailing_zeros() as usize])
     }
@@ -389,7 +377,7 @@ impl VoxelMap {
     /// clamp min for free), like OctoMap's `setNodeValue` with eager pruning.
     pub fn set_log_odds(&mut self, key: Key, log_odds: f32) {
         let bit = local_bit(key.0);
-        let b = self.block_mut(brick_key(key.0));
+        let b = self.brick_mut(brick_key(key.0));
         b.values[bit.trailing_zeros() as usize] = log_odds;
         b.known |= bit;
     }
@@ -399,19 +387,19 @@ impl VoxelMap {
         let model = self.model;
         let delta = if occupied { model.hit } else { model.miss };
         let bit = local_bit(key.0);
-        let b = self.block_mut(brick_key(key.0));
+        let b = self.brick_mut(brick_key(key.0));
         apply(b, bit, delta, &model);
     }
 
-    /// Inserts a scan given in the world frame (OctoMap's `insertPointCloud` with
+    /// Inserts a bundle given in the world frame (OctoMap's `insertPointCloud` with
     /// `maxrange`, `lazy_eval = false`, `discretize = false`); the origin is cast to f32.
     /// A negative `max_range` means no limit.
-    pub fn insert_scan(&mut self, scan: &OriginScan, max_range: f64) -> InsertStats {
-        let o = scan.origin.map(|c| c as f32);
-        self.insert_point_cloud(&scan.points, o, max_range)
+    pub fn insert_bundle(&mut self, bundle: &RayBundle, max_range: f64) -> InsertStats {
+        let o = bundle.origin.map(|c| c as f32);
+        self.insert_point_cloud(&bundle.points, o, max_range)
     }
 
-    /// Inserts points seen from `origin` (all world frame). Per scan each voxel gets one update:
+    /// Inserts points seen from `origin` (all world frame). Per bundle each voxel gets one update:
     /// a hit if some point ends in it, else a miss if some ray crosses it (origin voxel
     /// included, end voxel excluded). Points beyond `max_range` (if `>= 0`) free space up to
     /// the cut and make no hit. Non-finite points are skipped and counted; so are degenerate
@@ -503,7 +491,7 @@ impl VoxelMap {
                 .get_mut(cell as usize)
                 .map_or([0; 2], std::mem::take)
                 .map(to_morton);
-            let b = self.block_mut(bk);
+            let b = self.brick_mut(bk);
             apply(b, free & !occ, model.miss, &model);
             apply(b, occ, model.hit, &model);
         }
@@ -512,7 +500,7 @@ impl VoxelMap {
         let overflow = std::mem::take(&mut self.scratch.overflow);
         for (&bk, marks) in &overflow {
             let [free, occ] = marks.map(to_morton);
-            let b = self.block_mut(bk);
+            let b = self.brick_mut(bk);
             apply(b, free & !occ, model.miss, &model);
             apply(b, occ, model.hit, &model);
         }
@@ -528,11 +516,8 @@ impl VoxelMap {
         let mut order: Vec<(u64, u32)> = self
             .index
             .iter()
-            .filter(|(_, i)| self.blocks.get(**i as usize).is_some_and(|b| b.known != 0))
-            .map(|(bk, i)| {
-                let b = brick_coords(*bk);
-                (morton3(b[0], b[1], b[2]), *i)
-            })
+            .filter(|(_, i)| self.bricks.get(**i as usize).is_some_and(|b| b.known != 0))
+            .map(|(bk, i)| (morton(brick_coords(*bk)), *i))
             .collect();
         order.sort_unstable();
         let mut tb = TreeBuilder::with_capacity(order.len() * 4);
@@ -558,7 +543,7 @@ impl VoxelMap {
                 self.build(tb, depth + 1, group);
                 rest = tail;
             }
-        } else if let Some(b) = items.first().and_then(|it| self.blocks.get(it.1 as usize)) {
+        } else if let Some(b) = items.first().and_then(|it| self.bricks.get(it.1 as usize)) {
             for c15 in 0..8 {
                 let known = (b.known >> (8 * c15)) & 0xff;
                 if known == 0 {
@@ -738,10 +723,10 @@ fn mark_rays(
     )
 }
 
-/// Applies `delta` to the voxels of `bits` in block `b`: the early abort for known voxels,
+/// Applies `delta` to the voxels of `bits` in brick `b`: the early abort for known voxels,
 /// add-then-clamp from 0.0 for new ones.
 #[inline]
-fn apply(b: &mut Block, mut bits: u64, delta: f32, model: &SensorModel) {
+fn apply(b: &mut Brick, mut bits: u64, delta: f32, model: &SensorModel) {
     while bits != 0 {
         let i = bits.trailing_zeros() as usize;
         let bit = bits & bits.wrapping_neg();
@@ -800,7 +785,7 @@ mod tests {
     }
 
     #[test]
-    fn occupied_wins_and_one_update_per_scan() {
+    fn occupied_wins_and_one_update_per_bundle() {
         // res 1: origin voxel 0; ray A ends in voxel 3 (passes 0,1,2), ray B ends in voxel 1.
         let mut m = map(1.0);
         let model = *m.model();
@@ -866,7 +851,7 @@ mod tests {
         pts[15] = [0.0, 0.0, -f32::INFINITY];
         pts[36] = [0.0, -5000.0, 0.0];
         let mut bytes = Vec::new();
-        for kernel in [Kernel::Scalar, Kernel::Avx2] {
+        for kernel in [Kernel::Scalar, Kernel::Avx2, Kernel::Avx512] {
             let new = || {
                 VoxelMap::with_kernel(
                     Resolution::new(0.1).unwrap(),
@@ -884,6 +869,7 @@ mod tests {
             bytes.push(a.to_octree().to_ot_bytes());
         }
         assert_eq!(bytes[0], bytes[1], "scalar and AVX2 kernels differ");
+        assert_eq!(bytes[0], bytes[2], "scalar and AVX-512 kernels differ");
     }
 
     #[test]
@@ -896,7 +882,7 @@ mod tests {
     }
 
     #[test]
-    fn a_huge_scan_box_falls_back_beyond_the_window() {
+    fn a_huge_bundle_box_falls_back_beyond_the_window() {
         // Rays 3000 m long at 0.1 m: the brick box exceeds the window, the far part is hashed.
         let mut m = map(0.1);
         let pts = [

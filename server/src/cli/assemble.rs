@@ -11,7 +11,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 
 use crate::pipeline::offline;
-use scan3d_map::cloud::OriginScan;
+use scan3d_map::cloud::RayBundle;
 use scan3d_map::cloud::assembly::{AssembledScan, cut_range};
 use scan3d_map::cloud::io;
 
@@ -102,7 +102,7 @@ pub fn run(args: &AssembleArgs, out: &mut dyn Write) -> anyhow::Result<()> {
             }
         )?;
     }
-    let mut cloud: Vec<OriginScan> = scans.into_iter().flat_map(|s| s.scans).collect();
+    let mut cloud: Vec<RayBundle> = scans.into_iter().flat_map(|s| s.scans).collect();
     if let Some(max_range) = args.max_range {
         let cut = cut_range(&mut cloud, max_range);
         writeln!(out, "dropped {cut} points beyond {max_range} m")?;

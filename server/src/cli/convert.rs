@@ -49,7 +49,7 @@ pub fn run(args: &ConvertArgs, out: &mut dyn Write) -> anyhow::Result<()> {
     }
     let cloud = load_cloud(&args.input, args.origin)?;
     report_dropped(&cloud, out)?;
-    let scans = cloud.scans;
+    let scans = cloud.bundles;
     io::save(&args.output, &scans)?;
     let points: usize = scans.iter().map(|s| s.points.len()).sum();
     writeln!(

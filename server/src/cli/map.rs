@@ -16,10 +16,10 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::pipeline::PipelineSettings;
 use crate::pipeline::offline::{MAP_ONLY, run_session as run_session_pipeline};
-use scan3d_map::cloud::OriginScan;
+use scan3d_map::cloud::RayBundle;
 use scan3d_map::cloud::filter::{Filter, apply_all};
-use scan3d_map::cloud::io::{self, LoadedScans};
-use scan3d_map::octree::{InsertStats, Octree, Resolution, SensorModel, VoxelMap, read_graph};
+use scan3d_map::cloud::io::{self, LoadedBundles};
+use scan3d_map::octree::{InsertStats, Octree, Resolution, SensorModel, VoxelMap, read_graph_from};
 
 /// A point `x,y,z` on the command line (clap value parser).
 pub fn parse_xyz_arg(text: &str) -> Result<[f64; 3], String> {
@@ -118,17 +118,19 @@ impl MapArgs {
 /// Loads any cloud the CLI accepts, with sensor origins: `.graph` through OctoMap's pose
 /// transform, `.scans`/`.ply`/`.pcd` through [`scan3d_map::cloud::io`], with the count of points
 /// the reader dropped for non-finite values.
-pub fn load_cloud(path: &Path, origin: Option<[f64; 3]>) -> anyhow::Result<LoadedScans> {
+pub fn load_cloud(path: &Path, origin: Option<[f64; 3]>) -> anyhow::Result<LoadedBundles> {
     let is_graph = path
         .extension()
         .and_then(|e| e.to_str())
         .is_some_and(|e| e.eq_ignore_ascii_case("graph"));
     if is_graph {
-        let bytes =
-            std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
-        let scans = read_graph(&bytes).with_context(|| format!("{}", path.display()))?;
-        Ok(LoadedScans {
-            scans,
+        // Streamed: a large `.graph` is never in memory whole, only the bundles it holds.
+        let file =
+            std::fs::File::open(path).with_context(|| format!("cannot read {}", path.display()))?;
+        let scans = read_graph_from(std::io::BufReader::with_capacity(1 << 16, file))
+            .with_context(|| format!("{}", path.display()))?;
+        Ok(LoadedBundles {
+            bundles: scans,
             dropped_nonfinite: 0,
         })
     } else {
@@ -137,7 +139,7 @@ pub fn load_cloud(path: &Path, origin: Option<[f64; 3]>) -> anyhow::Result<Loade
 }
 
 /// Prints the reader's count of dropped non-finite points, if any.
-pub fn report_dropped(loaded: &LoadedScans, out: &mut dyn Write) -> std::io::Result<()> {
+pub fn report_dropped(loaded: &LoadedBundles, out: &mut dyn Write) -> std::io::Result<()> {
     if loaded.dropped_nonfinite > 0 {
         writeln!(
             out,
@@ -189,7 +191,7 @@ pub fn write_tree(path: &Path, tree: &Octree) -> anyhow::Result<()> {
 
 /// Inserts every scan, with a progress bar over points when `progress` is set.
 pub fn build_map(
-    scans: &[OriginScan],
+    scans: &[RayBundle],
     res: f64,
     max_range: f64,
     model: SensorModel,
@@ -209,7 +211,7 @@ pub fn build_map(
         None
     };
     for scan in scans {
-        map.insert_scan(scan, max_range);
+        map.insert_bundle(scan, max_range);
         if let Some(bar) = &bar {
             bar.inc(scan.points.len() as u64);
         }
@@ -231,15 +233,15 @@ pub fn run(args: &MapArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         return run_session(args, out);
     }
     let cloud = load_cloud(&args.input, args.origin)?;
-    let loaded: usize = cloud.scans.iter().map(|s| s.points.len()).sum();
+    let loaded: usize = cloud.bundles.iter().map(|s| s.points.len()).sum();
     writeln!(
         out,
         "{}: {} scans, {loaded} points",
         args.input.display(),
-        cloud.scans.len()
+        cloud.bundles.len()
     )?;
     report_dropped(&cloud, out)?;
-    let mut scans = cloud.scans;
+    let mut scans = cloud.bundles;
     if !args.filters.is_empty() {
         scans = apply_all(&args.filters, scans)?;
         let kept: usize = scans.iter().map(|s| s.points.len()).sum();

@@ -924,16 +924,15 @@ impl WorkerRun {
     }
 
     /// Edge time of the newest sample `frame` inserted: the end of the Sweep revolution its
-    /// static-scan samples belong to (the one starting at their first sample), else of the
-    /// latest Sweep revolution.
+    /// static-scan yaws refer to, else of the latest Sweep revolution.
     fn newest_inserted_ns(&self, frame: &Frame) -> Option<u64> {
         let latest = self.recent_sweeps.back().map(|&(_, t1)| t1);
         match &frame.body {
-            Body::StaticScan(StaticScan::Samples(batch)) => self
+            Body::StaticScan(StaticScan::Yaws(yaws)) => self
                 .recent_sweeps
                 .iter()
                 .rev()
-                .find(|&&(t0, t1)| (t0..t1).contains(&batch.t_ns))
+                .find(|&&(t0, _)| t0 == yaws.revolution_t0_ns)
                 .map(|&(_, t1)| t1)
                 .or(latest),
             Body::Revolution(rev) if rev.sensor == SensorId::SWEEP => Some(rev.t1_ns),

@@ -512,7 +512,7 @@ impl SessionPipeline {
 
     /// Takes the assembly stage's static scans (with [`Products::static_scans`]), in start order.
     pub fn into_static_scans(self) -> Vec<scan3d_map::cloud::assembly::AssembledScan> {
-        self.assembly.into_scans()
+        self.assembly.into_bundles()
     }
 }
 

@@ -6,7 +6,7 @@ use serde::Serialize;
 
 use scan3d_map::cloud::filter::apply_all;
 use scan3d_map::cloud::io::Encoding;
-use scan3d_map::cloud::ply::write_ply_scans;
+use scan3d_map::cloud::ply::write_ply_bundles;
 use scan3d_map::eval::{self, Metrics};
 use scan3d_map::octree::{Octree, VoxelMap};
 
@@ -62,9 +62,11 @@ pub(super) fn write(
         cloud = apply_all(&pipeline.settings().snapshot_filters, cloud)?;
     }
     let mut ply = Vec::new();
-    write_ply_scans(&mut ply, &cloud, Encoding::Binary).map_err(|source| PipelineError::Write {
-        path: dir.join("cloud.ply"),
-        source,
+    write_ply_bundles(&mut ply, &cloud, Encoding::Binary).map_err(|source| {
+        PipelineError::Write {
+            path: dir.join("cloud.ply"),
+            source,
+        }
     })?;
     let metrics = match pipeline.reference() {
         Some(reference) if leaves.num_leaves() > 0 => {

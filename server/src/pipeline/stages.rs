@@ -2,7 +2,7 @@
 
 use std::path::{Path, PathBuf};
 
-use scan3d_map::cloud::OriginScan;
+use scan3d_map::cloud::RayBundle;
 use scan3d_map::cloud::assembly::{AssembledScan, StaticScanAssembler, cut_range};
 use scan3d_map::cloud::filter::{Filter, apply_all};
 use scan3d_map::cloud::scans::{RevolutionCollector, SensorTotals};
@@ -84,7 +84,7 @@ impl AssemblyStage {
     }
 
     /// The scans held, in start order.
-    pub fn into_scans(self) -> Vec<AssembledScan> {
+    pub fn into_bundles(self) -> Vec<AssembledScan> {
         self.assembler.finish()
     }
 }
@@ -132,7 +132,7 @@ impl Stage for FilterStage {
         if self.filters.is_empty() || ctx.rays.is_empty() {
             return;
         }
-        let groups: Vec<OriginScan> = ctx
+        let groups: Vec<RayBundle> = ctx
             .rays
             .iter_mut()
             .map(|r| take_rays(&mut r.rays))
@@ -157,8 +157,8 @@ impl Stage for FilterStage {
 }
 
 /// Moves the points out, leaving the origin.
-fn take_rays(rays: &mut OriginScan) -> OriginScan {
-    OriginScan {
+fn take_rays(rays: &mut RayBundle) -> RayBundle {
+    RayBundle {
         origin: rays.origin,
         points: std::mem::take(&mut rays.points),
     }
@@ -185,7 +185,7 @@ pub struct MapStage {
     session: VoxelMap,
     positions: Vec<PositionMap>,
     /// Filtered points within `max_range` with their origin and position index.
-    cloud: Vec<(usize, OriginScan)>,
+    cloud: Vec<(usize, RayBundle)>,
     points: u64,
 }
 
@@ -235,7 +235,7 @@ impl MapStage {
 
     /// The cloud of the session (`None`) or of one position, as origin groups in insertion
     /// order (empty when the cloud is not kept).
-    pub fn cloud(&self, position: Option<&str>) -> Vec<OriginScan> {
+    pub fn cloud(&self, position: Option<&str>) -> Vec<RayBundle> {
         let index = position.map(|name| self.positions.iter().position(|p| p.name == name));
         self.cloud
             .iter()
@@ -270,9 +270,9 @@ impl Stage for MapStage {
             let position = &mut self.positions[index];
             position.points += n;
             if self.products.octrees {
-                self.session.insert_scan(&new.rays, max_range);
+                self.session.insert_bundle(&new.rays, max_range);
                 if let Some(map) = &mut position.map {
-                    map.insert_scan(&new.rays, max_range);
+                    map.insert_bundle(&new.rays, max_range);
                 }
             }
             if self.products.cloud {
