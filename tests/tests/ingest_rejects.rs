@@ -798,16 +798,16 @@ fn periodic_snapshots_are_written_into_the_data_directory_while_the_session_stre
         assert!(client.acknowledged(session, &[0, 1, 2]).await);
     });
     let deadline = std::time::Instant::now() + Duration::from_secs(10);
-    while !snapshots.join("map.bt").exists() {
-        assert!(
-            std::time::Instant::now() < deadline,
-            "no periodic snapshot in {}",
-            snapshots.display()
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    // Each file of a snapshot appears whole (written aside, then renamed), one after another.
     for file in ["map.bt", "map.ot", "cloud.ply"] {
-        assert!(snapshots.join(file).exists(), "{file} missing");
+        while !snapshots.join(file).exists() {
+            assert!(
+                std::time::Instant::now() < deadline,
+                "no periodic {file} in {}",
+                snapshots.display()
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
     }
     site.server.stop();
 }
