@@ -33,7 +33,7 @@ use scan3d_protocol::{Body, SensorId};
 use scan3d_server::ingest::recorder::{session_dir, topic};
 use scan3d_server::ingest::server::{IngestEvent, IngestStats};
 use scan3d_server::pose::timesync::ClockModel;
-use scan3d_server::report::{MetricBox, SWEEP_RESOLUTIONS, write_report, write_sweep};
+use scan3d_server::report::{MetricBox, RESOLUTION_SWEEP_M, write_report, write_resolution_sweep};
 
 use scan3d_map::cloud::RayBundle;
 use scan3d_map::cloud::io;
@@ -248,9 +248,9 @@ fn evaluate_maps(out: &Path, maps: &[MapResult], world: &World) -> anyhow::Resul
     // The live daemon's filtered cloud of `ref`.
     let cloud = out.join("snapshots/ref/cloud.ply");
     if cloud.exists() {
-        write_sweep(
+        write_resolution_sweep(
             &cloud,
-            &SWEEP_RESOLUTIONS,
+            &RESOLUTION_SWEEP_M,
             -1.0,
             1,
             &report_dir,

@@ -120,6 +120,12 @@ impl Body {
         }
     }
 
+    /// Whether the server makes this body (a command, a time ping, a clock model): numbered in
+    /// the server's own sequence, never part of an edge's.
+    pub fn is_server_made(&self) -> bool {
+        self.direction() == Direction::ServerToEdge
+    }
+
     /// Which way this message normally travels, so a receiver can reject misdirected frames.
     pub fn direction(&self) -> Direction {
         match self {

@@ -34,6 +34,9 @@ pub struct ServerConfig {
     /// How often (ms) the server pings each edge for a time-sync exchange.
     #[serde(deserialize_with = "positive_u64")]
     pub time_sync_interval_ms: u64,
+    /// The sliding window (s) of exchanges the clock model (offset and skew) is fitted over.
+    #[serde(deserialize_with = "positive_u64")]
+    pub time_sync_window_s: u64,
     /// Edges connected at once; further connections are refused.
     #[serde(deserialize_with = "positive_usize")]
     pub max_connections: usize,
@@ -255,6 +258,7 @@ impl Default for ServerConfig {
             data_dir: PathBuf::from("/var/lib/scan3d"),
             commit_interval_ms: 100,
             time_sync_interval_ms: 1000,
+            time_sync_window_s: 120,
             max_connections: 16,
             max_handshakes: 64,
             retry_above_handshakes: 8,
@@ -329,6 +333,11 @@ impl ServerConfig {
     /// [`time_sync_interval_ms`](Self::time_sync_interval_ms) as a [`Duration`].
     pub fn time_sync_interval(&self) -> Duration {
         Duration::from_millis(self.time_sync_interval_ms)
+    }
+
+    /// [`time_sync_window_s`](Self::time_sync_window_s) as a [`Duration`].
+    pub fn time_sync_window(&self) -> Duration {
+        Duration::from_secs(self.time_sync_window_s)
     }
 
     /// The ingest limits these keys give.
@@ -560,6 +569,7 @@ mod tests {
         for (key, line) in [
             ("commit_interval_ms", 2),
             ("time_sync_interval_ms", 2),
+            ("time_sync_window_s", 2),
             ("max_connections", 2),
         ] {
             let text = format!("data_dir = \"/d\"\n{key} = 0\n");

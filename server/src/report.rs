@@ -340,12 +340,12 @@ fn best<T>(reps: u32, mut f: impl FnMut() -> anyhow::Result<T>) -> anyhow::Resul
 }
 
 /// The resolutions of `scan3d sweep` by default (Fig. 12's), metres.
-pub const SWEEP_RESOLUTIONS: [f64; 6] = [0.05, 0.1, 0.2, 0.3, 0.4, 0.5];
+pub const RESOLUTION_SWEEP_M: [f64; 6] = [0.05, 0.1, 0.2, 0.3, 0.4, 0.5];
 
 /// `scan3d sweep`: Fig. 12 for `cloud_path` at each of `resolutions` (`max_range` cuts rays,
 /// negative: none; timings the best of `reps`): `sweep.json`, `fig12.svg`, `fig12.png` into
 /// `out_dir`, a line per resolution to `out`. Returns the files written.
-pub fn write_sweep(
+pub fn write_resolution_sweep(
     cloud_path: &Path,
     resolutions: &[f64],
     max_range: f64,

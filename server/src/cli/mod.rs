@@ -13,12 +13,12 @@ pub mod map;
 pub mod pair;
 pub mod replay;
 pub mod report;
+pub mod resolution_sweep;
 pub mod scan;
 pub mod serve;
 pub mod sessions;
 pub mod snapshot;
 pub mod status;
-pub mod sweep;
 
 /// scan3d server and offline tools (laptop side).
 #[derive(Debug, Parser)]
@@ -59,7 +59,8 @@ pub enum Command {
     /// Table III, the metric table, metrics.json and Fig. 11 for several maps against a reference.
     Report(report::ReportArgs),
     /// Fig. 12: build time, nodes, occupied volume and evaluation time against resolution.
-    Sweep(sweep::SweepArgs),
+    #[command(name = "sweep")]
+    ResolutionSweep(resolution_sweep::ResolutionSweepArgs),
 }
 
 /// Where a server keeps its recordings: `--data-dir`, or the `data_dir` of `--config`.
@@ -100,6 +101,6 @@ pub fn execute(cli: Cli, out: &mut dyn Write) -> anyhow::Result<()> {
         Command::Info(args) => info::run(&args, out),
         Command::Eval(args) => eval::run(&args, out),
         Command::Report(args) => report::run(&args, out),
-        Command::Sweep(args) => sweep::run(&args, out),
+        Command::ResolutionSweep(args) => resolution_sweep::run(&args, out),
     }
 }

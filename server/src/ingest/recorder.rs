@@ -404,7 +404,7 @@ fn dedup_key(frame: &Frame) -> (u64, bool) {
 /// Whether the server made this body (a command it sent, a clock model): numbered in the
 /// server's sequence, not the edge's.
 fn server_originated(body: &Body) -> bool {
-    matches!(body, Body::Command(_) | Body::ClockModel(_))
+    body.is_server_made()
 }
 
 /// The message data of an undecodable frame (see the module documentation).

@@ -945,7 +945,7 @@ impl EdgeConnection {
                 self.shared.count(|s| s.sessions_evicted += 1);
                 self.close_session(lru)?;
             }
-            let recorder = block(|| {
+            let recorder = off_runtime(|| {
                 SessionRecorder::open(&self.shared.config.data_dir, &self.edge, session_id)
             })
             .map_err(|e| format!("cannot open the recording of session {session_id:016x}: {e}"))?;
@@ -1003,7 +1003,7 @@ impl EdgeConnection {
             &mut self.sent_seq,
             &mut self.outgoing,
         );
-        let closed = block(|| open.recorder.close());
+        let closed = off_runtime(|| open.recorder.close());
         self.shared.recorder_closed();
         // Commands only go to the current session, whose numbering must go on.
         if self.current_session != Some(session_id) {
@@ -1136,7 +1136,7 @@ impl EdgeConnection {
 
     fn close_all(&mut self) {
         for (session_id, open) in self.sessions.drain() {
-            if let Err(e) = block(|| open.recorder.close()) {
+            if let Err(e) = off_runtime(|| open.recorder.close()) {
                 tracing::warn!(edge = %self.edge, session = format!("{session_id:016x}"), error = %e, "closing the recording failed");
             }
             self.shared.recorder_closed();
@@ -1160,7 +1160,7 @@ fn commit_session(
     sent_seq: &mut HashMap<u64, u64>,
     outgoing: &mut Vec<Frame>,
 ) -> Result<(), String> {
-    block(|| open.recorder.commit())
+    off_runtime(|| open.recorder.commit())
         .map_err(|e| format!("cannot commit session {session_id:016x}: {e}"))?;
     open.buffered = 0;
     let durable = open.recorder.durable_ranges();
@@ -1186,7 +1186,7 @@ async fn write_frames(send: &mut quinn::SendStream, frames: &[Frame]) -> anyhow:
 }
 
 /// Runs blocking file work (fsync) without stalling the other connections' tasks.
-fn block<T>(work: impl FnOnce() -> T) -> T {
+fn off_runtime<T>(work: impl FnOnce() -> T) -> T {
     match tokio::runtime::Handle::try_current() {
         Ok(handle) if handle.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread => {
             tokio::task::block_in_place(work)

@@ -886,7 +886,7 @@ impl WorkerRun {
     /// Puts one frame through the pipeline; `accepted_at`: when the recorder accepted it, for
     /// a frame from the queue.
     fn process(&mut self, frame: &Frame, accepted_at: Option<Instant>) {
-        if matches!(frame.body, Body::Command(_)) {
+        if frame.body.is_server_made() {
             return;
         }
         if let Body::Revolution(rev) = &frame.body
@@ -946,9 +946,9 @@ impl WorkerRun {
         let session_dir = self.session_dir.clone();
         let visited = visit_session_items(&session_dir, |item| {
             match item {
-                // Server commands share the session but number separately; they carry no data.
+                // Server-made frames (commands, clock models) number separately; no map data.
                 SessionItem::Frame(recorded) => {
-                    if !matches!(recorded.frame.body, Body::Command(_))
+                    if !recorded.frame.body.is_server_made()
                         && self.sequencer.from_recording(recorded.frame.seq)
                     {
                         self.process(&recorded.frame, None);

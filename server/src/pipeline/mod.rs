@@ -380,10 +380,10 @@ impl SessionPipeline {
     /// Takes the session's next frame. Frames must come in sequence order: one whose edge
     /// sequence number was already passed is skipped and counted
     /// ([`SessionStatus::stale_frames`]); a jump is a gap, counted
-    /// ([`SessionStatus::missing_frames`]) and logged, and the frame is processed. Server
-    /// commands (their own numbering) are not processed.
+    /// ([`SessionStatus::missing_frames`]) and logged, and the frame is processed. Frames the
+    /// server made (commands, clock models: their own numbering) are not processed.
     pub fn on_frame(&mut self, frame: &Frame) {
-        if matches!(frame.body, Body::Command(_)) || !self.seqs.take(frame.seq) {
+        if frame.body.is_server_made() || !self.seqs.take(frame.seq) {
             return;
         }
         self.frames += 1;
@@ -561,10 +561,24 @@ mod tests {
     }
 
     #[test]
-    fn server_commands_have_their_own_numbers_and_are_not_processed() {
+    fn server_commands_and_clock_models_have_their_own_numbers_and_are_not_processed() {
         let mut p = SessionPipeline::new(&PipelineSettings::default()).unwrap();
         p.on_frame(&heartbeat(0));
         p.on_frame(&Frame::new(1, 0, Command::StopStaticScan));
+        // A recorded clock model numbered 5 in the server's sequence is no jump in the edge's.
+        let model = scan3d_protocol::ClockModel {
+            offset_ns: 1,
+            skew_ppm: 0.0,
+            error_bound_ns: 1,
+            skew_bound_ppm: 0.0,
+            ref_edge_ns: 0,
+            fit_from_edge_ns: 0,
+            fit_to_edge_ns: 0,
+            valid_from_edge_ns: 0,
+            min_delay_ns: 1,
+            exchanges: 1,
+        };
+        p.on_frame(&Frame::new(1, 5, Body::ClockModel(model)));
         p.on_frame(&heartbeat(1));
         let s = p.status();
         assert_eq!((s.frames, s.stale_frames, s.missing_frames), (2, 0, 0));

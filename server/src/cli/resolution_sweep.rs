@@ -5,11 +5,11 @@
 use std::io::Write;
 use std::path::PathBuf;
 
-use crate::report::write_sweep;
+use crate::report::write_resolution_sweep;
 
 /// Options of `scan3d sweep`.
 #[derive(Debug, clap::Args)]
-pub struct SweepArgs {
+pub struct ResolutionSweepArgs {
     /// The point cloud: `.graph` (OctoMap ScanGraph), `.scans`, `.ply` or `.pcd` with origins.
     pub cloud: PathBuf,
     /// Resolutions in metres, comma-separated.
@@ -31,8 +31,8 @@ pub struct SweepArgs {
 }
 
 /// Runs `scan3d sweep`.
-pub fn run(args: &SweepArgs, out: &mut dyn Write) -> anyhow::Result<()> {
-    let written = write_sweep(
+pub fn run(args: &ResolutionSweepArgs, out: &mut dyn Write) -> anyhow::Result<()> {
+    let written = write_resolution_sweep(
         &args.cloud,
         &args.res,
         args.max_range,
