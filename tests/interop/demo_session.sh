@@ -31,7 +31,7 @@ session="${sessions[0]}"
 echo "== python mcap reads $session"
 python3 -m venv "$tmp/venv"
 "$tmp/venv/bin/pip" install --quiet --disable-pip-version-check mcap
-"$tmp/venv/bin/python" "$here/mcap_check.py" "$session" --expect "$tmp/out/recorded-topics.json" --complete
+"$tmp/venv/bin/python" "$here/mcap_check.py" "$session" --expect "$tmp/out/recorded-topics.json" --server-made /scan3d/timesync --complete
 
 echo "== scan3d replay reproduces the live scans"
 "$bin/scan3d" replay "$session" --out "$tmp/replay"

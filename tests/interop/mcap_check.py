@@ -3,12 +3,13 @@
 tested with 1.6.0).
 
     mcap_check.py SESSION_DIR (--expect counts.json | --expect-json '{"topic": count, ...}')
-                  [--allow-extra-topics] [--complete]
+                  [--allow-extra-topics] [--server-made TOPIC]... [--complete]
 
 Reads every `*.mcap` file in SESSION_DIR (in name order; a single .mcap file may be given
 instead) record by record and checks that:
 - the per-topic message counts equal the expected ones (a JSON object mapping topic -> count);
-  topics recorded but not expected are a mismatch unless --allow-extra-topics;
+  topics recorded but not expected are a mismatch unless --allow-extra-topics; a --server-made
+  topic (written by the server itself, e.g. clock models) must only be non-empty;
 - every message's data starts with the S3DP frame magic `53 33 44 50`;
 - no (topic, sequence) pair occurs twice, across all files of the session;
 - chunk CRCs match.
@@ -177,6 +178,14 @@ def main(argv=None):
         help="do not fail on recorded topics missing from the expectation",
     )
     parser.add_argument(
+        "--server-made",
+        metavar="TOPIC",
+        action="append",
+        default=[],
+        help="a topic the server writes itself (clock models, commands): must hold at least one "
+        "message, its count is not compared (repeatable)",
+    )
+    parser.add_argument(
         "--complete", action="store_true", help="every file must end with its footer"
     )
     args = parser.parse_args(argv)
@@ -211,11 +220,15 @@ def main(argv=None):
         print(f"  {os.path.basename(f.path)}: {f.size} bytes, {f.messages} messages, {state}")
 
     print("topics (recorded / expected):")
-    for topic in sorted(set(session.counts) | set(expected)):
+    for topic in sorted(set(session.counts) | set(expected) | set(args.server_made)):
         got = session.counts.get(topic, 0)
         want = expected.get(topic)
         encodings = ",".join(sorted(session.encodings.get(topic, ()))) or "-"
-        if want is None:
+        if want is None and topic in args.server_made:
+            verdict = "server-made" if got > 0 else "MISSING"
+            if got == 0:
+                problems.append(f"{topic}: no server-made messages")
+        elif want is None:
             verdict = "extra" if args.allow_extra_topics else "UNEXPECTED"
             if not args.allow_extra_topics:
                 problems.append(f"{topic}: {got} messages on a topic not expected")
