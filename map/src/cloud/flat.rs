@@ -184,10 +184,11 @@ impl CloudFormat {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    fn two_bundles() -> Vec<RayBundle> {
+    /// Two bundles with distinct origins, for the cloud format tests.
+    pub(crate) fn two_bundles() -> Vec<RayBundle> {
         vec![
             RayBundle {
                 origin: [1.0, 2.0, 0.5],

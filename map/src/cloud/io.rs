@@ -146,20 +146,7 @@ pub fn save_with(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::cloud::RayBundle;
-
-    fn two_bundles() -> Vec<RayBundle> {
-        vec![
-            RayBundle {
-                origin: [1.0, 2.0, 0.5],
-                points: vec![[1.5, 2.0, 0.25], [0.0, -1.0, 3.0]],
-            },
-            RayBundle {
-                origin: [-4.0, 0.25, 1.0],
-                points: vec![[7.0, 8.0, 9.0]],
-            },
-        ]
-    }
+    use crate::cloud::flat::tests::two_bundles;
 
     #[test]
     fn save_load_every_format() {

@@ -189,15 +189,7 @@ impl Octree {
                 stack.pop();
             }
         }
-        Self {
-            res,
-            model,
-            values,
-            masks,
-            ends,
-            leaves,
-            occupied,
-        }
+        Self::from_arrays(res, model, values, masks, ends, leaves, occupied)
     }
 
     /// Wraps preorder arrays with their subtree ends and leaf counts already computed (the

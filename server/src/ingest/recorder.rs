@@ -1193,17 +1193,10 @@ pub fn visit_session(
     session_dir: &Path,
     mut visit: impl FnMut(RecordedFrame) -> Result<(), RecorderError>,
 ) -> Result<SessionReport, RecorderError> {
-    let files = session_files(session_dir)?;
-    let scan = visit_files(&files, &mut |item| match item {
-        Item::Frame(recorded) => visit(recorded),
-        Item::Undecodable(_) => Ok(()),
-        Item::OtherVersion(version) => Err(RecorderError::ProtocolVersion {
-            dir: session_dir.to_path_buf(),
-            version,
-            supported: PROTOCOL_VERSION,
-        }),
-    })?;
-    Ok(scan.report)
+    visit_session_items(session_dir, |item| match item {
+        SessionItem::Frame(recorded) => visit(recorded),
+        SessionItem::Undecodable(_) => Ok(()),
+    })
 }
 
 /// All frames of a session directory in recording order, duplicates removed, with the report
