@@ -1,0 +1,16 @@
+//! 2D SLAM for scan3d, as pure code: scans and poses in, poses and maps out.
+//!
+//! - [`pose`]: the rigid 2D transform every other module speaks.
+//! - [`carmen`]: the CARMEN laser logs of the classic SLAM benchmarks (`FLASER`, `ROBOTLASER1`,
+//!   `ODOM`).
+//! - [`relations`]: trajectories (`timestamp x y theta`) and the Kümmerle et al. (2009)
+//!   relations metric that scores them.
+//! - [`map_image`]: occupancy rasters as ROS `map_server` PGM + YAML and as PNG.
+//!
+//! Nothing here opens a file or a socket: readers take `BufRead`/`&str`, writers return bytes or
+//! take `Write`.
+
+pub mod carmen;
+pub mod map_image;
+pub mod pose;
+pub mod relations;

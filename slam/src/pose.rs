@@ -1,0 +1,99 @@
+//! Rigid 2D poses: (x, y, θ) with composition and inverse, the SE(2) algebra that trajectories,
+//! relations and the scan matcher share.
+
+use serde::{Deserialize, Serialize};
+
+/// A rigid 2D transform: translation (m) and heading θ (rad, counter-clockwise, kept in (−π, π]).
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct Pose2 {
+    pub x: f64,
+    pub y: f64,
+    pub theta: f64,
+}
+
+impl Pose2 {
+    /// The pose at (x, y) with heading `theta`, wrapped into (−π, π].
+    pub fn new(x: f64, y: f64, theta: f64) -> Self {
+        Self {
+            x,
+            y,
+            theta: wrap_angle(theta),
+        }
+    }
+
+    /// `self ⊕ other`: `other` expressed in the frame of `self`, brought to the outer frame.
+    pub fn compose(&self, other: &Pose2) -> Pose2 {
+        let (s, c) = self.theta.sin_cos();
+        Pose2::new(
+            self.x + c * other.x - s * other.y,
+            self.y + s * other.x + c * other.y,
+            self.theta + other.theta,
+        )
+    }
+
+    /// The inverse transform: `p.inverse().compose(&p)` is the identity.
+    pub fn inverse(&self) -> Pose2 {
+        let (s, c) = self.theta.sin_cos();
+        Pose2::new(
+            -c * self.x - s * self.y,
+            s * self.x - c * self.y,
+            -self.theta,
+        )
+    }
+
+    /// `self⁻¹ ⊕ other`: the motion from `self` to `other`, in the frame of `self`.
+    pub fn between(&self, other: &Pose2) -> Pose2 {
+        self.inverse().compose(other)
+    }
+
+    /// A point given in this pose's frame, expressed in the outer frame.
+    pub fn transform_point(&self, x: f64, y: f64) -> (f64, f64) {
+        let (s, c) = self.theta.sin_cos();
+        (self.x + c * x - s * y, self.y + s * x + c * y)
+    }
+}
+
+/// `angle` wrapped into (−π, π].
+pub fn wrap_angle(angle: f64) -> f64 {
+    use std::f64::consts::{PI, TAU};
+    let wrapped = angle.rem_euclid(TAU);
+    if wrapped > PI { wrapped - TAU } else { wrapped }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn close(a: &Pose2, b: &Pose2) -> bool {
+        (a.x - b.x).abs() < 1e-12
+            && (a.y - b.y).abs() < 1e-12
+            && wrap_angle(a.theta - b.theta).abs() < 1e-12
+    }
+
+    #[test]
+    fn a_pose_composed_with_its_inverse_is_the_identity() {
+        let p = Pose2::new(1.5, -2.0, 2.9);
+        assert!(close(&p.compose(&p.inverse()), &Pose2::default()));
+        assert!(close(&p.inverse().compose(&p), &Pose2::default()));
+    }
+
+    #[test]
+    fn between_gives_the_motion_in_the_first_frame() {
+        // Facing +y at (1, 0); the point (1, 1) is one metre straight ahead.
+        let a = Pose2::new(1.0, 0.0, std::f64::consts::FRAC_PI_2);
+        let b = Pose2::new(1.0, 1.0, std::f64::consts::PI);
+        assert!(close(
+            &a.between(&b),
+            &Pose2::new(1.0, 0.0, std::f64::consts::FRAC_PI_2)
+        ));
+        assert!(close(&a.compose(&a.between(&b)), &b));
+    }
+
+    #[test]
+    fn angles_wrap_into_the_half_open_interval() {
+        use std::f64::consts::PI;
+        assert_eq!(wrap_angle(PI), PI);
+        assert!((wrap_angle(-PI) - PI).abs() < 1e-15);
+        assert!((wrap_angle(3.0 * PI / 2.0) + PI / 2.0).abs() < 1e-12);
+    }
+}
