@@ -5,12 +5,18 @@
 //!   `ODOM`).
 //! - [`relations`]: trajectories (`timestamp x y theta`) and the Kümmerle et al. (2009)
 //!   relations metric that scores them.
+//! - [`grid`]: occupancy grids that grow as the robot explores, read as a continuous function.
+//! - [`matcher`]: Gauss–Newton scan-to-map matching, coarse to fine, with a robust loss.
+//! - [`mapper`]: the incremental front end (motion prior, de-skew, map-update rule).
 //! - [`map_image`]: occupancy rasters as ROS `map_server` PGM + YAML and as PNG.
 //!
 //! Nothing here opens a file or a socket: readers take `BufRead`/`&str`, writers return bytes or
 //! take `Write`.
 
 pub mod carmen;
+pub mod grid;
 pub mod map_image;
+pub mod mapper;
+pub mod matcher;
 pub mod pose;
 pub mod relations;

@@ -1,0 +1,518 @@
+//! Occupancy grids that grow as the robot explores, read by the matcher as a continuous function.
+//!
+//! A [`Grid`] keeps log-odds per cell in a dense row-major array that reallocates (with a
+//! margin) when an update lands outside it: no size to configure, and a lookup is two multiplies
+//! and an index. Cell `(i, j)` covers `[i·r, (i+1)·r) × [j·r, (j+1)·r)` in the map frame; its
+//! value is taken to sit at the cell centre, and [`Grid::interpolate`] reads the occupancy
+//! probability between centres bilinearly, with its gradient (Hector SLAM's M(P) and ∇M(P)).
+//!
+//! Updates follow Hector's rule: per scan, each cell a beam passes through gets one free update
+//! and each endpoint cell one occupied update, even if several beams touch it; an endpoint
+//! overrides a free update of the same scan. [`GridPyramid`] holds several grids, each half the
+//! resolution of the previous, all updated from the same scans (not downsampled).
+
+use crate::pose::Pose2;
+
+/// How each observation changes a cell, in log-odds, and the bounds that keep cells revisable.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct UpdateModel {
+    /// Probability that an endpoint cell is occupied (Hector's `update_factor_occupied`).
+    pub hit_probability: f32,
+    /// Probability of occupancy after a beam passed through (Hector's `update_factor_free`).
+    pub miss_probability: f32,
+    /// Log-odds clamp, both ways, so a cell can change its mind when the world changes.
+    pub clamp_log_odds: f32,
+}
+
+impl Default for UpdateModel {
+    fn default() -> Self {
+        Self {
+            hit_probability: 0.9,
+            miss_probability: 0.4,
+            clamp_log_odds: 8.0,
+        }
+    }
+}
+
+fn log_odds(p: f32) -> f32 {
+    (p / (1.0 - p)).ln()
+}
+
+/// One growing occupancy grid at one resolution.
+#[derive(Debug, Clone)]
+pub struct Grid {
+    resolution: f64,
+    /// World cell index of array column 0 / row 0.
+    origin: (i32, i32),
+    width: usize,
+    height: usize,
+    log_odds: Vec<f32>,
+    /// Occupancy probability per cell, kept beside the log-odds so lookups need no `exp`.
+    probability: Vec<f32>,
+    /// Per cell, the scan that last updated it: `2·scan` for a free update, `2·scan + 1` for a
+    /// hit (so a hit may override the same scan's free update, never the reverse).
+    mark: Vec<u32>,
+    scans: u32,
+    hit: f32,
+    miss: f32,
+    clamp: f32,
+}
+
+/// Cells added on every side when the grid grows, so a robot driving along an edge does not
+/// reallocate on every scan.
+const GROWTH_MARGIN: i32 = 64;
+
+/// A grid never grows beyond this many cells (8 GiB of state at 12 bytes per cell would be a
+/// bug, not a building): updates beyond it are dropped and counted.
+pub const MAX_CELLS: usize = 400_000_000;
+
+/// The value at, and the gradient of, the interpolated occupancy at a point.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Sample {
+    /// Occupancy probability in [0, 1] (0.5 where nothing was seen).
+    pub value: f64,
+    /// ∂value/∂x, ∂value/∂y in the map frame, per metre.
+    pub gradient: (f64, f64),
+}
+
+impl Grid {
+    /// An empty grid of square cells `resolution` metres wide.
+    pub fn new(resolution: f64, model: &UpdateModel) -> Self {
+        assert!(
+            resolution.is_finite() && resolution > 0.0,
+            "grid resolution must be positive"
+        );
+        Self {
+            resolution,
+            origin: (0, 0),
+            width: 0,
+            height: 0,
+            log_odds: Vec::new(),
+            probability: Vec::new(),
+            mark: Vec::new(),
+            scans: 0,
+            hit: log_odds(model.hit_probability),
+            miss: log_odds(model.miss_probability),
+            clamp: model.clamp_log_odds,
+        }
+    }
+
+    /// Cell edge length (m).
+    pub fn resolution(&self) -> f64 {
+        self.resolution
+    }
+
+    /// Width and height of the allocated area, in cells.
+    pub fn size(&self) -> (usize, usize) {
+        (self.width, self.height)
+    }
+
+    /// World cell index of the allocated area's lower-left cell.
+    pub fn origin_cell(&self) -> (i32, i32) {
+        self.origin
+    }
+
+    /// Number of scans integrated so far.
+    pub fn scans(&self) -> u32 {
+        self.scans
+    }
+
+    /// Log-odds of the world cell `(i, j)`; 0 (probability ½) where nothing was seen.
+    pub fn log_odds(&self, cell: (i32, i32)) -> f32 {
+        self.index(cell).map_or(0.0, |k| self.log_odds[k])
+    }
+
+    /// Occupancy probability of the world cell `(i, j)`; ½ where nothing was seen.
+    pub fn probability(&self, cell: (i32, i32)) -> f32 {
+        self.index(cell).map_or(0.5, |k| self.probability[k])
+    }
+
+    /// Whether the cell was ever updated.
+    pub fn is_known(&self, cell: (i32, i32)) -> bool {
+        self.index(cell).is_some_and(|k| self.mark[k] != 0)
+    }
+
+    /// The world cell that contains the point (m).
+    pub fn cell_of(&self, x: f64, y: f64) -> (i32, i32) {
+        (
+            (x / self.resolution).floor() as i32,
+            (y / self.resolution).floor() as i32,
+        )
+    }
+
+    fn index(&self, (i, j): (i32, i32)) -> Option<usize> {
+        let col = i.checked_sub(self.origin.0)?;
+        let row = j.checked_sub(self.origin.1)?;
+        if col < 0 || row < 0 || col as usize >= self.width || row as usize >= self.height {
+            return None;
+        }
+        Some(row as usize * self.width + col as usize)
+    }
+
+    /// The occupancy probability and its gradient at the point (m), bilinear between the four
+    /// cell centres around it.
+    pub fn interpolate(&self, x: f64, y: f64) -> Sample {
+        // Map coordinates in cells, with cell centres on the integers.
+        let u = x / self.resolution - 0.5;
+        let v = y / self.resolution - 0.5;
+        let (u0, v0) = (u.floor(), v.floor());
+        let (fu, fv) = (u - u0, v - v0);
+        let (i, j) = (u0 as i32, v0 as i32);
+        let (p00, p10, p01, p11) = match self.index((i, j)) {
+            // Fast path: all four inside the array.
+            Some(k)
+                if (i - self.origin.0 + 1) < self.width as i32
+                    && (j - self.origin.1 + 1) < self.height as i32 =>
+            {
+                let w = self.width;
+                (
+                    self.probability[k],
+                    self.probability[k + 1],
+                    self.probability[k + w],
+                    self.probability[k + w + 1],
+                )
+            }
+            _ => (
+                self.probability((i, j)),
+                self.probability((i + 1, j)),
+                self.probability((i, j + 1)),
+                self.probability((i + 1, j + 1)),
+            ),
+        };
+        let (p00, p10, p01, p11) = (
+            f64::from(p00),
+            f64::from(p10),
+            f64::from(p01),
+            f64::from(p11),
+        );
+        let bottom = p00 + fu * (p10 - p00);
+        let top = p01 + fu * (p11 - p01);
+        let value = bottom + fv * (top - bottom);
+        let du = (1.0 - fv) * (p10 - p00) + fv * (p11 - p01);
+        let dv = top - bottom;
+        Sample {
+            value,
+            gradient: (du / self.resolution, dv / self.resolution),
+        }
+    }
+
+    /// Makes the array cover the cells `[lo, hi]` (inclusive), growing it with a margin.
+    /// Returns false (and changes nothing) if that would exceed [`MAX_CELLS`].
+    fn cover(&mut self, lo: (i32, i32), hi: (i32, i32)) -> bool {
+        let (x1, y1) = (
+            self.origin.0 + self.width as i32 - 1,
+            self.origin.1 + self.height as i32 - 1,
+        );
+        if self.width > 0
+            && lo.0 >= self.origin.0
+            && lo.1 >= self.origin.1
+            && hi.0 <= x1
+            && hi.1 <= y1
+        {
+            return true;
+        }
+        let (nx0, ny0, nx1, ny1) = if self.width == 0 {
+            (
+                lo.0 - GROWTH_MARGIN,
+                lo.1 - GROWTH_MARGIN,
+                hi.0 + GROWTH_MARGIN,
+                hi.1 + GROWTH_MARGIN,
+            )
+        } else {
+            (
+                if lo.0 < self.origin.0 {
+                    lo.0 - GROWTH_MARGIN
+                } else {
+                    self.origin.0
+                },
+                if lo.1 < self.origin.1 {
+                    lo.1 - GROWTH_MARGIN
+                } else {
+                    self.origin.1
+                },
+                if hi.0 > x1 { hi.0 + GROWTH_MARGIN } else { x1 },
+                if hi.1 > y1 { hi.1 + GROWTH_MARGIN } else { y1 },
+            )
+        };
+        let width = (i64::from(nx1) - i64::from(nx0) + 1) as usize;
+        let height = (i64::from(ny1) - i64::from(ny0) + 1) as usize;
+        if width.saturating_mul(height) > MAX_CELLS {
+            return false;
+        }
+        let mut log_odds = vec![0.0; width * height];
+        let mut probability = vec![0.5; width * height];
+        let mut mark = vec![0; width * height];
+        let (dx, dy) = (
+            (self.origin.0 - nx0) as usize,
+            (self.origin.1 - ny0) as usize,
+        );
+        for row in 0..self.height {
+            let from = row * self.width..(row + 1) * self.width;
+            let to = (row + dy) * width + dx;
+            log_odds[to..to + self.width].copy_from_slice(&self.log_odds[from.clone()]);
+            probability[to..to + self.width].copy_from_slice(&self.probability[from.clone()]);
+            mark[to..to + self.width].copy_from_slice(&self.mark[from]);
+        }
+        self.origin = (nx0, ny0);
+        self.width = width;
+        self.height = height;
+        self.log_odds = log_odds;
+        self.probability = probability;
+        self.mark = mark;
+        true
+    }
+
+    fn apply(&mut self, k: usize, delta: f32) {
+        let l = (self.log_odds[k] + delta).clamp(-self.clamp, self.clamp);
+        self.log_odds[k] = l;
+        self.probability[k] = 1.0 / (1.0 + (-l).exp());
+    }
+
+    /// Integrates one scan taken from `origin` (m, map frame): every cell from the origin to
+    /// each of `hits` gets a free update and the cell of each hit an occupied update; every cell
+    /// to each of `misses` (beams that returned nothing within range, cut at the range) only a
+    /// free update. Returns false if the grid would have had to grow past [`MAX_CELLS`] (the
+    /// scan is then not integrated).
+    pub fn integrate(
+        &mut self,
+        origin: (f64, f64),
+        hits: &[(f64, f64)],
+        misses: &[(f64, f64)],
+    ) -> bool {
+        let start = self.cell_of(origin.0, origin.1);
+        let (mut lo, mut hi) = (start, start);
+        for &(x, y) in hits.iter().chain(misses) {
+            let c = self.cell_of(x, y);
+            lo = (lo.0.min(c.0), lo.1.min(c.1));
+            hi = (hi.0.max(c.0), hi.1.max(c.1));
+        }
+        if !self.cover(lo, hi) {
+            return false;
+        }
+        self.scans += 1;
+        let free_mark = 2 * self.scans;
+        let hit_mark = free_mark + 1;
+        for (n, &(x, y)) in hits.iter().chain(misses).enumerate() {
+            let end = self.cell_of(x, y);
+            let is_hit = n < hits.len();
+            self.trace(start, end, free_mark);
+            if is_hit {
+                let k = self.index(end).expect("covered");
+                if self.mark[k] != hit_mark {
+                    if self.mark[k] == free_mark {
+                        // Undo this scan's free update: the endpoint wins.
+                        self.apply(k, -self.miss);
+                    }
+                    self.mark[k] = hit_mark;
+                    self.apply(k, self.hit);
+                }
+            }
+        }
+        true
+    }
+
+    /// Free updates along the cells from `start` to `end`, both excluded from nothing but the
+    /// end cell (Bresenham, integer arithmetic).
+    fn trace(&mut self, start: (i32, i32), end: (i32, i32), free_mark: u32) {
+        let (dx, dy) = ((end.0 - start.0).abs(), -(end.1 - start.1).abs());
+        let (sx, sy) = (
+            if start.0 < end.0 { 1 } else { -1 },
+            if start.1 < end.1 { 1 } else { -1 },
+        );
+        let mut err = dx + dy;
+        let (mut i, mut j) = start;
+        let w = self.width as i32;
+        let base = -(self.origin.1 * w + self.origin.0);
+        while (i, j) != end {
+            let k = (base + j * w + i) as usize;
+            if self.mark[k] < free_mark {
+                self.mark[k] = free_mark;
+                self.apply(k, self.miss);
+            }
+            let e2 = 2 * err;
+            if e2 >= dy {
+                err += dy;
+                i += sx;
+            }
+            if e2 <= dx {
+                err += dx;
+                j += sy;
+            }
+        }
+    }
+}
+
+/// Grids at several resolutions, level 0 the finest and each next level half as fine.
+#[derive(Debug, Clone)]
+pub struct GridPyramid {
+    levels: Vec<Grid>,
+}
+
+impl GridPyramid {
+    /// `levels` grids, the finest with cells `resolution` metres wide.
+    pub fn new(resolution: f64, levels: usize, model: &UpdateModel) -> Self {
+        assert!(levels >= 1, "a pyramid needs at least one level");
+        Self {
+            levels: (0..levels)
+                .map(|level| Grid::new(resolution * f64::from(1u32 << level), model))
+                .collect(),
+        }
+    }
+
+    /// The grids, finest first.
+    pub fn levels(&self) -> &[Grid] {
+        &self.levels
+    }
+
+    /// The finest grid.
+    pub fn finest(&self) -> &Grid {
+        &self.levels[0]
+    }
+
+    /// Integrates a scan, given in the sensor frame, seen from `sensor_pose` into every level.
+    /// `hits` are beam endpoints; `misses` are points where beams without a return were cut.
+    /// Returns false if a level refused to grow (see [`Grid::integrate`]).
+    pub fn integrate(
+        &mut self,
+        sensor_pose: &Pose2,
+        hits: &[(f64, f64)],
+        misses: &[(f64, f64)],
+    ) -> bool {
+        let to_map = |points: &[(f64, f64)]| -> Vec<(f64, f64)> {
+            points
+                .iter()
+                .map(|&(x, y)| sensor_pose.transform_point(x, y))
+                .collect()
+        };
+        let (hits, misses) = (to_map(hits), to_map(misses));
+        let origin = (sensor_pose.x, sensor_pose.y);
+        let mut all = true;
+        for grid in &mut self.levels {
+            all &= grid.integrate(origin, &hits, &misses);
+        }
+        all
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn grid() -> Grid {
+        Grid::new(0.1, &UpdateModel::default())
+    }
+
+    #[test]
+    fn a_beam_frees_the_cells_it_crosses_and_marks_its_end_occupied() {
+        let mut g = grid();
+        assert!(g.integrate((0.05, 0.05), &[(1.05, 0.05)], &[]));
+        for i in 0..10 {
+            assert!(g.probability((i, 0)) < 0.5, "cell {i} should be free");
+        }
+        assert!((g.probability((10, 0)) - 0.9).abs() < 1e-6);
+        assert_eq!(g.probability((11, 0)), 0.5);
+        assert!(!g.is_known((11, 0)));
+    }
+
+    #[test]
+    fn a_cell_gets_one_update_per_scan_and_an_endpoint_wins_over_a_free_pass() {
+        let mut g = grid();
+        // Two beams to the same cell, and a third passing through it further on.
+        g.integrate(
+            (0.05, 0.05),
+            &[(0.55, 0.05), (0.56, 0.04), (1.05, 0.05)],
+            &[],
+        );
+        assert!((g.probability((5, 0)) - 0.9).abs() < 1e-6);
+        assert!((g.probability((2, 0)) - 0.4).abs() < 1e-6);
+        g.integrate((0.05, 0.05), &[(0.55, 0.05)], &[]);
+        let twice = 1.0 / (1.0 + (-(2.0 * log_odds(0.9))).exp());
+        assert!((g.probability((5, 0)) - twice).abs() < 1e-6);
+    }
+
+    #[test]
+    fn the_grid_grows_in_every_direction_and_keeps_what_it_had() {
+        let mut g = grid();
+        g.integrate((0.0, 0.0), &[(1.0, 1.0)], &[]);
+        let before = g.probability(g.cell_of(1.0, 1.0));
+        g.integrate((0.0, 0.0), &[(-30.0, -12.0)], &[(25.0, 40.0)]);
+        assert_eq!(g.probability(g.cell_of(1.0, 1.0)), before);
+        assert!(g.probability(g.cell_of(-30.0, -12.0)) > 0.5);
+        assert!(g.probability(g.cell_of(24.9, 39.8)) < 0.5);
+        let (w, h) = g.size();
+        assert!(w >= 550 && h >= 520, "{w}×{h}");
+    }
+
+    #[test]
+    fn interpolation_is_exact_at_cell_centres_and_its_gradient_matches_finite_differences() {
+        let mut g = grid();
+        // A wall along x = 1 seen from several places, plus some free space: a varied surface.
+        for k in 0..20 {
+            let y0 = -0.5 + 0.05 * f64::from(k);
+            let hits: Vec<_> = (0..30).map(|n| (1.0, -1.0 + 0.07 * f64::from(n))).collect();
+            g.integrate((0.1, y0), &hits, &[]);
+        }
+        let c = (7, 3);
+        let centre = ((f64::from(c.0) + 0.5) * 0.1, (f64::from(c.1) + 0.5) * 0.1);
+        let s = g.interpolate(centre.0, centre.1);
+        assert!((s.value - f64::from(g.probability(c))).abs() < 1e-9);
+
+        let h = 1e-6;
+        let mut checked = 0;
+        for n in 0..200 {
+            let x = 0.3 + 0.0037 * f64::from(n);
+            let y = -0.4 + 0.0041 * f64::from(n);
+            // Skip points within h of a cell-centre line, where the gradient is not continuous.
+            let (u, v) = (x / 0.1 - 0.5, y / 0.1 - 0.5);
+            if (u - u.round()).abs() < 1e-3 || (v - v.round()).abs() < 1e-3 {
+                continue;
+            }
+            let s = g.interpolate(x, y);
+            let dx = (g.interpolate(x + h, y).value - g.interpolate(x - h, y).value) / (2.0 * h);
+            let dy = (g.interpolate(x, y + h).value - g.interpolate(x, y - h).value) / (2.0 * h);
+            assert!(
+                (s.gradient.0 - dx).abs() < 1e-5,
+                "∂x at ({x}, {y}): {} vs {dx}",
+                s.gradient.0
+            );
+            assert!(
+                (s.gradient.1 - dy).abs() < 1e-5,
+                "∂y at ({x}, {y}): {} vs {dy}",
+                s.gradient.1
+            );
+            checked += 1;
+        }
+        assert!(checked > 150);
+        // The wall makes the gradient point towards it (+x) just before it.
+        assert!(g.interpolate(0.97, 0.2).gradient.0 > 1.0);
+    }
+
+    #[test]
+    fn a_pyramid_updates_every_level_from_the_same_scan() {
+        let mut p = GridPyramid::new(0.05, 3, &UpdateModel::default());
+        p.integrate(
+            &Pose2::new(0.0, 0.0, std::f64::consts::FRAC_PI_2),
+            &[(2.0, 0.0)],
+            &[],
+        );
+        for grid in p.levels() {
+            // The beam went along +y in the map frame.
+            assert!(
+                grid.probability(grid.cell_of(0.0, 2.01)) > 0.5,
+                "{}",
+                grid.resolution()
+            );
+            assert!(grid.probability(grid.cell_of(0.0, 1.0)) < 0.5);
+        }
+        assert_eq!(p.levels()[2].resolution(), 0.2);
+    }
+
+    #[test]
+    fn a_grid_refuses_to_grow_past_its_cell_limit_and_stays_usable() {
+        let mut g = Grid::new(0.001, &UpdateModel::default());
+        assert!(!g.integrate((0.0, 0.0), &[(100_000.0, 100_000.0)], &[]));
+        assert_eq!(g.scans(), 0);
+        assert!(g.integrate((0.0, 0.0), &[(0.01, 0.0)], &[]));
+    }
+}

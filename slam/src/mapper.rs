@@ -1,0 +1,366 @@
+//! Incremental 2D SLAM without loop closure: each scan is matched against the map built so far,
+//! then (when the robot has moved enough) integrated into it.
+//!
+//! [`Mapper::add_scan`] is the whole front end: predict the pose (wheel odometry when there is
+//! some, a constant-velocity model otherwise), de-skew the scan when its beams carry their own
+//! times, match it coarse to fine with the prediction as a Gaussian prior, and update the map
+//! by Hector's distance/angle rule. The grid pyramid and the per-scan poses and covariances are
+//! what a pose-graph layer (submaps, loop closure) will build on.
+
+use crate::grid::{GridPyramid, UpdateModel};
+use crate::matcher::{Match, MatchConfig, Matrix3, Prior, match_scan};
+use crate::pose::{Pose2, wrap_angle};
+
+/// How the pose is predicted before matching, and how much the prediction is trusted.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MotionConfig {
+    /// Use wheel odometry when a scan has it (`false`: constant velocity, as without odometry).
+    pub use_odometry: bool,
+    /// Odometry translation error, standard deviation per metre travelled.
+    pub odometry_translation_per_m: f64,
+    /// Odometry rotation error, standard deviation (rad) per radian turned.
+    pub odometry_rotation_per_rad: f64,
+    /// Odometry rotation error, standard deviation (rad) per metre travelled.
+    pub odometry_rotation_per_m: f64,
+    /// Smallest translation standard deviation of a prediction (m).
+    pub min_translation_sigma: f64,
+    /// Smallest rotation standard deviation of a prediction (rad).
+    pub min_rotation_sigma: f64,
+    /// Translation standard deviation (m) of a constant-velocity prediction, per second since
+    /// the previous scan.
+    pub velocity_translation_per_s: f64,
+    /// Rotation standard deviation (rad) of a constant-velocity prediction, per second.
+    pub velocity_rotation_per_s: f64,
+}
+
+impl Default for MotionConfig {
+    fn default() -> Self {
+        Self {
+            use_odometry: true,
+            odometry_translation_per_m: 0.2,
+            odometry_rotation_per_rad: 0.2,
+            odometry_rotation_per_m: 0.05,
+            min_translation_sigma: 0.01,
+            min_rotation_sigma: 0.005,
+            velocity_translation_per_s: 0.5,
+            velocity_rotation_per_s: 1.0,
+        }
+    }
+}
+
+/// Every parameter of the mapper. `slam.toml` is this, key for key.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MapperConfig {
+    /// Cell size of the finest grid (m).
+    pub resolution: f64,
+    /// Number of grids; each next one has cells twice as wide.
+    pub levels: usize,
+    /// Hit/miss log-odds updates of the grids.
+    pub update: UpdateModel,
+    /// The Gauss–Newton matcher.
+    pub matcher: MatchConfig,
+    /// The motion prior.
+    pub motion: MotionConfig,
+    /// Integrate a scan into the map only after the robot moved this far (m) since the last
+    /// integrated scan (Hector's `map_update_distance_thresh`)...
+    pub map_update_distance: f64,
+    /// ...or turned this much (rad).
+    pub map_update_angle: f64,
+    /// A match whose mean endpoint occupancy is below this is not trusted: the scan takes the
+    /// predicted pose and is not integrated.
+    pub min_score: f64,
+}
+
+impl Default for MapperConfig {
+    fn default() -> Self {
+        Self {
+            resolution: 0.05,
+            levels: 3,
+            update: UpdateModel::default(),
+            matcher: MatchConfig::default(),
+            motion: MotionConfig::default(),
+            map_update_distance: 0.1,
+            map_update_angle: 0.1,
+            min_score: 0.0,
+        }
+    }
+}
+
+/// One laser scan, as the mapper takes it.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Scan {
+    /// When the scan was taken (s, any origin, increasing).
+    pub time: f64,
+    /// Beam endpoints with a return, in the sensor frame (m).
+    pub hits: Vec<(f64, f64)>,
+    /// Per endpoint in `hits`, its time relative to `time` (s), when the lidar gives one: the
+    /// scan is then de-skewed. Empty for an instantaneous scan.
+    pub hit_times: Vec<f64>,
+    /// The robot's wheel-odometry pose at `time`, if there is odometry.
+    pub odometry: Option<Pose2>,
+    /// The sensor's pose on the robot.
+    pub sensor_offset: Pose2,
+}
+
+/// What the mapper did with one scan.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ScanResult {
+    /// The robot pose at the scan's time, in the map frame.
+    pub pose: Pose2,
+    /// The pose the motion model predicted.
+    pub predicted: Pose2,
+    /// Covariance of the matched sensor pose from the scan alone (`None` for the first scan
+    /// and for scans whose match was not trusted).
+    pub covariance: Option<Matrix3>,
+    /// Mean endpoint occupancy of the match on the finest grid (0 when not matched).
+    pub score: f64,
+    /// Whether the scan was integrated into the map.
+    pub integrated: bool,
+}
+
+/// The incremental mapper: a grid pyramid and the last pose.
+#[derive(Debug, Clone)]
+pub struct Mapper {
+    config: MapperConfig,
+    map: GridPyramid,
+    last: Option<Last>,
+    last_integrated: Option<Pose2>,
+    refused: usize,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Last {
+    time: f64,
+    pose: Pose2,
+    odometry: Option<Pose2>,
+    /// Motion over the previous interval, in the frame of its start, and that interval (s).
+    motion: Pose2,
+    interval: f64,
+}
+
+impl Mapper {
+    /// A mapper with an empty map.
+    pub fn new(config: MapperConfig) -> Self {
+        Self {
+            map: GridPyramid::new(config.resolution, config.levels, &config.update),
+            config,
+            last: None,
+            last_integrated: None,
+            refused: 0,
+        }
+    }
+
+    /// The grids built so far.
+    pub fn map(&self) -> &GridPyramid {
+        &self.map
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &MapperConfig {
+        &self.config
+    }
+
+    /// Scans that could not be integrated because the grid would have grown past its limit.
+    pub fn refused_integrations(&self) -> usize {
+        self.refused
+    }
+
+    /// Matches a scan against the map, integrates it when due, and returns its pose.
+    pub fn add_scan(&mut self, scan: &Scan) -> ScanResult {
+        let Some(last) = self.last else {
+            let pose = scan
+                .odometry
+                .filter(|_| self.config.motion.use_odometry)
+                .unwrap_or_default();
+            self.integrate(scan, &pose, &scan.hits);
+            self.last = Some(Last {
+                time: scan.time,
+                pose,
+                odometry: scan.odometry,
+                motion: Pose2::default(),
+                interval: 0.0,
+            });
+            return ScanResult {
+                pose,
+                predicted: pose,
+                covariance: None,
+                score: 0.0,
+                integrated: true,
+            };
+        };
+        let dt = scan.time - last.time;
+        let (motion, information) = self.predict(&last, scan, dt);
+        let predicted = last.pose.compose(&motion);
+
+        let hits = if scan.hit_times.len() == scan.hits.len() && !scan.hit_times.is_empty() {
+            deskew(
+                &scan.hits,
+                &scan.hit_times,
+                &scan.sensor_offset,
+                &motion,
+                dt,
+            )
+        } else {
+            scan.hits.clone()
+        };
+        let start = predicted.compose(&scan.sensor_offset);
+        let prior = Prior {
+            pose: start,
+            information,
+        };
+        let mut matched: Match =
+            match_scan(&self.map, &hits, start, Some(&prior), &self.config.matcher);
+        let mut pose = matched.pose.compose(&scan.sensor_offset.inverse());
+        let mut hits = hits;
+        if !scan.hit_times.is_empty() && scan.hit_times.len() == scan.hits.len() && dt > 0.0 {
+            // De-skew again with the motion the match found, and refine.
+            let found = last.pose.between(&pose);
+            hits = deskew(&scan.hits, &scan.hit_times, &scan.sensor_offset, &found, dt);
+            matched = match_scan(
+                &self.map,
+                &hits,
+                matched.pose,
+                Some(&prior),
+                &self.config.matcher,
+            );
+            pose = matched.pose.compose(&scan.sensor_offset.inverse());
+        }
+        let trusted = matched.score >= self.config.min_score;
+        if !trusted {
+            pose = predicted;
+        }
+        let integrated = trusted && self.due(&pose) && self.integrate(scan, &pose, &hits);
+        self.last = Some(Last {
+            time: scan.time,
+            pose,
+            odometry: scan.odometry,
+            motion: last.pose.between(&pose),
+            interval: dt,
+        });
+        ScanResult {
+            pose,
+            predicted,
+            covariance: trusted.then_some(matched.covariance),
+            score: if trusted { matched.score } else { 0.0 },
+            integrated,
+        }
+    }
+
+    /// The predicted motion since the last scan (in its frame) and the prior's information
+    /// matrix over the sensor pose.
+    fn predict(&self, last: &Last, scan: &Scan, dt: f64) -> (Pose2, Matrix3) {
+        let m = &self.config.motion;
+        let odometry = match (m.use_odometry, last.odometry, scan.odometry) {
+            (true, Some(before), Some(now)) => Some(before.between(&now)),
+            _ => None,
+        };
+        let (motion, sigma_t, sigma_r) = match odometry {
+            Some(delta) => {
+                let distance = delta.x.hypot(delta.y);
+                (
+                    delta,
+                    m.odometry_translation_per_m * distance,
+                    m.odometry_rotation_per_rad * delta.theta.abs()
+                        + m.odometry_rotation_per_m * distance,
+                )
+            }
+            None => {
+                let ratio = if last.interval > 0.0 {
+                    (dt / last.interval).clamp(0.0, 5.0)
+                } else {
+                    0.0
+                };
+                let motion = Pose2::new(
+                    last.motion.x * ratio,
+                    last.motion.y * ratio,
+                    last.motion.theta * ratio,
+                );
+                (
+                    motion,
+                    m.velocity_translation_per_s * dt.abs(),
+                    m.velocity_rotation_per_s * dt.abs(),
+                )
+            }
+        };
+        let sigma_t = sigma_t.max(m.min_translation_sigma);
+        let sigma_r = sigma_r.max(m.min_rotation_sigma);
+        let information = [
+            [1.0 / (sigma_t * sigma_t), 0.0, 0.0],
+            [0.0, 1.0 / (sigma_t * sigma_t), 0.0],
+            [0.0, 0.0, 1.0 / (sigma_r * sigma_r)],
+        ];
+        (motion, information)
+    }
+
+    fn due(&self, pose: &Pose2) -> bool {
+        self.last_integrated.is_none_or(|at| {
+            (pose.x - at.x).hypot(pose.y - at.y) >= self.config.map_update_distance
+                || wrap_angle(pose.theta - at.theta).abs() >= self.config.map_update_angle
+        })
+    }
+
+    fn integrate(&mut self, scan: &Scan, pose: &Pose2, hits: &[(f64, f64)]) -> bool {
+        let sensor = pose.compose(&scan.sensor_offset);
+        if self.map.integrate(&sensor, hits, &[]) {
+            self.last_integrated = Some(*pose);
+            true
+        } else {
+            self.refused += 1;
+            false
+        }
+    }
+}
+
+/// Moves each endpoint to where it would have been seen from the sensor pose at the scan's
+/// time, given the robot's `motion` over the `interval` that ends at the scan (constant
+/// velocity in between): a beam taken `t` seconds after the scan time was seen from the robot
+/// pose `exp(twist · t)` relative to it.
+fn deskew(
+    hits: &[(f64, f64)],
+    times: &[f64],
+    sensor_offset: &Pose2,
+    motion: &Pose2,
+    interval: f64,
+) -> Vec<(f64, f64)> {
+    if interval <= 0.0 {
+        return hits.to_vec();
+    }
+    let to_sensor = sensor_offset.inverse();
+    hits.iter()
+        .zip(times)
+        .map(|(&(x, y), &t)| {
+            let f = t / interval;
+            let at = Pose2::new(motion.x * f, motion.y * f, motion.theta * f);
+            // Sensor at time t, relative to the sensor at the scan time.
+            let relative = to_sensor.compose(&at).compose(sensor_offset);
+            relative.transform_point(x, y)
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_beam_taken_after_the_scan_time_is_moved_by_the_motion_since() {
+        // Moving +x at 1 m/s; a beam 0.5 s late saw a point 1 m ahead: from the scan-time pose
+        // that point is 1.5 m ahead.
+        let motion = Pose2::new(1.0, 0.0, 0.0);
+        let out = deskew(
+            &[(1.0, 0.0), (1.0, 0.0)],
+            &[0.0, 0.5],
+            &Pose2::default(),
+            &motion,
+            1.0,
+        );
+        assert!((out[0].0 - 1.0).abs() < 1e-12);
+        assert!((out[1].0 - 1.5).abs() < 1e-12 && out[1].1.abs() < 1e-12);
+        // Turning left at 1 rad/s: a beam 0.1 s late along the sensor's x is rotated by 0.1 rad.
+        let turn = Pose2::new(0.0, 0.0, 1.0);
+        let out = deskew(&[(2.0, 0.0)], &[0.1], &Pose2::default(), &turn, 1.0);
+        assert!((out[0].1 - 2.0 * 0.1f64.sin()).abs() < 1e-12);
+    }
+}

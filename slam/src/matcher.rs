@@ -1,0 +1,443 @@
+//! Scan-to-map matching by Gauss–Newton on (x, y, ψ), coarse to fine (Hector SLAM, Kohlbrecher
+//! et al. 2011), with a robust loss and an optional Gaussian prior on the pose.
+//!
+//! The cost of a sensor pose ξ is Σᵢ ρ([1 − M(Sᵢ(ξ))]²) / σ² + (ξ − ξₚ)ᵀ Λ (ξ − ξₚ): beam
+//! endpoints Sᵢ(ξ) should land where the map M (bilinear occupancy, [`Grid::interpolate`]) is
+//! occupied; ρ is the robust loss, σ the spread of a residual and (ξₚ, Λ) the motion prior.
+//! Each level of the pyramid, coarsest first, refines the pose the previous one found: the
+//! coarse grids are smooth enough to pull a pose in from a few cells away, the fine one is
+//! precise. The inverse of the scan term's Hessian is the pose covariance.
+
+use crate::grid::{Grid, GridPyramid};
+use crate::pose::{Pose2, wrap_angle};
+
+/// A 3×3 matrix over (x, y, ψ), row-major.
+pub type Matrix3 = [[f64; 3]; 3];
+
+/// The robust loss applied to each endpoint's squared residual.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Loss {
+    /// Plain least squares (Hector's).
+    Squared,
+    /// Quadratic below `delta`, linear above: an endpoint far from any wall pulls with a
+    /// bounded force.
+    Huber { delta: f64 },
+    /// ρ(s) = c² ln(1 + s/c²): outliers (glass, people) fade out instead of pulling.
+    Cauchy { c: f64 },
+}
+
+impl Loss {
+    /// The iteratively-reweighted-least-squares weight for residual `r`.
+    fn weight(&self, r: f64) -> f64 {
+        match *self {
+            Loss::Squared => 1.0,
+            Loss::Huber { delta } => {
+                let a = r.abs();
+                if a <= delta { 1.0 } else { delta / a }
+            }
+            Loss::Cauchy { c } => 1.0 / (1.0 + (r / c).powi(2)),
+        }
+    }
+
+    fn cost(&self, r: f64) -> f64 {
+        match *self {
+            Loss::Squared => r * r,
+            Loss::Huber { delta } => {
+                let a = r.abs();
+                if a <= delta {
+                    r * r
+                } else {
+                    delta * (2.0 * a - delta)
+                }
+            }
+            Loss::Cauchy { c } => c * c * (1.0 + (r / c).powi(2)).ln(),
+        }
+    }
+}
+
+/// How the matcher iterates.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MatchConfig {
+    /// Gauss–Newton iterations on each coarse level.
+    pub coarse_iterations: usize,
+    /// Gauss–Newton iterations on the finest level.
+    pub fine_iterations: usize,
+    /// Robust loss on each endpoint's residual.
+    pub loss: Loss,
+    /// Standard deviation of one endpoint's residual 1 − M (occupancy units): weighs the scan
+    /// against the prior and scales the covariance.
+    pub residual_sigma: f64,
+    /// Stop a level's iterations when a step moves less than this (m, and rad).
+    pub converged_step: f64,
+}
+
+impl Default for MatchConfig {
+    fn default() -> Self {
+        Self {
+            coarse_iterations: 4,
+            fine_iterations: 8,
+            loss: Loss::Huber { delta: 0.5 },
+            residual_sigma: 0.25,
+            converged_step: 1e-5,
+        }
+    }
+}
+
+/// A Gaussian belief about the pose before matching: mean and information (inverse covariance).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Prior {
+    pub pose: Pose2,
+    pub information: Matrix3,
+}
+
+/// What a match found.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Match {
+    /// The sensor pose that best explains the scan.
+    pub pose: Pose2,
+    /// Covariance of `pose` from the scan alone (the inverse Hessian of the scan term at the
+    /// finest level), for fusing with other pose sources; very large along directions the scan
+    /// does not constrain (a corridor's axis).
+    pub covariance: Matrix3,
+    /// Mean occupancy at the endpoints on the finest grid, in [0, 1]: 1 is a perfect fit.
+    pub score: f64,
+    /// Gauss–Newton iterations run, over all levels.
+    pub iterations: usize,
+}
+
+/// Matches `points` (beam endpoints in the sensor frame, m) against the pyramid, starting at the
+/// sensor pose `start`.
+pub fn match_scan(
+    pyramid: &GridPyramid,
+    points: &[(f64, f64)],
+    start: Pose2,
+    prior: Option<&Prior>,
+    config: &MatchConfig,
+) -> Match {
+    let mut pose = start;
+    let mut iterations = 0;
+    let levels = pyramid.levels();
+    for (level, grid) in levels.iter().enumerate().rev() {
+        let budget = if level == 0 {
+            config.fine_iterations
+        } else {
+            config.coarse_iterations
+        };
+        for _ in 0..budget {
+            iterations += 1;
+            let normal = normal_equations(grid, points, &pose, prior, config);
+            let Some(step) = solve(&normal.hessian, &normal.gradient) else {
+                break;
+            };
+            let candidate = Pose2::new(pose.x + step[0], pose.y + step[1], pose.theta + step[2]);
+            let new_cost = cost(grid, points, &candidate, prior, config);
+            if new_cost > normal.cost {
+                // Gauss–Newton overshot (the map is only piecewise smooth): try half the step once.
+                let half = Pose2::new(
+                    pose.x + 0.5 * step[0],
+                    pose.y + 0.5 * step[1],
+                    pose.theta + 0.5 * step[2],
+                );
+                if cost(grid, points, &half, prior, config) < normal.cost {
+                    pose = half;
+                }
+                break;
+            }
+            pose = candidate;
+            if step[0].hypot(step[1]) < config.converged_step
+                && step[2].abs() < config.converged_step
+            {
+                break;
+            }
+        }
+    }
+    let finest = &levels[0];
+    let scan_only = normal_equations(finest, points, &pose, None, config);
+    let covariance = covariance_of(&scan_only.hessian);
+    Match {
+        pose,
+        covariance,
+        score: score(finest, points, &pose),
+        iterations,
+    }
+}
+
+/// Mean interpolated occupancy at the endpoints placed at `pose`.
+pub fn score(grid: &Grid, points: &[(f64, f64)], pose: &Pose2) -> f64 {
+    if points.is_empty() {
+        return 0.0;
+    }
+    let sum: f64 = points
+        .iter()
+        .map(|&(x, y)| {
+            let (mx, my) = pose.transform_point(x, y);
+            grid.interpolate(mx, my).value
+        })
+        .sum();
+    sum / points.len() as f64
+}
+
+struct Normal {
+    hessian: Matrix3,
+    /// Right-hand side: the step solves hessian · step = gradient.
+    gradient: [f64; 3],
+    cost: f64,
+}
+
+fn normal_equations(
+    grid: &Grid,
+    points: &[(f64, f64)],
+    pose: &Pose2,
+    prior: Option<&Prior>,
+    config: &MatchConfig,
+) -> Normal {
+    let (s, c) = pose.theta.sin_cos();
+    let scale = 1.0 / (config.residual_sigma * config.residual_sigma);
+    let mut h = [[0.0; 3]; 3];
+    let mut g = [0.0; 3];
+    let mut total = 0.0;
+    for &(px, py) in points {
+        let mx = pose.x + c * px - s * py;
+        let my = pose.y + s * px + c * py;
+        let sample = grid.interpolate(mx, my);
+        let r = 1.0 - sample.value;
+        let (gx, gy) = sample.gradient;
+        // ∂M/∂ξ = ∇M · ∂S/∂ξ, ∂S/∂ψ = (−s·px − c·py, c·px − s·py).
+        let j = [gx, gy, gx * (-s * px - c * py) + gy * (c * px - s * py)];
+        let w = config.loss.weight(r) * scale;
+        total += config.loss.cost(r) * scale;
+        for a in 0..3 {
+            g[a] += w * j[a] * r;
+            for b in a..3 {
+                h[a][b] += w * j[a] * j[b];
+            }
+        }
+    }
+    if let Some(prior) = prior {
+        let e = [
+            pose.x - prior.pose.x,
+            pose.y - prior.pose.y,
+            wrap_angle(pose.theta - prior.pose.theta),
+        ];
+        let l = &prior.information;
+        for a in 0..3 {
+            let le: f64 = (0..3).map(|b| l[a][b] * e[b]).sum();
+            g[a] -= le;
+            total += e[a] * le;
+            for b in a..3 {
+                h[a][b] += l[a][b];
+            }
+        }
+    }
+    for a in 0..3 {
+        for b in 0..a {
+            h[a][b] = h[b][a];
+        }
+    }
+    Normal {
+        hessian: h,
+        gradient: g,
+        cost: total,
+    }
+}
+
+fn cost(
+    grid: &Grid,
+    points: &[(f64, f64)],
+    pose: &Pose2,
+    prior: Option<&Prior>,
+    config: &MatchConfig,
+) -> f64 {
+    let scale = 1.0 / (config.residual_sigma * config.residual_sigma);
+    let mut total: f64 = points
+        .iter()
+        .map(|&(x, y)| {
+            let (mx, my) = pose.transform_point(x, y);
+            config.loss.cost(1.0 - grid.interpolate(mx, my).value) * scale
+        })
+        .sum();
+    if let Some(prior) = prior {
+        let e = [
+            pose.x - prior.pose.x,
+            pose.y - prior.pose.y,
+            wrap_angle(pose.theta - prior.pose.theta),
+        ];
+        for a in 0..3 {
+            for b in 0..3 {
+                total += e[a] * prior.information[a][b] * e[b];
+            }
+        }
+    }
+    total
+}
+
+/// The inverse of a scan Hessian, regularised so that a direction the scan does not constrain
+/// (a corridor's axis, an empty scan) gets a huge variance instead of no answer.
+fn covariance_of(hessian: &Matrix3) -> Matrix3 {
+    let largest = (0..3).map(|a| hessian[a][a]).fold(0.0f64, f64::max);
+    let lambda = (1e-9 * largest).max(1e-12);
+    let mut regularised = *hessian;
+    for (a, row) in regularised.iter_mut().enumerate() {
+        row[a] += lambda;
+    }
+    invert(&regularised).unwrap_or([
+        [1.0 / lambda, 0.0, 0.0],
+        [0.0, 1.0 / lambda, 0.0],
+        [0.0, 0.0, 1.0 / lambda],
+    ])
+}
+
+/// The determinant-checked inverse of a symmetric 3×3 matrix.
+pub fn invert(m: &Matrix3) -> Option<Matrix3> {
+    let [[a, b, c], [d, e, f], [g, h, i]] = *m;
+    let co = [
+        [e * i - f * h, c * h - b * i, b * f - c * e],
+        [f * g - d * i, a * i - c * g, c * d - a * f],
+        [d * h - e * g, b * g - a * h, a * e - b * d],
+    ];
+    let det = a * co[0][0] + b * co[1][0] + c * co[2][0];
+    let scale = m.iter().flatten().fold(0.0f64, |acc, v| acc.max(v.abs()));
+    if !det.is_finite() || det.abs() <= 1e-12 * scale.powi(3) || scale == 0.0 {
+        return None;
+    }
+    Some(co.map(|row| row.map(|v| v / det)))
+}
+
+fn solve(h: &Matrix3, g: &[f64; 3]) -> Option<[f64; 3]> {
+    let inv = invert(h)?;
+    Some([0, 1, 2].map(|a| (0..3).map(|b| inv[a][b] * g[b]).sum()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::grid::UpdateModel;
+
+    /// A 6 m × 4 m room with a pillar, as beam endpoints seen from `pose` (every 1°).
+    fn room_scan(pose: &Pose2) -> Vec<(f64, f64)> {
+        // Walls on cell centres of the 5 cm grid, so the map has no half-cell bias to test.
+        let segments = [
+            ((-3.025, -2.025), (3.025, -2.025)),
+            ((3.025, -2.025), (3.025, 2.025)),
+            ((3.025, 2.025), (-3.025, 2.025)),
+            ((-3.025, 2.025), (-3.025, -2.025)),
+            ((1.025, 0.525), (1.425, 0.525)),
+            ((1.425, 0.525), (1.425, 0.925)),
+            ((1.425, 0.925), (1.025, 0.925)),
+            ((1.025, 0.925), (1.025, 0.525)),
+        ];
+        (0..360)
+            .filter_map(|k| {
+                let a = pose.theta + f64::from(k).to_radians();
+                let (dx, dy) = (a.cos(), a.sin());
+                let range = segments
+                    .iter()
+                    .filter_map(|&((x1, y1), (x2, y2))| {
+                        let (ex, ey) = (x2 - x1, y2 - y1);
+                        let den = dx * ey - dy * ex;
+                        if den.abs() < 1e-12 {
+                            return None;
+                        }
+                        let (wx, wy) = (x1 - pose.x, y1 - pose.y);
+                        let t = (wx * ey - wy * ex) / den;
+                        let u = (wx * dy - wy * dx) / den;
+                        (t > 0.0 && (0.0..=1.0).contains(&u)).then_some(t)
+                    })
+                    .fold(f64::INFINITY, f64::min);
+                range.is_finite().then(|| {
+                    let b = f64::from(k).to_radians();
+                    (range * b.cos(), range * b.sin())
+                })
+            })
+            .collect()
+    }
+
+    fn mapped_room() -> GridPyramid {
+        let mut p = GridPyramid::new(0.05, 3, &UpdateModel::default());
+        let pose = Pose2::new(-0.5, -0.3, 0.2);
+        let scan = room_scan(&pose);
+        for _ in 0..3 {
+            p.integrate(&pose, &scan, &[]);
+        }
+        p
+    }
+
+    #[test]
+    fn a_scan_from_a_displaced_pose_is_matched_back_to_where_it_was_taken() {
+        let map = mapped_room();
+        let truth = Pose2::new(-0.2, 0.1, 0.35);
+        let scan = room_scan(&truth);
+        let start = Pose2::new(-0.05, 0.22, 0.25);
+        let m = match_scan(&map, &scan, start, None, &MatchConfig::default());
+        assert!(
+            (m.pose.x - truth.x).abs() < 0.01 && (m.pose.y - truth.y).abs() < 0.01,
+            "{:?} vs {truth:?}",
+            m.pose
+        );
+        assert!(
+            wrap_angle(m.pose.theta - truth.theta).abs() < 0.2f64.to_radians(),
+            "{m:?}"
+        );
+        assert!(m.score > 0.7, "{m:?}");
+    }
+
+    #[test]
+    fn a_strong_prior_holds_the_pose_and_a_weak_one_lets_the_scan_decide() {
+        let map = mapped_room();
+        let truth = Pose2::new(-0.2, 0.1, 0.35);
+        let scan = room_scan(&truth);
+        let held = Pose2::new(-0.1, 0.1, 0.35);
+        let info = |w: f64| [[w, 0.0, 0.0], [0.0, w, 0.0], [0.0, 0.0, w]];
+        let strong = Prior {
+            pose: held,
+            information: info(1e9),
+        };
+        let m = match_scan(&map, &scan, held, Some(&strong), &MatchConfig::default());
+        assert!((m.pose.x - held.x).abs() < 1e-3, "{m:?}");
+        let weak = Prior {
+            pose: held,
+            information: info(1e-3),
+        };
+        let m = match_scan(&map, &scan, held, Some(&weak), &MatchConfig::default());
+        assert!((m.pose.x - truth.x).abs() < 0.01, "{m:?}");
+    }
+
+    #[test]
+    fn the_covariance_is_largest_along_a_corridor() {
+        // Two long parallel walls along x: the scan pins y and ψ, not x.
+        let mut p = GridPyramid::new(0.05, 3, &UpdateModel::default());
+        let walls: Vec<(f64, f64)> = (0..400)
+            .flat_map(|k| {
+                let x = -10.025 + 0.05 * f64::from(k);
+                [(x, 1.025), (x, -1.025)]
+            })
+            .collect();
+        p.integrate(&Pose2::default(), &walls, &[]);
+        let near: Vec<(f64, f64)> = walls
+            .iter()
+            .copied()
+            .filter(|(x, _)| x.abs() < 4.0)
+            .collect();
+        let m = match_scan(&p, &near, Pose2::default(), None, &MatchConfig::default());
+        assert!(
+            m.covariance[0][0] > 100.0 * m.covariance[1][1],
+            "{:?}",
+            m.covariance
+        );
+    }
+
+    #[test]
+    fn inverting_a_singular_matrix_gives_none() {
+        assert!(invert(&[[1.0, 2.0, 3.0], [2.0, 4.0, 6.0], [0.0, 0.0, 1.0]]).is_none());
+        let m = [[4.0, 1.0, 0.5], [1.0, 3.0, 0.2], [0.5, 0.2, 2.0]];
+        let inv = invert(&m).expect("invertible");
+        for a in 0..3 {
+            for b in 0..3 {
+                let v: f64 = (0..3).map(|k| m[a][k] * inv[k][b]).sum();
+                assert!((v - if a == b { 1.0 } else { 0.0 }).abs() < 1e-12);
+            }
+        }
+    }
+}
