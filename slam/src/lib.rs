@@ -14,3 +14,4 @@ pub mod carmen;
 pub mod map_image;
 pub mod pose;
 pub mod relations;
+pub mod text;
