@@ -101,7 +101,9 @@ pub fn read_log(reader: impl BufRead, options: &ReadOptions) -> Result<CarmenLog
     loop {
         let parsed = match lines.next_line() {
             Ok(None) => break,
-            Ok(Some((line, text))) => parse_line(line, &text).map_err(|what| LineError { line, what }),
+            Ok(Some((line, text))) => {
+                parse_line(line, &text).map_err(|what| LineError { line, what })
+            }
             Err(e) if e.what.starts_with("cannot read") => return Err(e),
             Err(e) => Err(e),
         };
@@ -213,7 +215,9 @@ fn parse_count(field: Option<&&str>, tag: &str, what: &str) -> Result<usize, Str
         .parse()
         .map_err(|_| format!("{tag}: {what} is not a count: {field:?}"))?;
     if n > MAX_READINGS {
-        return Err(format!("{tag} says {n} {what}, more than the {MAX_READINGS} accepted"));
+        return Err(format!(
+            "{tag} says {n} {what}, more than the {MAX_READINGS} accepted"
+        ));
     }
     Ok(n)
 }
@@ -224,7 +228,10 @@ fn parse_ranges(fields: &[&str], tag: &str) -> Result<Vec<f32>, String> {
         .enumerate()
         .map(|(i, f)| match f.parse::<f32>() {
             Ok(r) if r.is_finite() && r >= 0.0 => Ok(r),
-            Ok(_) => Err(format!("{tag}: reading {} is not a finite range ≥ 0: {f:?}", i + 1)),
+            Ok(_) => Err(format!(
+                "{tag}: reading {} is not a finite range ≥ 0: {f:?}",
+                i + 1
+            )),
             Err(_) => Err(format!("{tag}: reading {} is not a number: {f:?}", i + 1)),
         })
         .collect()
@@ -292,7 +299,10 @@ pub fn flaser_beam_geometry(n: usize) -> (f64, f64) {
 fn parse_robotlaser1(line: usize, rest: &[&str]) -> Result<LaserScan, String> {
     const TAG: &str = "ROBOTLASER1";
     if rest.len() < 8 {
-        return Err(format!("{TAG} has {} fields, fewer than its 8-field header", rest.len()));
+        return Err(format!(
+            "{TAG} has {} fields, fewer than its 8-field header",
+            rest.len()
+        ));
     }
     let header = |i: usize, what: &str| parse_finite(rest[i], &format!("{TAG}: {what}"));
     let angle_min = header(1, "start_angle")?;
@@ -305,7 +315,7 @@ fn parse_robotlaser1(line: usize, rest: &[&str]) -> Result<LaserScan, String> {
     let tail_at = ranges_at + n + 1 + m;
     // two pose triples, tv rv, two safety distances, turn axis, ipc timestamp; host/logger may follow.
     let after = rest.len().saturating_sub(tail_at);
-    if rest.len() < tail_at || after < 12 || after > 14 {
+    if rest.len() < tail_at || !(12..=14).contains(&after) {
         return Err(format!(
             "{TAG} says {n} readings and {m} remission values but has {after} fields after them \
              (expected 12 to 14: two poses, tv, rv, safety distances, turn axis, ipc timestamp, \
@@ -319,9 +329,15 @@ fn parse_robotlaser1(line: usize, rest: &[&str]) -> Result<LaserScan, String> {
     let t = &rest[tail_at..];
     let laser_pose = parse_pose(&t[0..3], TAG, "laser pose")?;
     let odometry = parse_pose(&t[3..6], TAG, "robot pose")?;
-    for (i, what) in ["tv", "rv", "forward_safety_dist", "side_safety_dist", "turn_axis"]
-        .iter()
-        .enumerate()
+    for (i, what) in [
+        "tv",
+        "rv",
+        "forward_safety_dist",
+        "side_safety_dist",
+        "turn_axis",
+    ]
+    .iter()
+    .enumerate()
     {
         parse_finite(t[6 + i], &format!("{TAG}: {what}"))?;
     }
@@ -415,13 +431,13 @@ mod tests {
     #[test]
     fn a_robotlaser1_line_gives_its_own_geometry_and_the_laser_offset_from_the_robot_pose() {
         // Robot at (1, 2) facing +y; laser 0.1 m ahead of it, same heading.
-        let line = "ROBOTLASER1 0 -1.5708 3.1416 0.5 30.0 0.01 0 3 1.0 2.0 3.0 2 0.1 0.2 \
+        let line = "ROBOTLASER1 0 -1.25 2.5 0.5 30.0 0.01 0 3 1.0 2.0 3.0 2 0.1 0.2 \
                     1.0 2.1 1.5707963267948966 1.0 2.0 1.5707963267948966 0.3 0.1 0.5 0.2 0 \
                     1.5 host 1.6";
         let log = strict(line).unwrap();
         let scan = &log.scans[0];
         assert_eq!(scan.ranges, vec![1.0, 2.0, 3.0]);
-        assert_eq!((scan.angle_min, scan.angle_increment), (-1.5708, 0.5));
+        assert_eq!((scan.angle_min, scan.angle_increment), (-1.25, 0.5));
         assert_eq!(scan.max_range, Some(30.0));
         assert_eq!(scan.odometry, Pose2::new(1.0, 2.0, FRAC_PI_2));
         assert!((scan.laser_offset.x - 0.1).abs() < 1e-12);
@@ -458,16 +474,25 @@ mod tests {
     #[test]
     fn non_numeric_and_non_finite_fields_are_named() {
         let err = strict(&flaser(2, "1.0 x", TAIL)).unwrap_err();
-        assert_eq!(err.to_string(), "line 1: FLASER: reading 2 is not a number: \"x\"");
+        assert_eq!(
+            err.to_string(),
+            "line 1: FLASER: reading 2 is not a number: \"x\""
+        );
         let err = strict(&flaser(2, "1.0 NaN", TAIL)).unwrap_err();
         assert_eq!(
             err.to_string(),
             "line 1: FLASER: reading 2 is not a finite range ≥ 0: \"NaN\""
         );
         let err = strict("ODOM 0 inf 0 0 0 0 1.0").unwrap_err();
-        assert_eq!(err.to_string(), "line 1: ODOM: pose y is not finite: \"inf\"");
+        assert_eq!(
+            err.to_string(),
+            "line 1: ODOM: pose y is not finite: \"inf\""
+        );
         let err = strict(&flaser(2, "1 2", "0 0 0 0 0 0 when nohost 0")).unwrap_err();
-        assert_eq!(err.to_string(), "line 1: FLASER: the ipc timestamp is not a number: \"when\"");
+        assert_eq!(
+            err.to_string(),
+            "line 1: FLASER: the ipc timestamp is not a number: \"when\""
+        );
     }
 
     #[test]
@@ -478,7 +503,11 @@ mod tests {
             "line 1: FLASER says 4000000000 readings, more than the 10000 accepted"
         );
         let err = strict("ROBOTLASER1 0 0 0 0 0 0 0 2 1 1 99999999 1").unwrap_err();
-        assert!(err.to_string().contains("99999999 remission values, more than"), "{err}");
+        assert!(
+            err.to_string()
+                .contains("99999999 remission values, more than"),
+            "{err}"
+        );
     }
 
     #[test]
@@ -515,6 +544,9 @@ mod tests {
         assert!((p[0].x - expected.x).abs() < 1e-12 && (p[0].theta - 0.25).abs() < 1e-12);
         assert_eq!(p[1], Pose2::new(1.0, 0.0, 1.0));
         let no_odom = strict(&flaser(2, "1 2", "9 8 0.1 7 6 0.2 1.0")).unwrap();
-        assert_eq!(no_odom.interpolated_odometry_poses(), vec![Pose2::new(7.0, 6.0, 0.2)]);
+        assert_eq!(
+            no_odom.interpolated_odometry_poses(),
+            vec![Pose2::new(7.0, 6.0, 0.2)]
+        );
     }
 }

@@ -298,7 +298,11 @@ pub struct EvalReport {
 /// in time (or interpolated), the relation counts when both ends are within `max_dt`, and the
 /// estimated motion δ = x(t1)⁻¹ ⊕ x(t2) is compared with the reference by `formula`. This is
 /// `slam_relations_eval.py`'s computation, step for step.
-pub fn evaluate(trajectory: &Trajectory, relations: &Relations, options: &EvalOptions) -> EvalReport {
+pub fn evaluate(
+    trajectory: &Trajectory,
+    relations: &Relations,
+    options: &EvalOptions,
+) -> EvalReport {
     let mut poses: Vec<(f64, Pose2)> = trajectory
         .poses
         .iter()
@@ -337,7 +341,12 @@ pub fn evaluate(trajectory: &Trajectory, relations: &Relations, options: &EvalOp
         spans.push((rel.t2.seconds - rel.t1.seconds).abs());
     }
     let subset = |keep: fn(f64) -> bool| {
-        ErrorStats::of(used.iter().zip(&spans).filter(move |(_, s)| keep(**s)).map(|(e, _)| e))
+        ErrorStats::of(
+            used.iter()
+                .zip(&spans)
+                .filter(move |(_, s)| keep(**s))
+                .map(|(e, _)| e),
+        )
     };
     EvalReport {
         relations: relations.relations.len(),
@@ -433,11 +442,18 @@ impl fmt::Display for EvalReport {
             "Kummerle eps = mean(t^2 + r^2) [m^2 + rad^2]: {:.6}",
             a.kummerle_eps
         )?;
-        for (name, s) in [("short (< 5 s) ", &self.short), ("long (> 60 s) ", &self.long)] {
+        for (name, s) in [
+            ("short (< 5 s) ", &self.short),
+            ("long (> 60 s) ", &self.long),
+        ] {
             writeln!(
                 f,
                 "{name}{:>5} used : {:.4} +- {:.4} m, {:.3} +- {:.3} deg",
-                s.used, s.abs_trans_m.mean, s.abs_trans_m.std, s.abs_rot_deg.mean, s.abs_rot_deg.std
+                s.used,
+                s.abs_trans_m.mean,
+                s.abs_trans_m.std,
+                s.abs_rot_deg.mean,
+                s.abs_rot_deg.std
             )?;
         }
         if a.used > self.matched_within_10us {
@@ -543,7 +559,10 @@ mod tests {
         assert!((report.all.abs_rot_deg.mean - expected_rot).abs() < 1e-9);
         let mut trans = 0.0;
         for r in &rels.relations {
-            let (i, j) = ((r.t1.seconds - 100.0) as usize, (r.t2.seconds - 100.0) as usize);
+            let (i, j) = (
+                (r.t1.seconds - 100.0) as usize,
+                (r.t2.seconds - 100.0) as usize,
+            );
             trans += if j == 5 {
                 0.1
             } else if i == 5 {
@@ -595,7 +614,11 @@ mod tests {
         assert_eq!(report.matched_within_10us, 0);
         assert!((report.all.abs_trans_m.mean - 0.01).abs() < 1e-9);
         assert!((report.max_dt_used_s - 0.0004).abs() < 1e-9);
-        assert!(report.to_string().contains("WARNING: 1 relation(s) used a pose more than 10 us"));
+        assert!(
+            report
+                .to_string()
+                .contains("WARNING: 1 relation(s) used a pose more than 10 us")
+        );
         let strict = EvalOptions {
             max_dt: 1e-5,
             ..EvalOptions::default()
@@ -612,7 +635,11 @@ mod tests {
     #[test]
     fn interpolation_gives_the_pose_between_two_scans() {
         let line = Trajectory {
-            poses: vec![pose_at(0.0, 0.0, 0.0, 0.0), pose_at(1.0, 1.0, 0.0, 0.0), pose_at(2.0, 2.0, 0.0, 0.0)],
+            poses: vec![
+                pose_at(0.0, 0.0, 0.0, 0.0),
+                pose_at(1.0, 1.0, 0.0, 0.0),
+                pose_at(2.0, 2.0, 0.0, 0.0),
+            ],
         };
         let rels = Relations {
             relations: vec![relation(0.0, 1.5, Pose2::new(1.5, 0.0, 0.0))],
@@ -625,7 +652,14 @@ mod tests {
         let report = evaluate(&line, &rels, &options);
         assert!(report.all.abs_trans_m.mean < 1e-12);
         assert_eq!(report.max_dt_used_s, 0.5);
-        let nearest = evaluate(&line, &rels, &EvalOptions { interpolate: false, ..options });
+        let nearest = evaluate(
+            &line,
+            &rels,
+            &EvalOptions {
+                interpolate: false,
+                ..options
+            },
+        );
         assert!((nearest.all.abs_trans_m.mean - 0.5).abs() < 1e-12);
     }
 
@@ -648,7 +682,10 @@ mod tests {
     #[test]
     fn malformed_trajectory_and_relation_lines_name_the_line_and_the_field() {
         let err = read_trajectory("1.0 2.0 3.0 0.0\n\n2.0 2.0 3.0\n".as_bytes()).unwrap_err();
-        assert_eq!(err.to_string(), "line 3: expected \"timestamp x y theta\", found 3 field(s)");
+        assert_eq!(
+            err.to_string(),
+            "line 3: expected \"timestamp x y theta\", found 3 field(s)"
+        );
         let err = read_trajectory("1.0 2.0 nan 0.0\n".as_bytes()).unwrap_err();
         assert_eq!(err.to_string(), "line 1: y is not finite: \"nan\"");
         let err = read_relations("1 2 0.1 0 0 0 0 0\n1 2 0.1 0 0 0 0\n".as_bytes()).unwrap_err();
@@ -658,8 +695,9 @@ mod tests {
         );
         let err = read_relations("1 2 0.1 0 0 0 0 yaw\n".as_bytes()).unwrap_err();
         assert_eq!(err.to_string(), "line 1: yaw is not a number: \"yaw\"");
-        let rels = read_relations("# c\n976052857.337530 976052859.1 0.5 0 0 0 0 0.25\n".as_bytes())
-            .unwrap();
+        let rels =
+            read_relations("# c\n976052857.337530 976052859.1 0.5 0 0 0 0 0.25\n".as_bytes())
+                .unwrap();
         assert_eq!(rels.relations[0].line, 2);
         assert_eq!(rels.relations[0].t1.text, "976052857.337530");
         assert_eq!(rels.relations[0].motion, Pose2::new(0.5, 0.0, 0.25));
@@ -670,7 +708,17 @@ mod tests {
         let truth = square();
         let report = evaluate(&truth, &all_pairs(&truth), &EvalOptions::default());
         let json = serde_json::to_value(&report).unwrap();
-        for key in ["relations", "matched_within_1ms", "matched_within_10us", "used", "abs_trans_m", "sq_rot_deg2", "kummerle_eps", "short", "long"] {
+        for key in [
+            "relations",
+            "matched_within_1ms",
+            "matched_within_10us",
+            "used",
+            "abs_trans_m",
+            "sq_rot_deg2",
+            "kummerle_eps",
+            "short",
+            "long",
+        ] {
             assert!(json.get(key).is_some(), "{key} missing from {json}");
         }
         assert_eq!(json["formula"], "kummerle");

@@ -143,13 +143,19 @@ mod tests {
         input.extend_from_slice(b"\nthird");
         let mut reader = LineReader::new(&input[..]);
         assert_eq!(
-            reader.next_line().unwrap().map(|(n, s)| (n, s.into_owned())),
+            reader
+                .next_line()
+                .unwrap()
+                .map(|(n, s)| (n, s.into_owned())),
             Some((1, "first".to_owned()))
         );
         let err = reader.next_line().unwrap_err();
         assert_eq!(err.to_string(), "line 2: longer than 1048576 bytes");
         assert_eq!(
-            reader.next_line().unwrap().map(|(n, s)| (n, s.into_owned())),
+            reader
+                .next_line()
+                .unwrap()
+                .map(|(n, s)| (n, s.into_owned())),
             Some((3, "third".to_owned()))
         );
         assert!(reader.next_line().unwrap().is_none());
@@ -158,8 +164,17 @@ mod tests {
     #[test]
     fn numbers_must_be_finite() {
         assert_eq!(parse_finite("-1.5e2", "x"), Ok(-150.0));
-        assert_eq!(parse_finite("nan", "x"), Err("x is not finite: \"nan\"".into()));
-        assert_eq!(parse_finite("inf", "x"), Err("x is not finite: \"inf\"".into()));
-        assert_eq!(parse_finite("1,5", "x"), Err("x is not a number: \"1,5\"".into()));
+        assert_eq!(
+            parse_finite("nan", "x"),
+            Err("x is not finite: \"nan\"".into())
+        );
+        assert_eq!(
+            parse_finite("inf", "x"),
+            Err("x is not finite: \"inf\"".into())
+        );
+        assert_eq!(
+            parse_finite("1,5", "x"),
+            Err("x is not a number: \"1,5\"".into())
+        );
     }
 }
