@@ -7,7 +7,7 @@ use std::f64::consts::{FRAC_PI_2, PI};
 use std::io::BufRead;
 
 use crate::pose::Pose2;
-use crate::text::{LineError, LineReader, Timestamp, parse_finite};
+use crate::text::{LineError, LineReader, NextLine, Timestamp, parse_finite};
 
 /// The most readings (or remission values) a laser line may announce. Real lasers give at most
 /// a few thousand per scan; a larger count means a corrupt line and is refused before any
@@ -99,13 +99,12 @@ pub fn read_log(reader: impl BufRead, options: &ReadOptions) -> Result<CarmenLog
     let mut lines = LineReader::new(reader);
     let mut log = CarmenLog::default();
     loop {
-        let parsed = match lines.next_line() {
-            Ok(None) => break,
-            Ok(Some((line, text))) => {
+        let parsed = match lines.next_line()? {
+            NextLine::End => break,
+            NextLine::Line(line, text) => {
                 parse_line(line, &text).map_err(|what| LineError { line, what })
             }
-            Err(e) if e.what.starts_with("cannot read") => return Err(e),
-            Err(e) => Err(e),
+            NextLine::TooLong(e) => Err(e),
         };
         match parsed {
             Ok(Message::Scan(scan)) => log.scans.push(scan),
@@ -525,6 +524,35 @@ mod tests {
         let lines: Vec<usize> = log.skipped.first_malformed.iter().map(|e| e.line).collect();
         assert_eq!(lines, vec![2, 4, 6, 8, 10]);
         assert!(strict(&text).is_err());
+    }
+
+    #[test]
+    fn an_over_long_line_is_malformed_and_a_read_failure_ends_even_a_lenient_read() {
+        let mut text = format!("FLASER 1 {}\n", "9".repeat(crate::text::MAX_LINE_BYTES));
+        text += &flaser(2, "1 2", TAIL);
+        let log = read_log(text.as_bytes(), &ReadOptions { lenient: true }).unwrap();
+        assert_eq!((log.scans.len(), log.skipped.malformed), (1, 1));
+        assert_eq!(log.scans[0].line, 2);
+        assert_eq!(
+            strict(&text).unwrap_err().to_string(),
+            "line 1: longer than 1048576 bytes"
+        );
+
+        /// Gives one good line, then fails.
+        struct Failing(bool);
+        impl std::io::Read for Failing {
+            fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+                if std::mem::replace(&mut self.0, true) {
+                    return Err(std::io::Error::other("disk on fire"));
+                }
+                let line = b"ODOM 0 0 0 0 0 0 1.0\n";
+                buf[..line.len()].copy_from_slice(line);
+                Ok(line.len())
+            }
+        }
+        let reader = std::io::BufReader::new(Failing(false));
+        let err = read_log(reader, &ReadOptions { lenient: true }).unwrap_err();
+        assert_eq!(err.to_string(), "line 2: cannot read: disk on fire");
     }
 
     #[test]

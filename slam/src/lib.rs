@@ -6,6 +6,8 @@
 //! - [`relations`]: trajectories (`timestamp x y theta`) and the Kümmerle et al. (2009)
 //!   relations metric that scores them.
 //! - [`map_image`]: occupancy rasters as ROS `map_server` PGM + YAML and as PNG.
+//! - [`text`]: what those text formats share: [`text::Timestamp`] (kept as written, so a
+//!   trajectory writes the log's timestamps back exactly), the line-numbered [`text::LineError`].
 //!
 //! Nothing here opens a file or a socket: readers take `BufRead`/`&str`, writers return bytes or
 //! take `Write`.

@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::carmen::LaserScan;
 use crate::pose::{Pose2, wrap_angle};
-use crate::text::{LineError, LineReader, Timestamp, parse_finite};
+use crate::text::{LineError, LineReader, NextLine, Timestamp, parse_finite};
 
 /// One pose of a trajectory, at the time of the scan it belongs to.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -51,7 +51,12 @@ impl Trajectory {
 pub fn read_trajectory(reader: impl BufRead) -> Result<Trajectory, LineError> {
     let mut lines = LineReader::new(reader);
     let mut poses = Vec::new();
-    while let Some((line, text)) = lines.next_line()? {
+    loop {
+        let (line, text) = match lines.next_line()? {
+            NextLine::Line(line, text) => (line, text),
+            NextLine::TooLong(e) => return Err(e),
+            NextLine::End => break,
+        };
         let text = text.replace(',', " ");
         let fields: Vec<&str> = text.split_ascii_whitespace().collect();
         if fields.is_empty() || fields[0].starts_with('#') {
@@ -114,7 +119,12 @@ pub struct Relations {
 pub fn read_relations(reader: impl BufRead) -> Result<Relations, LineError> {
     let mut lines = LineReader::new(reader);
     let mut relations = Vec::new();
-    while let Some((line, text)) = lines.next_line()? {
+    loop {
+        let (line, text) = match lines.next_line()? {
+            NextLine::Line(line, text) => (line, text),
+            NextLine::TooLong(e) => return Err(e),
+            NextLine::End => break,
+        };
         let fields: Vec<&str> = text.split_ascii_whitespace().collect();
         if fields.is_empty() || fields[0].starts_with('#') {
             continue;

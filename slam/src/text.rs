@@ -74,10 +74,10 @@ impl<R: BufRead> LineReader<R> {
         }
     }
 
-    /// The next line without its line ending, `Ok(None)` at the end of the input. An error
-    /// leaves the reader at the start of the following line, so a lenient caller can go on
-    /// (except after a read failure, which ends the input).
-    pub(crate) fn next_line(&mut self) -> Result<Option<(usize, Cow<'_, str>)>, LineError> {
+    /// The next line without its line ending. A read failure is the error (it ends the
+    /// input); an over-long line is [`NextLine::TooLong`], after which the reader is at the
+    /// start of the following line, so a lenient caller can go on.
+    pub(crate) fn next_line(&mut self) -> Result<NextLine<'_>, LineError> {
         self.buf.clear();
         self.line += 1;
         let line = self.line;
@@ -91,7 +91,7 @@ impl<R: BufRead> LineReader<R> {
             .read_until(b'\n', &mut self.buf)
             .map_err(read_error)?;
         if n == 0 {
-            return Ok(None);
+            return Ok(NextLine::End);
         }
         if self.buf.len() > MAX_LINE_BYTES && self.buf.last() != Some(&b'\n') {
             // Skip the rest of the over-long line without keeping it.
@@ -111,16 +111,26 @@ impl<R: BufRead> LineReader<R> {
                     }
                 }
             }
-            return Err(LineError {
+            return Ok(NextLine::TooLong(LineError {
                 line,
                 what: format!("longer than {MAX_LINE_BYTES} bytes"),
-            });
+            }));
         }
         while matches!(self.buf.last(), Some(b'\n' | b'\r')) {
             self.buf.pop();
         }
-        Ok(Some((line, String::from_utf8_lossy(&self.buf))))
+        Ok(NextLine::Line(line, String::from_utf8_lossy(&self.buf)))
     }
+}
+
+/// What [`LineReader::next_line`] found.
+pub(crate) enum NextLine<'a> {
+    /// A line's number and text.
+    Line(usize, Cow<'a, str>),
+    /// A line over [`MAX_LINE_BYTES`], skipped; the error names it.
+    TooLong(LineError),
+    /// The end of the input.
+    End,
 }
 
 /// `field` as a finite f64; `what` names the field in the error.
@@ -142,23 +152,15 @@ mod tests {
         input.extend(std::iter::repeat_n(b'7', MAX_LINE_BYTES + 10));
         input.extend_from_slice(b"\nthird");
         let mut reader = LineReader::new(&input[..]);
-        assert_eq!(
-            reader
-                .next_line()
-                .unwrap()
-                .map(|(n, s)| (n, s.into_owned())),
-            Some((1, "first".to_owned()))
-        );
-        let err = reader.next_line().unwrap_err();
-        assert_eq!(err.to_string(), "line 2: longer than 1048576 bytes");
-        assert_eq!(
-            reader
-                .next_line()
-                .unwrap()
-                .map(|(n, s)| (n, s.into_owned())),
-            Some((3, "third".to_owned()))
-        );
-        assert!(reader.next_line().unwrap().is_none());
+        let mut next = || match reader.next_line().unwrap() {
+            NextLine::Line(n, s) => Ok((n, s.into_owned())),
+            NextLine::TooLong(e) => Err(e.to_string()),
+            NextLine::End => Err("end".to_owned()),
+        };
+        assert_eq!(next(), Ok((1, "first".to_owned())));
+        assert_eq!(next(), Err("line 2: longer than 1048576 bytes".to_owned()));
+        assert_eq!(next(), Ok((3, "third".to_owned())));
+        assert_eq!(next(), Err("end".to_owned()));
     }
 
     #[test]
