@@ -585,6 +585,23 @@ mod tests {
         }
         assert!((report.all.abs_trans_m.mean - trans / 120.0).abs() < 1e-12);
         assert!((report.all.max_rot_deg - 2.0).abs() < 1e-9);
+        let error_of = |t1: f64, t2: f64| {
+            let e = report
+                .per_relation
+                .iter()
+                .find(|e| e.t1.seconds == t1 && e.t2.seconds == t2)
+                .unwrap();
+            (e.trans_m, e.rot_deg)
+        };
+        // 4 → 5: the pose is 0.1 m further along, turned 2°.
+        let (t, r) = error_of(104.0, 105.0);
+        assert!((t - 0.1).abs() < 1e-12 && (r - 2.0).abs() < 1e-9);
+        // 5 → 6: the next pose, 1 m ahead of the true pose 5, seen from the bumped one is
+        // R(−2°)·(0.9, 0): |(0.9 cos 2° − 1, −0.9 sin 2°)| = 0.10534…
+        let (t, r) = error_of(105.0, 106.0);
+        assert!((t - 0.10533997990140151).abs() < 1e-12 && (r - 2.0).abs() < 1e-9);
+        let (t, r) = error_of(104.0, 106.0);
+        assert!(t < 1e-12 && r < 1e-12, "4 → 6 does not touch pose 5");
         let sq = report.all.sq_rot_deg2.mean;
         assert!((sq - 15.0 * 4.0 / 120.0).abs() < 1e-9, "{sq}");
     }
