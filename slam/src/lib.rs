@@ -9,6 +9,8 @@
 //! - [`matcher`]: Gauss–Newton scan-to-map matching, coarse to fine, with a robust loss.
 //! - [`mapper`]: the incremental front end (motion prior, de-skew, map-update rule).
 //! - [`map_image`]: occupancy rasters as ROS `map_server` PGM + YAML and as PNG.
+//! - [`text`]: what those text formats share: [`text::Timestamp`] (kept as written, so a
+//!   trajectory writes the log's timestamps back exactly), the line-numbered [`text::LineError`].
 //!
 //! Nothing here opens a file or a socket: readers take `BufRead`/`&str`, writers return bytes or
 //! take `Write`.
@@ -20,3 +22,4 @@ pub mod mapper;
 pub mod matcher;
 pub mod pose;
 pub mod relations;
+pub mod text;

@@ -56,6 +56,10 @@ impl Pose2 {
 /// `angle` wrapped into (−π, π].
 pub fn wrap_angle(angle: f64) -> f64 {
     use std::f64::consts::{PI, TAU};
+    // Angles already in range come back bit for bit (a logged −0.002458 stays −0.002458).
+    if angle > -PI && angle <= PI {
+        return angle;
+    }
     let wrapped = angle.rem_euclid(TAU);
     if wrapped > PI { wrapped - TAU } else { wrapped }
 }
