@@ -8,6 +8,7 @@
 //! - [`grid`]: occupancy grids that grow as the robot explores, read as a continuous function.
 //! - [`matcher`]: Gauss–Newton scan-to-map matching, coarse to fine, with a robust loss.
 //! - [`mapper`]: the incremental front end (motion prior, de-skew, map-update rule).
+//! - [`offline`]: the mapper over a whole log, and its grid as a raster.
 //! - [`map_image`]: occupancy rasters as ROS `map_server` PGM + YAML and as PNG.
 //! - [`text`]: what those text formats share: [`text::Timestamp`] (kept as written, so a
 //!   trajectory writes the log's timestamps back exactly), the line-numbered [`text::LineError`].
@@ -20,6 +21,7 @@ pub mod grid;
 pub mod map_image;
 pub mod mapper;
 pub mod matcher;
+pub mod offline;
 pub mod pose;
 pub mod relations;
 pub mod text;

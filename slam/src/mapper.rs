@@ -8,7 +8,7 @@
 //! what a pose-graph layer (submaps, loop closure) will build on.
 
 use crate::grid::{GridPyramid, UpdateModel};
-use crate::matcher::{Match, MatchConfig, Matrix3, Prior, match_scan};
+use crate::matcher::{Match, MatchConfig, Matrix3, Prior, SearchWindow, match_scan, search};
 use crate::pose::{Pose2, wrap_angle};
 
 /// How the pose is predicted before matching, and how much the prediction is trusted.
@@ -32,6 +32,12 @@ pub struct MotionConfig {
     pub velocity_translation_per_s: f64,
     /// Rotation standard deviation (rad) of a constant-velocity prediction, per second.
     pub velocity_rotation_per_s: f64,
+    /// Without odometry, the window searched around the constant-velocity prediction (on the
+    /// coarsest grid) before matching: a hand-pushed trolley turns when it likes.
+    pub velocity_search: SearchWindow,
+    /// ...searched when the match from the prediction scores below this (≥ 1: always); the
+    /// better of the two matches is kept.
+    pub velocity_search_below: f64,
 }
 
 impl Default for MotionConfig {
@@ -45,6 +51,8 @@ impl Default for MotionConfig {
             min_rotation_sigma: 0.005,
             velocity_translation_per_s: 0.5,
             velocity_rotation_per_s: 1.0,
+            velocity_search: SearchWindow::default(),
+            velocity_search_below: 1.1,
         }
     }
 }
@@ -77,12 +85,12 @@ impl Default for MapperConfig {
     fn default() -> Self {
         Self {
             resolution: 0.05,
-            levels: 3,
+            levels: 2,
             update: UpdateModel::default(),
             matcher: MatchConfig::default(),
             motion: MotionConfig::default(),
-            map_update_distance: 0.1,
-            map_update_angle: 0.1,
+            map_update_distance: 0.4,
+            map_update_angle: 0.9,
             min_score: 0.0,
         }
     }
@@ -191,7 +199,7 @@ impl Mapper {
             };
         };
         let dt = scan.time - last.time;
-        let (motion, information) = self.predict(&last, scan, dt);
+        let (motion, information, from_odometry) = self.predict(&last, scan, dt);
         let predicted = last.pose.compose(&motion);
 
         let hits = if scan.hit_times.len() == scan.hits.len() && !scan.hit_times.is_empty() {
@@ -212,6 +220,20 @@ impl Mapper {
         };
         let mut matched: Match =
             match_scan(&self.map, &hits, start, Some(&prior), &self.config.matcher);
+        if !from_odometry && matched.score < self.config.motion.velocity_search_below {
+            // A poor fit from the prediction: the trolley may have turned. Search a window on
+            // the coarsest grid and keep whichever match fits better.
+            let coarsest = self.map.levels().last().expect("at least one level");
+            let found = search(coarsest, &hits, start, &self.config.motion.velocity_search);
+            let wide = Prior {
+                pose: found,
+                information,
+            };
+            let second = match_scan(&self.map, &hits, found, Some(&wide), &self.config.matcher);
+            if second.score > matched.score {
+                matched = second;
+            }
+        }
         let mut pose = matched.pose.compose(&scan.sensor_offset.inverse());
         let mut hits = hits;
         if !scan.hit_times.is_empty() && scan.hit_times.len() == scan.hits.len() && dt > 0.0 {
@@ -250,7 +272,7 @@ impl Mapper {
 
     /// The predicted motion since the last scan (in its frame) and the prior's information
     /// matrix over the sensor pose.
-    fn predict(&self, last: &Last, scan: &Scan, dt: f64) -> (Pose2, Matrix3) {
+    fn predict(&self, last: &Last, scan: &Scan, dt: f64) -> (Pose2, Matrix3, bool) {
         let m = &self.config.motion;
         let odometry = match (m.use_odometry, last.odometry, scan.odometry) {
             (true, Some(before), Some(now)) => Some(before.between(&now)),
@@ -291,7 +313,7 @@ impl Mapper {
             [0.0, 1.0 / (sigma_t * sigma_t), 0.0],
             [0.0, 0.0, 1.0 / (sigma_r * sigma_r)],
         ];
-        (motion, information)
+        (motion, information, odometry.is_some())
     }
 
     fn due(&self, pose: &Pose2) -> bool {

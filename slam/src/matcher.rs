@@ -8,6 +8,9 @@
 //! coarse grids are smooth enough to pull a pose in from a few cells away, the fine one is
 //! precise. The inverse of the scan term's Hessian is the pose covariance.
 
+// 3×3 algebra reads best with explicit indices.
+#![allow(clippy::needless_range_loop)]
+
 use crate::grid::{Grid, GridPyramid};
 use crate::pose::{Pose2, wrap_angle};
 
@@ -78,7 +81,7 @@ impl Default for MatchConfig {
         Self {
             coarse_iterations: 4,
             fine_iterations: 8,
-            loss: Loss::Huber { delta: 0.5 },
+            loss: Loss::Huber { delta: 0.4 },
             residual_sigma: 0.25,
             converged_step: 1e-5,
         }
@@ -162,6 +165,68 @@ pub fn match_scan(
         score: score(finest, points, &pose),
         iterations,
     }
+}
+
+/// A brute-force window searched around a start pose before Gauss–Newton (correlative
+/// matching, Olson 2009): it finds a turn that a poor prediction missed, which the local
+/// Gauss–Newton cannot pull in from more than a few cells away.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SearchWindow {
+    /// Half-width of the heading window (rad); 0 turns the search off.
+    pub angle: f64,
+    /// Heading step (rad).
+    pub angle_step: f64,
+    /// Half-width of the translation window (m), searched in steps of the grid's cells.
+    pub translation: f64,
+}
+
+impl Default for SearchWindow {
+    fn default() -> Self {
+        Self {
+            angle: 0.35,
+            angle_step: 0.01,
+            translation: 0.2,
+        }
+    }
+}
+
+/// The pose in `window` around `start` whose endpoints land on the most occupancy in `grid`
+/// (the caller passes a coarse level: smooth, and cheap to search).
+pub fn search(grid: &Grid, points: &[(f64, f64)], start: Pose2, window: &SearchWindow) -> Pose2 {
+    if window.angle <= 0.0 || window.angle_step <= 0.0 || points.is_empty() {
+        return start;
+    }
+    let steps = (window.angle / window.angle_step).ceil().min(1000.0) as i32;
+    let cells = (window.translation / grid.resolution())
+        .floor()
+        .clamp(0.0, 20.0) as i32;
+    // Every other endpoint is enough to rank candidates.
+    let sample: Vec<(f64, f64)> = points.iter().step_by(2).copied().collect();
+    let mut best = (f64::NEG_INFINITY, start);
+    for a in -steps..=steps {
+        let theta = start.theta + f64::from(a) * window.angle_step;
+        let (s, c) = theta.sin_cos();
+        let rotated: Vec<(f64, f64)> = sample
+            .iter()
+            .map(|&(x, y)| (c * x - s * y, s * x + c * y))
+            .collect();
+        for i in -cells..=cells {
+            for j in -cells..=cells {
+                let x = start.x + f64::from(i) * grid.resolution();
+                let y = start.y + f64::from(j) * grid.resolution();
+                let score: f64 = rotated
+                    .iter()
+                    .map(|&(rx, ry)| grid.interpolate(x + rx, y + ry).value)
+                    .sum();
+                // Ties go to the candidate nearest the start (the loops visit it first).
+                if score > best.0 + 1e-9 {
+                    best = (score, Pose2::new(x, y, theta));
+                }
+            }
+        }
+    }
+    best.1
 }
 
 /// Mean interpolated occupancy at the endpoints placed at `pose`.

@@ -1,0 +1,158 @@
+//! The mapper over a whole recorded log: laser readings to [`Scan`]s (range limits, the
+//! no-return sentinel, odometry), one pose per scan out, and the finished grid as a raster.
+
+use crate::carmen::{CarmenLog, LaserScan};
+use crate::grid::Grid;
+use crate::map_image::{OccupancyRaster, RasterError};
+use crate::mapper::{Mapper, MapperConfig, Scan, ScanResult};
+use crate::pose::Pose2;
+use crate::relations::Trajectory;
+
+/// Which readings of a laser line become beam endpoints.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RangeLimits {
+    /// Readings below this are dropped (m): the laser's own housing, dust.
+    pub min_range: f64,
+    /// Readings above this are treated as no return (m). `None`: only the no-return value
+    /// below is.
+    pub max_range: Option<f64>,
+    /// The value a laser writes for "no return" (81.83 m in Intel, 50.00 m in ACES); readings
+    /// within 5 mm of it carry no endpoint.
+    pub no_return: Option<f64>,
+}
+
+impl RangeLimits {
+    /// The limits for a log: `max_range` if given, and the log's largest reading as its
+    /// no-return value (in the benchmark logs it is the sentinel; elsewhere it drops at most
+    /// the farthest reading).
+    pub fn for_log(log: &CarmenLog, min_range: f64, max_range: Option<f64>) -> Self {
+        Self {
+            min_range,
+            max_range,
+            no_return: log.largest_reading().map(f64::from),
+        }
+    }
+
+    fn keeps(&self, range: f64) -> bool {
+        range.is_finite()
+            && range >= self.min_range
+            && self.max_range.is_none_or(|max| range <= max)
+            && self
+                .no_return
+                .is_none_or(|value| (range - value).abs() > 0.005)
+    }
+}
+
+/// The beam endpoints of one laser line in the laser frame.
+pub fn endpoints(laser: &LaserScan, limits: &RangeLimits) -> Vec<(f64, f64)> {
+    let line_max = laser.max_range;
+    laser
+        .ranges
+        .iter()
+        .enumerate()
+        .filter_map(|(i, &r)| {
+            let r = f64::from(r);
+            if !limits.keeps(r) || line_max.is_some_and(|max| r >= max) {
+                return None;
+            }
+            let a = laser.angle_min + i as f64 * laser.angle_increment;
+            Some((r * a.cos(), r * a.sin()))
+        })
+        .collect()
+}
+
+/// What a run over a log produced.
+#[derive(Debug, Clone)]
+pub struct LogRun {
+    /// One pose per laser line, with the line's timestamp text.
+    pub trajectory: Trajectory,
+    /// Per laser line, what the mapper did.
+    pub results: Vec<ScanResult>,
+    /// The mapper at the end (its map).
+    pub mapper: Mapper,
+}
+
+/// Maps a CARMEN log. Odometry, when `config.motion.use_odometry`, is each laser line's own
+/// odometry pose (what the benchmark's odometry baseline uses). `progress` is called after
+/// each scan with the number done.
+pub fn map_log(
+    log: &CarmenLog,
+    config: &MapperConfig,
+    limits: &RangeLimits,
+    mut progress: impl FnMut(usize),
+) -> LogRun {
+    let mut mapper = Mapper::new(*config);
+    let mut results = Vec::with_capacity(log.scans.len());
+    for (done, laser) in log.scans.iter().enumerate() {
+        let scan = Scan {
+            time: laser.timestamp.seconds,
+            hits: endpoints(laser, limits),
+            hit_times: Vec::new(),
+            odometry: Some(laser.odometry),
+            sensor_offset: laser.laser_offset,
+        };
+        results.push(mapper.add_scan(&scan));
+        progress(done + 1);
+    }
+    let poses: Vec<Pose2> = results.iter().map(|r| r.pose).collect();
+    LogRun {
+        trajectory: Trajectory::from_scans(&log.scans, &poses),
+        results,
+        mapper,
+    }
+}
+
+/// The grid's known area as a raster for the image writers: unknown cells stay unknown.
+pub fn raster(grid: &Grid) -> Result<OccupancyRaster, RasterError> {
+    let (width, height) = grid.size();
+    let (i0, j0) = grid.origin_cell();
+    let mut cells = Vec::with_capacity(width * height);
+    for row in 0..height as i32 {
+        for column in 0..width as i32 {
+            let cell = (i0 + column, j0 + row);
+            cells.push(grid.is_known(cell).then(|| grid.probability(cell)));
+        }
+    }
+    let r = grid.resolution();
+    OccupancyRaster::new(
+        width,
+        height,
+        r,
+        (f64::from(i0) * r, f64::from(j0) * r),
+        cells,
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::carmen::{ReadOptions, read_log};
+
+    #[test]
+    fn the_no_return_value_and_readings_out_of_range_carry_no_endpoint() {
+        let line = "FLASER 5 1.00 81.83 0.05 7.00 2.00 0 0 0 0 0 0 1.000000 host 1.0\n";
+        let log = read_log(line.as_bytes(), &ReadOptions::default()).expect("log");
+        let limits = RangeLimits::for_log(&log, 0.1, Some(6.0));
+        let points = endpoints(&log.scans[0], &limits);
+        // 1.00 (beam 0, at −90°) and 2.00 (beam 4) stay; 81.83 is no return, 0.05 too close,
+        // 7.00 beyond 6 m.
+        assert_eq!(points.len(), 2);
+        assert!((points[0].0).abs() < 1e-9 && (points[0].1 + 1.0).abs() < 1e-9);
+        let unclipped = RangeLimits::for_log(&log, 0.1, None);
+        assert_eq!(endpoints(&log.scans[0], &unclipped).len(), 3);
+    }
+
+    #[test]
+    fn a_raster_of_the_grid_keeps_unknown_cells_unknown_and_its_origin() {
+        let mut grid = Grid::new(0.5, &crate::grid::UpdateModel::default());
+        grid.integrate((0.25, 0.25), &[(2.25, 0.25)], &[]);
+        let raster = raster(&grid).expect("raster");
+        let (i0, j0) = grid.origin_cell();
+        assert_eq!(raster.origin(), (f64::from(i0) * 0.5, f64::from(j0) * 0.5));
+        let hit = raster
+            .cell((4 - i0) as usize, (0 - j0) as usize)
+            .expect("seen");
+        assert!(hit > 0.5);
+        assert_eq!(raster.cell((4 - i0) as usize, (3 - j0) as usize), None);
+    }
+}
