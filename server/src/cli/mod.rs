@@ -17,6 +17,7 @@ pub mod resolution_sweep;
 pub mod scan;
 pub mod serve;
 pub mod sessions;
+pub mod slam;
 pub mod snapshot;
 pub mod status;
 
@@ -61,6 +62,10 @@ pub enum Command {
     /// Fig. 12: build time, nodes, occupied volume and evaluation time against resolution.
     #[command(name = "sweep")]
     ResolutionSweep(resolution_sweep::ResolutionSweepArgs),
+    /// 2D scan matching (Hector-style) of a CARMEN log or a session: a trajectory and a map.
+    Slam(slam::SlamArgs),
+    /// Score a 2D trajectory against reference relations (Kümmerle et al. 2009).
+    SlamEval(slam::SlamEvalArgs),
 }
 
 /// Where a server keeps its recordings: `--data-dir`, or the `data_dir` of `--config`.
@@ -102,5 +107,7 @@ pub fn execute(cli: Cli, out: &mut dyn Write) -> anyhow::Result<()> {
         Command::Eval(args) => eval::run(&args, out),
         Command::Report(args) => report::run(&args, out),
         Command::ResolutionSweep(args) => resolution_sweep::run(&args, out),
+        Command::Slam(args) => slam::run(&args, out),
+        Command::SlamEval(args) => slam::run_eval(&args, out),
     }
 }

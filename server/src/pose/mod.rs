@@ -1,5 +1,6 @@
-//! Pose: where the edge is, and when. Today the edge clock's mapping to server time
-//! ([`timesync`]); the 2D scan matcher and the covariance-intersection fusion of the next issues
-//! come here too.
+//! Pose: where the edge is, and when. The edge clock's mapping to server time ([`timesync`]),
+//! and the horizontal lidar's 2D scan matching over a session ([`scan_matching`], on
+//! `scan3d-slam`); the covariance-intersection fusion of the next issue comes here too.
 
+pub mod scan_matching;
 pub mod timesync;

@@ -1,0 +1,359 @@
+//! `scan3d slam INPUT --out TRAJ.txt` (2D scan matching of a CARMEN log or a recorded
+//! session) and `scan3d slam-eval TRAJ RELATIONS` (the Kümmerle relations metric).
+
+use std::fs::File;
+use std::io::{BufRead, BufReader, BufWriter, Write};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, bail};
+use indicatif::{ProgressBar, ProgressStyle};
+use scan3d_slam::carmen::{ReadOptions, read_log};
+use scan3d_slam::map_image::{Thresholds, write_pgm, write_png_with_trajectory, write_yaml};
+use scan3d_slam::mapper::{Mapper, MapperConfig};
+use scan3d_slam::offline::{RangeLimits, map_log, raster};
+use scan3d_slam::pose::Pose2;
+use scan3d_slam::relations::{
+    EvalOptions, Formula, Trajectory, evaluate, read_relations, read_trajectory, write_trajectory,
+};
+
+use crate::pose::scan_matching::map_session;
+
+/// Options of `scan3d slam`.
+#[derive(Debug, clap::Args)]
+pub struct SlamArgs {
+    /// A CARMEN log (`.clf`/`.log`, or gzipped `.gz`: `FLASER`, `ROBOTLASER1`, `ODOM`) or a
+    /// recorded session directory (its RPLidar revolutions).
+    pub input: PathBuf,
+    /// The trajectory to write: one `timestamp x y theta` line per laser scan, the timestamp as
+    /// the log wrote it.
+    #[arg(long, value_name = "TRAJ.txt")]
+    pub out: PathBuf,
+    /// Use the log's wheel odometry as the motion prior (the default when the log has it).
+    #[arg(long, conflicts_with = "no_odometry")]
+    pub odometry: bool,
+    /// Ignore odometry: a constant-velocity prior and a search window, as on a trolley.
+    #[arg(long)]
+    pub no_odometry: bool,
+    /// Match scans against the map only (the one mode until loop closure lands).
+    #[arg(long)]
+    pub no_loop_closure: bool,
+    /// Treat readings beyond this range (m) as no return. Without it, only the log's
+    /// no-return value (its largest reading: 81.83 / 50.00 / 81.91 m in the classic logs) is.
+    #[arg(long, value_name = "M")]
+    pub max_range: Option<f64>,
+    /// Drop readings closer than this (m).
+    #[arg(long, value_name = "M", default_value_t = 0.1)]
+    pub min_range: f64,
+    /// Every mapper parameter (see `deploy/slam.toml` for the keys and defaults).
+    #[arg(long, value_name = "slam.toml")]
+    pub config: Option<PathBuf>,
+    /// Also write the final grid as ROS map_server `OUT.pgm` + `OUT.yaml`, and `OUT.png` with
+    /// the trajectory drawn on it.
+    #[arg(long, value_name = "OUT")]
+    pub map: Option<PathBuf>,
+    /// Skip malformed log lines (and count them) instead of stopping at the first one.
+    #[arg(long)]
+    pub lenient: bool,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+/// Reads `slam.toml`: every key optional, unknown keys refused with their line.
+pub fn load_config(path: &Path) -> anyhow::Result<MapperConfig> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let config: MapperConfig = toml::from_str(&text)
+        .map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.to_string().trim_end()))?;
+    validate(&config).with_context(|| format!("{}", path.display()))?;
+    Ok(config)
+}
+
+fn validate(config: &MapperConfig) -> anyhow::Result<()> {
+    if !(config.resolution.is_finite() && config.resolution >= 0.005 && config.resolution <= 1.0) {
+        bail!(
+            "resolution must be between 0.005 and 1 m, not {}",
+            config.resolution
+        );
+    }
+    if !(1..=6).contains(&config.levels) {
+        bail!("levels must be 1 to 6, not {}", config.levels);
+    }
+    let u = &config.update;
+    if !(0.5 < u.hit_probability && u.hit_probability < 1.0) {
+        bail!(
+            "update.hit_probability must be in (0.5, 1), not {}",
+            u.hit_probability
+        );
+    }
+    if !(0.0 < u.miss_probability && u.miss_probability < 0.5) {
+        bail!(
+            "update.miss_probability must be in (0, 0.5), not {}",
+            u.miss_probability
+        );
+    }
+    if !(u.clamp_log_odds.is_finite() && u.clamp_log_odds > 0.0) {
+        bail!("update.clamp_log_odds must be positive");
+    }
+    let m = &config.matcher;
+    if m.coarse_iterations > 100 || m.fine_iterations > 100 || m.fine_iterations == 0 {
+        bail!("matcher iterations must be 1 to 100 (fine) and 0 to 100 (coarse)");
+    }
+    if !(m.residual_sigma.is_finite() && m.residual_sigma > 0.0) {
+        bail!("matcher.residual_sigma must be positive");
+    }
+    let s = &config.motion.velocity_search;
+    if s.angle > 0.0 && (s.angle_step <= 0.0 || s.angle / s.angle_step > 1000.0) {
+        bail!("motion.velocity_search: angle / angle_step must be at most 1000");
+    }
+    for (name, v) in [
+        ("map_update_distance", config.map_update_distance),
+        ("map_update_angle", config.map_update_angle),
+        (
+            "motion.min_translation_sigma",
+            config.motion.min_translation_sigma,
+        ),
+        (
+            "motion.min_rotation_sigma",
+            config.motion.min_rotation_sigma,
+        ),
+    ] {
+        if !(v.is_finite() && v >= 0.0) {
+            bail!("{name} must be a non-negative number, not {v}");
+        }
+    }
+    Ok(())
+}
+
+/// Opens a log, through gzip when its name ends in `.gz`.
+fn open_log(path: &Path) -> anyhow::Result<Box<dyn BufRead>> {
+    let file = File::open(path).with_context(|| format!("opening {}", path.display()))?;
+    Ok(if path.extension().is_some_and(|e| e == "gz") {
+        Box::new(BufReader::new(flate2::read::GzDecoder::new(file)))
+    } else {
+        Box::new(BufReader::new(file))
+    })
+}
+
+fn progress_bar(total: u64, quiet: bool) -> Option<ProgressBar> {
+    (!quiet && total > 2000).then(|| {
+        let bar = ProgressBar::new(total);
+        bar.set_style(
+            ProgressStyle::with_template("matching [{bar:40}] {human_pos}/{human_len} scans {eta}")
+                .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        bar
+    })
+}
+
+/// Runs `scan3d slam`.
+pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
+    let mut config = match &args.config {
+        Some(path) => load_config(path)?,
+        None => MapperConfig::default(),
+    };
+    if let Some(max) = args.max_range
+        && !(max.is_finite() && max > args.min_range)
+    {
+        bail!(
+            "--max-range must be a number above --min-range ({}), not {max}",
+            args.min_range
+        );
+    }
+    if args.no_odometry {
+        config.motion.use_odometry = false;
+    } else if args.odometry {
+        config.motion.use_odometry = true;
+    }
+    let started = Instant::now();
+    let (trajectory, mapper, scans, duration, source) = if args.input.is_dir() {
+        let limits = RangeLimits {
+            min_range: args.min_range,
+            max_range: args.max_range,
+            no_return: None,
+        };
+        let run = map_session(&args.input, &config, &limits, |_| {})
+            .with_context(|| format!("session {}", args.input.display()))?;
+        let duration = span(&run.trajectory);
+        let scans = run.results.len();
+        (
+            run.trajectory,
+            run.mapper,
+            scans,
+            duration,
+            "session revolutions",
+        )
+    } else {
+        let log = read_log(
+            open_log(&args.input)?,
+            &ReadOptions {
+                lenient: args.lenient,
+            },
+        )
+        .map_err(|e| anyhow::anyhow!("{}: {e}", args.input.display()))?;
+        if log.skipped.malformed > 0 {
+            writeln!(
+                out,
+                "skipped {} malformed line(s) (first: {})",
+                log.skipped.malformed,
+                log.skipped
+                    .first_malformed
+                    .iter()
+                    .map(|e| e.to_string())
+                    .collect::<Vec<_>>()
+                    .join("; ")
+            )?;
+        }
+        if log.scans.is_empty() {
+            bail!(
+                "{}: no laser scans (FLASER or ROBOTLASER1 lines)",
+                args.input.display()
+            );
+        }
+        let limits = RangeLimits::for_log(&log, args.min_range, args.max_range);
+        let bar = progress_bar(log.scans.len() as u64, args.quiet);
+        let run = map_log(&log, &config, &limits, |done| {
+            if let Some(bar) = &bar
+                && done % 256 == 0
+            {
+                bar.set_position(done as u64);
+            }
+        });
+        if let Some(bar) = bar {
+            bar.finish_and_clear();
+        }
+        let duration = span(&run.trajectory);
+        (
+            run.trajectory,
+            run.mapper,
+            log.scans.len(),
+            duration,
+            "laser lines",
+        )
+    };
+    let elapsed = started.elapsed().as_secs_f64();
+    let file =
+        File::create(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    let mut writer = BufWriter::new(file);
+    write_trajectory(&trajectory, &mut writer)
+        .and_then(|()| writer.flush())
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    writeln!(
+        out,
+        "{scans} {source} matched in {elapsed:.2} s ({:.0}× real time over {duration:.1} s of data); odometry {}; trajectory {}",
+        if elapsed > 0.0 {
+            duration / elapsed
+        } else {
+            0.0
+        },
+        if config.motion.use_odometry {
+            "on"
+        } else {
+            "off"
+        },
+        args.out.display()
+    )?;
+    if let Some(stem) = &args.map {
+        write_map(&mapper, &trajectory, stem)?;
+        writeln!(out, "map {0}.pgm, {0}.yaml, {0}.png", stem.display())?;
+    }
+    Ok(())
+}
+
+fn span(trajectory: &Trajectory) -> f64 {
+    match (trajectory.poses.first(), trajectory.poses.last()) {
+        (Some(a), Some(b)) => b.timestamp.seconds - a.timestamp.seconds,
+        _ => 0.0,
+    }
+}
+
+/// Writes `STEM.pgm` + `STEM.yaml` (map_server) and `STEM.png` (with the trajectory).
+fn write_map(mapper: &Mapper, trajectory: &Trajectory, stem: &Path) -> anyhow::Result<()> {
+    let raster = raster(mapper.map().finest()).context("the map is empty")?;
+    let with = |ext: &str| {
+        let mut name = stem.as_os_str().to_owned();
+        name.push(ext);
+        PathBuf::from(name)
+    };
+    let thresholds = Thresholds::default();
+    let write = |path: PathBuf,
+                 f: &dyn Fn(&mut BufWriter<File>) -> std::io::Result<()>|
+     -> anyhow::Result<()> {
+        let file = File::create(&path).with_context(|| format!("creating {}", path.display()))?;
+        let mut w = BufWriter::new(file);
+        f(&mut w)
+            .and_then(|()| w.flush())
+            .with_context(|| format!("writing {}", path.display()))
+    };
+    let pgm = with(".pgm");
+    let image_name = pgm
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    write(pgm, &|w| write_pgm(&raster, &thresholds, w))?;
+    write(with(".yaml"), &|w| write_yaml(&raster, &image_name, w))?;
+    let poses: Vec<Pose2> = trajectory.poses.iter().map(|p| p.pose).collect();
+    write(with(".png"), &|w| {
+        write_png_with_trajectory(&raster, &thresholds, &poses, w)
+    })?;
+    Ok(())
+}
+
+/// Options of `scan3d slam-eval`.
+#[derive(Debug, clap::Args)]
+pub struct SlamEvalArgs {
+    /// The trajectory: `timestamp x y theta` per line.
+    pub trajectory: PathBuf,
+    /// The reference relations: `t1 t2 x y z roll pitch yaw` per line.
+    pub relations: PathBuf,
+    /// One JSON object instead of the table.
+    #[arg(long)]
+    pub json: bool,
+    /// A relation counts when both ends have a pose within this many seconds.
+    #[arg(long, value_name = "S", default_value_t = 0.001)]
+    pub max_dt: f64,
+    /// `kummerle` (the published tables) or `cartographer` (its compute_relations_metrics).
+    #[arg(long, default_value = "kummerle")]
+    pub formula: Formula,
+    /// Interpolate the pose at each relation end instead of taking the nearest one.
+    #[arg(long)]
+    pub interpolate: bool,
+}
+
+/// Runs `scan3d slam-eval`.
+pub fn run_eval(args: &SlamEvalArgs, out: &mut dyn Write) -> anyhow::Result<()> {
+    if !(args.max_dt.is_finite() && args.max_dt >= 0.0) {
+        bail!(
+            "--max-dt must be a non-negative number of seconds, not {}",
+            args.max_dt
+        );
+    }
+    let open = |path: &Path| -> anyhow::Result<BufReader<File>> {
+        Ok(BufReader::new(
+            File::open(path).with_context(|| format!("opening {}", path.display()))?,
+        ))
+    };
+    let trajectory = read_trajectory(open(&args.trajectory)?)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", args.trajectory.display()))?;
+    let relations = read_relations(open(&args.relations)?)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", args.relations.display()))?;
+    if trajectory.poses.is_empty() {
+        bail!("{}: no poses", args.trajectory.display());
+    }
+    let report = evaluate(
+        &trajectory,
+        &relations,
+        &EvalOptions {
+            max_dt: args.max_dt,
+            formula: args.formula,
+            interpolate: args.interpolate,
+        },
+    );
+    if args.json {
+        writeln!(out, "{}", serde_json::to_string(&report)?)?;
+    } else {
+        write!(out, "{report}")?;
+    }
+    Ok(())
+}
