@@ -357,3 +357,32 @@ pub fn run_eval(args: &SlamEvalArgs, out: &mut dyn Write) -> anyhow::Result<()> 
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_documented_slam_toml_is_exactly_the_defaults() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/slam.toml");
+        assert_eq!(
+            load_config(&path).expect("deploy/slam.toml"),
+            MapperConfig::default()
+        );
+    }
+
+    #[test]
+    fn an_unknown_or_out_of_range_key_is_refused_with_its_place() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("slam.toml");
+        std::fs::write(&path, "resolution = 0.05\n[matcher]\nfine_iteratons = 3\n").unwrap();
+        let error = format!("{:#}", load_config(&path).unwrap_err());
+        assert!(
+            error.contains("fine_iteratons") && error.contains("line 3"),
+            "{error}"
+        );
+        std::fs::write(&path, "levels = 40\n").unwrap();
+        let error = format!("{:#}", load_config(&path).unwrap_err());
+        assert!(error.contains("levels must be 1 to 6"), "{error}");
+    }
+}

@@ -1,0 +1,146 @@
+//! `scan3d slam` and `scan3d slam-eval` end to end on an excerpt of the vendored Intel log:
+//! the trajectory file keeps the log's timestamps byte for byte, the map files are what ROS
+//! map_server reads, the metric agrees with the library, and bad input stops with its line.
+
+mod common;
+
+use std::io::{BufRead, BufReader, Write};
+use std::path::{Path, PathBuf};
+
+use common::{arg, run_cli};
+
+fn testdata(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../testdata/slam")
+        .join(name)
+}
+
+/// The first `scans` FLASER lines of the Intel log (and the ODOM lines among them) as a plain
+/// `.clf`, and the relations with both ends inside; returns the laser timestamps as written.
+fn intel_excerpt(dir: &Path, scans: usize) -> (PathBuf, PathBuf, Vec<String>) {
+    let gz = std::fs::File::open(testdata("intel.clf.gz")).unwrap();
+    let reader = BufReader::new(flate2::read::GzDecoder::new(gz));
+    let log = dir.join("intel-excerpt.clf");
+    let mut out = std::fs::File::create(&log).unwrap();
+    let mut stamps = Vec::new();
+    for line in reader.lines() {
+        let line = line.unwrap();
+        if line.starts_with("FLASER") {
+            let fields: Vec<&str> = line.split_whitespace().collect();
+            stamps.push(fields[fields.len() - 3].to_string());
+        }
+        writeln!(out, "{line}").unwrap();
+        if stamps.len() == scans {
+            break;
+        }
+    }
+    let last: f64 = stamps.last().unwrap().parse().unwrap();
+    let relations = dir.join("intel-excerpt.relations");
+    let mut rel_out = std::fs::File::create(&relations).unwrap();
+    let text = std::fs::read_to_string(testdata("intel.relations")).unwrap();
+    for line in text.lines() {
+        let f: Vec<f64> = line
+            .split_whitespace()
+            .take(2)
+            .map(|v| v.parse().unwrap())
+            .collect();
+        if f[0] <= last && f[1] <= last {
+            writeln!(rel_out, "{line}").unwrap();
+        }
+    }
+    (log, relations, stamps)
+}
+
+#[test]
+fn slam_writes_one_pose_per_scan_with_the_logs_timestamps_and_a_map_server_map() {
+    let dir = tempfile::tempdir().unwrap();
+    let (log, relations, stamps) = intel_excerpt(dir.path(), 800);
+    let traj = dir.path().join("traj.txt");
+    let map = dir.path().join("intel");
+    let said = run_cli(&[
+        "slam",
+        arg(&log),
+        "--out",
+        arg(&traj),
+        "--map",
+        arg(&map),
+        "--no-loop-closure",
+    ])
+    .expect("slam");
+    assert!(said.contains("800 laser lines matched"), "{said}");
+
+    let lines: Vec<String> = std::fs::read_to_string(&traj)
+        .unwrap()
+        .lines()
+        .map(str::to_owned)
+        .collect();
+    assert_eq!(lines.len(), 800);
+    for (line, stamp) in lines.iter().zip(&stamps) {
+        assert_eq!(line.split_whitespace().next(), Some(stamp.as_str()));
+        assert_eq!(line.split_whitespace().count(), 4, "{line}");
+    }
+
+    let yaml = std::fs::read_to_string(dir.path().join("intel.yaml")).unwrap();
+    for key in [
+        "image: intel.pgm",
+        "resolution: 0.05",
+        "origin: [",
+        "occupied_thresh: 0.65",
+        "free_thresh: 0.196",
+        "negate: 0",
+    ] {
+        assert!(yaml.contains(key), "{key} missing from\n{yaml}");
+    }
+    let pgm = std::fs::read(dir.path().join("intel.pgm")).unwrap();
+    assert!(pgm.starts_with(b"P5\n"));
+    // Occupied (0), free (254) and unknown (205) cells are all there.
+    for value in [0u8, 254, 205] {
+        assert!(pgm[20..].contains(&value), "no pixel of value {value}");
+    }
+    let png = std::fs::read(dir.path().join("intel.png")).unwrap();
+    assert!(png.starts_with(b"\x89PNG\r\n\x1a\n"));
+
+    // The metric: the CLI's JSON, over every relation inside the excerpt, beating odometry's
+    // rotation error on them (the library's own test holds the numbers).
+    let json = run_cli(&["slam-eval", arg(&traj), arg(&relations), "--json"]).expect("slam-eval");
+    let report: serde_json::Value = serde_json::from_str(&json).unwrap();
+    let total = std::fs::read_to_string(&relations).unwrap().lines().count() as u64;
+    assert!(total > 30);
+    assert_eq!(report["used"].as_u64(), Some(total), "{report}");
+    assert_eq!(report["matched_within_10us"].as_u64(), Some(total));
+    let mean = report["abs_trans_m"]["mean"].as_f64().unwrap();
+    assert!(mean < 0.03, "{mean}");
+    let table = run_cli(&["slam-eval", arg(&traj), arg(&relations)]).expect("slam-eval");
+    assert!(table.contains("Absolute translational (m)"), "{table}");
+}
+
+#[test]
+fn a_malformed_log_line_stops_slam_with_its_line_number_unless_lenient() {
+    let dir = tempfile::tempdir().unwrap();
+    let (log, _, _) = intel_excerpt(dir.path(), 50);
+    let mut text = std::fs::read_to_string(&log).unwrap();
+    let bad_line = text.lines().count() + 1;
+    text.push_str("FLASER 180 1.0 2.0 oops\n");
+    let bad = dir.path().join("bad.clf");
+    std::fs::write(&bad, &text).unwrap();
+    let traj = dir.path().join("traj.txt");
+    let error = run_cli(&["slam", arg(&bad), "--out", arg(&traj)]).unwrap_err();
+    let message = format!("{error:#}");
+    assert!(message.contains(&format!("line {bad_line}")), "{message}");
+    assert!(!message.contains('\n'), "one line: {message}");
+    assert!(!traj.exists(), "nothing written on a failed read");
+
+    let said = run_cli(&["slam", arg(&bad), "--out", arg(&traj), "--lenient"]).expect("lenient");
+    assert!(said.contains("skipped 1 malformed line"), "{said}");
+    assert_eq!(std::fs::read_to_string(&traj).unwrap().lines().count(), 50);
+}
+
+#[test]
+fn slam_eval_refuses_a_malformed_trajectory_with_its_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let traj = dir.path().join("traj.txt");
+    std::fs::write(&traj, "1.000000 0 0 0\n2.000000 0 zero 0\n").unwrap();
+    let error = run_cli(&["slam-eval", arg(&traj), arg(&testdata("intel.relations"))]).unwrap_err();
+    let message = format!("{error:#}");
+    assert!(message.contains("line 2"), "{message}");
+}
