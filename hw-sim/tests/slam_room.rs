@@ -1,0 +1,536 @@
+//! The slam mapper in the simulated conference room, scored against the simulator's ground truth
+//! (issue 12, part 5).
+//!
+//! A trolley pushed once around the table (straights at 0.4 m/s, corners at 0.5 rad/s, starting
+//! and ending at rest) carries an RPLidar 0.4 m above the floor, so each revolution is a
+//! horizontal slice of [`World::conference_room`]: walls, the glass wall (random returns), the
+//! doorway and its open leaf, table legs, chairs and boxes. Every beam is measured at its own time
+//! from the pose the trolley has then, at the emulator's sample period and rotation rate, turning
+//! clockwise like the real lidar. A revolution becomes one [`Scan`] stamped at its last beam
+//! (`Scan::time` is the revolution's end, every `hit_times` ≤ 0): `mapper.rs` de-skews with the
+//! motion over the interval that ends at the scan, so with this stamp a revolution's beams lie
+//! inside the interval the matched motion covers (the other stamp is tested too).
+//!
+//! The mapper starts at the identity, so the truth is expressed relative to the first true pose;
+//! the error of a scan is the distance and the heading difference between its pose and the truth.
+//! Besides the mapper's own de-skew, a run can give it no beam times (no de-skew) or endpoints
+//! already moved with the true motion (a perfect de-skew), which separates the de-skew's share of
+//! the error from the matcher's.
+
+use std::f64::consts::{FRAC_PI_2, TAU};
+use std::sync::Arc;
+
+use nalgebra::{Isometry3, Vector3};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
+use scan3d_hw_sim::mounts::RPLIDAR_POSITION_M;
+use scan3d_hw_sim::noise::RangeNoise;
+use scan3d_hw_sim::rplidar::{MAX_RANGE_M, MIN_RANGE_M, RplidarEmulatorConfig};
+use scan3d_hw_sim::world::{Scanner, World};
+use scan3d_slam::mapper::{Mapper, MapperConfig, MotionConfig, Scan};
+use scan3d_slam::pose::{Pose2, wrap_angle};
+
+/// Where the lidar sits on the trolley: 10 cm ahead of the point the trolley turns about.
+const SENSOR_OFFSET: Pose2 = Pose2 {
+    x: 0.10,
+    y: 0.0,
+    theta: 0.0,
+};
+
+/// Where the trolley starts: south of the table, facing east (+x), clear of every piece of
+/// furniture by at least 0.3 m along the whole loop. Not on the 5 cm lattice the room is drawn on,
+/// so the map's cells do not line up with the walls by construction (see [`FINE_RESOLUTION`]).
+const START: Pose2 = Pose2 {
+    x: 1.513,
+    y: 1.037,
+    theta: 0.0,
+};
+
+/// The trolley's speed (m/s) and turn rate (rad/s), linear between keyframes.
+struct Drive {
+    /// `(t s, v m/s, ω rad/s)`, times increasing.
+    keyframes: Vec<(f64, f64, f64)>,
+}
+
+impl Drive {
+    /// Once around the table counter-clockwise: 1 s at rest, speed up to 0.4 m/s, four straights
+    /// (4.0, 2.8, 4.0, 2.8 m) joined by left turns of 90° taken at 0.3 m/s and `turn_rate`
+    /// (reached and left over 0.5 s), then slow to a stop and rest 1 s.
+    fn around_the_table(turn_rate: f64) -> Self {
+        const CRUISE: f64 = 0.4;
+        const CORNER: f64 = 0.3;
+        const RAMP: f64 = 0.5;
+        let mut keyframes = vec![(0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (2.0, CRUISE, 0.0)];
+        let mut t = 2.0;
+        for (n, straight) in [4.0, 2.8, 4.0, 2.8].into_iter().enumerate() {
+            // The first straight includes the 0.2 m covered while speeding up.
+            t += if n == 0 { straight - 0.2 } else { straight } / CRUISE;
+            keyframes.push((t, CRUISE, 0.0));
+            // The two ramps turn turn_rate · RAMP together; the hold turns the rest of 90°.
+            let hold = FRAC_PI_2 / turn_rate - RAMP;
+            assert!(
+                hold >= 0.0,
+                "turn rate {turn_rate} too high for a {RAMP} s ramp"
+            );
+            t += RAMP;
+            keyframes.push((t, CORNER, turn_rate));
+            t += hold;
+            keyframes.push((t, CORNER, turn_rate));
+            t += RAMP;
+            keyframes.push((t, CRUISE, 0.0));
+        }
+        keyframes.push((t + 1.0, 0.0, 0.0));
+        keyframes.push((t + 2.0, 0.0, 0.0));
+        Self { keyframes }
+    }
+
+    fn duration(&self) -> f64 {
+        self.keyframes.last().map_or(0.0, |k| k.0)
+    }
+
+    /// Speed and turn rate at `t`.
+    fn at(&self, t: f64) -> (f64, f64) {
+        for pair in self.keyframes.windows(2) {
+            let ((t0, v0, w0), (t1, v1, w1)) = (pair[0], pair[1]);
+            if t <= t1 {
+                let f = if t1 > t0 {
+                    ((t - t0) / (t1 - t0)).clamp(0.0, 1.0)
+                } else {
+                    1.0
+                };
+                return (v0 + f * (v1 - v0), w0 + f * (w1 - w0));
+            }
+        }
+        (0.0, 0.0)
+    }
+
+    /// The true trolley poses at `k · period` for every k up to the drive's end (midpoint
+    /// integration of the unicycle; this table *is* the ground truth, so its integration error is
+    /// no error).
+    fn poses(&self, start: Pose2, period: f64) -> Vec<Pose2> {
+        let steps = (self.duration() / period).floor() as usize;
+        let mut poses = Vec::with_capacity(steps + 1);
+        let (mut x, mut y, mut theta) = (start.x, start.y, start.theta);
+        poses.push(start);
+        for k in 0..steps {
+            let (v, w) = self.at((k as f64 + 0.5) * period);
+            let mid = theta + 0.5 * w * period;
+            x += v * period * mid.cos();
+            y += v * period * mid.sin();
+            theta += w * period;
+            poses.push(Pose2::new(x, y, theta));
+        }
+        poses
+    }
+}
+
+/// Which beam's time a revolution is stamped with.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Stamp {
+    /// `Scan::time` is the revolution's last beam; `hit_times` ≤ 0.
+    RevolutionEnd,
+    /// `Scan::time` is the revolution's first beam; `hit_times` ≥ 0.
+    RevolutionStart,
+}
+
+/// Who de-skews a revolution.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Deskew {
+    /// The mapper, from the beams' `hit_times`.
+    Mapper,
+    /// Nobody: empty `hit_times`, every beam taken as if at `Scan::time`.
+    None,
+    /// The ground truth: each endpoint moved with the true motion into the sensor frame at
+    /// `Scan::time` (empty `hit_times`), the best any de-skew can do.
+    Truth,
+}
+
+/// One simulated run: what the lidar and the trolley are like, and how the mapper is fed.
+#[derive(Debug, Clone, Copy)]
+struct Run {
+    noise: RangeNoise,
+    turn_rate: f64,
+    stamp: Stamp,
+    deskew: Deskew,
+    /// Wheel odometry with drift and noise (`None`: no odometry, constant-velocity prior).
+    odometry: Option<OdometryError>,
+    config: MapperConfig,
+    /// Where the trolley starts.
+    start: Pose2,
+    seed: u64,
+}
+
+impl Run {
+    /// The trolley as it is: no odometry, pushed at ≤ 0.5 rad/s, revolutions stamped at their end,
+    /// default mapper configuration but for `use_odometry`.
+    fn trolley(noise: RangeNoise) -> Self {
+        Self {
+            noise,
+            turn_rate: 0.5,
+            stamp: Stamp::RevolutionEnd,
+            deskew: Deskew::Mapper,
+            odometry: None,
+            config: MapperConfig {
+                motion: MotionConfig {
+                    use_odometry: false,
+                    ..MotionConfig::default()
+                },
+                ..MapperConfig::default()
+            },
+            start: START,
+            seed: 12,
+        }
+    }
+}
+
+/// Wheel odometry's error: a systematic scale error (wheel radius, track width) and Gaussian noise
+/// per scan interval.
+#[derive(Debug, Clone, Copy)]
+struct OdometryError {
+    translation_scale: f64,
+    rotation_scale: f64,
+    /// Standard deviation per metre travelled (m).
+    translation_sigma_per_m: f64,
+    /// Standard deviation per radian turned (rad).
+    rotation_sigma_per_rad: f64,
+}
+
+/// A revolution as the mapper gets it, and where the trolley truly was at `scan.time`.
+struct Revolution {
+    truth: Pose2,
+    scan: Scan,
+}
+
+/// One revolution of the rotor: its first and last sample index, and the beams that returned
+/// (sample index, endpoint in the sensor frame).
+struct Turn {
+    first: usize,
+    last: usize,
+    beams: Vec<(usize, (f64, f64))>,
+}
+
+/// The isometry of a pose in the horizontal plane at `height`.
+fn isometry(pose: &Pose2, height: f64) -> Isometry3<f64> {
+    Isometry3::new(
+        Vector3::new(pose.x, pose.y, height),
+        Vector3::z() * pose.theta,
+    )
+}
+
+/// Simulates the lidar along the trolley's `truth` (poses every `period` seconds, one beam each):
+/// the rotor turns clockwise at `hz`, a beam at device angle φ looks along azimuth −φ in the sensor
+/// frame, and a revolution ends where the rotor angle wraps. The last, incomplete revolution is
+/// dropped.
+fn revolutions(
+    truth: &[Pose2],
+    period: f64,
+    hz: f64,
+    scanner: &Scanner,
+    run: &Run,
+    rng: &mut ChaCha8Rng,
+) -> Vec<Revolution> {
+    let height = RPLIDAR_POSITION_M[2];
+    let mut turns: Vec<Turn> = Vec::new();
+    for (k, pose) in truth.iter().enumerate() {
+        let phase = k as f64 * period * hz;
+        let azimuth = -phase.fract() * TAU;
+        if turns.len() <= phase.floor() as usize {
+            turns.push(Turn {
+                first: k,
+                last: k,
+                beams: Vec::new(),
+            });
+        }
+        let turn = turns.last_mut().expect("pushed");
+        turn.last = k;
+        let sensor = isometry(&pose.compose(&SENSOR_OFFSET), height);
+        if let Some(range) = scanner.measure_from(&sensor, azimuth, rng) {
+            turn.beams
+                .push((k, (range * azimuth.cos(), range * azimuth.sin())));
+        }
+    }
+    // The last revolution is complete only if the rotor wrapped right after it.
+    let complete = ((truth.len() as f64) * period * hz).floor() as usize;
+    turns.truncate(complete);
+
+    let mut odometry_rng = ChaCha8Rng::seed_from_u64(run.seed ^ 0x0d0);
+    let mut odometry = Pose2::default();
+    let mut previous_truth: Option<Pose2> = None;
+    let mut out = Vec::with_capacity(turns.len());
+    for turn in turns {
+        let stamp = match run.stamp {
+            Stamp::RevolutionEnd => turn.last,
+            Stamp::RevolutionStart => turn.first,
+        };
+        let hits = turn.beams;
+        let time = stamp as f64 * period;
+        let here = truth[stamp];
+        let odometry = run.odometry.map(|error| {
+            if let Some(before) = previous_truth {
+                let step = noisy_step(&before.between(&here), &error, &mut odometry_rng);
+                odometry = odometry.compose(&step);
+            }
+            odometry
+        });
+        previous_truth = Some(here);
+        let hit_times = match run.deskew {
+            Deskew::Mapper => hits
+                .iter()
+                .map(|&(k, _)| k as f64 * period - time)
+                .collect(),
+            Deskew::None | Deskew::Truth => Vec::new(),
+        };
+        let hits = match run.deskew {
+            Deskew::Mapper | Deskew::None => hits.into_iter().map(|(_, p)| p).collect(),
+            Deskew::Truth => {
+                let to_stamp = here.compose(&SENSOR_OFFSET).inverse();
+                hits.into_iter()
+                    .map(|(k, (x, y))| {
+                        let (wx, wy) = truth[k].compose(&SENSOR_OFFSET).transform_point(x, y);
+                        to_stamp.transform_point(wx, wy)
+                    })
+                    .collect()
+            }
+        };
+        out.push(Revolution {
+            truth: here,
+            scan: Scan {
+                time,
+                hits,
+                hit_times,
+                odometry,
+                sensor_offset: SENSOR_OFFSET,
+            },
+        });
+    }
+    out
+}
+
+/// A true motion as wheel odometry would have measured it.
+fn noisy_step(step: &Pose2, error: &OdometryError, rng: &mut ChaCha8Rng) -> Pose2 {
+    let distance = step.x.hypot(step.y);
+    let mut draw = |sigma: f64| {
+        if sigma > 0.0 {
+            Normal::new(0.0, sigma)
+                .expect("a positive sigma")
+                .sample(rng)
+        } else {
+            0.0
+        }
+    };
+    let tx = draw(error.translation_sigma_per_m * distance);
+    let ty = draw(error.translation_sigma_per_m * distance);
+    let tr = draw(error.rotation_sigma_per_rad * step.theta.abs());
+    Pose2::new(
+        step.x * error.translation_scale + tx,
+        step.y * error.translation_scale + ty,
+        step.theta * error.rotation_scale + tr,
+    )
+}
+
+/// Trajectory error over all scans of a run.
+#[derive(Debug, Clone, Copy)]
+struct Errors {
+    scans: usize,
+    max_translation: f64,
+    rms_translation: f64,
+    max_rotation: f64,
+    rms_rotation: f64,
+}
+
+impl std::fmt::Display for Errors {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} scans: translation max {:.1} mm, RMS {:.1} mm; rotation max {:.3}°, RMS {:.3}°",
+            self.scans,
+            self.max_translation * 1e3,
+            self.rms_translation * 1e3,
+            self.max_rotation.to_degrees(),
+            self.rms_rotation.to_degrees()
+        )
+    }
+}
+
+/// The revolutions `run` produces, with their ground truth.
+fn simulate(run: &Run) -> Vec<Revolution> {
+    let lidar = RplidarEmulatorConfig::default();
+    let period = f64::from(lidar.standard_sample_us) * 1e-6;
+    let drive = Drive::around_the_table(run.turn_rate);
+    let truth = drive.poses(run.start, period);
+    let scanner = Scanner {
+        world: Arc::new(World::conference_room()),
+        pose: isometry(&run.start, RPLIDAR_POSITION_M[2]),
+        noise: run.noise,
+        min_range_m: MIN_RANGE_M,
+        max_range_m: MAX_RANGE_M,
+    };
+    let mut rng = ChaCha8Rng::seed_from_u64(run.seed);
+    let revolutions = revolutions(&truth, period, lidar.rotation_hz, &scanner, run, &mut rng);
+    assert!(revolutions.len() > 200, "{} revolutions", revolutions.len());
+    revolutions
+}
+
+/// Simulates `run`, feeds every revolution to a fresh mapper and scores its poses.
+fn score(run: &Run) -> Errors {
+    let revolutions = simulate(run);
+
+    let mut mapper = Mapper::new(run.config);
+    let origin = revolutions[0].truth;
+    let (mut sum_t, mut sum_r) = (0.0, 0.0);
+    let (mut max_t, mut max_r) = (0.0f64, 0.0f64);
+    for revolution in &revolutions {
+        let found = mapper.add_scan(&revolution.scan).pose;
+        let want = origin.between(&revolution.truth);
+        let t = (found.x - want.x).hypot(found.y - want.y);
+        let r = wrap_angle(found.theta - want.theta).abs();
+        sum_t += t * t;
+        sum_r += r * r;
+        max_t = max_t.max(t);
+        max_r = max_r.max(r);
+    }
+    assert_eq!(mapper.refused_integrations(), 0);
+    let n = revolutions.len() as f64;
+    Errors {
+        scans: revolutions.len(),
+        max_translation: max_t,
+        rms_translation: (sum_t / n).sqrt(),
+        max_rotation: max_r,
+        rms_rotation: (sum_r / n).sqrt(),
+    }
+}
+
+/// The finest cell size the noise-free tests map with (m). The default 5 cm grid stores a wall
+/// at the centre of the cell its endpoints fall in, up to half a cell (2.5 cm) from the true face;
+/// this room's walls all lie on one 5 cm lattice, so that quantisation does not average out over
+/// walls and shifts the whole trajectory (17 mm RMS from this start, 35 mm when the walls fall on
+/// cell boundaries). A 1 cm bound needs finer cells.
+const FINE_RESOLUTION: f64 = 0.025;
+
+/// The trolley without odometry, noise-free beams, on the fine grid.
+fn noise_free() -> Run {
+    let mut run = Run::trolley(RangeNoise::NONE);
+    run.config.resolution = FINE_RESOLUTION;
+    run
+}
+
+#[test]
+fn noise_free_beams_give_the_trajectory_within_1_cm() {
+    let errors = score(&noise_free());
+    println!("noise-free, de-skewed, {FINE_RESOLUTION} m cells: {errors}");
+    assert!(errors.max_translation <= 0.01, "{errors}");
+    assert!(errors.rms_rotation <= 0.2f64.to_radians(), "{errors}");
+    // Not yet the issue's 0.2° (see the ignored test below), but no worse than today.
+    assert!(errors.max_rotation <= 0.75f64.to_radians(), "{errors}");
+}
+
+#[test]
+#[ignore = "issue 12's heading bound is not met yet: 0.55° at most, at the corners' entries and \
+            exits (angular acceleration within a revolution) and while the trolley stands still \
+            in front of a one-revolution map (0.41° even with a perfect de-skew)"]
+fn noise_free_beams_give_every_heading_within_0_2_degrees() {
+    let errors = score(&noise_free());
+    assert!(errors.max_rotation <= 0.2f64.to_radians(), "{errors}");
+}
+
+#[test]
+fn rplidar_range_noise_keeps_the_trajectory_within_8_cm_with_the_default_configuration() {
+    let errors = score(&Run::trolley(RangeNoise::RPLIDAR));
+    println!("RPLidar noise, de-skewed, default configuration: {errors}");
+    assert!(errors.max_translation <= 0.08, "{errors}");
+    assert!(errors.rms_translation <= 0.04, "{errors}");
+    assert!(errors.max_rotation <= 1.2f64.to_radians(), "{errors}");
+}
+
+#[test]
+#[ignore = "issue 12's bound is not met yet: 61 mm at most, 30 mm RMS with the default \
+            configuration; none of the MapperConfig variations tried (resolution, levels, update \
+            thresholds and model, loss, residual sigma, prior) brings it under 37 mm"]
+fn rplidar_range_noise_keeps_the_trajectory_within_3_cm() {
+    let errors = score(&Run::trolley(RangeNoise::RPLIDAR));
+    assert!(errors.max_translation <= 0.03, "{errors}");
+}
+
+#[test]
+fn without_de_skew_the_same_run_is_several_times_worse() {
+    let with = score(&noise_free());
+    let without = score(&Run {
+        deskew: Deskew::None,
+        ..noise_free()
+    });
+    println!("noise-free, de-skewed: {with}\nnoise-free, not de-skewed: {without}");
+    assert!(
+        without.max_translation >= 3.0 * with.max_translation,
+        "{with} vs {without}"
+    );
+    assert!(
+        without.rms_translation >= 3.0 * with.rms_translation,
+        "{with} vs {without}"
+    );
+    assert!(
+        without.rms_rotation >= 3.0 * with.rms_rotation,
+        "{with} vs {without}"
+    );
+}
+
+#[test]
+fn revolutions_stamped_at_their_end_match_better_than_stamped_at_their_start() {
+    // The mapper de-skews with the motion over the interval that ends at the scan: stamped at its
+    // end, a revolution lies inside that interval; stamped at its start, the motion is
+    // extrapolated over the next one.
+    let end = score(&noise_free());
+    let start = score(&Run {
+        stamp: Stamp::RevolutionStart,
+        ..noise_free()
+    });
+    println!("stamped at the end: {end}\nstamped at the start: {start}");
+    assert!(
+        start.rms_rotation >= 2.0 * end.rms_rotation,
+        "{end} vs {start}"
+    );
+    assert!(
+        start.max_rotation >= 2.0 * end.max_rotation,
+        "{end} vs {start}"
+    );
+}
+
+#[test]
+fn drifting_wheel_odometry_as_the_prior_keeps_noise_free_beams_within_1_cm() {
+    let mut run = noise_free();
+    run.config.motion.use_odometry = true;
+    run.odometry = Some(OdometryError {
+        translation_scale: 1.02,
+        rotation_scale: 0.98,
+        translation_sigma_per_m: 0.02,
+        rotation_sigma_per_rad: 0.02,
+    });
+    let errors = score(&run);
+    println!("noise-free, de-skewed, odometry prior: {errors}");
+    assert!(errors.max_translation <= 0.01, "{errors}");
+    assert!(errors.rms_rotation <= 0.2f64.to_radians(), "{errors}");
+}
+
+#[test]
+fn the_mappers_de_skew_places_the_trolley_within_a_few_millimetres_of_a_perfect_de_skew() {
+    let mapper = score(&noise_free());
+    let perfect = score(&Run {
+        deskew: Deskew::Truth,
+        ..noise_free()
+    });
+    println!("de-skewed by the mapper: {mapper}\nde-skewed with the true motion: {perfect}");
+    assert!(
+        mapper.max_translation <= perfect.max_translation + 0.005,
+        "{mapper} vs {perfect}"
+    );
+    assert!(
+        mapper.rms_translation <= perfect.rms_translation + 0.002,
+        "{mapper} vs {perfect}"
+    );
+    // What is left of the heading error is the de-skew's: constant velocity over a revolution
+    // while the turn rate ramps up or down at a corner.
+    assert!(
+        mapper.rms_rotation <= perfect.rms_rotation + 0.15f64.to_radians(),
+        "{mapper} vs {perfect}"
+    );
+}
