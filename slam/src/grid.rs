@@ -63,9 +63,10 @@ pub struct Grid {
 /// reallocate on every scan.
 const GROWTH_MARGIN: i32 = 64;
 
-/// A grid never grows beyond this many cells (8 GiB of state at 12 bytes per cell would be a
-/// bug, not a building): updates beyond it are dropped and counted.
-pub const MAX_CELLS: usize = 400_000_000;
+/// A grid never grows beyond this many cells (600 MB at 12 bytes per cell: 350 m × 350 m at
+/// 5 cm). A trajectory that diverges would otherwise grow the map until memory runs out;
+/// updates beyond the limit are dropped and counted ([`crate::mapper::Mapper::refused_integrations`]).
+pub const MAX_CELLS: usize = 50_000_000;
 
 /// The value at, and the gradient of, the interpolated occupancy at a point.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -104,7 +104,10 @@ pub struct Scan {
     /// Beam endpoints with a return, in the sensor frame (m).
     pub hits: Vec<(f64, f64)>,
     /// Per endpoint in `hits`, its time relative to `time` (s), when the lidar gives one: the
-    /// scan is then de-skewed. Empty for an instantaneous scan.
+    /// scan is then de-skewed. Empty for an instantaneous scan. Stamp a revolution at its end
+    /// (times ≤ 0): its beams then lie inside the interval whose motion the match finds, and
+    /// are interpolated rather than extrapolated (in the simulated room: 0.13° RMS heading
+    /// error against 0.30° when stamped at the start).
     pub hit_times: Vec<f64>,
     /// The robot's wheel-odometry pose at `time`, if there is odometry.
     pub odometry: Option<Pose2>,
@@ -338,7 +341,8 @@ impl Mapper {
 /// Moves each endpoint to where it would have been seen from the sensor pose at the scan's
 /// time, given the robot's `motion` over the `interval` that ends at the scan (constant
 /// velocity in between): a beam taken `t` seconds after the scan time was seen from the robot
-/// pose `exp(twist · t)` relative to it.
+/// pose `(t / interval) · motion` relative to it, x, y and θ scaled alike (a first-order
+/// approximation of the arc, under a millimetre at trolley speeds).
 fn deskew(
     hits: &[(f64, f64)],
     times: &[f64],
