@@ -117,6 +117,47 @@ impl SessionBuilder {
         }
     }
 
+    /// `n` RPLidar revolutions of `samples` samples each from a lidar 0.2 m up that starts at
+    /// `start` (x, y, heading in rad) and moves at constant `velocity` (m/s along x and y of the
+    /// room, rad/s): each sample is ray-cast from where the lidar is at that sample's time.
+    /// Returns the true pose (x, y, heading) at each revolution's end.
+    pub fn rplidar_moving(
+        &mut self,
+        n: usize,
+        samples: usize,
+        start: [f64; 3],
+        velocity: [f64; 3],
+    ) -> Vec<[f64; 3]> {
+        let t_start = self.t_ns;
+        let pose_at = |t_ns: u64| {
+            let t = (t_ns - t_start) as f64 * 1e-9;
+            [
+                start[0] + velocity[0] * t,
+                start[1] + velocity[1] * t,
+                start[2] + velocity[2] * t,
+            ]
+        };
+        let mut ends = Vec::with_capacity(n);
+        for _ in 0..n {
+            let t1 = self.t_ns + 180_000_000;
+            let mut rev = LidarRevolution::new(SensorId::RPLIDAR, self.t_ns, t1);
+            for i in 0..samples {
+                let t = self.t_ns + (i as u64) * 180_000_000 / samples as u64;
+                let [x, y, heading] = pose_at(t);
+                let angle = 360.0 * i as f64 / samples as f64;
+                // RPLidar angles are clockwise.
+                let a = heading + (-angle).to_radians();
+                let r = range_to_walls(self.room, [x, y, 0.2], [a.cos(), a.sin(), 0.0]);
+                rev.push(angle as f32, r as f32, 40, t)
+                    .expect("sample time");
+            }
+            self.t_ns = t1;
+            ends.push(pose_at(t1));
+            self.push(rev);
+        }
+        ends
+    }
+
     /// A static scan at `position`: `revolutions` Sweep revolutions of `samples` samples, the
     /// turntable stepping `180 / revolutions` degrees in each blocked sector (θ in (150°, 210°)
     /// is blocked); every sample's range ray-cast against the room.
