@@ -3,7 +3,10 @@
 //! fsynced to disk every commit.
 //!
 //! `cargo bench -p scan3d-hw-sim --bench uplink` (`UPLINK_BENCH_EDGES=1,16` picks the fleet
-//! sizes; default 1, 4, 8, 16, 24, 32, 48, 64)
+//! sizes; default 1, 4, 8, 16, 24, 32, 48, 64; `UPLINK_BENCH_PIPELINE=1` runs the server with
+//! its live mapping pipeline on, `[pipeline]` defaults, and every edge making static scans
+//! back to back on its Sweep: 18 steps of 10°, its revolutions tagged with their yaws, so the
+//! server assembles and inserts 3D points as for a real turntable)
 //!
 //! Prints:
 //! 1. uplink throughput: one edge submits realistic revolution frames as fast as its spool
@@ -11,7 +14,8 @@
 //! 2. latency at full sensor rate (RPLidar 5.5 rev/s + Sweep 5 rev/s): submit → recorded and
 //!    submit → acknowledged, p50/p99/max;
 //! 3. K edges at once at full sensor rate: per K, frames sent, recorded and acknowledged, ack
-//!    latency p50/p99/max and server CPU; then the largest K measured at which every frame was
+//!    latency p50/p99/max, server CPU and the server's resident memory (RSS at the end of the
+//!    row, and its peak so far); then the largest K measured at which every frame was
 //!    recorded and acknowledged with ack p99 ≤ 3 × the commit interval. Only measured fleet
 //!    sizes are reported: nothing is extrapolated.
 //!
@@ -35,12 +39,14 @@ use anyhow::{Context, anyhow, bail};
 use nix::time::ClockId;
 use scan3d_edge::uplink::client::SubmitError;
 use scan3d_hw_sim::fleet::{
-    self, EdgeHandle, EdgeIdentity, LidarStream, Produced, Producers, SimEdge, Submission,
-    clock_ns, mono_ns,
+    self, EdgeHandle, EdgeIdentity, LidarStream, Produced, Producers, SimEdge, StaticScanPlan,
+    Submission, clock_ns, mono_ns,
 };
 use scan3d_hw_sim::rig::{self, ServerThread};
 use scan3d_hw_sim::world::World;
 use scan3d_server::ingest::server::{IngestEvent, IngestStats};
+use scan3d_server::pipeline::PipelineSettings;
+use scan3d_server::pipeline::live::LiveSettings;
 use tokio::runtime::Runtime;
 use tokio::sync::{mpsc, watch};
 
@@ -70,6 +76,30 @@ const POLL: Duration = Duration::from_micros(200);
 const WAIT_LIMIT: Duration = Duration::from_secs(30);
 /// Command-line flag that turns this binary into the server child.
 const SERVE_FLAG: &str = "--serve";
+/// Environment variable that turns the server's live pipeline and the edges' static scans on.
+const PIPELINE_VAR: &str = "UPLINK_BENCH_PIPELINE";
+/// Turntable steps per synthetic static scan in pipeline mode (180° in 10° steps).
+const STATIC_SCAN_STEPS: u32 = 18;
+
+/// Whether this run has the pipeline on ([`PIPELINE_VAR`]; the server child inherits it).
+fn pipeline_on() -> bool {
+    std::env::var(PIPELINE_VAR).is_ok_and(|v| v == "1")
+}
+
+/// This process's resident set size now and at its peak (kB, from /proc; 0 if unreadable).
+fn rss_kb() -> (u64, u64) {
+    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    let field = |name: &str| {
+        status
+            .lines()
+            .find(|l| l.starts_with(name))
+            .and_then(|l| l.split_whitespace().nth(1))
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(0)
+    };
+    (field("VmRSS:"), field("VmHWM:"))
+}
+
 /// The acknowledgement p99 a fleet must stay within to count as kept up.
 const ACK_P99_BOUND: Duration = COMMIT_INTERVAL.saturating_mul(3);
 
@@ -171,7 +201,12 @@ fn serve(pki_dir: &Path, data_dir: &Path) -> anyhow::Result<()> {
     config.commit_interval = COMMIT_INTERVAL;
     config.time_sync_interval = TIME_SYNC_INTERVAL;
     config.max_connections = MAX_FLEET;
-    let mut server = ServerThread::start(config)?;
+    let mut server = if pipeline_on() {
+        let live = LiveSettings::new(PipelineSettings::default(), data_dir.to_path_buf());
+        ServerThread::start_live(config, live)?
+    } else {
+        ServerThread::start(config)?
+    };
     let events = std::mem::replace(&mut server.events, mpsc::unbounded_channel().1);
     let collector = std::thread::spawn(move || collect_recorded(events));
     let mut out = BufWriter::new(std::io::stdout().lock());
@@ -181,7 +216,8 @@ fn serve(pki_dir: &Path, data_dir: &Path) -> anyhow::Result<()> {
         if line? != "cpu" {
             break;
         }
-        writeln!(out, "cpu {}", process_cpu_ns())?;
+        let (rss, peak) = rss_kb();
+        writeln!(out, "cpu {} {rss} {peak}", process_cpu_ns())?;
         out.flush()?;
     }
     let s = server.stop();
@@ -251,11 +287,21 @@ impl ServerProcess {
         })
     }
 
-    /// The server's CPU time so far (ns, all its threads).
-    fn cpu_ns(&mut self) -> anyhow::Result<u64> {
+    /// The server's CPU time so far (ns, all its threads) and its resident memory now and at
+    /// its peak (kB).
+    fn usage(&mut self) -> anyhow::Result<(u64, u64, u64)> {
         writeln!(self.stdin, "cpu")?;
         self.stdin.flush()?;
-        Ok(read_reply(&mut self.stdout, "cpu")?.parse()?)
+        let reply = read_reply(&mut self.stdout, "cpu")?;
+        let fields: Vec<u64> = reply
+            .split_whitespace()
+            .map(str::parse)
+            .collect::<Result<_, _>>()
+            .with_context(|| format!("cpu reply {reply:?}"))?;
+        match fields.as_slice() {
+            [ns, rss, peak] => Ok((*ns, *rss, *peak)),
+            _ => bail!("cpu reply {reply:?}: expected three numbers"),
+        }
     }
 
     /// Shuts the server down cleanly (final commit, recordings closed) and collects its report.
@@ -333,6 +379,9 @@ struct Fleet {
 struct CpuMark {
     at: Instant,
     server_ns: u64,
+    /// The server's resident memory now and at its peak (kB).
+    server_rss_kb: u64,
+    server_peak_kb: u64,
     edges_ns: u64,
 }
 
@@ -381,15 +430,23 @@ impl Fleet {
 
     /// CPU times of the server and of this process, now.
     fn cpu_mark(&mut self) -> anyhow::Result<CpuMark> {
+        let (server_ns, server_rss_kb, server_peak_kb) = self.server.usage()?;
         Ok(CpuMark {
             at: Instant::now(),
-            server_ns: self.server.cpu_ns()?,
+            server_ns,
+            server_rss_kb,
+            server_peak_kb,
             edges_ns: process_cpu_ns(),
         })
     }
 
     /// CPU shares of one core since `start`, and the wall time.
     fn cpu_since(&mut self, start: CpuMark) -> anyhow::Result<(CpuShare, Duration)> {
+        self.cpu_mark_since(start).map(|(cpu, wall, _)| (cpu, wall))
+    }
+
+    /// [`Fleet::cpu_since`] and the mark it ended with (the server's memory then).
+    fn cpu_mark_since(&mut self, start: CpuMark) -> anyhow::Result<(CpuShare, Duration, CpuMark)> {
         let end = self.cpu_mark()?;
         let wall = end.at - start.at;
         let share = |ns: u64| ns as f64 / wall.as_nanos() as f64;
@@ -397,7 +454,7 @@ impl Fleet {
             server: share(end.server_ns.saturating_sub(start.server_ns)),
             edges: share(end.edges_ns.saturating_sub(start.edges_ns)),
         };
-        Ok((cpu, wall))
+        Ok((cpu, wall, end))
     }
 
     /// Stops the edges (after their last acknowledgement), then the server.
@@ -482,6 +539,10 @@ struct RateRun {
     stats: IngestStats,
     /// The 1-minute load average when the run ended.
     load: f64,
+    /// The server's resident memory when the submitting window ended, and its peak by then
+    /// (kB; each row has its own server process).
+    server_rss_kb: u64,
+    server_peak_kb: u64,
 }
 
 impl RateRun {
@@ -668,9 +729,19 @@ impl Bench {
         let start = fleet.cpu_mark()?;
         let begin = tokio::time::Instant::from_std(start.at);
         let deadline = begin + RATE_RUN;
-        let per_edge = Producers::start(&self.runtime, &handles, &self.streams, begin, deadline)
-            .join(&self.runtime)?;
-        let (cpu, wall) = fleet.cpu_since(start)?;
+        let static_scans = pipeline_on().then_some(StaticScanPlan {
+            revolutions: STATIC_SCAN_STEPS,
+        });
+        let per_edge = Producers::start_with(
+            &self.runtime,
+            &handles,
+            &self.streams,
+            begin,
+            deadline,
+            static_scans,
+        )
+        .join(&self.runtime)?;
+        let (cpu, wall, end) = fleet.cpu_mark_since(start)?;
         // Wait for the last acknowledgements; a server that fell behind shows up as unacked.
         let all_acked = wait_until(WAIT_LIMIT, "the last acknowledgements", || {
             handles.iter().zip(&per_edge).all(|(edge, produced)| {
@@ -696,6 +767,8 @@ impl Bench {
             not_acked: 0,
             stats: report.stats,
             load: load_average(),
+            server_rss_kb: end.server_rss_kb,
+            server_peak_kb: end.server_peak_kb,
         };
         for ((edge, produced), timeline) in handles.iter().zip(&per_edge).zip(&timelines) {
             run.add_edge(&report, edge.session_id, produced, timeline);
@@ -817,8 +890,17 @@ fn print_fleets(runs: &[RateRun]) {
         "3. K edges at once at full sensor rate, each RPLidar 5.5 rev/s + Sweep 5 rev/s, {} s per row",
         RATE_RUN.as_secs()
     );
+    if pipeline_on() {
+        println!(
+            "   server live pipeline ON ([pipeline] defaults: 0.05 m octree per session and position), every edge"
+        );
+        println!(
+            "   making static scans back to back on its Sweep ({STATIC_SCAN_STEPS} steps of {}°): assembly and insertion run",
+            180 / STATIC_SCAN_STEPS
+        );
+    }
     println!(
-        "   {:>4} {:>7} {:>8} {:>7} {:>7} {:>8} {:>10} {:>8} {:>9} {:>8} {:>8} {:>8} {:>8} {:>5}",
+        "   {:>4} {:>7} {:>8} {:>7} {:>7} {:>8} {:>10} {:>8} {:>9} {:>8} {:>8} {:>8} {:>8} {:>5} {:>8} {:>8}",
         "K",
         "sent",
         "recorded",
@@ -832,11 +914,13 @@ fn print_fleets(runs: &[RateRun]) {
         "ack p50",
         "ack p99",
         "ack max",
-        "load"
+        "load",
+        "RSS MB",
+        "peak MB"
     );
     for run in runs {
         println!(
-            "   {:>4} {:>7} {:>8} {:>7} {:>7} {:>8.0} {:>10} {:>8} {:>9} {:>8.1} {:>8.1} {:>8.1} {:>8.1} {:>5.1}",
+            "   {:>4} {:>7} {:>8} {:>7} {:>7} {:>8.0} {:>10} {:>8} {:>9} {:>8.1} {:>8.1} {:>8.1} {:>8.1} {:>5.1} {:>8.1} {:>8.1}",
             run.edges,
             run.frames,
             run.frames - run.not_recorded,
@@ -851,6 +935,8 @@ fn print_fleets(runs: &[RateRun]) {
             quantile(&run.acked_ms, 0.99),
             quantile(&run.acked_ms, 1.0),
             run.load,
+            run.server_rss_kb as f64 / 1024.0,
+            run.server_peak_kb as f64 / 1024.0,
         );
     }
     println!(

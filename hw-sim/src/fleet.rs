@@ -23,7 +23,10 @@ use rand_distr::{Distribution, Normal};
 use scan3d_edge::clock::{MonotonicClock, SharedClock};
 use scan3d_edge::uplink::client::{SubmitError, Uplink, UplinkConfig, UplinkHandle, UplinkStats};
 use scan3d_edge::uplink::tls;
-use scan3d_protocol::{Frame, LidarRevolution, SensorId, encode};
+use scan3d_protocol::{
+    Frame, LidarRevolution, MountInfo, SensorId, StaticScan, StaticScanEnd, StaticScanOutcome,
+    StaticScanStart, StaticScanYaws, YawRun, encode,
+};
 use scan3d_server::ingest::pki::{self, PairRequest};
 use tokio::runtime::Runtime;
 use tokio::sync::watch;
@@ -351,23 +354,136 @@ pub struct Produced {
     pub refused: u64,
 }
 
+/// Static scans a synthetic edge runs back to back on its Sweep stream, so the server's
+/// pipeline assembles and inserts 3D points as it does for a real turntable: each scan turns
+/// 180° in `revolutions` steps, one per Sweep revolution, and every revolution's samples outside
+/// the blocked sector (θ in 150°–210°) are tagged with their yaw, half a revolution before the
+/// step and half after, as the edge's controller does.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StaticScanPlan {
+    /// Sweep revolutions (turntable steps) per static scan.
+    pub revolutions: u32,
+}
+
+impl StaticScanPlan {
+    /// The yaw runs of revolution `r` of a scan for a Sweep revolution of `samples` samples at
+    /// even azimuths, and how many samples they tag.
+    fn runs(&self, r: u32, samples: u32) -> (Vec<YawRun>, u64) {
+        let step = 180.0 / f64::from(self.revolutions);
+        let azimuth = |i: u32| 360.0 * f64::from(i) / f64::from(samples);
+        let mut runs: Vec<YawRun> = Vec::new();
+        let mut tagged = 0;
+        for i in 0..samples {
+            let a = azimuth(i);
+            if (150.0..=210.0).contains(&a) {
+                continue;
+            }
+            let yaw = (step * f64::from(if a < 180.0 { r } else { r + 1 })) as f32;
+            tagged += 1;
+            match runs.last_mut() {
+                Some(run) if run.yaw_deg == yaw && run.first_index + run.count == i => {
+                    run.count += 1
+                }
+                _ => runs.push(YawRun {
+                    first_index: i,
+                    count: 1,
+                    yaw_deg: yaw,
+                }),
+            }
+        }
+        (runs, tagged)
+    }
+}
+
 /// Submits one revolution of `stream` per period from `first` until `deadline`, as the edge's
-/// acquisition does when a revolution completes.
+/// acquisition does when a revolution completes; with `static_scans`, a Sweep stream also
+/// submits the static-scan messages around its revolutions (see [`StaticScanPlan`]).
 pub async fn produce(
     edge: EdgeHandle,
     stream: LidarStream,
     first: tokio::time::Instant,
     deadline: tokio::time::Instant,
+    static_scans: Option<StaticScanPlan>,
 ) -> Produced {
     let mut tick = tokio::time::interval_at(first, stream.period());
     let mut produced = Produced::default();
+    let plan = static_scans.filter(|_| {
+        stream
+            .templates
+            .first()
+            .is_some_and(|t| t.sensor == SensorId::SWEEP)
+    });
+    let mut scan_id = 0u32;
+    let mut tagged = 0u64;
+    let submit = |produced: &mut Produced, body: scan3d_protocol::Body| {
+        let at_ns = mono_ns();
+        match edge.uplink.submit(body) {
+            Ok(seq) => produced.submissions.push(Submission { seq, at_ns }),
+            Err(_) => produced.refused += 1,
+        }
+    };
     for index in 0.. {
         if tick.tick().await >= deadline {
             break;
         }
-        match edge.submit(&stream, index) {
-            Ok(submission) => produced.submissions.push(submission),
-            Err(_) => produced.refused += 1,
+        let revolution = stream.revolution(index, edge.clock.now_ns());
+        let Some(plan) = plan else {
+            submit(&mut produced, revolution.into());
+            continue;
+        };
+        let r = (index % plan.revolutions as usize) as u32;
+        if r == 0 {
+            submit(
+                &mut produced,
+                StaticScan::Started(StaticScanStart {
+                    scan_id,
+                    t_ns: revolution.t0_ns,
+                    position: format!("fleet-{scan_id}"),
+                    x_m: 4.0,
+                    y_m: 3.0,
+                    heading_deg: 0.0,
+                    step_deg: 180.0 / f64::from(plan.revolutions),
+                    total_deg: 180.0,
+                    blocked_sector_deg: 60.0,
+                    mount: MountInfo {
+                        axis_offset_m: 0.05,
+                        height_m: 1.0,
+                        azimuth_zero_deg: 0.0,
+                    },
+                })
+                .into(),
+            );
+            tagged = 0;
+        }
+        let samples = u32::try_from(revolution.samples.len()).unwrap_or(u32::MAX);
+        let (runs, n) = plan.runs(r, samples);
+        tagged += n;
+        let yaws = StaticScanYaws {
+            scan_id,
+            revolution_t0_ns: revolution.t0_ns,
+            runs,
+        };
+        let t1 = revolution.t1_ns;
+        submit(&mut produced, revolution.into());
+        submit(&mut produced, StaticScan::Yaws(yaws).into());
+        if r + 1 == plan.revolutions {
+            submit(
+                &mut produced,
+                StaticScan::Finished(StaticScanEnd {
+                    scan_id,
+                    t_ns: t1,
+                    outcome: StaticScanOutcome::Completed,
+                    yaw_deg: 180.0,
+                    revolutions: plan.revolutions,
+                    tagged,
+                    blocked: 0,
+                    untrusted: 0,
+                    late_steps: 0,
+                    failed_steps: 0,
+                })
+                .into(),
+            );
+            scan_id += 1;
         }
     }
     produced
@@ -391,6 +507,18 @@ impl Producers {
         begin: tokio::time::Instant,
         deadline: tokio::time::Instant,
     ) -> Self {
+        Self::start_with(runtime, edges, streams, begin, deadline, None)
+    }
+
+    /// [`Producers::start`], every edge also running `static_scans` on its Sweep stream.
+    pub fn start_with(
+        runtime: &Runtime,
+        edges: &[EdgeHandle],
+        streams: &[LidarStream],
+        begin: tokio::time::Instant,
+        deadline: tokio::time::Instant,
+        static_scans: Option<StaticScanPlan>,
+    ) -> Self {
         let tasks = edges
             .iter()
             .enumerate()
@@ -402,7 +530,7 @@ impl Producers {
                 })
             })
             .map(|(edge, stream, phase)| {
-                runtime.spawn(produce(edge, stream, begin + phase, deadline))
+                runtime.spawn(produce(edge, stream, begin + phase, deadline, static_scans))
             })
             .collect();
         Self {
