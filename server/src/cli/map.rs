@@ -249,7 +249,12 @@ pub fn run(args: &MapArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         writeln!(out, "filters {}: {kept} points kept", names.join(" → "))?;
     }
     let (map, stats) = build_map(&scans, args.res, args.max_range, args.model(), !args.quiet)?;
-    write_map(args, &map, &stats, out)
+    let written = write_map(args, &map, &stats, out);
+    // Freeing the map and the cloud (tens of thousands of allocations at fine resolutions) is
+    // left to a thread of its own: a one-shot `scan3d map` exits without waiting for it, and
+    // a long-lived caller (the tests) still gets the memory back.
+    std::thread::spawn(move || drop((map, scans)));
+    written
 }
 
 /// The pipeline settings `scan3d map SESSION_DIR` maps with: the per-revolution filters are
