@@ -508,6 +508,25 @@ fn text_seeds(c: &Corpus) -> Result<()> {
         &fs::read(root.join("deploy/server.toml"))?,
     )?;
     c.put("server_config", "empty", b"")?;
+    // The first lines of the vendored Intel log (ODOM and FLASER), a ROBOTLASER1 line and a
+    // relations file.
+    let intel = {
+        use std::io::Read;
+        let mut text = String::new();
+        flate2::read::GzDecoder::new(fs::File::open(root.join("testdata/slam/intel.clf.gz"))?)
+            .read_to_string(&mut text)?;
+        text.lines().take(12).collect::<Vec<_>>().join("\n") + "\n"
+    };
+    c.put("carmen_log", "intel_head", intel.as_bytes())?;
+    c.put(
+        "carmen_log",
+        "robotlaser1",
+        b"# comment\nROBOTLASER1 0 -1.5708 3.1416 0.0175 81.9 0.01 0 3 1.0 2.0 81.9 0 0.1 0 0 0 0 0 0 0 0 0 0 1.000000 host 1.0\nODOM 0 0 0 0 0 0 1.5 host 1.5\n",
+    )?;
+    let relations = fs::read_to_string(root.join("testdata/slam/intel.relations"))?;
+    let relations: String = relations.lines().take(6).map(|l| format!("{l}\n")).collect();
+    let trajectory = "976052905.167303 0 0 0\n976052911.885496 -0.05 -0.12 -1.68\n976052913.712702 0.3 0 0\n";
+    c.put("slam_text", "intel", format!("{trajectory}\0{relations}").as_bytes())?;
     for (i, (_, frame)) in frames()
         .into_iter()
         .filter(|(_, f)| matches!(f.body, Body::Command(_)))
