@@ -173,8 +173,28 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
             max_range: args.max_range,
             no_return: None,
         };
-        let run = map_session(&args.input, &config, &limits, |_| {})
-            .with_context(|| format!("session {}", args.input.display()))?;
+        // A session does not say how many revolutions it holds before it is read: a counter.
+        let bar = (!args.quiet).then(|| {
+            let bar = ProgressBar::new_spinner();
+            bar.set_style(
+                ProgressStyle::with_template(
+                    "matching {spinner} {human_pos} revolutions {elapsed}",
+                )
+                .unwrap_or_else(|_| ProgressStyle::default_spinner()),
+            );
+            bar
+        });
+        let run = map_session(&args.input, &config, &limits, |done| {
+            if let Some(bar) = &bar
+                && done % 64 == 0
+            {
+                bar.set_position(done as u64);
+            }
+        })
+        .with_context(|| format!("session {}", args.input.display()))?;
+        if let Some(bar) = bar {
+            bar.finish_and_clear();
+        }
         let duration = span(&run.trajectory);
         let scans = run.results.len();
         (
