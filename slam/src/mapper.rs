@@ -205,7 +205,9 @@ impl Mapper {
         let (motion, information, from_odometry) = self.predict(&last, scan, dt);
         let predicted = last.pose.compose(&motion);
 
-        let hits = if scan.hit_times.len() == scan.hits.len() && !scan.hit_times.is_empty() {
+        // Per-beam times, one per endpoint: the scan is de-skewed.
+        let timed = !scan.hit_times.is_empty() && scan.hit_times.len() == scan.hits.len();
+        let hits = if timed {
             deskew(
                 &scan.hits,
                 &scan.hit_times,
@@ -239,7 +241,7 @@ impl Mapper {
         }
         let mut pose = matched.pose.compose(&scan.sensor_offset.inverse());
         let mut hits = hits;
-        if !scan.hit_times.is_empty() && scan.hit_times.len() == scan.hits.len() && dt > 0.0 {
+        if timed && dt > 0.0 {
             // De-skew again with the motion the match found, and refine.
             let found = last.pose.between(&pose);
             hits = deskew(&scan.hits, &scan.hit_times, &scan.sensor_offset, &found, dt);

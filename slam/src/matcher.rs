@@ -95,6 +95,17 @@ pub struct Prior {
     pub information: Matrix3,
 }
 
+impl Prior {
+    /// `pose − mean` in (x, y, ψ), the heading wrapped.
+    fn error(&self, pose: &Pose2) -> [f64; 3] {
+        [
+            pose.x - self.pose.x,
+            pose.y - self.pose.y,
+            wrap_angle(pose.theta - self.pose.theta),
+        ]
+    }
+}
+
 /// What a match found.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Match {
@@ -281,11 +292,7 @@ fn normal_equations(
         }
     }
     if let Some(prior) = prior {
-        let e = [
-            pose.x - prior.pose.x,
-            pose.y - prior.pose.y,
-            wrap_angle(pose.theta - prior.pose.theta),
-        ];
+        let e = prior.error(pose);
         let l = &prior.information;
         for a in 0..3 {
             let le: f64 = (0..3).map(|b| l[a][b] * e[b]).sum();
@@ -324,11 +331,7 @@ fn cost(
         })
         .sum();
     if let Some(prior) = prior {
-        let e = [
-            pose.x - prior.pose.x,
-            pose.y - prior.pose.y,
-            wrap_angle(pose.theta - prior.pose.theta),
-        ];
+        let e = prior.error(pose);
         for a in 0..3 {
             for b in 0..3 {
                 total += e[a] * prior.information[a][b] * e[b];

@@ -61,12 +61,12 @@ pub fn endpoints(laser: &LaserScan, limits: &RangeLimits) -> Vec<(f64, f64)> {
         .collect()
 }
 
-/// What a run over a log produced.
+/// What running the mapper over a recording (a log, a session) produced.
 #[derive(Debug, Clone)]
-pub struct LogRun {
-    /// One pose per laser line, with the line's timestamp text.
+pub struct MapperRun {
+    /// One pose per scan, with its timestamp (a log's laser lines keep their text).
     pub trajectory: Trajectory,
-    /// Per laser line, what the mapper did.
+    /// Per scan, what the mapper did.
     pub results: Vec<ScanResult>,
     /// The mapper at the end (its map).
     pub mapper: Mapper,
@@ -80,7 +80,7 @@ pub fn map_log(
     config: &MapperConfig,
     limits: &RangeLimits,
     mut progress: impl FnMut(usize),
-) -> LogRun {
+) -> MapperRun {
     let mut mapper = Mapper::new(*config);
     let mut results = Vec::with_capacity(log.scans.len());
     for (done, laser) in log.scans.iter().enumerate() {
@@ -95,7 +95,7 @@ pub fn map_log(
         progress(done + 1);
     }
     let poses: Vec<Pose2> = results.iter().map(|r| r.pose).collect();
-    LogRun {
+    MapperRun {
         trajectory: Trajectory::from_scans(&log.scans, &poses),
         results,
         mapper,

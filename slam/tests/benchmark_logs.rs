@@ -4,32 +4,13 @@
 //! ACES is held at what it reaches, see its test) and fail when a change to the grid, matcher
 //! or mapper loses them.
 
-use std::io::BufReader;
-use std::path::PathBuf;
+mod common;
 
-use scan3d_slam::carmen::{CarmenLog, ReadOptions, read_log};
+use common::load;
+use scan3d_slam::carmen::CarmenLog;
 use scan3d_slam::mapper::MapperConfig;
 use scan3d_slam::offline::{RangeLimits, map_log};
-use scan3d_slam::relations::{
-    EvalOptions, EvalReport, Relations, Trajectory, evaluate, read_relations,
-};
-
-fn testdata(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../testdata/slam")
-        .join(name)
-}
-
-fn load(name: &str) -> (CarmenLog, Relations) {
-    let gz = std::fs::File::open(testdata(&format!("{name}.clf.gz"))).unwrap();
-    let log = read_log(
-        BufReader::new(flate2::read::GzDecoder::new(gz)),
-        &ReadOptions::default(),
-    )
-    .unwrap();
-    let rel = std::fs::File::open(testdata(&format!("{name}.relations"))).unwrap();
-    (log, read_relations(BufReader::new(rel)).unwrap())
-}
+use scan3d_slam::relations::{EvalOptions, EvalReport, Relations, Trajectory, evaluate};
 
 fn score(
     log: &CarmenLog,

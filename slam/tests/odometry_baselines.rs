@@ -8,31 +8,14 @@
 //! that `testdata/slam/*.clf.gz` hold. The short (< 5 s) / long (> 60 s) rows come from the
 //! script's `evaluate` on the relations filtered by |t2 − t1|.
 
-use std::io::BufReader;
-use std::path::PathBuf;
+mod common;
 
-use scan3d_slam::carmen::{CarmenLog, ReadOptions, read_log};
+use common::load;
+use scan3d_slam::carmen::CarmenLog;
 use scan3d_slam::relations::{
-    EvalOptions, EvalReport, Formula, MeanStd, Relations, Trajectory, evaluate, read_relations,
-    read_trajectory, write_trajectory,
+    EvalOptions, EvalReport, Formula, MeanStd, Trajectory, evaluate, read_trajectory,
+    write_trajectory,
 };
-
-fn testdata(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../testdata/slam")
-        .join(name)
-}
-
-fn load(name: &str) -> (CarmenLog, Relations) {
-    let gz = std::fs::File::open(testdata(&format!("{name}.clf.gz"))).unwrap();
-    let log = read_log(
-        BufReader::new(flate2::read::GzDecoder::new(gz)),
-        &ReadOptions::default(),
-    )
-    .unwrap();
-    let rel = std::fs::File::open(testdata(&format!("{name}.relations"))).unwrap();
-    (log, read_relations(BufReader::new(rel)).unwrap())
-}
 
 /// The odometry trajectory as the script builds it: written with `write_trajectory` and read
 /// back, so the text round trip is part of what is checked.

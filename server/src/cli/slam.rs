@@ -167,7 +167,7 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         config.motion.use_odometry = true;
     }
     let started = Instant::now();
-    let (trajectory, mapper, scans, duration, source) = if args.input.is_dir() {
+    let (run, source) = if args.input.is_dir() {
         let limits = RangeLimits {
             min_range: args.min_range,
             max_range: args.max_range,
@@ -184,7 +184,7 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
             );
             bar
         });
-        let run = map_session(&args.input, &config, &limits, |done| {
+        let (run, _recording) = map_session(&args.input, &config, &limits, |done| {
             if let Some(bar) = &bar
                 && done % 64 == 0
             {
@@ -195,15 +195,7 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         if let Some(bar) = bar {
             bar.finish_and_clear();
         }
-        let duration = span(&run.trajectory);
-        let scans = run.results.len();
-        (
-            run.trajectory,
-            run.mapper,
-            scans,
-            duration,
-            "session revolutions",
-        )
+        (run, "session revolutions")
     } else {
         let log = read_log(
             open_log(&args.input)?,
@@ -243,20 +235,15 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         if let Some(bar) = bar {
             bar.finish_and_clear();
         }
-        let duration = span(&run.trajectory);
-        (
-            run.trajectory,
-            run.mapper,
-            log.scans.len(),
-            duration,
-            "laser lines",
-        )
+        (run, "laser lines")
     };
     let elapsed = started.elapsed().as_secs_f64();
+    let (trajectory, mapper) = (&run.trajectory, &run.mapper);
+    let (scans, duration) = (run.results.len(), span(trajectory));
     let file =
         File::create(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     let mut writer = BufWriter::new(file);
-    write_trajectory(&trajectory, &mut writer)
+    write_trajectory(trajectory, &mut writer)
         .and_then(|()| writer.flush())
         .with_context(|| format!("writing {}", args.out.display()))?;
     writeln!(
@@ -275,7 +262,7 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         args.out.display()
     )?;
     if let Some(stem) = &args.map {
-        write_map(&mapper, &trajectory, stem)?;
+        write_map(mapper, trajectory, stem)?;
         writeln!(out, "map {0}.pgm, {0}.yaml, {0}.png", stem.display())?;
     }
     Ok(())

@@ -11,8 +11,8 @@ use std::path::Path;
 
 use scan3d_map::cloud::scans::scan_plane_point;
 use scan3d_protocol::{Body, SensorId};
-use scan3d_slam::mapper::{Mapper, MapperConfig, Scan, ScanResult};
-use scan3d_slam::offline::RangeLimits;
+use scan3d_slam::mapper::{Mapper, MapperConfig, Scan};
+use scan3d_slam::offline::{MapperRun, RangeLimits};
 use scan3d_slam::pose::Pose2;
 use scan3d_slam::relations::{Trajectory, TrajectoryPose};
 use scan3d_slam::text::Timestamp;
@@ -52,27 +52,16 @@ pub fn revolution_scan(
     }
 }
 
-/// What matching a session produced.
-#[derive(Debug)]
-pub struct SessionRun {
-    /// One pose per RPLidar revolution, stamped with the revolution's end (edge clock, s).
-    pub trajectory: Trajectory,
-    /// Per revolution, what the mapper did.
-    pub results: Vec<ScanResult>,
-    /// The mapper at the end (its map).
-    pub mapper: Mapper,
-    /// What the recording held that could not be read (skipped, not fatal).
-    pub recording: SessionReport,
-}
-
 /// Matches every RPLidar revolution of a recorded session, in recording order, streaming the
-/// recording (memory: the map, not the session). `progress` gets the revolutions done.
+/// recording (memory: the map, not the session); the trajectory is stamped with each
+/// revolution's end (edge clock, s). Also returns what the recording held that could not be
+/// read (skipped, not fatal). `progress` gets the revolutions done.
 pub fn map_session(
     session_dir: &Path,
     config: &MapperConfig,
     limits: &RangeLimits,
     mut progress: impl FnMut(usize),
-) -> Result<SessionRun, RecorderError> {
+) -> Result<(MapperRun, SessionReport), RecorderError> {
     let mut mapper = Mapper::new(*config);
     let mut results = Vec::new();
     let mut poses = Vec::new();
@@ -91,12 +80,12 @@ pub fn map_session(
         }
         Ok(())
     })?;
-    Ok(SessionRun {
+    let run = MapperRun {
         trajectory: Trajectory { poses },
         results,
         mapper,
-        recording,
-    })
+    };
+    Ok((run, recording))
 }
 
 #[cfg(test)]
