@@ -16,8 +16,6 @@ const EDGE_BYTES: usize = 8 + VEC3_BYTES + QUAT_BYTES + 8;
 const CHUNK_POINTS: usize = 4096;
 /// Points reserved for a node before they are read (192 kB; a hostile count costs no more).
 const PREALLOC_POINTS: usize = 1 << 14;
-/// Nodes allocated for before any is read: the node count is the file's word, not a fact.
-const PREALLOC_NODES: usize = 1024;
 
 /// The stream being parsed, with the errors named by what was being read.
 struct Reader<R> {
@@ -137,27 +135,41 @@ pub fn read_graph(bytes: &[u8]) -> Result<Vec<RayBundle>, OctreeError> {
 /// parse reads it in chunks of a few hundred kB). Counts in the stream are not trusted for
 /// allocation; a count larger than the data ends in [`OctreeError::Truncated`].
 pub fn read_graph_from(source: impl Read) -> Result<Vec<RayBundle>, OctreeError> {
+    let mut bundles = Vec::new();
+    visit_graph(source, |bundle| bundles.push(bundle.clone()))?;
+    Ok(bundles)
+}
+
+/// [`read_graph_from`] one node at a time: `visit` sees each world-frame bundle as soon as it
+/// is read, in file order, and only one is in memory (its buffer reused), so a consumer that
+/// inserts as it goes holds the map, not the cloud. Returns the node count. An error after
+/// some nodes (a truncated file) comes after their visits.
+pub fn visit_graph(
+    source: impl Read,
+    mut visit: impl FnMut(&RayBundle),
+) -> Result<usize, OctreeError> {
     let mut r = Reader { source };
     let nodes = r.u32(".graph node count")? as usize;
-    let mut bundles = Vec::with_capacity(nodes.min(PREALLOC_NODES));
+    let mut bundle = RayBundle {
+        origin: [0.0; 3],
+        points: Vec::new(),
+    };
     for _ in 0..nodes {
         let n = r.u32(".graph point cloud")? as usize;
-        let mut points = Vec::new();
-        r.points(n, &mut points, ".graph point cloud")?;
+        bundle.points.clear();
+        r.points(n, &mut bundle.points, ".graph point cloud")?;
         let t = r.floats::<3>(".graph pose translation")?;
         let q = r.floats::<4>(".graph pose rotation")?;
         r.u32(".graph node id")?;
-        for p in &mut points {
+        for p in &mut bundle.points {
             *p = transform_point(t, q, *p);
         }
-        bundles.push(RayBundle {
-            origin: t.map(f64::from),
-            points,
-        });
+        bundle.origin = t.map(f64::from);
+        visit(&bundle);
     }
     let edges = r.u32(".graph edge count")?;
     r.skip(u64::from(edges) * EDGE_BYTES as u64, ".graph edges")?;
-    Ok(bundles)
+    Ok(nodes)
 }
 
 #[cfg(test)]

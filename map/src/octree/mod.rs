@@ -36,7 +36,7 @@ mod tree;
 mod voxels;
 mod walk;
 
-pub use graph::{read_graph, read_graph_from, transform_point};
+pub use graph::{read_graph, read_graph_from, transform_point, visit_graph};
 pub use io::format_resolution;
 pub(crate) use io::{BT_MAGIC, Header, OT_MAGIC, parse_header};
 pub use key::{KEY_CENTER, Key, Resolution, TREE_DEPTH};

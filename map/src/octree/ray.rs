@@ -722,8 +722,15 @@ mod avx512 {
 
     /// Brick part of a packed key (see `voxels`): each 21-bit field shifted down by 2.
     const PACKED_BRICK: i64 = ((FIELD >> 2) | ((FIELD >> 2) << 21) | ((FIELD >> 2) << 42)) as i64;
-    /// Capacity of the buffer of gathered (cell, marks) pairs written in batches.
+    /// Capacity of the buffer of gathered (cell, marks) pairs, and of the buffer of keys
+    /// outside the window.
     const PENDING: usize = 512;
+    /// Steps of eight lanes between two emptyings of the buffers: each step adds at most
+    /// eight entries to each, and a batch's end eight more to [`Pending`].
+    const CHUNK_STEPS: usize = 31;
+    /// Entries a buffer may hold at the start of a chunk so that the chunk and the batch's
+    /// final push fit.
+    const ROOM: usize = PENDING - 8 * (CHUNK_STEPS + 1);
 
     /// Gathered marks waiting to be written.
     struct Pending {
@@ -759,6 +766,13 @@ mod avx512 {
             }
         }
 
+        /// Writes the marks out if fewer than a chunk's worth of entries are free.
+        fn make_room(&mut self, marks: &mut impl FreeMarks) {
+            if self.n > ROOM {
+                self.drain(marks);
+            }
+        }
+
         fn drain(&mut self, marks: &mut impl FreeMarks) {
             let (_, [dx, dy, dz]) = marks.window();
             let cells = u64::from(dx) * u64::from(dy) * u64::from(dz);
@@ -771,16 +785,50 @@ mod avx512 {
         }
     }
 
-    const _: () = assert!(size_of::<[u64; 8]>() == size_of::<__m512i>());
-
-    /// The lanes of a vector of u64.
-    #[target_feature(enable = "avx512f,popcnt")]
-    fn lanes(v: __m512i) -> [u64; 8] {
-        let mut out = [0u64; 8];
-        // SAFETY: `out` is 8 u64s, the 64 bytes the unaligned store writes.
-        unsafe { _mm512_storeu_si512(out.as_mut_ptr().cast(), v) };
-        out
+    /// Packed keys outside the window, waiting to be marked one by one.
+    struct Outside {
+        key: [u64; PENDING],
+        n: usize,
     }
+
+    impl Outside {
+        /// Appends the lanes of `key` set in `lanes`, compressed to the front.
+        #[target_feature(enable = "avx512f,popcnt")]
+        fn push(&mut self, key: __m512i, lanes: __mmask8) {
+            debug_assert!(
+                self.n + 8 <= PENDING,
+                "outside buffer not drained: {} of {PENDING}",
+                self.n
+            );
+            let n = self.n;
+            if let Some(k) = self.key.get_mut(n..n + 8) {
+                // SAFETY: `k` is 8 u64s, the 64 bytes the unaligned store writes.
+                unsafe {
+                    _mm512_storeu_si512(
+                        k.as_mut_ptr().cast(),
+                        _mm512_maskz_compress_epi64(lanes, key),
+                    );
+                }
+                self.n = n + lanes.count_ones() as usize;
+            }
+        }
+
+        /// Marks the keys if fewer than a chunk's worth of entries are free.
+        fn make_room(&mut self, marks: &mut impl FreeMarks) {
+            if self.n > ROOM {
+                self.drain(marks);
+            }
+        }
+
+        fn drain(&mut self, marks: &mut impl FreeMarks) {
+            for &k in self.key.iter().take(self.n) {
+                marks.mark_key(k);
+            }
+            self.n = 0;
+        }
+    }
+
+    const _: () = assert!(size_of::<[u64; 8]>() == size_of::<__m512i>());
 
     /// [`super::avx2::mark_free`] eight lanes wide: the same operations per lane, so the same
     /// keys; see there for the steps.
@@ -819,15 +867,20 @@ mod avx512 {
             lo & !(PACKED_BRICK as u64) == 0,
             "window origin {lo:#x} is not in packed brick fields"
         );
-        let lo = _mm512_set1_epi64(lo as i64);
-        let [dx, dy, dz] = dim.map(|d| _mm512_set1_epi64(i64::from(d)));
-        let brick = _mm512_set1_epi64(PACKED_BRICK);
-        let field = _mm512_set1_epi64(FIELD as i64);
-        let one = _mm512_set1_epi64(1);
+        let window = Window {
+            lo: _mm512_set1_epi64(lo as i64),
+            dim: dim.map(|d| _mm512_set1_epi64(i64::from(d))),
+            brick: _mm512_set1_epi64(PACKED_BRICK),
+            field: _mm512_set1_epi64(FIELD as i64),
+        };
         let zero = _mm512_setzero_si512();
         let mut pending = Pending {
             cell: [0; PENDING],
             bits: [0; PENDING],
+            n: 0,
+        };
+        let mut outside = Outside {
+            key: [0; PENDING],
             n: 0,
         };
         loop {
@@ -888,93 +941,165 @@ mod avx512 {
             }
             // SAFETY: `end` is 8 i64s, the 64 bytes the unaligned load reads.
             let end = unsafe { _mm512_loadu_si512(end.as_ptr().cast()) };
-            let [mut t0, mut t1, mut t2] = t;
-            let mut k = k0;
-            let mut cur_cell = _mm512_set1_epi64(-1);
-            let mut cur_bits = zero;
-            #[cfg(debug_assertions)]
-            let mut steps = 0u32;
-            loop {
+            let mut rays = Rays {
+                t,
+                dt,
+                inc,
+                k: k0,
+                end,
+                length,
+                cur_cell: _mm512_set1_epi64(-1),
+                cur_bits: zero,
+                live,
                 #[cfg(debug_assertions)]
-                {
-                    steps += 1;
-                    debug_assert!(steps <= super::MAX_RAY_STEPS, "a ray that does not end");
-                }
-                // The axis of the smallest t (ties: z, then y).
-                let c01 = _mm512_cmp_pd_mask::<_CMP_LT_OQ>(t0, t1);
-                let cx = _mm512_mask_cmp_pd_mask::<_CMP_LT_OQ>(c01, t0, t2);
-                let cy = _mm512_mask_cmp_pd_mask::<_CMP_LT_OQ>(!c01, t1, t2);
-                let cz = !(cx | cy);
-                t0 = _mm512_mask_add_pd(t0, cx, t0, dt[0]);
-                t1 = _mm512_mask_add_pd(t1, cy, t1, dt[1]);
-                t2 = _mm512_mask_add_pd(t2, cz, t2, dt[2]);
-                let step = _mm512_mask_blend_epi64(
-                    cx,
-                    _mm512_mask_blend_epi64(cy, inc[2], inc[1]),
-                    inc[0],
-                );
-                k = _mm512_add_epi64(k, step);
-                let m = _mm512_min_pd(t2, _mm512_min_pd(t1, t0));
-                let done =
-                    _mm512_cmpeq_epi64_mask(k, end) | _mm512_cmp_pd_mask::<_CMP_GT_OQ>(m, length);
-                live &= !done;
-                let go = live;
-
-                let r = _mm512_sub_epi64(_mm512_and_si512(_mm512_srli_epi64::<2>(k), brick), lo);
-                let x = _mm512_and_si512(r, field);
-                let y = _mm512_and_si512(_mm512_srli_epi64::<21>(r), field);
-                let z = _mm512_srli_epi64::<42>(r);
-                let inside = _mm512_mask_cmplt_epu64_mask(
-                    _mm512_mask_cmplt_epu64_mask(_mm512_cmplt_epu64_mask(x, dx), y, dy),
-                    z,
-                    dz,
-                );
-                let cell = _mm512_add_epi64(
-                    x,
-                    _mm512_mul_epu32(dx, _mm512_add_epi64(y, _mm512_mul_epu32(dy, z))),
-                );
-                let lin = _mm512_or_si512(
-                    _mm512_or_si512(
-                        _mm512_and_si512(k, _mm512_set1_epi64(3)),
-                        _mm512_and_si512(_mm512_srli_epi64::<19>(k), _mm512_set1_epi64(0xc)),
-                    ),
-                    _mm512_and_si512(_mm512_srli_epi64::<38>(k), _mm512_set1_epi64(0x30)),
-                );
-                let bit = _mm512_sllv_epi64(one, lin);
-                let fast = go & inside;
-                let same = _mm512_cmpeq_epi64_mask(cell, cur_cell);
-                let flush = fast & !same & _mm512_test_epi64_mask(cur_bits, cur_bits);
-                pending.push(cur_cell, cur_bits, flush);
-                let gathered = _mm512_mask_or_epi64(bit, same, cur_bits, bit);
-                cur_bits = _mm512_mask_mov_epi64(cur_bits, fast, gathered);
-                cur_cell = _mm512_mask_mov_epi64(cur_cell, fast, cell);
-                let slow = go & !inside;
-                if slow != 0 {
-                    let kk = lanes(k);
-                    for (l, &key) in kk.iter().enumerate() {
-                        if slow & (1 << l) != 0 {
-                            marks.mark_key(key);
-                        }
-                    }
-                }
-                if pending.n > PENDING - 16 {
-                    pending.drain(marks);
-                }
-                if go == 0 {
-                    break;
-                }
+                steps: 0,
+            };
+            // Steps run in chunks with no call inside (`step_chunk`), and the buffers are
+            // emptied between chunks: so the stepping state stays in registers, where a call
+            // in the loop would spill all of it at every step.
+            while step_chunk(&mut rays, &window, &mut pending, &mut outside) {
+                pending.make_room(marks);
+                outside.make_room(marks);
             }
+            pending.make_room(marks);
+            outside.make_room(marks);
             pending.push(
-                cur_cell,
-                cur_bits,
-                _mm512_test_epi64_mask(cur_bits, cur_bits),
+                rays.cur_cell,
+                rays.cur_bits,
+                _mm512_test_epi64_mask(rays.cur_bits, rays.cur_bits),
             );
-            if pending.n > PENDING - 16 {
-                pending.drain(marks);
-            }
+            pending.make_room(marks);
         }
         pending.drain(marks);
+        outside.drain(marks);
         degenerate
+    }
+
+    /// Eight rays being stepped, one per lane.
+    struct Rays {
+        t: [__m512d; 3],
+        dt: [__m512d; 3],
+        inc: [__m512i; 3],
+        /// The current packed key.
+        k: __m512i,
+        end: __m512i,
+        length: __m512d,
+        /// The brick cell whose marks are being gathered (−1 before the first), and the marks.
+        cur_cell: __m512i,
+        cur_bits: __m512i,
+        /// Lanes whose ray has not ended.
+        live: __mmask8,
+        #[cfg(debug_assertions)]
+        steps: u32,
+    }
+
+    /// The window of bricks as vectors, and the constants of the cell arithmetic.
+    struct Window {
+        lo: __m512i,
+        dim: [__m512i; 3],
+        brick: __m512i,
+        field: __m512i,
+    }
+
+    /// Up to [`CHUNK_STEPS`] steps of `rays`, their marks gathered into `pending` (inside the
+    /// window) and `outside`, each of which must have room for them (`make_room`). Returns
+    /// whether a ray is still live. Not inlined, and calls nothing: the state lives in
+    /// registers for the chunk.
+    #[inline(never)]
+    #[target_feature(enable = "avx512f,popcnt")]
+    fn step_chunk(
+        rays: &mut Rays,
+        window: &Window,
+        pending: &mut Pending,
+        outside: &mut Outside,
+    ) -> bool {
+        let Rays {
+            t: [mut t0, mut t1, mut t2],
+            dt,
+            inc,
+            mut k,
+            end,
+            length,
+            mut cur_cell,
+            mut cur_bits,
+            mut live,
+            ..
+        } = *rays;
+        let Window {
+            lo,
+            dim: [dx, dy, dz],
+            brick,
+            field,
+        } = *window;
+        let one = _mm512_set1_epi64(1);
+        for _ in 0..CHUNK_STEPS {
+            #[cfg(debug_assertions)]
+            {
+                rays.steps += 1;
+                debug_assert!(
+                    rays.steps <= super::MAX_RAY_STEPS,
+                    "a ray that does not end"
+                );
+            }
+            // The axis of the smallest t (ties: z, then y).
+            let c01 = _mm512_cmp_pd_mask::<_CMP_LT_OQ>(t0, t1);
+            let cx = _mm512_mask_cmp_pd_mask::<_CMP_LT_OQ>(c01, t0, t2);
+            let cy = _mm512_mask_cmp_pd_mask::<_CMP_LT_OQ>(!c01, t1, t2);
+            let cz = !(cx | cy);
+            t0 = _mm512_mask_add_pd(t0, cx, t0, dt[0]);
+            t1 = _mm512_mask_add_pd(t1, cy, t1, dt[1]);
+            t2 = _mm512_mask_add_pd(t2, cz, t2, dt[2]);
+            let step =
+                _mm512_mask_blend_epi64(cx, _mm512_mask_blend_epi64(cy, inc[2], inc[1]), inc[0]);
+            k = _mm512_add_epi64(k, step);
+            let m = _mm512_min_pd(t2, _mm512_min_pd(t1, t0));
+            let done =
+                _mm512_cmpeq_epi64_mask(k, end) | _mm512_cmp_pd_mask::<_CMP_GT_OQ>(m, length);
+            live &= !done;
+            let go = live;
+
+            let r = _mm512_sub_epi64(_mm512_and_si512(_mm512_srli_epi64::<2>(k), brick), lo);
+            let x = _mm512_and_si512(r, field);
+            let y = _mm512_and_si512(_mm512_srli_epi64::<21>(r), field);
+            let z = _mm512_srli_epi64::<42>(r);
+            let inside = _mm512_mask_cmplt_epu64_mask(
+                _mm512_mask_cmplt_epu64_mask(_mm512_cmplt_epu64_mask(x, dx), y, dy),
+                z,
+                dz,
+            );
+            let cell = _mm512_add_epi64(
+                x,
+                _mm512_mul_epu32(dx, _mm512_add_epi64(y, _mm512_mul_epu32(dy, z))),
+            );
+            let lin = _mm512_or_si512(
+                _mm512_or_si512(
+                    _mm512_and_si512(k, _mm512_set1_epi64(3)),
+                    _mm512_and_si512(_mm512_srli_epi64::<19>(k), _mm512_set1_epi64(0xc)),
+                ),
+                _mm512_and_si512(_mm512_srli_epi64::<38>(k), _mm512_set1_epi64(0x30)),
+            );
+            let bit = _mm512_sllv_epi64(one, lin);
+            let fast = go & inside;
+            let same = _mm512_cmpeq_epi64_mask(cell, cur_cell);
+            let flush = fast & !same & _mm512_test_epi64_mask(cur_bits, cur_bits);
+            pending.push(cur_cell, cur_bits, flush);
+            let gathered = _mm512_mask_or_epi64(bit, same, cur_bits, bit);
+            cur_bits = _mm512_mask_mov_epi64(cur_bits, fast, gathered);
+            cur_cell = _mm512_mask_mov_epi64(cur_cell, fast, cell);
+            let slow = go & !inside;
+            if slow != 0 {
+                outside.push(k, slow);
+            }
+            if go == 0 {
+                break;
+            }
+        }
+        rays.t = [t0, t1, t2];
+        rays.k = k;
+        rays.cur_cell = cur_cell;
+        rays.cur_bits = cur_bits;
+        rays.live = live;
+        live != 0
     }
 }
 

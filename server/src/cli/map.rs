@@ -19,7 +19,9 @@ use crate::pipeline::offline::{MAP_ONLY, run_session as run_session_pipeline};
 use scan3d_map::cloud::RayBundle;
 use scan3d_map::cloud::filter::{Filter, apply_all};
 use scan3d_map::cloud::io::{self, LoadedBundles};
-use scan3d_map::octree::{InsertStats, Octree, Resolution, SensorModel, VoxelMap, read_graph_from};
+use scan3d_map::octree::{
+    InsertStats, Octree, Resolution, SensorModel, VoxelMap, read_graph_from, visit_graph,
+};
 
 /// A point `x,y,z` on the command line (clap value parser).
 pub fn parse_xyz_arg(text: &str) -> Result<[f64; 3], String> {
@@ -119,11 +121,7 @@ impl MapArgs {
 /// transform, `.scans`/`.ply`/`.pcd` through [`scan3d_map::cloud::io`], with the count of points
 /// the reader dropped for non-finite values.
 pub fn load_cloud(path: &Path, origin: Option<[f64; 3]>) -> anyhow::Result<LoadedBundles> {
-    let is_graph = path
-        .extension()
-        .and_then(|e| e.to_str())
-        .is_some_and(|e| e.eq_ignore_ascii_case("graph"));
-    if is_graph {
+    if is_graph(path) {
         // Streamed: a large `.graph` is never in memory whole, only the bundles it holds.
         let file =
             std::fs::File::open(path).with_context(|| format!("cannot read {}", path.display()))?;
@@ -136,6 +134,51 @@ pub fn load_cloud(path: &Path, origin: Option<[f64; 3]>) -> anyhow::Result<Loade
     } else {
         Ok(io::load_counted(path, origin)?)
     }
+}
+
+/// Whether `path` names an OctoMap ScanGraph (`.graph`).
+fn is_graph(path: &Path) -> bool {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case("graph"))
+}
+
+/// `scan3d map GRAPH` without filters: each node inserted as it is read, so only the map and
+/// one node are ever in memory (no cloud to hold, page in and free). Returns the map, its
+/// totals, and the nodes and points read.
+fn map_graph_streaming(args: &MapArgs) -> anyhow::Result<(VoxelMap, InsertStats, usize, usize)> {
+    let path = &args.input;
+    let file =
+        std::fs::File::open(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let len = file.metadata().map_or(0, |m| m.len());
+    let bar = (!args.quiet && len > 16 << 20).then(|| {
+        let bar = ProgressBar::new(len);
+        bar.set_style(
+            ProgressStyle::with_template(
+                "{msg} [{bar:40}] {binary_bytes}/{binary_total_bytes} {eta}",
+            )
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        bar.set_message("inserting");
+        bar
+    });
+    let source = std::io::BufReader::with_capacity(1 << 16, file);
+    let mut map = VoxelMap::new(Resolution::new(args.res)?, args.model());
+    let mut points = 0;
+    let mut insert = |bundle: &RayBundle| {
+        points += bundle.points.len();
+        map.insert_bundle(bundle, args.max_range);
+    };
+    let nodes = match &bar {
+        Some(bar) => visit_graph(bar.wrap_read(source), &mut insert),
+        None => visit_graph(source, &mut insert),
+    }
+    .with_context(|| format!("{}", path.display()))?;
+    if let Some(bar) = bar {
+        bar.finish_and_clear();
+    }
+    let stats = map.totals();
+    Ok((map, stats, nodes, points))
 }
 
 /// Prints the reader's count of dropped non-finite points, if any.
@@ -231,6 +274,17 @@ pub fn run(args: &MapArgs, out: &mut dyn Write) -> anyhow::Result<()> {
     Resolution::new(args.res)?;
     if args.input.is_dir() {
         return run_session(args, out);
+    }
+    if is_graph(&args.input) && args.filters.is_empty() {
+        let (map, stats, nodes, points) = map_graph_streaming(args)?;
+        writeln!(
+            out,
+            "{}: {nodes} scans, {points} points",
+            args.input.display()
+        )?;
+        let written = write_map(args, &map, &stats, out);
+        std::thread::spawn(move || drop(map));
+        return written;
     }
     let cloud = load_cloud(&args.input, args.origin)?;
     let loaded: usize = cloud.bundles.iter().map(|s| s.points.len()).sum();
