@@ -282,9 +282,109 @@ impl Octree {
         out
     }
 
-    /// The `.bt` file OctoMap's `writeBinary` makes: max-likelihood, prune, then write.
+    /// The `.bt` file OctoMap's `writeBinary` makes: max-likelihood, prune, then write; the
+    /// bytes of `self.to_max_likelihood_pruned().to_bt_bytes_const()` without building that
+    /// tree. One pass finds what the level-by-level prune collapses (under a full bottom-up
+    /// prune, with the number of collapses per depth: the prune stops at the deepest depth
+    /// with none), a second writes the codes of the pruned tree.
     pub fn to_bt_bytes(&self) -> Vec<u8> {
-        self.to_max_likelihood_pruned().to_bt_bytes_const()
+        if self.num_nodes() == 0 {
+            return self.to_max_likelihood_pruned().to_bt_bytes_const();
+        }
+        let mut ml = vec![f32::NAN; self.num_nodes()];
+        let mut collapses = [0usize; TREE_DEPTH as usize];
+        self.ml_collapse(0, 0, &mut ml, &mut collapses);
+        // `to_max_likelihood_pruned` prunes depth 15, 14, … and stops at the first depth that
+        // prunes nothing: nodes deeper than it collapse, it and the ones above do not.
+        let stop = (1..TREE_DEPTH)
+            .rev()
+            .find(|&d| collapses[usize::from(d)] == 0)
+            .unwrap_or(0);
+        let mut body = Vec::with_capacity(self.num_nodes() / 3 + 2);
+        let nodes = self.write_bt_codes(0, 0, stop, &ml, &mut body);
+        let mut out = header(BT_MAGIC, nodes, self.res.meters());
+        out.extend_from_slice(&body);
+        out
+    }
+
+    /// The max-likelihood value node `i` (at `depth`) has after a full bottom-up prune into
+    /// `ml[i]`: its own for a leaf, its children's when all 8 are leaves of one value (a
+    /// collapse, counted at `depth`), NaN while it stays inner. Returns `ml[i]`.
+    fn ml_collapse(&self, i: usize, depth: u8, ml: &mut [f32], collapses: &mut [usize]) -> f32 {
+        let m = self.masks.get(i).copied().unwrap_or(0);
+        let value = if m == 0 {
+            self.model
+                .max_likelihood(self.values.get(i).copied().unwrap_or(f32::NAN))
+        } else {
+            let mut c = i + 1;
+            let mut first = None;
+            let mut equal = m == 0xff;
+            for _ in 0..m.count_ones() {
+                let v = self.ml_collapse(c, depth + 1, ml, collapses);
+                equal &= first.is_none_or(|f| f == v);
+                first.get_or_insert(v);
+                c = self.subtree_end(c);
+            }
+            match first {
+                Some(v) if equal && !v.is_nan() && depth > 0 => {
+                    if let Some(n) = collapses.get_mut(usize::from(depth)) {
+                        *n += 1;
+                    }
+                    v
+                }
+                _ => f32::NAN,
+            }
+        };
+        if let Some(slot) = ml.get_mut(i) {
+            *slot = value;
+        }
+        value
+    }
+
+    /// Whether node `i` at `depth` is a leaf of the tree pruned below `stop` (see
+    /// [`Octree::to_bt_bytes`]), with its max-likelihood value.
+    fn pruned_leaf(&self, i: usize, depth: u8, stop: u8, ml: &[f32]) -> Option<f32> {
+        let v = ml.get(i).copied().unwrap_or(f32::NAN);
+        let leaf = self.masks.get(i).is_none_or(|&m| m == 0) || (depth > stop && !v.is_nan());
+        leaf.then_some(v)
+    }
+
+    /// Appends the `.bt` records of node `i`'s pruned subtree (the root's even if it is a
+    /// leaf) and returns how many nodes that subtree has.
+    fn write_bt_codes(
+        &self,
+        i: usize,
+        depth: u8,
+        stop: u8,
+        ml: &[f32],
+        out: &mut Vec<u8>,
+    ) -> usize {
+        if self.pruned_leaf(i, depth, stop, ml).is_some() {
+            if i == 0 {
+                out.extend_from_slice(&[0, 0]);
+            }
+            return 1;
+        }
+        let m = self.masks.get(i).copied().unwrap_or(0);
+        let mut codes = 0u16;
+        let mut c = i + 1;
+        for pos in (0..8).filter(|pos| m & (1 << pos) != 0) {
+            let code = match self.pruned_leaf(c, depth + 1, stop, ml) {
+                Some(v) if self.model.is_occupied(v) => 2,
+                Some(_) => 1,
+                None => 3,
+            };
+            codes |= code << (2 * pos);
+            c = self.subtree_end(c);
+        }
+        out.extend_from_slice(&codes.to_le_bytes());
+        let mut nodes = 1;
+        let mut c = i + 1;
+        for _ in 0..m.count_ones() {
+            nodes += self.write_bt_codes(c, depth + 1, stop, ml, out);
+            c = self.subtree_end(c);
+        }
+        nodes
     }
 
     /// The `.bt` encoding of this tree as it is (`writeBinaryConst`): the root's record, then
@@ -328,6 +428,66 @@ impl Octree {
 mod tests {
     use super::*;
     use crate::octree::{Key, VoxelMap};
+
+    /// The one-pass `.bt` writer against the tree `to_max_likelihood_pruned` builds.
+    fn bt_both_ways(m: &VoxelMap) -> (Vec<u8>, Vec<u8>) {
+        let t = m.to_octree();
+        (
+            t.to_bt_bytes(),
+            t.to_max_likelihood_pruned().to_bt_bytes_const(),
+        )
+    }
+
+    #[test]
+    fn bt_writer_prunes_exactly_like_the_max_likelihood_tree() {
+        let model = SensorModel::default();
+        let res = Resolution::new(0.1).unwrap();
+        // Empty, one voxel, and one bundle of rays (free space with occupied ends).
+        let mut m = VoxelMap::new(res, model);
+        let (a, b) = bt_both_ways(&m);
+        assert_eq!(a, b);
+        m.update(Key([32768; 3]), true);
+        let (a, b) = bt_both_ways(&m);
+        assert_eq!(a, b);
+        let pts: Vec<[f32; 3]> = (0..2000)
+            .map(|i| {
+                let a = i as f32 * 0.0031;
+                [6.0 * a.cos(), 6.0 * a.sin(), (i % 17) as f32 * 0.1 - 0.8]
+            })
+            .collect();
+        m.insert_point_cloud(&pts, [0.05, 0.05, 0.05], -1.0);
+        let (a, b) = bt_both_ways(&m);
+        assert_eq!(a, b);
+
+        // The stop rule: eight sibling bricks (depth-14 leaves), each uniform but each of another
+        // occupied log-odds. Max-likelihood makes them equal, but depth 15 has nothing to prune,
+        // so OctoMap's level-by-level prune stops there and they stay eight leaves.
+        let mut m = VoxelMap::new(res, model);
+        for b in 0..8u16 {
+            let base = [b & 1, (b >> 1) & 1, b >> 2].map(|o| 32768 + 4 * o);
+            for v in 0..64u16 {
+                let k = [v & 3, (v >> 2) & 3, v >> 4];
+                m.set_log_odds(
+                    Key([0, 1, 2].map(|i| base[i] + k[i])),
+                    0.5 + f32::from(b) * 0.1,
+                );
+            }
+        }
+        let (a, b) = bt_both_ways(&m);
+        assert_eq!(a, b);
+        let unpruned = m.to_octree().to_max_likelihood_pruned();
+        assert_eq!(unpruned.num_leaves(), 8);
+        // Eight voxels elsewhere of two occupied log-odds: depth 15 prunes them into one leaf,
+        // depth 14 then has nothing to prune, so the bricks still stay apart.
+        for v in 0..8u16 {
+            let k = Key([40000 + (v & 1), 40000 + ((v >> 1) & 1), 40000 + (v >> 2)]);
+            m.set_log_odds(k, if v == 0 { 0.7 } else { 0.9 });
+        }
+        let (a, b) = bt_both_ways(&m);
+        assert_eq!(a, b);
+        let pruned = m.to_octree().to_max_likelihood_pruned();
+        assert_eq!(pruned.num_leaves(), 8 + 1);
+    }
 
     #[test]
     fn resolution_prints_like_cpp_ostream() {

@@ -165,15 +165,37 @@ fn map_graph_streaming(args: &MapArgs) -> anyhow::Result<(VoxelMap, InsertStats,
     let source = std::io::BufReader::with_capacity(1 << 16, file);
     let mut map = VoxelMap::new(Resolution::new(args.res)?, args.model());
     let mut points = 0;
-    let mut insert = |bundle: &RayBundle| {
+    // The file is read and parsed on a thread of its own while the previous node is
+    // inserted; two buffers go back and forth, so memory stays two nodes.
+    let (full_tx, full_rx) = std::sync::mpsc::sync_channel::<RayBundle>(1);
+    let (empty_tx, empty_rx) = std::sync::mpsc::channel::<RayBundle>();
+    let reader_bar = bar.clone();
+    let reader = std::thread::spawn(move || {
+        let mut send = |bundle: &RayBundle| {
+            let mut copy = empty_rx.try_recv().unwrap_or_else(|_| RayBundle {
+                origin: [0.0; 3],
+                points: Vec::new(),
+            });
+            copy.origin = bundle.origin;
+            copy.points.clear();
+            copy.points.extend_from_slice(&bundle.points);
+            // A closed channel means the inserting side has stopped: nothing left to do.
+            let _ = full_tx.send(copy);
+        };
+        match reader_bar {
+            Some(bar) => visit_graph(bar.wrap_read(source), &mut send),
+            None => visit_graph(source, &mut send),
+        }
+    });
+    for bundle in full_rx {
         points += bundle.points.len();
-        map.insert_bundle(bundle, args.max_range);
-    };
-    let nodes = match &bar {
-        Some(bar) => visit_graph(bar.wrap_read(source), &mut insert),
-        None => visit_graph(source, &mut insert),
+        map.insert_bundle(&bundle, args.max_range);
+        let _ = empty_tx.send(bundle);
     }
-    .with_context(|| format!("{}", path.display()))?;
+    let nodes = reader
+        .join()
+        .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+        .with_context(|| format!("{}", path.display()))?;
     if let Some(bar) = bar {
         bar.finish_and_clear();
     }
