@@ -9,7 +9,7 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use common::{arg, run_cli};
-use pipeline_support::{SessionBuilder, position};
+use pipeline_support::{SessionBuilder, chunk_bodies, position};
 use scan3d_map::cloud::io;
 use scan3d_map::cloud::scans::RevolutionCollector;
 use scan3d_map::octree::{Octree, SensorModel};
@@ -563,20 +563,4 @@ fn mapping_a_damaged_session_fails_unless_lenient_and_then_maps_the_readable_res
             .num_occupied()
             > 0
     );
-}
-
-/// `(offset, length)` of every MCAP chunk record's body in `file` (records: opcode, u64 LE
-/// length, body; after the 8-byte magic).
-fn chunk_bodies(file: &[u8]) -> Vec<(usize, usize)> {
-    let mut chunks = Vec::new();
-    let mut at = 8;
-    while at + 9 <= file.len() {
-        let op = file[at];
-        let len = u64::from_le_bytes(file[at + 1..at + 9].try_into().unwrap()) as usize;
-        if op == 0x06 {
-            chunks.push((at + 9, len));
-        }
-        at += 9 + len;
-    }
-    chunks
 }

@@ -216,3 +216,51 @@ fn slam_of_a_recorded_session_follows_the_rplidar_through_a_room() {
         .fold((0.0f64, 0.0f64), |a, e| (a.0.max(e.0), a.1.max(e.1)));
     assert!(settled.0 < 0.005 && settled.1 < 0.1, "settled {settled:?}");
 }
+
+#[test]
+fn slam_of_a_damaged_session_fails_unless_lenient_and_counts_undecodable_frames() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut session = pipeline_support::SessionBuilder::new(0x5d);
+    // Enough revolutions for several MCAP chunks.
+    session.rplidar_moving(60, 2000, [1.0, 1.4, 0.1], [0.0; 3]);
+    session.undecodable();
+    session.rplidar_moving(60, 2000, [1.0, 1.4, 0.1], [0.0; 3]);
+    let session_dir = session.record(dir.path(), "trolley");
+    let traj = dir.path().join("t.txt");
+    let said = run_cli(&["slam", arg(&session_dir), "--out", arg(&traj), "--quiet"])
+        .expect("an undecodable frame is counted, not fatal");
+    assert!(
+        said.contains("skipped 1 frames the server recorded but could not decode"),
+        "{said}"
+    );
+    // One flipped bit in a chunk breaks its CRC: the revolutions in it are lost.
+    let file = session_dir.join("0000.mcap");
+    let mut bytes = std::fs::read(&file).unwrap();
+    let chunks = pipeline_support::chunk_bodies(&bytes);
+    assert!(chunks.len() >= 2, "{} chunks", chunks.len());
+    let (start, len) = chunks[0];
+    bytes[start + len / 2] ^= 0x10;
+    std::fs::write(&file, &bytes).unwrap();
+    std::fs::remove_file(&traj).unwrap();
+    let err = run_cli(&["slam", arg(&session_dir), "--out", arg(&traj), "--quiet"]).unwrap_err();
+    let line = format!("{err:#}");
+    assert!(
+        line.contains("recording damaged") && line.contains("--lenient"),
+        "{line}"
+    );
+    assert!(
+        !traj.exists(),
+        "no trajectory from a damaged recording without --lenient"
+    );
+    let said = run_cli(&[
+        "slam",
+        arg(&session_dir),
+        "--out",
+        arg(&traj),
+        "--quiet",
+        "--lenient",
+    ])
+    .expect("--lenient matches the rest");
+    let lines = std::fs::read_to_string(&traj).unwrap().lines().count();
+    assert!(lines > 0 && lines < 120, "{lines} poses; {said}");
+}

@@ -52,7 +52,8 @@ pub struct SlamArgs {
     /// the trajectory drawn on it.
     #[arg(long, value_name = "OUT")]
     pub map: Option<PathBuf>,
-    /// Skip malformed log lines (and count them) instead of stopping at the first one.
+    /// Skip malformed log lines (and count them) instead of stopping at the first one; for a
+    /// session, match the readable rest of a damaged recording (with a warning).
     #[arg(long)]
     pub lenient: bool,
     /// No progress bar.
@@ -184,16 +185,28 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
             );
             bar
         });
-        let (run, _recording) = map_session(&args.input, &config, &limits, |done| {
+        let (run, recording) = map_session(&args.input, &config, &limits, args.lenient, |done| {
             if let Some(bar) = &bar
                 && done % 64 == 0
             {
                 bar.set_position(done as u64);
             }
         })
-        .with_context(|| format!("session {}", args.input.display()))?;
+        .with_context(|| {
+            format!(
+                "cannot match the session {} (--lenient matches what is readable)",
+                args.input.display()
+            )
+        })?;
         if let Some(bar) = bar {
             bar.finish_and_clear();
+        }
+        if recording.undecodable_frames > 0 {
+            writeln!(
+                out,
+                "skipped {} frames the server recorded but could not decode",
+                recording.undecodable_frames
+            )?;
         }
         (run, "session revolutions")
     } else {

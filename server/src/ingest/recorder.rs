@@ -1226,11 +1226,22 @@ pub fn read_session_checked(
     lenient: bool,
 ) -> Result<Vec<RecordedFrame>, RecorderError> {
     let (frames, report) = read_session_report(session_dir)?;
+    check_losses(&report, session_dir, lenient)?;
+    Ok(frames)
+}
+
+/// What the offline commands do with a damaged recording: without `lenient`, fail with
+/// [`RecorderError::Damaged`] naming what was lost; with it, warn and go on with the rest.
+pub fn check_losses(
+    report: &SessionReport,
+    session_dir: &Path,
+    lenient: bool,
+) -> Result<(), RecorderError> {
     match report.loss_line() {
-        None => Ok(frames),
+        None => Ok(()),
         Some(line) if lenient => {
             tracing::warn!(dir = %session_dir.display(), "recording damaged, going on with the rest: {line}");
-            Ok(frames)
+            Ok(())
         }
         Some(line) => Err(RecorderError::Damaged {
             dir: session_dir.to_path_buf(),

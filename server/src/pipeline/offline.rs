@@ -12,7 +12,7 @@ use scan3d_map::cloud::assembly::AssembledScan;
 
 use super::{PipelineError, PipelineSettings, Products, SessionPipeline};
 use crate::ingest::recorder::{
-    RecordedFrame, RecorderError, SessionItem, SessionReport, visit_session_items,
+    RecordedFrame, RecorderError, SessionItem, SessionReport, check_losses, visit_session_items,
 };
 
 /// Why a recorded session could not be run through the pipeline.
@@ -55,18 +55,7 @@ pub fn feed_session(
         Ok(())
     })?;
     pipeline.flush();
-    match report.loss_line() {
-        None => {}
-        Some(line) if lenient => {
-            tracing::warn!(dir = %session_dir.display(), "recording damaged, going on with the rest: {line}");
-        }
-        Some(line) => {
-            return Err(RecorderError::Damaged {
-                dir: session_dir.to_path_buf(),
-                losses: line,
-            });
-        }
-    }
+    check_losses(&report, session_dir, lenient)?;
     Ok(report)
 }
 

@@ -17,7 +17,7 @@ use scan3d_slam::pose::Pose2;
 use scan3d_slam::relations::{Trajectory, TrajectoryPose};
 use scan3d_slam::text::Timestamp;
 
-use crate::ingest::recorder::{RecorderError, SessionReport, visit_session};
+use crate::ingest::recorder::{RecorderError, SessionReport, check_losses, visit_session};
 
 /// The mapper's scan for one lidar revolution: endpoints within `limits` in the sensor frame
 /// (x forward at angle 0, counter-clockwise), each with its time relative to the revolution's
@@ -54,12 +54,15 @@ pub fn revolution_scan(
 
 /// Matches every RPLidar revolution of a recorded session, in recording order, streaming the
 /// recording (memory: the map, not the session); the trajectory is stamped with each
-/// revolution's end (edge clock, s). Also returns what the recording held that could not be
-/// read (skipped, not fatal). `progress` gets the revolutions done.
+/// revolution's end (edge clock, s). A damaged recording fails with
+/// [`RecorderError::Damaged`] unless `lenient` (then the readable rest is mapped, with a
+/// warning); frames the server could not decode are counted in the returned report, not
+/// fatal. `progress` gets the revolutions done.
 pub fn map_session(
     session_dir: &Path,
     config: &MapperConfig,
     limits: &RangeLimits,
+    lenient: bool,
     mut progress: impl FnMut(usize),
 ) -> Result<(MapperRun, SessionReport), RecorderError> {
     let mut mapper = Mapper::new(*config);
@@ -80,6 +83,7 @@ pub fn map_session(
         }
         Ok(())
     })?;
+    check_losses(&recording, session_dir, lenient)?;
     let run = MapperRun {
         trajectory: Trajectory { poses },
         results,

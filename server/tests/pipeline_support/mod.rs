@@ -296,3 +296,19 @@ pub fn position(name: &str, x_m: f64, y_m: f64, heading_deg: f64) -> Position {
         heading_deg,
     }
 }
+
+/// `(offset, length)` of every MCAP chunk record's body in `file` (records: opcode, u64 LE
+/// length, body; after the 8-byte magic).
+pub fn chunk_bodies(file: &[u8]) -> Vec<(usize, usize)> {
+    let mut chunks = Vec::new();
+    let mut at = 8;
+    while at + 9 <= file.len() {
+        let op = file[at];
+        let len = u64::from_le_bytes(file[at + 1..at + 9].try_into().unwrap()) as usize;
+        if op == 0x06 {
+            chunks.push((at + 9, len));
+        }
+        at += 9 + len;
+    }
+    chunks
+}
