@@ -247,13 +247,19 @@ pub fn octomap_data_offset(bytes: &[u8]) -> Option<usize> {
 }
 
 /// Checks what every tree read from a file must allow: leaf iteration agrees with the counts,
-/// bounds and the max-likelihood `.bt` (OctoMap's `writeBinary`) are computable, and that
-/// `.bt` reads back to the same bytes.
+/// bounds and the max-likelihood `.bt` (OctoMap's `writeBinary`) are computable, equal to the
+/// `.bt` of the explicitly pruned max-likelihood tree, and that `.bt` reads back to the same
+/// bytes.
 pub fn check_tree(tree: &scan3d_map::octree::Octree) {
     use scan3d_map::octree::Octree;
     assert_eq!(tree.leaves().count() as u64, tree.num_leaves());
     let _ = tree.metric_bounds();
     let bt = tree.to_bt_bytes();
+    assert_eq!(
+        bt,
+        tree.to_max_likelihood_pruned().to_bt_bytes_const(),
+        "the two-pass .bt writer differs from the pruned tree's .bt"
+    );
     let again = Octree::read_bt(&bt, *tree.model()).expect("our own .bt must read back");
     assert_eq!(
         again.to_bt_bytes_const(),
