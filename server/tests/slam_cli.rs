@@ -112,6 +112,35 @@ fn slam_writes_one_pose_per_scan_with_the_logs_timestamps_and_a_map_server_map()
     assert!(mean < 0.03, "{mean}");
     let table = run_cli(&["slam-eval", arg(&traj), arg(&relations)]).expect("slam-eval");
     assert!(table.contains("Absolute translational (m)"), "{table}");
+
+    // `--worst 3`: the three largest translational errors, largest first, with the relations'
+    // timestamps as the file wrote them.
+    let json = run_cli(&[
+        "slam-eval",
+        arg(&traj),
+        arg(&relations),
+        "--json",
+        "--worst",
+        "3",
+    ])
+    .expect("slam-eval --worst");
+    let report: serde_json::Value = serde_json::from_str(&json).unwrap();
+    let worst = report["worst"].as_array().expect("a worst list");
+    assert_eq!(worst.len(), 3);
+    let errors: Vec<f64> = worst
+        .iter()
+        .map(|w| w["trans_m"].as_f64().unwrap())
+        .collect();
+    assert!(errors.windows(2).all(|w| w[0] >= w[1]), "{errors:?}");
+    let max = report["max_trans_m"].as_f64().unwrap();
+    assert!((errors[0] - max).abs() < 1e-12, "{errors:?} vs {max}");
+    let t1 = worst[0]["t1"]["text"].as_str().unwrap();
+    let file = std::fs::read_to_string(&relations).unwrap();
+    assert!(file.lines().any(|l| l.starts_with(t1)), "{t1}");
+    let table = run_cli(&["slam-eval", arg(&traj), arg(&relations), "--worst", "2"])
+        .expect("slam-eval --worst");
+    assert!(table.contains("worst relations"), "{table}");
+    assert!(table.contains(t1), "{table}");
 }
 
 #[test]

@@ -299,7 +299,7 @@ pub struct EvalReport {
     pub short: ErrorStats,
     /// Over the used relations with |t2 − t1| > [`LONG_RELATION_S`].
     pub long: ErrorStats,
-    /// Each used relation's error, in file order (for an `--errors` listing; not in the JSON).
+    /// Each used relation's error, in file order (for `slam-eval --worst`; not in the JSON).
     #[serde(skip)]
     pub per_relation: Vec<RelationError>,
 }

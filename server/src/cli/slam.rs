@@ -14,7 +14,8 @@ use scan3d_slam::mapper::{Mapper, MapperConfig};
 use scan3d_slam::offline::{RangeLimits, map_log, raster};
 use scan3d_slam::pose::Pose2;
 use scan3d_slam::relations::{
-    EvalOptions, Formula, Trajectory, evaluate, read_relations, read_trajectory, write_trajectory,
+    EvalOptions, Formula, RelationError, Trajectory, evaluate, read_relations, read_trajectory,
+    write_trajectory,
 };
 
 use crate::pose::scan_matching::map_session;
@@ -339,6 +340,10 @@ pub struct SlamEvalArgs {
     /// Interpolate the pose at each relation end instead of taking the nearest one.
     #[arg(long)]
     pub interpolate: bool,
+    /// Also list the N relations with the largest translational error (their two timestamps,
+    /// span and errors), to see where a trajectory goes wrong. In the JSON as `worst`.
+    #[arg(long, value_name = "N")]
+    pub worst: Option<usize>,
 }
 
 /// Runs `scan3d slam-eval`.
@@ -370,10 +375,38 @@ pub fn run_eval(args: &SlamEvalArgs, out: &mut dyn Write) -> anyhow::Result<()> 
             interpolate: args.interpolate,
         },
     );
+    let mut worst: Vec<&RelationError> = report.per_relation.iter().collect();
+    worst.sort_by(|a, b| b.trans_m.total_cmp(&a.trans_m));
+    worst.truncate(args.worst.unwrap_or(0));
     if args.json {
-        writeln!(out, "{}", serde_json::to_string(&report)?)?;
+        let mut value = serde_json::to_value(&report)?;
+        if args.worst.is_some()
+            && let Some(object) = value.as_object_mut()
+        {
+            object.insert("worst".into(), serde_json::to_value(&worst)?);
+        }
+        writeln!(out, "{value}")?;
     } else {
         write!(out, "{report}")?;
+        if args.worst.is_some() {
+            writeln!(out, "worst relations (translational error):")?;
+            writeln!(
+                out,
+                "  {:>18} {:>18} {:>9} {:>9} {:>9}",
+                "t1", "t2", "span s", "trans m", "rot deg"
+            )?;
+            for e in &worst {
+                writeln!(
+                    out,
+                    "  {:>18} {:>18} {:>9.1} {:>9.4} {:>9.3}",
+                    e.t1.text,
+                    e.t2.text,
+                    (e.t2.seconds - e.t1.seconds).abs(),
+                    e.trans_m,
+                    e.rot_deg
+                )?;
+            }
+        }
     }
     Ok(())
 }
