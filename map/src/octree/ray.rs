@@ -722,109 +722,92 @@ mod avx512 {
 
     /// Brick part of a packed key (see `voxels`): each 21-bit field shifted down by 2.
     const PACKED_BRICK: i64 = ((FIELD >> 2) | ((FIELD >> 2) << 21) | ((FIELD >> 2) << 42)) as i64;
-    /// Capacity of the buffer of gathered (cell, marks) pairs, and of the buffer of keys
-    /// outside the window.
+    /// Capacity of the buffers (entries).
     const PENDING: usize = 512;
     /// Steps of eight lanes between two emptyings of the buffers: each step adds at most
-    /// eight entries to each, and a batch's end eight more to [`Pending`].
+    /// eight entries to each, and a batch's end eight more to the gathered marks.
     const CHUNK_STEPS: usize = 31;
     /// Entries a buffer may hold at the start of a chunk so that the chunk and the batch's
     /// final push fit.
     const ROOM: usize = PENDING - 8 * (CHUNK_STEPS + 1);
 
-    /// Gathered marks waiting to be written.
-    struct Pending {
-        cell: [u64; PENDING],
-        bits: [u64; PENDING],
+    /// `K` parallel arrays of u64 entries: a push appends the lanes set in a mask,
+    /// compressed to the front with one vector store per array; emptied in batches.
+    struct Compressed<const K: usize> {
+        entries: [[u64; PENDING]; K],
         n: usize,
     }
 
-    impl Pending {
-        /// Appends the lanes of `cell`/`bits` set in `lanes`, compressed to the front and
-        /// stored with one vector store each. Needs `n <= PENDING - 8`.
+    impl<const K: usize> Compressed<K> {
+        fn new() -> Self {
+            Self {
+                entries: [[0; PENDING]; K],
+                n: 0,
+            }
+        }
+
+        /// Appends the lanes of `values` (one vector per array) set in `lanes`. Needs
+        /// `n <= PENDING - 8`.
         #[target_feature(enable = "avx512f,popcnt")]
-        fn push(&mut self, cell: __m512i, bits: __m512i, lanes: __mmask8) {
+        fn push(&mut self, values: [__m512i; K], lanes: __mmask8) {
             debug_assert!(
                 self.n + 8 <= PENDING,
-                "pending buffer not drained: {} of {PENDING}",
+                "buffer not emptied: {} of {PENDING}",
                 self.n
             );
             let n = self.n;
-            if let (Some(c), Some(b)) = (self.cell.get_mut(n..n + 8), self.bits.get_mut(n..n + 8)) {
-                // SAFETY: `c` and `b` are 8 u64s each, the 64 bytes the unaligned stores write.
-                unsafe {
-                    _mm512_storeu_si512(
-                        c.as_mut_ptr().cast(),
-                        _mm512_maskz_compress_epi64(lanes, cell),
-                    );
-                    _mm512_storeu_si512(
-                        b.as_mut_ptr().cast(),
-                        _mm512_maskz_compress_epi64(lanes, bits),
-                    );
+            if n + 8 > PENDING {
+                return;
+            }
+            for (array, v) in self.entries.iter_mut().zip(values) {
+                if let Some(to) = array.get_mut(n..n + 8) {
+                    // SAFETY: `to` is 8 u64s, the 64 bytes the unaligned store writes.
+                    unsafe {
+                        _mm512_storeu_si512(
+                            to.as_mut_ptr().cast(),
+                            _mm512_maskz_compress_epi64(lanes, v),
+                        );
+                    }
                 }
-                self.n = n + lanes.count_ones() as usize;
             }
+            self.n = n + lanes.count_ones() as usize;
         }
 
-        /// Writes the marks out if fewer than a chunk's worth of entries are free.
-        fn make_room(&mut self, marks: &mut impl FreeMarks) {
-            if self.n > ROOM {
-                self.drain(marks);
-            }
+        /// Whether fewer than a chunk's worth of entries are free.
+        fn is_full(&self) -> bool {
+            self.n > ROOM
         }
 
-        fn drain(&mut self, marks: &mut impl FreeMarks) {
-            let (_, [dx, dy, dz]) = marks.window();
-            let cells = u64::from(dx) * u64::from(dy) * u64::from(dz);
-            for (&c, &b) in self.cell.iter().zip(&self.bits).take(self.n) {
-                debug_assert!(c < cells, "cell {c} outside a window of {cells} cells");
-                debug_assert!(b != 0, "a pending entry without marks");
-                marks.mark_cell(c as u32, b);
+        /// Hands every entry (one value per array) to `f`, in order, and empties the buffer.
+        fn drain(&mut self, mut f: impl FnMut([u64; K])) {
+            for i in 0..self.n {
+                f(std::array::from_fn(|a| self.entries[a][i]));
             }
             self.n = 0;
         }
     }
 
-    /// Packed keys outside the window, waiting to be marked one by one.
-    struct Outside {
-        key: [u64; PENDING],
-        n: usize,
+    /// Gathered marks: (window cell, free marks).
+    type Pending = Compressed<2>;
+    /// Packed keys outside the window, marked one by one.
+    type Outside = Compressed<1>;
+
+    /// Writes the gathered marks and the keys outside the window out.
+    fn empty(pending: &mut Pending, outside: &mut Outside, marks: &mut impl FreeMarks) {
+        let (_, [dx, dy, dz]) = marks.window();
+        let cells = u64::from(dx) * u64::from(dy) * u64::from(dz);
+        pending.drain(|[c, b]| {
+            debug_assert!(c < cells, "cell {c} outside a window of {cells} cells");
+            debug_assert!(b != 0, "a pending entry without marks");
+            marks.mark_cell(c as u32, b);
+        });
+        outside.drain(|[k]| marks.mark_key(k));
     }
 
-    impl Outside {
-        /// Appends the lanes of `key` set in `lanes`, compressed to the front.
-        #[target_feature(enable = "avx512f,popcnt")]
-        fn push(&mut self, key: __m512i, lanes: __mmask8) {
-            debug_assert!(
-                self.n + 8 <= PENDING,
-                "outside buffer not drained: {} of {PENDING}",
-                self.n
-            );
-            let n = self.n;
-            if let Some(k) = self.key.get_mut(n..n + 8) {
-                // SAFETY: `k` is 8 u64s, the 64 bytes the unaligned store writes.
-                unsafe {
-                    _mm512_storeu_si512(
-                        k.as_mut_ptr().cast(),
-                        _mm512_maskz_compress_epi64(lanes, key),
-                    );
-                }
-                self.n = n + lanes.count_ones() as usize;
-            }
-        }
-
-        /// Marks the keys if fewer than a chunk's worth of entries are free.
-        fn make_room(&mut self, marks: &mut impl FreeMarks) {
-            if self.n > ROOM {
-                self.drain(marks);
-            }
-        }
-
-        fn drain(&mut self, marks: &mut impl FreeMarks) {
-            for &k in self.key.iter().take(self.n) {
-                marks.mark_key(k);
-            }
-            self.n = 0;
+    /// [`empty`] when either buffer has less than a chunk's worth of room.
+    fn make_room(pending: &mut Pending, outside: &mut Outside, marks: &mut impl FreeMarks) {
+        if pending.is_full() || outside.is_full() {
+            empty(pending, outside, marks);
         }
     }
 
@@ -874,15 +857,8 @@ mod avx512 {
             field: _mm512_set1_epi64(FIELD as i64),
         };
         let zero = _mm512_setzero_si512();
-        let mut pending = Pending {
-            cell: [0; PENDING],
-            bits: [0; PENDING],
-            n: 0,
-        };
-        let mut outside = Outside {
-            key: [0; PENDING],
-            n: 0,
-        };
+        let mut pending = Pending::new();
+        let mut outside = Outside::new();
         loop {
             let mut e = [[0f32; 8]; 3];
             let mut end = [0i64; 8];
@@ -958,20 +934,16 @@ mod avx512 {
             // emptied between chunks: so the stepping state stays in registers, where a call
             // in the loop would spill all of it at every step.
             while step_chunk(&mut rays, &window, &mut pending, &mut outside) {
-                pending.make_room(marks);
-                outside.make_room(marks);
+                make_room(&mut pending, &mut outside, marks);
             }
-            pending.make_room(marks);
-            outside.make_room(marks);
+            make_room(&mut pending, &mut outside, marks);
             pending.push(
-                rays.cur_cell,
-                rays.cur_bits,
+                [rays.cur_cell, rays.cur_bits],
                 _mm512_test_epi64_mask(rays.cur_bits, rays.cur_bits),
             );
-            pending.make_room(marks);
+            make_room(&mut pending, &mut outside, marks);
         }
-        pending.drain(marks);
-        outside.drain(marks);
+        empty(&mut pending, &mut outside, marks);
         degenerate
     }
 
@@ -1002,7 +974,7 @@ mod avx512 {
     }
 
     /// Up to [`CHUNK_STEPS`] steps of `rays`, their marks gathered into `pending` (inside the
-    /// window) and `outside`, each of which must have room for them (`make_room`). Returns
+    /// window) and `outside`, each of which must have room for them ([`make_room`]). Returns
     /// whether a ray is still live. Not inlined, and calls nothing: the state lives in
     /// registers for the chunk.
     #[inline(never)]
@@ -1082,13 +1054,13 @@ mod avx512 {
             let fast = go & inside;
             let same = _mm512_cmpeq_epi64_mask(cell, cur_cell);
             let flush = fast & !same & _mm512_test_epi64_mask(cur_bits, cur_bits);
-            pending.push(cur_cell, cur_bits, flush);
+            pending.push([cur_cell, cur_bits], flush);
             let gathered = _mm512_mask_or_epi64(bit, same, cur_bits, bit);
             cur_bits = _mm512_mask_mov_epi64(cur_bits, fast, gathered);
             cur_cell = _mm512_mask_mov_epi64(cur_cell, fast, cell);
             let slow = go & !inside;
             if slow != 0 {
-                outside.push(k, slow);
+                outside.push([k], slow);
             }
             if go == 0 {
                 break;
