@@ -23,7 +23,7 @@ pub struct CloudPoint {
 /// Points seen from one sensor origin (e.g. half a Sweep revolution of a static scan, or one
 /// node of a `.graph`), as OctoMap's ray casting needs them: one ray from `origin` to each
 /// point. One octree insertion takes one bundle.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, Default, PartialEq)]
 pub struct RayBundle {
     /// The sensor origin, world frame.
     pub origin: [f64; 3],

@@ -136,24 +136,22 @@ pub fn read_graph(bytes: &[u8]) -> Result<Vec<RayBundle>, OctreeError> {
 /// allocation; a count larger than the data ends in [`OctreeError::Truncated`].
 pub fn read_graph_from(source: impl Read) -> Result<Vec<RayBundle>, OctreeError> {
     let mut bundles = Vec::new();
-    visit_graph(source, |bundle| bundles.push(bundle.clone()))?;
+    visit_graph(source, |bundle| bundles.push(std::mem::take(bundle)))?;
     Ok(bundles)
 }
 
-/// [`read_graph_from`] one node at a time: `visit` sees each world-frame bundle as soon as it
-/// is read, in file order, and only one is in memory (its buffer reused), so a consumer that
-/// inserts as it goes holds the map, not the cloud. Returns the node count. An error after
-/// some nodes (a truncated file) comes after their visits.
+/// [`read_graph_from`] one node at a time: `visit` gets each world-frame bundle as soon as it
+/// is read, in file order. The reader reuses the bundle's point buffer for the next node, so a
+/// consumer that inserts as it goes holds the map, not the cloud; one that keeps the points
+/// takes them (or swaps in a buffer of its own) instead of copying. Returns the node count.
+/// An error after some nodes (a truncated file) comes after their visits.
 pub fn visit_graph(
     source: impl Read,
-    mut visit: impl FnMut(&RayBundle),
+    mut visit: impl FnMut(&mut RayBundle),
 ) -> Result<usize, OctreeError> {
     let mut r = Reader { source };
     let nodes = r.u32(".graph node count")? as usize;
-    let mut bundle = RayBundle {
-        origin: [0.0; 3],
-        points: Vec::new(),
-    };
+    let mut bundle = RayBundle::default();
     for _ in 0..nodes {
         let n = r.u32(".graph point cloud")? as usize;
         bundle.points.clear();
@@ -165,7 +163,7 @@ pub fn visit_graph(
             *p = transform_point(t, q, *p);
         }
         bundle.origin = t.map(f64::from);
-        visit(&bundle);
+        visit(&mut bundle);
     }
     let edges = r.u32(".graph edge count")?;
     r.skip(u64::from(edges) * EDGE_BYTES as u64, ".graph edges")?;

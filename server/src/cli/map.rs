@@ -171,16 +171,12 @@ fn map_graph_streaming(args: &MapArgs) -> anyhow::Result<(VoxelMap, InsertStats,
     let (empty_tx, empty_rx) = std::sync::mpsc::channel::<RayBundle>();
     let reader_bar = bar.clone();
     let reader = std::thread::spawn(move || {
-        let mut send = |bundle: &RayBundle| {
-            let mut copy = empty_rx.try_recv().unwrap_or_else(|_| RayBundle {
-                origin: [0.0; 3],
-                points: Vec::new(),
-            });
-            copy.origin = bundle.origin;
-            copy.points.clear();
-            copy.points.extend_from_slice(&bundle.points);
+        let mut send = |bundle: &mut RayBundle| {
+            // The parsed node goes over whole; the reader goes on in a returned buffer.
+            let spare = empty_rx.try_recv().unwrap_or_default();
+            let full = std::mem::replace(bundle, spare);
             // A closed channel means the inserting side has stopped: nothing left to do.
-            let _ = full_tx.send(copy);
+            let _ = full_tx.send(full);
         };
         match reader_bar {
             Some(bar) => visit_graph(bar.wrap_read(source), &mut send),
