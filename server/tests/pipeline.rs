@@ -9,7 +9,7 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use common::{arg, run_cli};
-use pipeline_support::{SessionBuilder, chunk_bodies, position};
+use pipeline_support::{SessionBuilder, break_chunk, position};
 use scan3d_map::cloud::io;
 use scan3d_map::cloud::scans::RevolutionCollector;
 use scan3d_map::octree::{Octree, SensorModel};
@@ -523,13 +523,8 @@ fn mapping_a_damaged_session_fails_unless_lenient_and_then_maps_the_readable_res
     ])
     .unwrap();
     // One flipped bit in the middle of the second chunk breaks its CRC.
-    let file = session.join("0000.mcap");
-    let mut bytes = read(&file);
-    let chunks = chunk_bodies(&bytes);
-    assert!(chunks.len() >= 3, "{} chunks", chunks.len());
-    let (start, len) = chunks[1];
-    bytes[start + len / 2] ^= 0x10;
-    std::fs::write(&file, &bytes).unwrap();
+    let chunks = break_chunk(&session.join("0000.mcap"), 1);
+    assert!(chunks >= 3, "{chunks} chunks");
     let out = tmp.path().join("damaged.bt");
     let err = run_cli(&["map", arg(&session), "--res", "0.1", "--out", arg(&out)]).unwrap_err();
     let line = format!("{err:#}");

@@ -297,9 +297,23 @@ pub fn position(name: &str, x_m: f64, y_m: f64, heading_deg: f64) -> Position {
     }
 }
 
+/// Flips one bit in the middle of chunk `index` of the MCAP file `file`, which breaks that
+/// chunk's CRC (the recording reader then skips it as damaged). Returns how many chunks the
+/// file has.
+pub fn break_chunk(file: &Path, index: usize) -> usize {
+    let mut bytes = std::fs::read(file).expect("read the MCAP file");
+    let chunks = chunk_bodies(&bytes);
+    let (start, len) = *chunks
+        .get(index)
+        .unwrap_or_else(|| panic!("chunk {index} of {}", chunks.len()));
+    bytes[start + len / 2] ^= 0x10;
+    std::fs::write(file, &bytes).expect("write the MCAP file");
+    chunks.len()
+}
+
 /// `(offset, length)` of every MCAP chunk record's body in `file` (records: opcode, u64 LE
 /// length, body; after the 8-byte magic).
-pub fn chunk_bodies(file: &[u8]) -> Vec<(usize, usize)> {
+fn chunk_bodies(file: &[u8]) -> Vec<(usize, usize)> {
     let mut chunks = Vec::new();
     let mut at = 8;
     while at + 9 <= file.len() {
