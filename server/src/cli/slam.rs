@@ -375,37 +375,39 @@ pub fn run_eval(args: &SlamEvalArgs, out: &mut dyn Write) -> anyhow::Result<()> 
             interpolate: args.interpolate,
         },
     );
-    let mut worst: Vec<&RelationError> = report.per_relation.iter().collect();
-    worst.sort_by(|a, b| b.trans_m.total_cmp(&a.trans_m));
-    worst.truncate(args.worst.unwrap_or(0));
+    // The largest translational errors first, only when asked for.
+    let worst = args.worst.map(|n| {
+        let mut worst: Vec<&RelationError> = report.per_relation.iter().collect();
+        worst.sort_by(|a, b| b.trans_m.total_cmp(&a.trans_m));
+        worst.truncate(n);
+        worst
+    });
     if args.json {
         let mut value = serde_json::to_value(&report)?;
-        if args.worst.is_some()
-            && let Some(object) = value.as_object_mut()
-        {
-            object.insert("worst".into(), serde_json::to_value(&worst)?);
+        if let (Some(worst), Some(object)) = (&worst, value.as_object_mut()) {
+            object.insert("worst".into(), serde_json::to_value(worst)?);
         }
         writeln!(out, "{value}")?;
-    } else {
-        write!(out, "{report}")?;
-        if args.worst.is_some() {
-            writeln!(out, "worst relations (translational error):")?;
+        return Ok(());
+    }
+    write!(out, "{report}")?;
+    if let Some(worst) = &worst {
+        writeln!(out, "worst relations (translational error):")?;
+        writeln!(
+            out,
+            "  {:>18} {:>18} {:>9} {:>9} {:>9}",
+            "t1", "t2", "span s", "trans m", "rot deg"
+        )?;
+        for e in worst {
             writeln!(
                 out,
-                "  {:>18} {:>18} {:>9} {:>9} {:>9}",
-                "t1", "t2", "span s", "trans m", "rot deg"
+                "  {:>18} {:>18} {:>9.1} {:>9.4} {:>9.3}",
+                e.t1.text,
+                e.t2.text,
+                (e.t2.seconds - e.t1.seconds).abs(),
+                e.trans_m,
+                e.rot_deg
             )?;
-            for e in &worst {
-                writeln!(
-                    out,
-                    "  {:>18} {:>18} {:>9.1} {:>9.4} {:>9.3}",
-                    e.t1.text,
-                    e.t2.text,
-                    (e.t2.seconds - e.t1.seconds).abs(),
-                    e.trans_m,
-                    e.rot_deg
-                )?;
-            }
         }
     }
     Ok(())
