@@ -288,9 +288,6 @@ impl Octree {
     /// prune, with the number of collapses per depth: the prune stops at the deepest depth
     /// with none), a second writes the codes of the pruned tree.
     pub fn to_bt_bytes(&self) -> Vec<u8> {
-        if self.num_nodes() == 0 {
-            return self.to_max_likelihood_pruned().to_bt_bytes_const();
-        }
         let mut ml = vec![f32::NAN; self.num_nodes()];
         let mut collapses = [0usize; TREE_DEPTH as usize];
         self.ml_collapse(0, 0, &mut ml, &mut collapses);
@@ -300,10 +297,28 @@ impl Octree {
             .rev()
             .find(|&d| collapses[usize::from(d)] == 0)
             .unwrap_or(0);
-        let mut body = Vec::with_capacity(self.num_nodes() / 3 + 2);
-        let nodes = self.write_bt_codes(0, 0, stop, &ml, &mut body);
+        // Each collapse drops its 8 children (already leaves: deeper collapses dropped theirs).
+        let dropped = 8 * collapses
+            .get(usize::from(stop) + 1..)
+            .map_or(0, |c| c.iter().sum::<usize>());
+        self.bt_bytes(stop, &ml, self.num_nodes().saturating_sub(dropped))
+    }
+
+    /// The `.bt` encoding of this tree as it is (`writeBinaryConst`): the root's record, then
+    /// each inner node's 2-byte child codes in preorder (0 absent, 1 free, 2 occupied, 3 inner).
+    pub fn to_bt_bytes_const(&self) -> Vec<u8> {
+        self.bt_bytes(TREE_DEPTH, &self.values, self.num_nodes())
+    }
+
+    /// The header and the codes of the tree pruned below `stop` (nothing pruned at
+    /// [`TREE_DEPTH`]), leaves valued by `values`; `nodes` is that tree's node count.
+    fn bt_bytes(&self, stop: u8, values: &[f32], nodes: usize) -> Vec<u8> {
         let mut out = header(BT_MAGIC, nodes, self.res.meters());
-        out.extend_from_slice(&body);
+        if nodes > 0 {
+            out.reserve(nodes / 3 + 2);
+            let written = self.write_bt_codes(0, 0, stop, values, &mut out);
+            debug_assert_eq!(written, nodes, "the .bt header's node count");
+        }
         out
     }
 
@@ -342,9 +357,9 @@ impl Octree {
     }
 
     /// Whether node `i` at `depth` is a leaf of the tree pruned below `stop` (see
-    /// [`Octree::to_bt_bytes`]), with its max-likelihood value.
-    fn pruned_leaf(&self, i: usize, depth: u8, stop: u8, ml: &[f32]) -> Option<f32> {
-        let v = ml.get(i).copied().unwrap_or(f32::NAN);
+    /// [`Octree::to_bt_bytes`]), with its value in `values`.
+    fn pruned_leaf(&self, i: usize, depth: u8, stop: u8, values: &[f32]) -> Option<f32> {
+        let v = values.get(i).copied().unwrap_or(f32::NAN);
         let leaf = self.masks.get(i).is_none_or(|&m| m == 0) || (depth > stop && !v.is_nan());
         leaf.then_some(v)
     }
@@ -356,10 +371,10 @@ impl Octree {
         i: usize,
         depth: u8,
         stop: u8,
-        ml: &[f32],
+        values: &[f32],
         out: &mut Vec<u8>,
     ) -> usize {
-        if self.pruned_leaf(i, depth, stop, ml).is_some() {
+        if self.pruned_leaf(i, depth, stop, values).is_some() {
             if i == 0 {
                 out.extend_from_slice(&[0, 0]);
             }
@@ -369,7 +384,7 @@ impl Octree {
         let mut codes = 0u16;
         let mut c = i + 1;
         for pos in (0..8).filter(|pos| m & (1 << pos) != 0) {
-            let code = match self.pruned_leaf(c, depth + 1, stop, ml) {
+            let code = match self.pruned_leaf(c, depth + 1, stop, values) {
                 Some(v) if self.model.is_occupied(v) => 2,
                 Some(_) => 1,
                 None => 3,
@@ -381,46 +396,10 @@ impl Octree {
         let mut nodes = 1;
         let mut c = i + 1;
         for _ in 0..m.count_ones() {
-            nodes += self.write_bt_codes(c, depth + 1, stop, ml, out);
+            nodes += self.write_bt_codes(c, depth + 1, stop, values, out);
             c = self.subtree_end(c);
         }
         nodes
-    }
-
-    /// The `.bt` encoding of this tree as it is (`writeBinaryConst`): the root's record, then
-    /// each inner node's 2-byte child codes in preorder (0 absent, 1 free, 2 occupied, 3 inner).
-    pub fn to_bt_bytes_const(&self) -> Vec<u8> {
-        let n = self.num_nodes();
-        let mut out = header(BT_MAGIC, n, self.res.meters());
-        out.reserve(n / 3 + 2);
-        for i in 0..n {
-            let m = self.masks[i];
-            if m == 0 && i != 0 {
-                continue;
-            }
-            let mut codes = 0u16;
-            let mut c = i + 1;
-            for pos in 0..8 {
-                if m & (1 << pos) == 0 {
-                    continue;
-                }
-                let code = if self.masks.get(c).is_some_and(|&cm| cm != 0) {
-                    3
-                } else if self
-                    .values
-                    .get(c)
-                    .is_some_and(|&v| self.model.is_occupied(v))
-                {
-                    2
-                } else {
-                    1
-                };
-                codes |= code << (2 * pos);
-                c = self.subtree_end(c);
-            }
-            out.extend_from_slice(&codes.to_le_bytes());
-        }
-        out
     }
 }
 
