@@ -255,9 +255,13 @@ pub struct EdgeHandle {
 impl EdgeHandle {
     /// Submits the `index`th revolution of `stream`, stamped now.
     pub fn submit(&self, stream: &LidarStream, index: usize) -> Result<Submission, SubmitError> {
-        let revolution = stream.revolution(index, self.clock.now_ns());
+        self.submit_body(stream.revolution(index, self.clock.now_ns()).into())
+    }
+
+    /// Submits one frame body, noting when.
+    pub fn submit_body(&self, body: scan3d_protocol::Body) -> Result<Submission, SubmitError> {
         let at_ns = mono_ns();
-        let seq = self.uplink.submit(revolution)?;
+        let seq = self.uplink.submit(body)?;
         Ok(Submission { seq, at_ns })
     }
 
@@ -415,12 +419,10 @@ pub async fn produce(
     });
     let mut scan_id = 0u32;
     let mut tagged = 0u64;
-    let submit = |produced: &mut Produced, body: scan3d_protocol::Body| {
-        let at_ns = mono_ns();
-        match edge.uplink.submit(body) {
-            Ok(seq) => produced.submissions.push(Submission { seq, at_ns }),
-            Err(_) => produced.refused += 1,
-        }
+    let submit = |produced: &mut Produced, body: scan3d_protocol::Body| match edge.submit_body(body)
+    {
+        Ok(submission) => produced.submissions.push(submission),
+        Err(_) => produced.refused += 1,
     };
     for index in 0.. {
         if tick.tick().await >= deadline {
