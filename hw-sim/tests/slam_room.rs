@@ -431,27 +431,47 @@ fn noise_free_beams_give_the_trajectory_within_1_cm() {
 }
 
 #[test]
-#[ignore = "issue 12's heading bound is not met yet: 0.55° at most, at the corners' entries and \
-            exits (angular acceleration within a revolution) and while the trolley stands still \
-            in front of a one-revolution map (0.41° even with a perfect de-skew)"]
+#[ignore = "issue 12's heading bound is not met yet: 0.66° at most (0.56° without the sub-cell \
+            refinement), at the corners' entries and exits (angular acceleration within a \
+            revolution) and while the trolley stands still in front of a one-revolution map \
+            (0.41° even with a perfect de-skew)"]
 fn noise_free_beams_give_every_heading_within_0_2_degrees() {
     let errors = score(&noise_free());
     assert!(errors.max_rotation <= 0.2f64.to_radians(), "{errors}");
 }
 
 #[test]
-fn rplidar_range_noise_keeps_the_trajectory_within_8_cm_with_the_default_configuration() {
+fn rplidar_range_noise_keeps_the_trajectory_within_5_cm_with_the_default_configuration() {
     let errors = score(&Run::trolley(RangeNoise::RPLIDAR));
     println!("RPLidar noise, de-skewed, default configuration: {errors}");
-    assert!(errors.max_translation <= 0.08, "{errors}");
-    assert!(errors.rms_translation <= 0.04, "{errors}");
+    assert!(errors.max_translation <= 0.05, "{errors}");
+    assert!(errors.rms_translation <= 0.02, "{errors}");
     assert!(errors.max_rotation <= 1.2f64.to_radians(), "{errors}");
 }
 
 #[test]
-#[ignore = "issue 12's bound is not met yet: 61 mm at most, 30 mm RMS with the default \
-            configuration; none of the MapperConfig variations tried (resolution, levels, update \
-            thresholds and model, loss, residual sigma, prior) brings it under 37 mm"]
+fn the_sub_cell_refinement_halves_the_error_under_rplidar_noise() {
+    // The grid stores a noisy wall at the centre of whichever cell most of its endpoints fell in;
+    // the refinement matches against the mean of those endpoints.
+    let refined = score(&Run::trolley(RangeNoise::RPLIDAR));
+    let mut run = Run::trolley(RangeNoise::RPLIDAR);
+    run.config.refine.enabled = false;
+    let grid_only = score(&run);
+    println!("RPLidar noise, refined: {refined}\nRPLidar noise, grid match only: {grid_only}");
+    assert!(
+        refined.rms_translation <= 0.6 * grid_only.rms_translation,
+        "{refined} vs {grid_only}"
+    );
+    assert!(
+        refined.max_translation <= 0.8 * grid_only.max_translation,
+        "{refined} vs {grid_only}"
+    );
+}
+
+#[test]
+#[ignore = "issue 12's bound is not met yet: 40 mm at most, 16 mm RMS with the default \
+            configuration (55 / 31 mm without the sub-cell refinement); the error is set in the \
+            first revolutions, matched against a one-revolution map of noisy walls"]
 fn rplidar_range_noise_keeps_the_trajectory_within_3_cm() {
     let errors = score(&Run::trolley(RangeNoise::RPLIDAR));
     assert!(errors.max_translation <= 0.03, "{errors}");

@@ -7,6 +7,7 @@
 //!   relations metric that scores them.
 //! - [`grid`]: occupancy grids that grow as the robot explores, read as a continuous function.
 //! - [`matcher`]: Gauss–Newton scan-to-map matching, coarse to fine, with a robust loss.
+//! - [`surface`]: the endpoints each cell has seen, and a sub-cell refinement of a grid match.
 //! - [`mapper`]: the incremental front end (motion prior, de-skew, map-update rule).
 //! - [`offline`]: the mapper over a whole log, and its grid as a raster.
 //! - [`map_image`]: occupancy rasters as ROS `map_server` PGM + YAML and as PNG.
@@ -24,4 +25,8 @@ pub mod matcher;
 pub mod offline;
 pub mod pose;
 pub mod relations;
+pub mod surface;
 pub mod text;
+
+#[cfg(test)]
+mod testing;

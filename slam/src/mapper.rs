@@ -10,6 +10,7 @@
 use crate::grid::{GridPyramid, UpdateModel};
 use crate::matcher::{Match, MatchConfig, Matrix3, Prior, SearchWindow, match_scan, search};
 use crate::pose::{Pose2, wrap_angle};
+use crate::surface::{RefineConfig, Surfaces, refine};
 
 /// How the pose is predicted before matching, and how much the prediction is trusted.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -71,6 +72,8 @@ pub struct MapperConfig {
     pub matcher: MatchConfig,
     /// The motion prior.
     pub motion: MotionConfig,
+    /// The sub-cell refinement of each grid match.
+    pub refine: RefineConfig,
     /// Integrate a scan into the map only after the robot moved this far (m) since the last
     /// integrated scan (Hector's `map_update_distance_thresh`)...
     pub map_update_distance: f64,
@@ -89,6 +92,7 @@ impl Default for MapperConfig {
             update: UpdateModel::default(),
             matcher: MatchConfig::default(),
             motion: MotionConfig::default(),
+            refine: RefineConfig::default(),
             map_update_distance: 0.4,
             map_update_angle: 0.9,
             min_score: 0.0,
@@ -136,6 +140,7 @@ pub struct ScanResult {
 pub struct Mapper {
     config: MapperConfig,
     map: GridPyramid,
+    surfaces: Surfaces,
     last: Option<Last>,
     last_integrated: Option<Pose2>,
     refused: usize,
@@ -156,6 +161,7 @@ impl Mapper {
     pub fn new(config: MapperConfig) -> Self {
         Self {
             map: GridPyramid::new(config.resolution, config.levels, &config.update),
+            surfaces: Surfaces::new(config.resolution, &config.refine),
             config,
             last: None,
             last_integrated: None,
@@ -254,6 +260,16 @@ impl Mapper {
             );
             pose = matched.pose.compose(&scan.sensor_offset.inverse());
         }
+        if self.config.refine.enabled {
+            let refined = refine(
+                &self.surfaces,
+                &hits,
+                matched.pose,
+                Some(&prior),
+                &self.config.refine,
+            );
+            pose = refined.pose.compose(&scan.sensor_offset.inverse());
+        }
         let trusted = matched.score >= self.config.min_score;
         if !trusted {
             pose = predicted;
@@ -331,6 +347,13 @@ impl Mapper {
     fn integrate(&mut self, scan: &Scan, pose: &Pose2, hits: &[(f64, f64)]) -> bool {
         let sensor = pose.compose(&scan.sensor_offset);
         if self.map.integrate(&sensor, hits, &[]) {
+            if self.config.refine.enabled {
+                let in_map: Vec<(f64, f64)> = hits
+                    .iter()
+                    .map(|&(x, y)| sensor.transform_point(x, y))
+                    .collect();
+                self.surfaces.integrate(&in_map);
+            }
             self.last_integrated = Some(*pose);
             true
         } else {

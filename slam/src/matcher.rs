@@ -32,7 +32,7 @@ pub enum Loss {
 
 impl Loss {
     /// The iteratively-reweighted-least-squares weight for residual `r`.
-    fn weight(&self, r: f64) -> f64 {
+    pub(crate) fn weight(&self, r: f64) -> f64 {
         match *self {
             Loss::Squared => 1.0,
             Loss::Huber { delta } => {
@@ -43,7 +43,7 @@ impl Loss {
         }
     }
 
-    fn cost(&self, r: f64) -> f64 {
+    pub(crate) fn cost(&self, r: f64) -> f64 {
         match *self {
             Loss::Squared => r * r,
             Loss::Huber { delta } => {
@@ -97,7 +97,7 @@ pub struct Prior {
 
 impl Prior {
     /// `pose − mean` in (x, y, ψ), the heading wrapped.
-    fn error(&self, pose: &Pose2) -> [f64; 3] {
+    pub(crate) fn error(&self, pose: &Pose2) -> [f64; 3] {
         [
             pose.x - self.pose.x,
             pose.y - self.pose.y,
@@ -373,7 +373,7 @@ pub fn invert(m: &Matrix3) -> Option<Matrix3> {
     Some(co.map(|row| row.map(|v| v / det)))
 }
 
-fn solve(h: &Matrix3, g: &[f64; 3]) -> Option<[f64; 3]> {
+pub(crate) fn solve(h: &Matrix3, g: &[f64; 3]) -> Option<[f64; 3]> {
     let inv = invert(h)?;
     Some([0, 1, 2].map(|a| (0..3).map(|b| inv[a][b] * g[b]).sum()))
 }
@@ -382,44 +382,14 @@ fn solve(h: &Matrix3, g: &[f64; 3]) -> Option<[f64; 3]> {
 mod tests {
     use super::*;
     use crate::grid::UpdateModel;
+    use crate::testing::{cast, rectangle};
 
     /// A 6 m × 4 m room with a pillar, as beam endpoints seen from `pose` (every 1°).
     fn room_scan(pose: &Pose2) -> Vec<(f64, f64)> {
         // Walls on cell centres of the 5 cm grid, so the map has no half-cell bias to test.
-        let segments = [
-            ((-3.025, -2.025), (3.025, -2.025)),
-            ((3.025, -2.025), (3.025, 2.025)),
-            ((3.025, 2.025), (-3.025, 2.025)),
-            ((-3.025, 2.025), (-3.025, -2.025)),
-            ((1.025, 0.525), (1.425, 0.525)),
-            ((1.425, 0.525), (1.425, 0.925)),
-            ((1.425, 0.925), (1.025, 0.925)),
-            ((1.025, 0.925), (1.025, 0.525)),
-        ];
-        (0..360)
-            .filter_map(|k| {
-                let a = pose.theta + f64::from(k).to_radians();
-                let (dx, dy) = (a.cos(), a.sin());
-                let range = segments
-                    .iter()
-                    .filter_map(|&((x1, y1), (x2, y2))| {
-                        let (ex, ey) = (x2 - x1, y2 - y1);
-                        let den = dx * ey - dy * ex;
-                        if den.abs() < 1e-12 {
-                            return None;
-                        }
-                        let (wx, wy) = (x1 - pose.x, y1 - pose.y);
-                        let t = (wx * ey - wy * ex) / den;
-                        let u = (wx * dy - wy * dx) / den;
-                        (t > 0.0 && (0.0..=1.0).contains(&u)).then_some(t)
-                    })
-                    .fold(f64::INFINITY, f64::min);
-                range.is_finite().then(|| {
-                    let b = f64::from(k).to_radians();
-                    (range * b.cos(), range * b.sin())
-                })
-            })
-            .collect()
+        let mut walls = rectangle((-3.025, -2.025), (3.025, 2.025)).to_vec();
+        walls.extend(rectangle((1.025, 0.525), (1.425, 0.925)));
+        cast(&walls, pose, 360)
     }
 
     fn mapped_room() -> GridPyramid {
