@@ -96,8 +96,30 @@ pub struct Prior {
 }
 
 impl Prior {
+    /// Adds this prior's term at `pose` to a Gauss–Newton system whose upper triangle is
+    /// being summed (`gradient` is the right-hand side), and returns the term's cost.
+    pub(crate) fn add_to(
+        &self,
+        pose: &Pose2,
+        hessian: &mut Matrix3,
+        gradient: &mut [f64; 3],
+    ) -> f64 {
+        let e = self.error(pose);
+        let l = &self.information;
+        let mut cost = 0.0;
+        for a in 0..3 {
+            let le: f64 = (0..3).map(|b| l[a][b] * e[b]).sum();
+            gradient[a] -= le;
+            cost += e[a] * le;
+            for b in a..3 {
+                hessian[a][b] += l[a][b];
+            }
+        }
+        cost
+    }
+
     /// `pose − mean` in (x, y, ψ), the heading wrapped.
-    pub(crate) fn error(&self, pose: &Pose2) -> [f64; 3] {
+    fn error(&self, pose: &Pose2) -> [f64; 3] {
         [
             pose.x - self.pose.x,
             pose.y - self.pose.y,
@@ -292,22 +314,9 @@ fn normal_equations(
         }
     }
     if let Some(prior) = prior {
-        let e = prior.error(pose);
-        let l = &prior.information;
-        for a in 0..3 {
-            let le: f64 = (0..3).map(|b| l[a][b] * e[b]).sum();
-            g[a] -= le;
-            total += e[a] * le;
-            for b in a..3 {
-                h[a][b] += l[a][b];
-            }
-        }
+        total += prior.add_to(pose, &mut h, &mut g);
     }
-    for a in 0..3 {
-        for b in 0..a {
-            h[a][b] = h[b][a];
-        }
-    }
+    fill_lower(&mut h);
     Normal {
         hessian: h,
         gradient: g,
@@ -355,6 +364,15 @@ fn covariance_of(hessian: &Matrix3) -> Matrix3 {
         [0.0, 1.0 / lambda, 0.0],
         [0.0, 0.0, 1.0 / lambda],
     ])
+}
+
+/// Copies the upper triangle of a symmetric matrix, summed alone, into its lower one.
+pub(crate) fn fill_lower(m: &mut Matrix3) {
+    for a in 0..3 {
+        for b in 0..a {
+            m[a][b] = m[b][a];
+        }
+    }
 }
 
 /// The determinant-checked inverse of a symmetric 3×3 matrix.

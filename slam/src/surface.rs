@@ -17,7 +17,7 @@
 use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
 
-use crate::matcher::{Loss, Matrix3, Prior, solve};
+use crate::matcher::{Loss, Matrix3, Prior, fill_lower, solve};
 use crate::pose::Pose2;
 
 /// How the grid match is refined against the cells' endpoint statistics.
@@ -291,22 +291,9 @@ fn linearise(
         }
     }
     if let Some(prior) = prior {
-        let e = prior.error(pose);
-        let l = &prior.information;
-        for a in 0..3 {
-            let le: f64 = (0..3).map(|b| l[a][b] * e[b]).sum();
-            g[a] -= le;
-            cost += e[a] * le;
-            for b in a..3 {
-                h[a][b] += l[a][b];
-            }
-        }
+        cost += prior.add_to(pose, &mut h, &mut g);
     }
-    for a in 0..3 {
-        for b in 0..a {
-            h[a][b] = h[b][a];
-        }
-    }
+    fill_lower(&mut h);
     Linearised {
         cost,
         hessian: h,

@@ -11,6 +11,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use scan3d_slam::carmen::{ReadOptions, read_log};
 use scan3d_slam::map_image::{Thresholds, write_pgm, write_png_with_trajectory, write_yaml};
 use scan3d_slam::mapper::{Mapper, MapperConfig};
+use scan3d_slam::matcher::Loss;
 use scan3d_slam::offline::{RangeLimits, map_log, raster};
 use scan3d_slam::pose::Pose2;
 use scan3d_slam::relations::{
@@ -105,6 +106,18 @@ fn validate(config: &MapperConfig) -> anyhow::Result<()> {
     if !(m.residual_sigma.is_finite() && m.residual_sigma > 0.0) {
         bail!("matcher.residual_sigma must be positive");
     }
+    let r = &config.refine;
+    if r.iterations > 100 || r.min_points == 0 {
+        bail!("refine.iterations must be at most 100 and refine.min_points at least 1");
+    }
+    let robust = match r.loss {
+        Loss::Squared => 1.0,
+        Loss::Huber { delta } => delta,
+        Loss::Cauchy { c } => c,
+    };
+    if !(robust.is_finite() && robust > 0.0) {
+        bail!("refine.loss: its delta or c must be positive");
+    }
     let s = &config.motion.velocity_search;
     if s.angle > 0.0 && (s.angle_step <= 0.0 || s.angle / s.angle_step > 1000.0) {
         bail!("motion.velocity_search: angle / angle_step must be at most 1000");
@@ -120,6 +133,9 @@ fn validate(config: &MapperConfig) -> anyhow::Result<()> {
             "motion.min_rotation_sigma",
             config.motion.min_rotation_sigma,
         ),
+        ("refine.sigma_floor", r.sigma_floor),
+        ("refine.max_translation", r.max_translation),
+        ("refine.max_rotation", r.max_rotation),
     ] {
         if !(v.is_finite() && v >= 0.0) {
             bail!("{name} must be a non-negative number, not {v}");
@@ -439,5 +455,14 @@ mod tests {
         std::fs::write(&path, "levels = 40\n").unwrap();
         let error = format!("{:#}", load_config(&path).unwrap_err());
         assert!(error.contains("levels must be 1 to 6"), "{error}");
+        for (text, said) in [
+            ("[refine]\nsigma_floor = -0.01\n", "refine.sigma_floor"),
+            ("[refine]\nmin_points = 0\n", "refine.min_points"),
+            ("[refine.loss]\nkind = \"cauchy\"\nc = 0.0\n", "refine.loss"),
+        ] {
+            std::fs::write(&path, text).unwrap();
+            let error = format!("{:#}", load_config(&path).unwrap_err());
+            assert!(error.contains(said), "{text}: {error}");
+        }
     }
 }
