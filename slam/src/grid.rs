@@ -39,6 +39,15 @@ fn log_odds(p: f32) -> f32 {
     (p / (1.0 - p)).ln()
 }
 
+/// The index of the cell `resolution` metres wide that contains the point (m): cell `(i, j)`
+/// covers `[i·r, (i+1)·r) × [j·r, (j+1)·r)`.
+pub(crate) fn cell_containing(resolution: f64, x: f64, y: f64) -> (i32, i32) {
+    (
+        (x / resolution).floor() as i32,
+        (y / resolution).floor() as i32,
+    )
+}
+
 /// One growing occupancy grid at one resolution.
 #[derive(Debug, Clone)]
 pub struct Grid {
@@ -136,10 +145,7 @@ impl Grid {
 
     /// The world cell that contains the point (m).
     pub fn cell_of(&self, x: f64, y: f64) -> (i32, i32) {
-        (
-            (x / self.resolution).floor() as i32,
-            (y / self.resolution).floor() as i32,
-        )
+        cell_containing(self.resolution, x, y)
     }
 
     fn index(&self, (i, j): (i32, i32)) -> Option<usize> {

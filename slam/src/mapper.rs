@@ -260,7 +260,10 @@ impl Mapper {
             );
             pose = matched.pose.compose(&scan.sensor_offset.inverse());
         }
-        if self.config.refine.enabled {
+        let trusted = matched.score >= self.config.min_score;
+        if !trusted {
+            pose = predicted;
+        } else if self.config.refine.enabled {
             let refined = refine(
                 &self.surfaces,
                 &hits,
@@ -269,10 +272,6 @@ impl Mapper {
                 &self.config.refine,
             );
             pose = refined.pose.compose(&scan.sensor_offset.inverse());
-        }
-        let trusted = matched.score >= self.config.min_score;
-        if !trusted {
-            pose = predicted;
         }
         let integrated = trusted && self.due(&pose) && self.integrate(scan, &pose, &hits);
         self.last = Some(Last {
@@ -348,11 +347,7 @@ impl Mapper {
         let sensor = pose.compose(&scan.sensor_offset);
         if self.map.integrate(&sensor, hits, &[]) {
             if self.config.refine.enabled {
-                let in_map: Vec<(f64, f64)> = hits
-                    .iter()
-                    .map(|&(x, y)| sensor.transform_point(x, y))
-                    .collect();
-                self.surfaces.integrate(&in_map);
+                self.surfaces.integrate(&sensor, hits);
             }
             self.last_integrated = Some(*pose);
             true

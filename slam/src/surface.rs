@@ -17,6 +17,7 @@
 use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
 
+use crate::grid::cell_containing;
 use crate::matcher::{Loss, Matrix3, Prior, fill_lower, solve};
 use crate::pose::Pose2;
 
@@ -65,6 +66,40 @@ struct Moments {
     xx: f64,
     xy: f64,
     yy: f64,
+}
+
+impl Moments {
+    /// Adds an endpoint at `(u, v)` from the cell's corner.
+    fn add(&mut self, u: f64, v: f64) {
+        self.count += 1;
+        self.x += u;
+        self.y += v;
+        self.xx += u * u;
+        self.xy += u * v;
+        self.yy += v * v;
+    }
+
+    /// The cell's Gaussian in the map frame (its corner at `corner`), once it has `min_points`
+    /// endpoints; `floor` (m) is added to the spread both ways.
+    fn normal(&self, corner: (f64, f64), min_points: u32, floor: f64) -> Option<Normal> {
+        if self.count < min_points {
+            return None;
+        }
+        let n = f64::from(self.count);
+        let (u, v) = (self.x / n, self.y / n);
+        let floor = floor * floor;
+        let a = (self.xx / n - u * u).max(0.0) + floor;
+        let b = self.xy / n - u * v;
+        let c = (self.yy / n - v * v).max(0.0) + floor;
+        let det = a * c - b * b;
+        if !(det.is_finite() && det > 0.0) {
+            return None;
+        }
+        Some(Normal {
+            mean: (u + corner.0, v + corner.1),
+            information: [[c / det, -b / det], [-b / det, a / det]],
+        })
+    }
 }
 
 /// A cell's Gaussian: mean (map frame) and inverse covariance, for cells with enough endpoints.
@@ -141,71 +176,29 @@ impl Surfaces {
         self.cells.is_empty()
     }
 
-    fn cell_of(&self, x: f64, y: f64) -> (i32, i32) {
-        (
-            (x / self.resolution).floor() as i32,
-            (y / self.resolution).floor() as i32,
-        )
-    }
-
-    /// Adds the endpoints of one scan, given in the map frame.
-    pub fn integrate(&mut self, hits: &[(f64, f64)]) {
-        let mut touched = Vec::with_capacity(hits.len());
-        for &(x, y) in hits {
+    /// Adds the endpoints of one scan taken from `sensor_pose`, given in the sensor frame (as
+    /// [`crate::grid::GridPyramid::integrate`] takes them).
+    pub fn integrate(&mut self, sensor_pose: &Pose2, hits: &[(f64, f64)]) {
+        for &(sx, sy) in hits {
+            let (x, y) = sensor_pose.transform_point(sx, sy);
             if !(x.is_finite() && y.is_finite()) {
                 continue;
             }
-            let cell = self.cell_of(x, y);
-            let (u, v) = (
-                x - f64::from(cell.0) * self.resolution,
-                y - f64::from(cell.1) * self.resolution,
+            let cell = cell_containing(self.resolution, x, y);
+            let corner = (
+                f64::from(cell.0) * self.resolution,
+                f64::from(cell.1) * self.resolution,
             );
             let entry = self.cells.entry(key(cell)).or_default();
-            let m = &mut entry.moments;
-            m.count += 1;
-            m.x += u;
-            m.y += v;
-            m.xx += u * u;
-            m.xy += u * v;
-            m.yy += v * v;
-            touched.push(cell);
+            entry.moments.add(x - corner.0, y - corner.1);
+            entry.normal = entry.moments.normal(corner, self.min_points, self.floor);
         }
-        for cell in touched {
-            let normal = self.fit(cell);
-            if let Some(entry) = self.cells.get_mut(&key(cell)) {
-                entry.normal = normal;
-            }
-        }
-    }
-
-    fn fit(&self, cell: (i32, i32)) -> Option<Normal> {
-        let m = self.cells.get(&key(cell))?.moments;
-        if m.count < self.min_points {
-            return None;
-        }
-        let n = f64::from(m.count);
-        let (u, v) = (m.x / n, m.y / n);
-        let floor = self.floor * self.floor;
-        let a = (m.xx / n - u * u).max(0.0) + floor;
-        let b = m.xy / n - u * v;
-        let c = (m.yy / n - v * v).max(0.0) + floor;
-        let det = a * c - b * b;
-        if !(det.is_finite() && det > 0.0) {
-            return None;
-        }
-        Some(Normal {
-            mean: (
-                u + f64::from(cell.0) * self.resolution,
-                v + f64::from(cell.1) * self.resolution,
-            ),
-            information: [[c / det, -b / det], [-b / det, a / det]],
-        })
     }
 
     /// The Gaussian nearest to a point (by Mahalanobis distance) among its cell and the eight
     /// around it, with that squared distance.
     fn nearest(&self, x: f64, y: f64) -> Option<(Normal, f64)> {
-        let (i, j) = self.cell_of(x, y);
+        let (i, j) = cell_containing(self.resolution, x, y);
         let mut best: Option<(Normal, f64)> = None;
         for di in -1..=1 {
             for dj in -1..=1 {
@@ -381,7 +374,7 @@ mod tests {
         let wall: Vec<_> = (0..5)
             .map(|k| (0.005 + 0.01 * f64::from(k), 0.013))
             .collect();
-        surfaces.integrate(&wall);
+        surfaces.integrate(&Pose2::default(), &wall);
         let (normal, _) = surfaces.nearest(0.02, 0.013).expect("five endpoints");
         assert!((normal.mean.0 - 0.025).abs() < 1e-12, "{normal:?}");
         assert!((normal.mean.1 - 0.013).abs() < 1e-12, "{normal:?}");
@@ -390,7 +383,7 @@ mod tests {
         // Along it the endpoints' own variance (2·10⁻⁴ m²) adds to the floor's.
         assert!((mahalanobis(&normal, 0.035, 0.013) - 1e-4 / 3e-4).abs() < 1e-9);
         // Two endpoints are fewer than `min_points`: no Gaussian there.
-        surfaces.integrate(&[(1.0, 1.0), (1.01, 1.0)]);
+        surfaces.integrate(&Pose2::default(), &[(1.0, 1.0), (1.01, 1.0)]);
         assert!(surfaces.nearest(1.0, 1.0).is_none());
         assert_eq!(surfaces.len(), 2);
     }
@@ -412,11 +405,7 @@ mod tests {
             let pose = Pose2::new(-1.0 + 0.25 * k, -0.4 + 0.05 * k, 0.1 * k);
             let scan = cast(&walls(), &pose, 720);
             grid.integrate(&pose, &scan, &[]);
-            let in_map: Vec<_> = scan
-                .iter()
-                .map(|&(x, y)| pose.transform_point(x, y))
-                .collect();
-            surfaces.integrate(&in_map);
+            surfaces.integrate(&pose, &scan);
         }
         (grid, surfaces)
     }
