@@ -3,8 +3,8 @@
 //!
 //! An occupancy grid puts a wall at the centre of the cell its endpoints fall in, up to half a
 //! cell from the true face. Where a wall runs along the cell lattice every endpoint on it is off
-//! by the same amount, and a match against the grid inherits that offset (in the simulated room:
-//! a heading error of 0.4° in front of a one-revolution map, with a perfect de-skew). The mean of
+//! by the same amount, and a match against the grid inherits that offset; under range noise the
+//! wall is stored in whichever cell most endpoints fell in. The mean of
 //! the endpoints a cell has collected is where the wall is, to a fraction of a cell, and their
 //! scatter is how far a new endpoint may fall from it. [`refine`] takes a grid match and moves it
 //! so that each endpoint is likely under the nearest cell's Gaussian (the Normal Distributions
@@ -219,6 +219,7 @@ impl Surfaces {
     }
 }
 
+/// The squared Mahalanobis distance of a point from a cell's Gaussian.
 fn mahalanobis(normal: &Normal, x: f64, y: f64) -> f64 {
     let (ex, ey) = (x - normal.mean.0, y - normal.mean.1);
     let l = &normal.information;
