@@ -288,3 +288,77 @@ fn slam_of_a_damaged_session_fails_unless_lenient_and_counts_undecodable_frames(
     let lines = std::fs::read_to_string(&traj).unwrap().lines().count();
     assert!(lines > 0 && lines < 120, "{lines} poses; {said}");
 }
+
+#[test]
+fn slam_says_which_odometry_it_used_and_refuses_a_latency_it_cannot_apply() {
+    let dir = tempfile::tempdir().unwrap();
+    let (log, _, _) = intel_excerpt(dir.path(), 300);
+    let traj = dir.path().join("traj.txt");
+    let slam = |extra: &[&str]| {
+        let mut args = vec!["slam", arg(&log), "--out", arg(&traj), "--quiet"];
+        args.extend_from_slice(extra);
+        run_cli(&args)
+    };
+
+    // By default the ODOM lines are calibrated against a first pass, and the line says how
+    // each source agreed with it.
+    let said = slam(&[]).expect("calibrated");
+    let line = said
+        .lines()
+        .find(|l| l.starts_with("odometry: "))
+        .expect(&said);
+    assert!(
+        line.contains("mean heading disagreement per scan with a first pass: the laser lines "),
+        "{line}"
+    );
+    assert!(line.contains(", the ODOM lines at "), "{line}");
+
+    let said = slam(&["--laser-odometry"]).expect("laser lines");
+    assert!(
+        said.contains("odometry: the laser lines' own poses\n"),
+        "{said}"
+    );
+    let said = slam(&["--odometry-latency", "-0.05"]).expect("fixed latency");
+    assert!(
+        said.contains("odometry: the ODOM lines, read -0.050 s before each laser stamp\n"),
+        "{said}"
+    );
+    let said = slam(&["--no-odometry"]).expect("no odometry");
+    assert!(!said.contains("odometry: "), "{said}");
+
+    let error = format!("{:#}", slam(&["--odometry-latency", "2"]).unwrap_err());
+    assert_eq!(error, "--odometry-latency must be within ±0.5 s, not 2");
+
+    // A log without ODOM lines has no track to read late.
+    let text = std::fs::read_to_string(&log).unwrap();
+    let lasers_only = dir.path().join("lasers-only.clf");
+    std::fs::write(
+        &lasers_only,
+        text.lines()
+            .filter(|l| !l.starts_with("ODOM"))
+            .map(|l| format!("{l}\n"))
+            .collect::<String>(),
+    )
+    .unwrap();
+    let error = run_cli(&[
+        "slam",
+        arg(&lasers_only),
+        "--out",
+        arg(&traj),
+        "--quiet",
+        "--odometry-latency",
+        "0.1",
+    ])
+    .unwrap_err();
+    let error = format!("{error:#}");
+    assert!(
+        error.ends_with("--odometry-latency needs ODOM lines, and the log has none"),
+        "{error}"
+    );
+    let said = run_cli(&["slam", arg(&lasers_only), "--out", arg(&traj), "--quiet"])
+        .expect("laser lines only");
+    assert!(
+        said.contains("odometry: the laser lines' own poses\n"),
+        "{said}"
+    );
+}

@@ -132,12 +132,11 @@ impl CarmenLog {
         self.scans.iter().map(|s| s.odometry).collect()
     }
 
-    /// One odometry pose per scan from the `ODOM` lines, SE(2)-interpolated at the scan time
-    /// (clamped to the first/last reading outside their span); the laser lines' own odometry
-    /// when the log has no `ODOM` line (MIT CSAIL).
-    pub fn interpolated_odometry_poses(&self) -> Vec<Pose2> {
+    /// The `ODOM` lines as a track to read at any time; `None` when the log has none (MIT
+    /// CSAIL).
+    pub fn odometry_track(&self) -> Option<OdometryTrack> {
         if self.odometry.is_empty() {
-            return self.odometry_poses();
+            return None;
         }
         let mut readings: Vec<(f64, Pose2)> = self
             .odometry
@@ -145,10 +144,7 @@ impl CarmenLog {
             .map(|o| (o.timestamp.seconds, o.pose))
             .collect();
         readings.sort_by(|a, b| a.0.total_cmp(&b.0));
-        self.scans
-            .iter()
-            .map(|s| interpolate(&readings, s.timestamp.seconds))
-            .collect()
+        Some(OdometryTrack { readings })
     }
 
     /// The largest range reading in the log. In the benchmark `FLASER` logs it is the
@@ -162,24 +158,33 @@ impl CarmenLog {
     }
 }
 
-/// The pose at `t` from time-sorted `(t, pose)` readings: SE(2) interpolation between the two
-/// around `t`, the end reading outside their span.
-fn interpolate(readings: &[(f64, Pose2)], t: f64) -> Pose2 {
-    let i = readings.partition_point(|r| r.0 < t);
-    if i == 0 {
-        return readings[0].1;
+/// A log's `ODOM` readings in time order.
+#[derive(Debug, Clone, PartialEq)]
+pub struct OdometryTrack {
+    readings: Vec<(f64, Pose2)>,
+}
+
+impl OdometryTrack {
+    /// The odometry pose at `t` (s): SE(2) interpolation between the two readings around it,
+    /// the end reading outside their span.
+    pub fn at(&self, t: f64) -> Pose2 {
+        let readings = &self.readings;
+        let i = readings.partition_point(|r| r.0 < t);
+        if i == 0 {
+            return readings[0].1;
+        }
+        if i == readings.len() {
+            return readings[i - 1].1;
+        }
+        let (t0, a) = readings[i - 1];
+        let (t1, b) = readings[i];
+        if t1 <= t0 {
+            return b;
+        }
+        let u = (t - t0) / (t1 - t0);
+        let d = a.between(&b);
+        a.compose(&Pose2::new(u * d.x, u * d.y, u * d.theta))
     }
-    if i == readings.len() {
-        return readings[i - 1].1;
-    }
-    let (t0, a) = readings[i - 1];
-    let (t1, b) = readings[i];
-    if t1 <= t0 {
-        return b;
-    }
-    let u = (t - t0) / (t1 - t0);
-    let d = a.between(&b);
-    a.compose(&Pose2::new(u * d.x, u * d.y, u * d.theta))
 }
 
 enum Message {
@@ -556,25 +561,26 @@ mod tests {
     }
 
     #[test]
-    fn odometry_is_interpolated_from_odom_lines_at_the_scan_time_or_taken_from_the_scan() {
+    fn the_odom_lines_are_a_track_read_between_its_readings() {
         let text = format!(
-            "ODOM 0 0 0 0 0 0 10.0\nODOM 1 0 1.0 0 0 0 11.0\n{}\n{}\n",
+            "ODOM 1 0 1.0 0 0 0 11.0\nODOM 0 0 0 0 0 0 10.0\n{}\n",
             flaser(2, "1 2", "9 9 0 9 9 0 10.25"),
-            flaser(2, "1 2", "9 9 0 9 9 0 12.0"),
         );
         let log = strict(&text).unwrap();
-        assert_eq!(log.odometry_poses(), vec![Pose2::new(9.0, 9.0, 0.0); 2]);
-        let p = log.interpolated_odometry_poses();
-        // A quarter of the way along the SE(2) path from (0, 0, 0) to (1, 0, 1).
+        assert_eq!(log.odometry_poses(), vec![Pose2::new(9.0, 9.0, 0.0)]);
+        let track = log.odometry_track().expect("two ODOM lines");
+        // A quarter of the way along the SE(2) path from (0, 0, 0) to (1, 0, 1), whatever the
+        // order of the lines.
         let (a, b) = (Pose2::new(0.0, 0.0, 0.0), Pose2::new(1.0, 0.0, 1.0));
         let d = a.between(&b);
         let expected = a.compose(&Pose2::new(0.25 * d.x, 0.25 * d.y, 0.25 * d.theta));
-        assert!((p[0].x - expected.x).abs() < 1e-12 && (p[0].theta - 0.25).abs() < 1e-12);
-        assert_eq!(p[1], Pose2::new(1.0, 0.0, 1.0));
+        let p = track.at(10.25);
+        assert!((p.x - expected.x).abs() < 1e-12 && (p.y - expected.y).abs() < 1e-12);
+        assert!((p.theta - 0.25).abs() < 1e-12);
+        // Outside their span, the end readings.
+        assert_eq!(track.at(12.0), b);
+        assert_eq!(track.at(9.0), a);
         let no_odom = strict(&flaser(2, "1 2", "9 8 0.1 7 6 0.2 1.0")).unwrap();
-        assert_eq!(
-            no_odom.interpolated_odometry_poses(),
-            vec![Pose2::new(7.0, 6.0, 0.2)]
-        );
+        assert!(no_odom.odometry_track().is_none());
     }
 }

@@ -9,6 +9,7 @@
 //! - [`matcher`]: Gauss–Newton scan-to-map matching, coarse to fine, with a robust loss.
 //! - [`surface`]: the endpoints each cell has seen, and a sub-cell refinement of a grid match.
 //! - [`mapper`]: the incremental front end (motion prior, de-skew, map-update rule).
+//! - [`odometry`]: which odometry a log's scans get, and how late its laser stamps run.
 //! - [`offline`]: the mapper over a whole log, and its grid as a raster.
 //! - [`map_image`]: occupancy rasters as ROS `map_server` PGM + YAML and as PNG.
 //! - [`text`]: what those text formats share: [`text::Timestamp`] (kept as written, so a
@@ -22,6 +23,7 @@ pub mod grid;
 pub mod map_image;
 pub mod mapper;
 pub mod matcher;
+pub mod odometry;
 pub mod offline;
 pub mod pose;
 pub mod relations;

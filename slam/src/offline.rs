@@ -5,6 +5,7 @@ use crate::carmen::{CarmenLog, LaserScan};
 use crate::grid::Grid;
 use crate::map_image::{OccupancyRaster, RasterError};
 use crate::mapper::{Mapper, MapperConfig, Scan, ScanResult};
+use crate::odometry::{Calibration, OdometrySource, calibrate};
 use crate::pose::Pose2;
 use crate::relations::Trajectory;
 
@@ -72,23 +73,28 @@ pub struct MapperRun {
     pub mapper: Mapper,
 }
 
-/// Maps a CARMEN log. Odometry, when `config.motion.use_odometry`, is each laser line's own
-/// odometry pose (what the benchmark's odometry baseline uses). `progress` is called after
-/// each scan with the number done.
+/// Maps a CARMEN log with `odometry`, one pose per scan (used when
+/// `config.motion.use_odometry`). `progress` is called after each scan with the number done.
 pub fn map_log(
     log: &CarmenLog,
     config: &MapperConfig,
     limits: &RangeLimits,
+    odometry: &[Pose2],
     mut progress: impl FnMut(usize),
 ) -> MapperRun {
+    assert_eq!(
+        odometry.len(),
+        log.scans.len(),
+        "one odometry pose per scan"
+    );
     let mut mapper = Mapper::new(*config);
     let mut results = Vec::with_capacity(log.scans.len());
-    for (done, laser) in log.scans.iter().enumerate() {
+    for (done, (laser, odometry)) in log.scans.iter().zip(odometry).enumerate() {
         let scan = Scan {
             time: laser.timestamp.seconds,
             hits: endpoints(laser, limits),
             hit_times: Vec::new(),
-            odometry: Some(laser.odometry),
+            odometry: Some(*odometry),
             sensor_offset: laser.laser_offset,
         };
         results.push(mapper.add_scan(&scan));
@@ -99,6 +105,53 @@ pub fn map_log(
         trajectory: Trajectory::from_scans(&log.scans, &poses),
         results,
         mapper,
+    }
+}
+
+/// A log mapped with the odometry that agrees best with its scans.
+#[derive(Debug, Clone)]
+pub struct CalibratedRun {
+    /// The run that was kept.
+    pub run: MapperRun,
+    /// The odometry it used.
+    pub odometry: OdometrySource,
+    /// How each source agreed with the first pass; `None` when odometry is off or the log has
+    /// no `ODOM` lines (the laser lines' odometry is then the only one).
+    pub calibration: Option<Calibration>,
+}
+
+/// Maps a CARMEN log with the laser lines' odometry, and when the log also has `ODOM` lines
+/// and odometry is on, calibrates their latency against that pass and maps the log again with
+/// them if they agree better (see [`crate::odometry`]). `progress` counts scans over both
+/// passes.
+pub fn map_log_calibrated(
+    log: &CarmenLog,
+    config: &MapperConfig,
+    limits: &RangeLimits,
+    mut progress: impl FnMut(usize),
+) -> CalibratedRun {
+    let first = map_log(log, config, limits, &log.odometry_poses(), &mut progress);
+    if !config.motion.use_odometry || log.odometry_track().is_none() {
+        return CalibratedRun {
+            run: first,
+            odometry: OdometrySource::LaserLines,
+            calibration: None,
+        };
+    }
+    let matched: Vec<Pose2> = first.results.iter().map(|r| r.pose).collect();
+    let calibration = calibrate(log, &matched);
+    let source = calibration.best();
+    let run = match source.poses(log) {
+        Some(poses) if source != OdometrySource::LaserLines => {
+            let done = log.scans.len();
+            map_log(log, config, limits, &poses, |n| progress(done + n))
+        }
+        _ => first,
+    };
+    CalibratedRun {
+        run,
+        odometry: source,
+        calibration: Some(calibration),
     }
 }
 

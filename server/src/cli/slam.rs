@@ -12,7 +12,8 @@ use scan3d_slam::carmen::{ReadOptions, read_log};
 use scan3d_slam::map_image::{Thresholds, write_pgm, write_png_with_trajectory, write_yaml};
 use scan3d_slam::mapper::{Mapper, MapperConfig};
 use scan3d_slam::matcher::Loss;
-use scan3d_slam::offline::{RangeLimits, map_log, raster};
+use scan3d_slam::odometry::{Calibration, MAX_LATENCY, OdometrySource};
+use scan3d_slam::offline::{RangeLimits, map_log, map_log_calibrated, raster};
 use scan3d_slam::pose::Pose2;
 use scan3d_slam::relations::{
     EvalOptions, Formula, RelationError, Trajectory, evaluate, read_relations, read_trajectory,
@@ -37,6 +38,15 @@ pub struct SlamArgs {
     /// Ignore odometry: a constant-velocity prior and a search window, as on a trolley.
     #[arg(long)]
     pub no_odometry: bool,
+    /// Odometry from the log's `ODOM` lines read this many seconds before each laser stamp.
+    /// Without it (or `--laser-odometry`), a log with `ODOM` lines is matched once with the
+    /// laser lines' own odometry, the `ODOM` lines' latency is estimated from that pass, and
+    /// the log is matched again with them when they agree better with the scans.
+    #[arg(long, value_name = "S", allow_negative_numbers = true, conflicts_with_all = ["no_odometry", "laser_odometry"])]
+    pub odometry_latency: Option<f64>,
+    /// Odometry from each laser line's own pose, in one pass (no calibration).
+    #[arg(long, conflicts_with = "no_odometry")]
+    pub laser_odometry: bool,
     /// Match scans against the map only (the one mode until loop closure lands).
     #[arg(long)]
     pub no_loop_closure: bool,
@@ -254,16 +264,51 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
             );
         }
         let limits = RangeLimits::for_log(&log, args.min_range, args.max_range);
-        let bar = progress_bar(log.scans.len() as u64, args.quiet);
-        let run = map_log(&log, &config, &limits, |done| {
+        let fixed = match (args.odometry_latency, args.laser_odometry) {
+            (Some(latency), _) => {
+                if !(latency.is_finite() && latency.abs() <= MAX_LATENCY) {
+                    bail!("--odometry-latency must be within ±{MAX_LATENCY} s, not {latency}");
+                }
+                Some(OdometrySource::Track { latency })
+            }
+            (None, true) => Some(OdometrySource::LaserLines),
+            (None, false) => None,
+        };
+        let calibrating =
+            fixed.is_none() && config.motion.use_odometry && log.odometry_track().is_some();
+        let passes = if calibrating { 2 } else { 1 };
+        let bar = progress_bar((passes * log.scans.len()) as u64, args.quiet);
+        let progress = |done: usize| {
             if let Some(bar) = &bar
-                && done % 256 == 0
+                && done.is_multiple_of(256)
             {
                 bar.set_position(done as u64);
             }
-        });
+        };
+        let (run, odometry) = match fixed {
+            Some(source) => {
+                let poses = source.poses(&log).with_context(|| {
+                    format!(
+                        "{}: --odometry-latency needs ODOM lines, and the log has none",
+                        args.input.display()
+                    )
+                })?;
+                (
+                    map_log(&log, &config, &limits, &poses, progress),
+                    describe(&source, None),
+                )
+            }
+            None => {
+                let calibrated = map_log_calibrated(&log, &config, &limits, progress);
+                let said = describe(&calibrated.odometry, calibrated.calibration.as_ref());
+                (calibrated.run, said)
+            }
+        };
         if let Some(bar) = bar {
             bar.finish_and_clear();
+        }
+        if config.motion.use_odometry {
+            writeln!(out, "odometry: {odometry}")?;
         }
         (run, "laser lines")
     };
@@ -296,6 +341,31 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         writeln!(out, "map {0}.pgm, {0}.yaml, {0}.png", stem.display())?;
     }
     Ok(())
+}
+
+/// One line on the odometry a log was matched with, and why.
+fn describe(source: &OdometrySource, calibration: Option<&Calibration>) -> String {
+    let chosen = match source {
+        OdometrySource::LaserLines => "the laser lines' own poses".to_owned(),
+        OdometrySource::Track { latency } => {
+            format!("the ODOM lines, read {latency:.3} s before each laser stamp")
+        }
+    };
+    match calibration {
+        None => chosen,
+        Some(c) => {
+            let track = c.track.map_or(String::new(), |(latency, disagreement)| {
+                format!(
+                    ", the ODOM lines at {latency:.3} s {:.3}°",
+                    disagreement.to_degrees()
+                )
+            });
+            format!(
+                "{chosen} (mean heading disagreement per scan with a first pass: the laser lines {:.3}°{track})",
+                c.laser_lines.to_degrees()
+            )
+        }
+    }
 }
 
 fn span(trajectory: &Trajectory) -> f64 {
