@@ -4,12 +4,18 @@
 //! An occupancy grid puts a wall at the centre of the cell its endpoints fall in, up to half a
 //! cell from the true face. Where a wall runs along the cell lattice every endpoint on it is off
 //! by the same amount, and a match against the grid inherits that offset; under range noise the
-//! wall is stored in whichever cell most endpoints fell in. The mean of
-//! the endpoints a cell has collected is where the wall is, to a fraction of a cell, and their
-//! scatter is how far a new endpoint may fall from it. [`refine`] takes a grid match and moves it
-//! so that each endpoint is likely under the nearest cell's Gaussian (the Normal Distributions
-//! Transform, Biber & Straßer 2003), by Gauss–Newton with the same robust loss and motion prior as
-//! the grid matcher.
+//! wall is stored in whichever cell most endpoints fell in. The mean of the endpoints around a
+//! cell is where the wall is, to a fraction of a cell, and their scatter is how far a new
+//! endpoint may fall from it. [`refine`] takes a grid match and moves it so that each endpoint is
+//! likely under the nearest cell's Gaussian (the Normal Distributions Transform, Biber & Straßer
+//! 2003), by Gauss–Newton with the same robust loss and motion prior as the grid matcher.
+//!
+//! Each cell's Gaussian is fitted to the endpoints of the 3×3 cells around it, not its own alone
+//! (as NDT's overlapping cells do). A far wall gets one endpoint every few cells from one
+//! revolution; alone, such a cell has no shape, and which cells have one depends on where that
+//! revolution's beams happened to fall, so a match against them turns with the beams' azimuths
+//! (±0.4° in the simulated room at rest). Pooled, every wall cell is a thin line along the wall,
+//! and an endpoint sliding along it costs little.
 
 // 2×2 and 3×3 algebra reads best with explicit indices.
 #![allow(clippy::needless_range_loop)]
@@ -77,6 +83,17 @@ impl Moments {
         self.xx += u * u;
         self.xy += u * v;
         self.yy += v * v;
+    }
+
+    /// Adds the endpoints `other` holds, whose corner is `(dx, dy)` from this one's.
+    fn merge(&mut self, other: &Moments, dx: f64, dy: f64) {
+        let n = f64::from(other.count);
+        self.count += other.count;
+        self.x += other.x + n * dx;
+        self.y += other.y + n * dy;
+        self.xx += other.xx + 2.0 * dx * other.x + n * dx * dx;
+        self.xy += other.xy + dx * other.y + dy * other.x + n * dx * dy;
+        self.yy += other.yy + 2.0 * dy * other.y + n * dy * dy;
     }
 
     /// The cell's Gaussian in the map frame (its corner at `corner`), once it has `min_points`
@@ -179,6 +196,7 @@ impl Surfaces {
     /// Adds the endpoints of one scan taken from `sensor_pose`, given in the sensor frame (as
     /// [`crate::grid::GridPyramid::integrate`] takes them).
     pub fn integrate(&mut self, sensor_pose: &Pose2, hits: &[(f64, f64)]) {
+        let mut touched = Vec::with_capacity(hits.len());
         for &(sx, sy) in hits {
             let (x, y) = sensor_pose.transform_point(sx, sy);
             if !(x.is_finite() && y.is_finite()) {
@@ -189,9 +207,44 @@ impl Surfaces {
                 f64::from(cell.0) * self.resolution,
                 f64::from(cell.1) * self.resolution,
             );
-            let entry = self.cells.entry(key(cell)).or_default();
-            entry.moments.add(x - corner.0, y - corner.1);
-            entry.normal = entry.moments.normal(corner, self.min_points, self.floor);
+            self.cells
+                .entry(key(cell))
+                .or_default()
+                .moments
+                .add(x - corner.0, y - corner.1);
+            touched.push(cell);
+        }
+        // Each cell's Gaussian pools its neighbours' endpoints: refit every cell next to one that
+        // changed, once.
+        let mut stale: Vec<(i32, i32)> = touched
+            .iter()
+            .flat_map(|&(i, j)| {
+                (-1..=1).flat_map(move |di| (-1..=1).map(move |dj| (i + di, j + dj)))
+            })
+            .collect();
+        stale.sort_unstable();
+        stale.dedup();
+        for cell in stale {
+            self.refit(cell);
+        }
+    }
+
+    /// Refits the Gaussian of `cell`, if it has endpoints, to the endpoints of the 3×3 cells
+    /// around it.
+    fn refit(&mut self, cell: (i32, i32)) {
+        let r = self.resolution;
+        let mut pooled = Moments::default();
+        for di in -1..=1 {
+            for dj in -1..=1 {
+                if let Some(c) = self.cells.get(&key((cell.0 + di, cell.1 + dj))) {
+                    pooled.merge(&c.moments, f64::from(di) * r, f64::from(dj) * r);
+                }
+            }
+        }
+        let corner = (f64::from(cell.0) * r, f64::from(cell.1) * r);
+        let normal = pooled.normal(corner, self.min_points, self.floor);
+        if let Some(c) = self.cells.get_mut(&key(cell)) {
+            c.normal = normal;
         }
     }
 
@@ -387,6 +440,30 @@ mod tests {
         surfaces.integrate(&Pose2::default(), &[(1.0, 1.0), (1.01, 1.0)]);
         assert!(surfaces.nearest(1.0, 1.0).is_none());
         assert_eq!(surfaces.len(), 2);
+    }
+
+    #[test]
+    fn a_cell_pools_the_endpoints_of_its_neighbours_into_a_line() {
+        let mut surfaces = Surfaces::new(0.05, &RefineConfig::default());
+        // One endpoint per cell along y = 0.02, as a far wall gives from one revolution.
+        let wall: Vec<_> = (0..5)
+            .map(|k| (0.025 + 0.05 * f64::from(k), 0.02))
+            .collect();
+        surfaces.integrate(&Pose2::default(), &wall);
+        // The middle cell fits its own endpoint and its two neighbours': mean on the wall...
+        let (normal, _) = surfaces
+            .nearest(0.125, 0.02)
+            .expect("three pooled endpoints");
+        assert!((normal.mean.0 - 0.125).abs() < 1e-12, "{normal:?}");
+        assert!((normal.mean.1 - 0.02).abs() < 1e-12, "{normal:?}");
+        // ...1 cm off the wall is one standard deviation (the floor's); along it the endpoints'
+        // own spread, (0.05² · 2/3) m², adds to the floor's, so one endpoint spacing is 1.2.
+        assert!((mahalanobis(&normal, 0.125, 0.03) - 1.0).abs() < 1e-9);
+        let along = 0.05f64.powi(2) / (0.05f64.powi(2) * 2.0 / 3.0 + 1e-4);
+        assert!((mahalanobis(&normal, 0.175, 0.02) - along).abs() < 1e-9);
+        // The end cells pool two endpoints, fewer than `min_points`: no Gaussian of their own.
+        let end = surfaces.cells.get(&key((0, 0))).expect("an endpoint");
+        assert!(end.normal.is_none());
     }
 
     /// A 6 m × 4 m room and a pillar, every wall a third of a 5 cm cell off the lattice, so a
