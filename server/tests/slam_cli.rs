@@ -212,7 +212,7 @@ fn slam_of_a_recorded_session_follows_the_rplidar_through_a_room() {
         .map(|l| l.split_whitespace().map(|v| v.parse().unwrap()).collect())
         .collect();
     assert_eq!(poses.len(), 30);
-    // Timestamps: each revolution's end on the edge clock, 0.18 s apart.
+    // Timestamps: the middle of each revolution's samples on the edge clock, 0.18 s apart.
     assert!(
         (poses[1][0] - poses[0][0] - 0.18).abs() < 1e-6,
         "{:?}",
@@ -237,13 +237,13 @@ fn slam_of_a_recorded_session_follows_the_rplidar_through_a_room() {
         .iter()
         .fold((0.0f64, 0.0f64), |a, e| (a.0.max(e.0), a.1.max(e.1)));
     eprintln!("errors (m, deg): {errors:.4?}");
-    // The revolution in which it starts moving is de-skewed with no motion yet (1.3° off);
-    // a few revolutions later the estimate is within millimetres.
-    assert!(worst.0 < 0.03 && worst.1 < 1.5, "worst {worst:?}");
+    // The revolution in which it starts moving is de-skewed with no motion yet (4 mm and 0.2°
+    // off at its middle); a few revolutions later the estimate is within a millimetre.
+    assert!(worst.0 < 0.01 && worst.1 < 0.3, "worst {worst:?}");
     let settled = errors[10..]
         .iter()
         .fold((0.0f64, 0.0f64), |a, e| (a.0.max(e.0), a.1.max(e.1)));
-    assert!(settled.0 < 0.005 && settled.1 < 0.1, "settled {settled:?}");
+    assert!(settled.0 < 0.001 && settled.1 < 0.03, "settled {settled:?}");
 }
 
 #[test]

@@ -108,12 +108,12 @@ pub struct Scan {
     /// Beam endpoints with a return, in the sensor frame (m).
     pub hits: Vec<(f64, f64)>,
     /// Per endpoint in `hits`, its time relative to `time` (s), when the lidar gives one: the
-    /// scan is then de-skewed. Empty for an instantaneous scan. Stamp a revolution at its end
-    /// (times ≤ 0): its beams then lie inside the interval whose motion the match finds, and
-    /// are interpolated rather than extrapolated (in the simulated room: 0.13° RMS heading
-    /// error against 0.30° when stamped at the start).
+    /// scan is then de-skewed, and its pose is for the middle of these times (see
+    /// [`Mapper::add_scan`]). Empty for an instantaneous scan.
     pub hit_times: Vec<f64>,
-    /// The robot's wheel-odometry pose at `time`, if there is odometry.
+    /// The robot's wheel-odometry pose at `time`, if there is odometry. Its change from one
+    /// scan to the next is taken as the motion between their poses (for scans with per-beam
+    /// times, between the middles of their beams: stamp every scan at the same point of it).
     pub odometry: Option<Pose2>,
     /// The sensor's pose on the robot.
     pub sensor_offset: Pose2,
@@ -122,7 +122,10 @@ pub struct Scan {
 /// What the mapper did with one scan.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ScanResult {
-    /// The robot pose at the scan's time, in the map frame.
+    /// The time the pose is for (s): the scan's `time`, or for a scan with per-beam times the
+    /// middle of its beams.
+    pub time: f64,
+    /// The robot pose at `time`, in the map frame.
     pub pose: Pose2,
     /// The pose the motion model predicted.
     pub predicted: Pose2,
@@ -185,7 +188,28 @@ impl Mapper {
     }
 
     /// Matches a scan against the map, integrates it when due, and returns its pose.
+    ///
+    /// A scan with per-beam times is matched, and its pose returned, at the middle of its
+    /// beams' times ([`ScanResult::time`]), not at its stamp. A wrong velocity bends a
+    /// revolution symmetrically about its middle, so the pose there is the one the scan fixes
+    /// whatever the velocity; and the velocity between two such poses does not carry one
+    /// scan's error into the next. Matched at the stamp instead, a heading error returned with
+    /// the opposite sign one revolution later (the de-skew uses the motion from the last pose,
+    /// error included), and the pose at the stamp is an extrapolation half a revolution long.
     pub fn add_scan(&mut self, scan: &Scan) -> ScanResult {
+        let timed = !scan.hit_times.is_empty() && scan.hit_times.len() == scan.hits.len();
+        // The reference time within the scan, relative to its stamp.
+        let middle = if timed {
+            middle_of(&scan.hit_times)
+        } else {
+            0.0
+        };
+        let reference = scan.time + middle;
+        let relative: Vec<f64> = if timed {
+            scan.hit_times.iter().map(|t| t - middle).collect()
+        } else {
+            Vec::new()
+        };
         let Some(last) = self.last else {
             let pose = scan
                 .odometry
@@ -193,13 +217,14 @@ impl Mapper {
                 .unwrap_or_default();
             self.integrate(scan, &pose, &scan.hits);
             self.last = Some(Last {
-                time: scan.time,
+                time: reference,
                 pose,
                 odometry: scan.odometry,
                 motion: Pose2::default(),
                 interval: 0.0,
             });
             return ScanResult {
+                time: reference,
                 pose,
                 predicted: pose,
                 covariance: None,
@@ -207,20 +232,12 @@ impl Mapper {
                 integrated: true,
             };
         };
-        let dt = scan.time - last.time;
+        let dt = reference - last.time;
         let (motion, information, from_odometry) = self.predict(&last, scan, dt);
         let predicted = last.pose.compose(&motion);
 
-        // Per-beam times, one per endpoint: the scan is de-skewed.
-        let timed = !scan.hit_times.is_empty() && scan.hit_times.len() == scan.hits.len();
         let hits = if timed {
-            deskew(
-                &scan.hits,
-                &scan.hit_times,
-                &scan.sensor_offset,
-                &motion,
-                dt,
-            )
+            deskew(&scan.hits, &relative, &scan.sensor_offset, &motion, dt)
         } else {
             scan.hits.clone()
         };
@@ -248,9 +265,9 @@ impl Mapper {
         let mut pose = matched.pose.compose(&scan.sensor_offset.inverse());
         let mut hits = hits;
         if timed && dt > 0.0 {
-            // De-skew again with the motion the match found, and refine.
+            // De-skew again with the motion the match found, and match again.
             let found = last.pose.between(&pose);
-            hits = deskew(&scan.hits, &scan.hit_times, &scan.sensor_offset, &found, dt);
+            hits = deskew(&scan.hits, &relative, &scan.sensor_offset, &found, dt);
             matched = match_scan(
                 &self.map,
                 &hits,
@@ -274,14 +291,16 @@ impl Mapper {
             pose = refined.pose.compose(&scan.sensor_offset.inverse());
         }
         let integrated = trusted && self.due(&pose) && self.integrate(scan, &pose, &hits);
+        let found = last.pose.between(&pose);
         self.last = Some(Last {
-            time: scan.time,
+            time: reference,
             pose,
             odometry: scan.odometry,
-            motion: last.pose.between(&pose),
+            motion: found,
             interval: dt,
         });
         ScanResult {
+            time: reference,
             pose,
             predicted,
             covariance: trusted.then_some(matched.covariance),
@@ -358,6 +377,20 @@ impl Mapper {
     }
 }
 
+/// The middle of a scan's beam times: halfway between the first and the last.
+fn middle_of(times: &[f64]) -> f64 {
+    let (lo, hi) = times
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &t| {
+            (lo.min(t), hi.max(t))
+        });
+    if lo.is_finite() && hi.is_finite() {
+        0.5 * (lo + hi)
+    } else {
+        0.0
+    }
+}
+
 /// Moves each endpoint to where it would have been seen from the sensor pose at the scan's
 /// time, given the robot's `motion` over the `interval` that ends at the scan (constant
 /// velocity in between): a beam taken `t` seconds after the scan time was seen from the robot
@@ -389,6 +422,25 @@ fn deskew(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_timed_scans_pose_is_for_the_middle_of_its_beams_and_an_instant_scans_for_its_stamp() {
+        let mut mapper = Mapper::new(MapperConfig::default());
+        let hits = vec![(2.0, 0.0), (0.0, 2.0), (-2.0, 0.0)];
+        let timed = Scan {
+            time: 10.0,
+            hits: hits.clone(),
+            hit_times: vec![-0.18, -0.1, -0.02],
+            ..Scan::default()
+        };
+        assert!((mapper.add_scan(&timed).time - 9.9).abs() < 1e-12);
+        let instant = Scan {
+            time: 10.5,
+            hits,
+            ..Scan::default()
+        };
+        assert_eq!(mapper.add_scan(&instant).time, 10.5);
+    }
 
     #[test]
     fn a_beam_taken_after_the_scan_time_is_moved_by_the_motion_since() {

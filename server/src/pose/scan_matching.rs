@@ -2,10 +2,11 @@
 //! [`Scan`]s for `scan3d-slam`'s mapper, each beam with its own time so the revolution is
 //! de-skewed (at 5.5 Hz and 0.5 rad/s a revolution turns 5°).
 //!
-//! A revolution's scan time is its end (`t1_ns`), so its beams lie in the 1/5.5 s before it and
-//! are placed by interpolating the motion over the previous interval, not extrapolating it.
-//! Times are the edge's monotonic clock: one clock for the whole session is what matching
-//! needs. The trajectory's timestamps are those times in seconds, with six decimals.
+//! A revolution's scan time is its end (`t1_ns`), its beams timed back from it; the mapper
+//! returns each revolution's pose for the middle of its beams, and that is the time the
+//! trajectory gives it. Times are the edge's monotonic clock: one clock for the whole session
+//! is what matching needs. The trajectory's timestamps are those times in seconds, with six
+//! decimals.
 
 use std::path::Path;
 
@@ -53,8 +54,8 @@ pub fn revolution_scan(
 }
 
 /// Matches every RPLidar revolution of a recorded session, in recording order, streaming the
-/// recording (memory: the map, not the session); the trajectory is stamped with each
-/// revolution's end (edge clock, s). A damaged recording fails with
+/// recording (memory: the map, not the session); each pose of the trajectory is stamped with
+/// the time it is for, the middle of its revolution's beams (edge clock, s). A damaged recording fails with
 /// [`RecorderError::Damaged`] unless `lenient` (then the readable rest is mapped, with a
 /// warning); frames the server could not decode are counted in the returned report, not
 /// fatal. `progress` gets the revolutions done.
@@ -75,7 +76,7 @@ pub fn map_session(
             let scan = revolution_scan(revolution, limits);
             let result = mapper.add_scan(&scan);
             poses.push(TrajectoryPose {
-                timestamp: Timestamp::from_seconds(scan.time),
+                timestamp: Timestamp::from_seconds(result.time),
                 pose: result.pose,
             });
             results.push(result);

@@ -120,7 +120,8 @@ impl SessionBuilder {
     /// `n` RPLidar revolutions of `samples` samples each from a lidar 0.2 m up that starts at
     /// `start` (x, y, heading in rad) and moves at constant `velocity` (m/s along x and y of the
     /// room, rad/s): each sample is ray-cast from where the lidar is at that sample's time.
-    /// Returns the true pose (x, y, heading) at each revolution's end.
+    /// Returns the true pose (x, y, heading) at the middle of each revolution's samples, the
+    /// time the mapper gives a revolution's pose.
     pub fn rplidar_moving(
         &mut self,
         n: usize,
@@ -137,9 +138,11 @@ impl SessionBuilder {
                 start[2] + velocity[2] * t,
             ]
         };
-        let mut ends = Vec::with_capacity(n);
+        let mut middles = Vec::with_capacity(n);
         for _ in 0..n {
             let t1 = self.t_ns + 180_000_000;
+            let last = self.t_ns + (samples as u64 - 1) * 180_000_000 / samples as u64;
+            middles.push(pose_at(self.t_ns + (last - self.t_ns) / 2));
             let mut rev = LidarRevolution::new(SensorId::RPLIDAR, self.t_ns, t1);
             for i in 0..samples {
                 let t = self.t_ns + (i as u64) * 180_000_000 / samples as u64;
@@ -152,10 +155,9 @@ impl SessionBuilder {
                     .expect("sample time");
             }
             self.t_ns = t1;
-            ends.push(pose_at(t1));
             self.push(rev);
         }
-        ends
+        middles
     }
 
     /// A static scan at `position`: `revolutions` Sweep revolutions of `samples` samples, the
