@@ -237,13 +237,9 @@ fn slam_of_a_recorded_session_follows_the_rplidar_through_a_room() {
         .iter()
         .fold((0.0f64, 0.0f64), |a, e| (a.0.max(e.0), a.1.max(e.1)));
     eprintln!("errors (m, deg): {errors:.4?}");
-    // The revolution in which it starts moving is de-skewed with no motion yet (4 mm and 0.2°
-    // off at its middle); a few revolutions later the estimate is within a millimetre.
-    assert!(worst.0 < 0.01 && worst.1 < 0.3, "worst {worst:?}");
-    let settled = errors[10..]
-        .iter()
-        .fold((0.0f64, 0.0f64), |a, e| (a.0.max(e.0), a.1.max(e.1)));
-    assert!(settled.0 < 0.001 && settled.1 < 0.03, "settled {settled:?}");
+    // Even the revolution in which it starts moving, which the motion so far says is standing
+    // still: the refinement finds its velocity with its pose.
+    assert!(worst.0 < 0.001 && worst.1 < 0.02, "worst {worst:?}");
 }
 
 #[test]

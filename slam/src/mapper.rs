@@ -10,7 +10,7 @@
 use crate::grid::{GridPyramid, UpdateModel};
 use crate::matcher::{Match, MatchConfig, Matrix3, Prior, SearchWindow, match_scan, search};
 use crate::pose::{Pose2, wrap_angle};
-use crate::surface::{RefineConfig, Surfaces, refine};
+use crate::surface::{RefineConfig, Surfaces, Sweep, refine};
 
 /// How the pose is predicted before matching, and how much the prediction is trusted.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -281,14 +281,46 @@ impl Mapper {
         if !trusted {
             pose = predicted;
         } else if self.config.refine.enabled {
+            let (offsets, velocity) = if timed && dt > 0.0 {
+                // The sensor's velocity from the last pose to this grid match, in the map frame.
+                let from = last.pose.compose(&scan.sensor_offset);
+                let to = matched.pose;
+                let velocity = [
+                    (to.x - from.x) / dt,
+                    (to.y - from.y) / dt,
+                    wrap_angle(to.theta - from.theta) / dt,
+                ];
+                (relative.as_slice(), velocity)
+            } else {
+                (&[][..], [0.0; 3])
+            };
+            let (sigma_t, sigma_r) = (
+                self.config.refine.velocity_translation_sigma,
+                self.config.refine.velocity_rotation_sigma,
+            );
+            let sweep = Sweep {
+                offsets,
+                velocity,
+                information: [
+                    1.0 / (sigma_t * sigma_t),
+                    1.0 / (sigma_t * sigma_t),
+                    1.0 / (sigma_r * sigma_r),
+                ],
+            };
+            let sweep = (!offsets.is_empty()).then_some(&sweep);
+            let points = if sweep.is_some() { &scan.hits } else { &hits };
             let refined = refine(
                 &self.surfaces,
-                &hits,
+                points,
                 matched.pose,
+                sweep,
                 Some(&prior),
                 &self.config.refine,
             );
             pose = refined.pose.compose(&scan.sensor_offset.inverse());
+            if let (Some(sweep), Some(velocity), true) = (sweep, refined.velocity, refined.taken) {
+                hits = sweep.place(&scan.hits, &refined.pose, &velocity);
+            }
         }
         let integrated = trusted && self.due(&pose) && self.integrate(scan, &pose, &hits);
         let found = last.pose.between(&pose);

@@ -24,7 +24,7 @@ use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
 
 use crate::grid::cell_containing;
-use crate::matcher::{Loss, Matrix3, Prior, fill_lower, solve};
+use crate::matcher::{Loss, Matrix3, Prior, solve};
 use crate::pose::Pose2;
 
 /// How the grid match is refined against the cells' endpoint statistics.
@@ -46,6 +46,12 @@ pub struct RefineConfig {
     pub max_translation: f64,
     /// ...or turn it more than this (rad) is not taken: the grid match stands.
     pub max_rotation: f64,
+    /// For a scan with per-beam times (a revolution): how far its own velocity may be from the
+    /// motion between the previous scan's pose and this one's grid match, one standard
+    /// deviation along x and y (m/s)...
+    pub velocity_translation_sigma: f64,
+    /// ...and in heading (rad/s). The refinement finds the velocity with the pose.
+    pub velocity_rotation_sigma: f64,
 }
 
 impl Default for RefineConfig {
@@ -58,6 +64,8 @@ impl Default for RefineConfig {
             loss: Loss::Cauchy { c: 2.0 },
             max_translation: 0.05,
             max_rotation: 0.02,
+            velocity_translation_sigma: 0.2,
+            velocity_rotation_sigma: 0.2,
         }
     }
 }
@@ -279,11 +287,64 @@ fn mahalanobis(normal: &Normal, x: f64, y: f64) -> f64 {
     ex * (l[0][0] * ex + l[0][1] * ey) + ey * (l[1][0] * ex + l[1][1] * ey)
 }
 
+/// A scan taken while the sensor moved (a lidar revolution), for [`refine`]: when each endpoint
+/// was seen, relative to the time of the pose being refined, and what the sensor's velocity is
+/// thought to be. The refinement then finds the velocity with the pose: endpoint `i` was seen
+/// from `pose + offsets[i] · velocity` (x, y and ψ alike, in the map frame; first order over a
+/// revolution). A revolution fixes its middle pose best and its velocity a little; the prior
+/// on the velocity says how little.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Sweep<'a> {
+    /// Per endpoint, its time minus the pose's time (s).
+    pub offsets: &'a [f64],
+    /// The velocity's prior mean: the sensor's x, y (m/s) and ψ (rad/s) rates in the map frame.
+    pub velocity: [f64; 3],
+    /// The prior's information per component (1/σ²).
+    pub information: [f64; 3],
+}
+
+impl Sweep<'_> {
+    /// Where endpoint `i` was seen from, with the sweep's pose at `pose` and velocity `velocity`.
+    fn seen_from(&self, i: usize, pose: &Pose2, velocity: &[f64; 3]) -> (Pose2, f64) {
+        let t = self.offsets[i];
+        (
+            Pose2::new(
+                pose.x + t * velocity[0],
+                pose.y + t * velocity[1],
+                pose.theta + t * velocity[2],
+            ),
+            t,
+        )
+    }
+
+    /// The endpoints `points` of this sweep, each seen from its own pose along `velocity`,
+    /// placed in the frame of `pose`: the scan de-skewed to the pose's time.
+    pub fn place(
+        &self,
+        points: &[(f64, f64)],
+        pose: &Pose2,
+        velocity: &[f64; 3],
+    ) -> Vec<(f64, f64)> {
+        let to_pose = pose.inverse();
+        points
+            .iter()
+            .enumerate()
+            .map(|(i, &(x, y))| {
+                let (seen, _) = self.seen_from(i, pose, velocity);
+                let (mx, my) = seen.transform_point(x, y);
+                to_pose.transform_point(mx, my)
+            })
+            .collect()
+    }
+}
+
 /// What a refinement did.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Refinement {
     /// The refined sensor pose (the start when the refinement was not taken).
     pub pose: Pose2,
+    /// With a [`Sweep`], the refined velocity (its prior mean when not taken).
+    pub velocity: Option<[f64; 3]>,
     /// Endpoints that had a cell to be matched against, at the refined pose.
     pub matched: usize,
     /// Gauss–Newton iterations run.
@@ -292,11 +353,12 @@ pub struct Refinement {
     pub taken: bool,
 }
 
-/// The robust cost, Gauss–Newton Hessian and right-hand side at one pose.
+/// The robust cost, Gauss–Newton Hessian and right-hand side at one pose (and velocity): the
+/// unknowns are x, y, ψ, then with a sweep the three velocity components.
 struct Linearised {
     cost: f64,
-    hessian: Matrix3,
-    gradient: [f64; 3],
+    hessian: [[f64; 6]; 6],
+    gradient: [f64; 6],
     matched: usize,
 }
 
@@ -304,16 +366,20 @@ fn linearise(
     surfaces: &Surfaces,
     points: &[(f64, f64)],
     pose: &Pose2,
+    sweep: Option<&Sweep>,
+    velocity: &[f64; 3],
     prior: Option<&Prior>,
     loss: &Loss,
 ) -> Linearised {
-    let (s, c) = pose.theta.sin_cos();
-    let mut h = [[0.0; 3]; 3];
-    let mut g = [0.0; 3];
+    let unknowns = if sweep.is_some() { 6 } else { 3 };
+    let mut h = [[0.0; 6]; 6];
+    let mut g = [0.0; 6];
     let mut cost = 0.0;
     let mut matched = 0;
-    for &(px, py) in points {
-        let (mx, my) = (pose.x + c * px - s * py, pose.y + s * px + c * py);
+    for (i, &(px, py)) in points.iter().enumerate() {
+        let (seen, t) = sweep.map_or((*pose, 0.0), |sweep| sweep.seen_from(i, pose, velocity));
+        let (s, c) = seen.theta.sin_cos();
+        let (mx, my) = (seen.x + c * px - s * py, seen.y + s * px + c * py);
         let Some((normal, d2)) = surfaces.nearest(mx, my) else {
             continue;
         };
@@ -323,24 +389,50 @@ fn linearise(
         let w = loss.weight(d);
         let l = &normal.information;
         let e = [normal.mean.0 - mx, normal.mean.1 - my];
-        // ∂m/∂ξ, columns x, y, ψ.
-        let jac = [[1.0, 0.0, -s * px - c * py], [0.0, 1.0, c * px - s * py]];
-        for a in 0..3 {
+        // ∂m/∂ξ, columns x, y, ψ, then the velocity's (the same, times the endpoint's offset).
+        let (jx, jy) = (-s * px - c * py, c * px - s * py);
+        let jac = [
+            [1.0, 0.0, jx, t, 0.0, t * jx],
+            [0.0, 1.0, jy, 0.0, t, t * jy],
+        ];
+        for a in 0..unknowns {
             // Row a of Jᵀ Λ.
             let jl = [
                 jac[0][a] * l[0][0] + jac[1][a] * l[1][0],
                 jac[0][a] * l[0][1] + jac[1][a] * l[1][1],
             ];
             g[a] += w * (jl[0] * e[0] + jl[1] * e[1]);
-            for b in a..3 {
+            for b in a..unknowns {
                 h[a][b] += w * (jl[0] * jac[0][b] + jl[1] * jac[1][b]);
             }
         }
     }
     if let Some(prior) = prior {
-        cost += prior.add_to(pose, &mut h, &mut g);
+        let mut pose_block = [[0.0; 3]; 3];
+        let mut pose_gradient = [0.0; 3];
+        for a in 0..3 {
+            pose_block[a] = [h[a][0], h[a][1], h[a][2]];
+            pose_gradient[a] = g[a];
+        }
+        cost += prior.add_to(pose, &mut pose_block, &mut pose_gradient);
+        for a in 0..3 {
+            h[a][..3].copy_from_slice(&pose_block[a]);
+            g[a] = pose_gradient[a];
+        }
     }
-    fill_lower(&mut h);
+    if let Some(sweep) = sweep {
+        for k in 0..3 {
+            let e = velocity[k] - sweep.velocity[k];
+            cost += sweep.information[k] * e * e;
+            g[3 + k] -= sweep.information[k] * e;
+            h[3 + k][3 + k] += sweep.information[k];
+        }
+    }
+    for a in 0..6 {
+        for b in 0..a {
+            h[a][b] = h[b][a];
+        }
+    }
     Linearised {
         cost,
         hessian: h,
@@ -349,24 +441,50 @@ fn linearise(
     }
 }
 
+/// The Gauss–Newton step of `at` over its first `unknowns` unknowns.
+fn step(at: &Linearised, unknowns: usize) -> Option<[f64; 6]> {
+    if unknowns == 3 {
+        let h: Matrix3 = [0, 1, 2].map(|a| [at.hessian[a][0], at.hessian[a][1], at.hessian[a][2]]);
+        let s = solve(&h, &[at.gradient[0], at.gradient[1], at.gradient[2]])?;
+        return Some([s[0], s[1], s[2], 0.0, 0.0, 0.0]);
+    }
+    let h = nalgebra::Matrix6::from_fn(|a, b| at.hessian[a][b]);
+    let s = h
+        .cholesky()?
+        .solve(&nalgebra::Vector6::from_column_slice(&at.gradient));
+    Some([s[0], s[1], s[2], s[3], s[4], s[5]])
+}
+
 /// Moves `start` (a sensor pose from the grid matcher) so that `points` (endpoints in the
-/// sensor frame) fit the cells' Gaussians best, under `prior`. The start stands (`taken` is
-/// false) when fewer than a tenth of the endpoints, or fewer than 10, have a cell to match, or
-/// when the refined pose is farther from it than the configured bounds: the refinement corrects
-/// within a cell, it does not relocalise.
+/// sensor frame) fit the cells' Gaussians best, under `prior`; with a `sweep`, each endpoint
+/// is seen from its own pose along the sweep's velocity, which is refined too. The start stands
+/// (`taken` is false) when fewer than a tenth of the endpoints, or fewer than 10, have a cell
+/// to match, or when the refined pose is farther from it than the configured bounds: the
+/// refinement corrects within a cell, it does not relocalise.
 pub fn refine(
     surfaces: &Surfaces,
     points: &[(f64, f64)],
     start: Pose2,
+    sweep: Option<&Sweep>,
     prior: Option<&Prior>,
     config: &RefineConfig,
 ) -> Refinement {
+    assert!(
+        sweep.is_none_or(|s| s.offsets.len() == points.len()),
+        "one sweep offset per point"
+    );
+    let unknowns = if sweep.is_some() { 6 } else { 3 };
     let enough = (points.len() / 10).max(10);
     let mut pose = start;
+    let mut velocity = sweep.map_or([0.0; 3], |s| s.velocity);
+    let at_pose = |pose: &Pose2, velocity: &[f64; 3]| {
+        linearise(surfaces, points, pose, sweep, velocity, prior, &config.loss)
+    };
     let mut iterations = 0;
-    let mut at = linearise(surfaces, points, &pose, prior, &config.loss);
+    let mut at = at_pose(&pose, &velocity);
     let refused = |matched, iterations| Refinement {
         pose: start,
+        velocity: sweep.map(|s| s.velocity),
         matched,
         iterations,
         taken: false,
@@ -376,7 +494,7 @@ pub fn refine(
     }
     while iterations < config.iterations {
         iterations += 1;
-        let Some(step) = solve(&at.hessian, &at.gradient) else {
+        let Some(step) = step(&at, unknowns) else {
             break;
         };
         let mut accepted = None;
@@ -386,16 +504,18 @@ pub fn refine(
                 pose.y + fraction * step[1],
                 pose.theta + fraction * step[2],
             );
-            let next = linearise(surfaces, points, &candidate, prior, &config.loss);
+            let moved = [0, 1, 2].map(|k| velocity[k] + fraction * step[3 + k]);
+            let next = at_pose(&candidate, &moved);
             if next.matched >= enough && next.cost < at.cost {
-                accepted = Some((candidate, next, fraction));
+                accepted = Some((candidate, moved, next, fraction));
                 break;
             }
         }
-        let Some((candidate, next, fraction)) = accepted else {
+        let Some((candidate, moved, next, fraction)) = accepted else {
             break;
         };
         pose = candidate;
+        velocity = moved;
         at = next;
         if fraction * step[0].hypot(step[1]) < 1e-6 && (fraction * step[2]).abs() < 1e-7 {
             break;
@@ -407,6 +527,7 @@ pub fn refine(
     }
     Refinement {
         pose,
+        velocity: sweep.map(|_| velocity),
         matched: at.matched,
         iterations,
         taken: true,
@@ -419,7 +540,7 @@ mod tests {
     use crate::grid::{GridPyramid, UpdateModel};
     use crate::matcher::{MatchConfig, match_scan};
     use crate::pose::wrap_angle;
-    use crate::testing::{Segment, cast, rectangle};
+    use crate::testing::{Segment, cast, cast_beam, rectangle};
 
     #[test]
     fn a_cell_holds_the_mean_and_spread_of_its_endpoints() {
@@ -507,6 +628,7 @@ mod tests {
             &scan,
             matched.pose,
             None,
+            None,
             &RefineConfig::default(),
         );
         assert!(refined.taken && refined.matched > 300, "{refined:?}");
@@ -524,6 +646,72 @@ mod tests {
     }
 
     #[test]
+    fn a_sweep_refinement_finds_the_velocity_a_revolution_was_taken_at() {
+        let (_, surfaces) = mapped();
+        // One revolution of 720 beams in 0.18 s, turning at 0.6 rad/s and moving at 0.4 m/s;
+        // its middle pose is the truth, each beam is cast from where the sensor was at its time.
+        let truth = Pose2::new(0.12, 0.07, 0.3);
+        let velocity = [0.4 * 0.3f64.cos(), 0.4 * 0.3f64.sin(), 0.6];
+        let period = 0.18;
+        let mut points = Vec::new();
+        let mut offsets = Vec::new();
+        for k in 0..720 {
+            let t = period * (f64::from(k) / 720.0 - 0.5);
+            let seen = Pose2::new(
+                truth.x + t * velocity[0],
+                truth.y + t * velocity[1],
+                truth.theta + t * velocity[2],
+            );
+            // Clockwise, as the RPLidar turns.
+            let azimuth = -std::f64::consts::TAU * f64::from(k) / 720.0;
+            if let Some(point) = cast_beam(&walls(), &seen, azimuth) {
+                points.push(point);
+                offsets.push(t);
+            }
+        }
+        // The prior: standing still, loosely.
+        let sweep = Sweep {
+            offsets: &offsets,
+            velocity: [0.0; 3],
+            information: [25.0, 25.0, 25.0],
+        };
+        let start = Pose2::new(0.13, 0.06, 0.31);
+        let config = RefineConfig {
+            iterations: 30,
+            ..RefineConfig::default()
+        };
+        let moving = refine(&surfaces, &points, start, Some(&sweep), None, &config);
+        let rigid = refine(&surfaces, &points, start, None, None, &config);
+        assert!(moving.taken && rigid.taken, "{moving:?} {rigid:?}");
+        let found = moving.velocity.expect("a sweep's velocity");
+        let (t, r) = error(&moving.pose, &truth);
+        let (rigid_t, rigid_r) = error(&rigid.pose, &truth);
+        assert!(
+            t < 1e-3 && r < 0.02f64.to_radians(),
+            "sweep {:.2} mm {:.4}°, rigid {:.2} mm {:.4}°",
+            t * 1e3,
+            r.to_degrees(),
+            rigid_t * 1e3,
+            rigid_r.to_degrees()
+        );
+        // Matched rigidly about its middle, the revolution's 6° turn bends it symmetrically and
+        // the heading comes out right, but the bent scan sits 5 mm off.
+        assert!(
+            rigid_t > 10.0 * t,
+            "sweep {t} m {r} rad, rigid {rigid_t} m {rigid_r} rad"
+        );
+        assert!((found[2] - velocity[2]).abs() < 0.05, "{found:?}");
+        assert!(
+            (found[0] - velocity[0]).hypot(found[1] - velocity[1]) < 0.05,
+            "{found:?}"
+        );
+        // Placed at the middle pose with that velocity, the beams fit the walls again.
+        let placed = sweep.place(&points, &moving.pose, &found);
+        let again = refine(&surfaces, &placed, moving.pose, None, None, &config);
+        assert!(error(&again.pose, &moving.pose).0 < 1e-3, "{again:?}");
+    }
+
+    #[test]
     fn a_refinement_past_its_bounds_or_without_cells_leaves_the_start() {
         let (_, surfaces) = mapped();
         let truth = Pose2::new(0.12, 0.07, 0.3);
@@ -533,16 +721,23 @@ mod tests {
             max_translation: 0.002,
             ..RefineConfig::default()
         };
-        let refused = refine(&surfaces, &scan, start, None, &config);
+        let refused = refine(&surfaces, &scan, start, None, None, &config);
         assert!(!refused.taken && refused.pose == start, "{refused:?}");
-        let taken = refine(&surfaces, &scan, start, None, &RefineConfig::default());
+        let taken = refine(
+            &surfaces,
+            &scan,
+            start,
+            None,
+            None,
+            &RefineConfig::default(),
+        );
         assert!(
             taken.taken && error(&taken.pose, &truth).0 < 1e-3,
             "{taken:?}"
         );
 
         let empty = Surfaces::new(0.05, &RefineConfig::default());
-        let alone = refine(&empty, &scan, start, None, &RefineConfig::default());
+        let alone = refine(&empty, &scan, start, None, None, &RefineConfig::default());
         assert!(!alone.taken && alone.pose == start && alone.matched == 0);
     }
 }

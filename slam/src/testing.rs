@@ -10,27 +10,33 @@ pub(crate) type Segment = ((f64, f64), (f64, f64));
 pub(crate) fn cast(segments: &[Segment], pose: &Pose2, beams: u32) -> Vec<(f64, f64)> {
     (0..beams)
         .filter_map(|k| {
-            let b = std::f64::consts::TAU * f64::from(k) / f64::from(beams);
-            let (dy, dx) = (pose.theta + b).sin_cos();
-            let range = segments
-                .iter()
-                .filter_map(|&((x1, y1), (x2, y2))| {
-                    let (ex, ey) = (x2 - x1, y2 - y1);
-                    let den = dx * ey - dy * ex;
-                    if den.abs() < 1e-12 {
-                        return None;
-                    }
-                    let (wx, wy) = (x1 - pose.x, y1 - pose.y);
-                    let t = (wx * ey - wy * ex) / den;
-                    let u = (wx * dy - wy * dx) / den;
-                    (t > 0.0 && (0.0..=1.0).contains(&u)).then_some(t)
-                })
-                .fold(f64::INFINITY, f64::min);
-            range
-                .is_finite()
-                .then(|| (range * b.cos(), range * b.sin()))
+            let azimuth = std::f64::consts::TAU * f64::from(k) / f64::from(beams);
+            cast_beam(segments, pose, azimuth)
         })
         .collect()
+}
+
+/// The endpoint (sensor frame) of one beam from `pose` at `azimuth` (rad, sensor frame), at the
+/// nearest of `segments` it meets.
+pub(crate) fn cast_beam(segments: &[Segment], pose: &Pose2, azimuth: f64) -> Option<(f64, f64)> {
+    let (dy, dx) = (pose.theta + azimuth).sin_cos();
+    let range = segments
+        .iter()
+        .filter_map(|&((x1, y1), (x2, y2))| {
+            let (ex, ey) = (x2 - x1, y2 - y1);
+            let den = dx * ey - dy * ex;
+            if den.abs() < 1e-12 {
+                return None;
+            }
+            let (wx, wy) = (x1 - pose.x, y1 - pose.y);
+            let t = (wx * ey - wy * ex) / den;
+            let u = (wx * dy - wy * dx) / den;
+            (t > 0.0 && (0.0..=1.0).contains(&u)).then_some(t)
+        })
+        .fold(f64::INFINITY, f64::min);
+    range
+        .is_finite()
+        .then(|| (range * azimuth.cos(), range * azimuth.sin()))
 }
 
 /// The four walls of an axis-aligned room from `(x0, y0)` to `(x1, y1)`, counter-clockwise.

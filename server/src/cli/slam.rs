@@ -128,6 +128,17 @@ fn validate(config: &MapperConfig) -> anyhow::Result<()> {
     if !(robust.is_finite() && robust > 0.0) {
         bail!("refine.loss: its delta or c must be positive");
     }
+    for (name, v) in [
+        (
+            "refine.velocity_translation_sigma",
+            r.velocity_translation_sigma,
+        ),
+        ("refine.velocity_rotation_sigma", r.velocity_rotation_sigma),
+    ] {
+        if !(v.is_finite() && v > 0.0) {
+            bail!("{name} must be positive, not {v}");
+        }
+    }
     let s = &config.motion.velocity_search;
     if s.angle > 0.0 && (s.angle_step <= 0.0 || s.angle / s.angle_step > 1000.0) {
         bail!("motion.velocity_search: angle / angle_step must be at most 1000");
@@ -527,6 +538,10 @@ mod tests {
         assert!(error.contains("levels must be 1 to 6"), "{error}");
         for (text, said) in [
             ("[refine]\nsigma_floor = -0.01\n", "refine.sigma_floor"),
+            (
+                "[refine]\nvelocity_rotation_sigma = 0\n",
+                "refine.velocity_rotation_sigma",
+            ),
             ("[refine]\nmin_points = 0\n", "refine.min_points"),
             ("[refine.loss]\nkind = \"cauchy\"\nc = 0.0\n", "refine.loss"),
         ] {
