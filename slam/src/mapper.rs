@@ -149,6 +149,15 @@ pub struct Mapper {
     refused: usize,
 }
 
+/// When a revolution's endpoints were seen: per endpoint, its time from the reference time
+/// (the middle of the beams); the sensor pose at the previous reference; the time since.
+#[derive(Debug, Clone, Copy)]
+struct Timing<'a> {
+    offsets: &'a [f64],
+    from: Pose2,
+    interval: f64,
+}
+
 #[derive(Debug, Clone, Copy)]
 struct Last {
     time: f64,
@@ -281,45 +290,15 @@ impl Mapper {
         if !trusted {
             pose = predicted;
         } else if self.config.refine.enabled {
-            let (offsets, velocity) = if timed && dt > 0.0 {
-                // The sensor's velocity from the last pose to this grid match, in the map frame.
-                let from = last.pose.compose(&scan.sensor_offset);
-                let to = matched.pose;
-                let velocity = [
-                    (to.x - from.x) / dt,
-                    (to.y - from.y) / dt,
-                    wrap_angle(to.theta - from.theta) / dt,
-                ];
-                (relative.as_slice(), velocity)
-            } else {
-                (&[][..], [0.0; 3])
-            };
-            let (sigma_t, sigma_r) = (
-                self.config.refine.velocity_translation_sigma,
-                self.config.refine.velocity_rotation_sigma,
-            );
-            let sweep = Sweep {
-                offsets,
-                velocity,
-                information: [
-                    1.0 / (sigma_t * sigma_t),
-                    1.0 / (sigma_t * sigma_t),
-                    1.0 / (sigma_r * sigma_r),
-                ],
-            };
-            let sweep = (!offsets.is_empty()).then_some(&sweep);
-            let points = if sweep.is_some() { &scan.hits } else { &hits };
-            let refined = refine(
-                &self.surfaces,
-                points,
-                matched.pose,
-                sweep,
-                Some(&prior),
-                &self.config.refine,
-            );
-            pose = refined.pose.compose(&scan.sensor_offset.inverse());
-            if let (Some(sweep), Some(velocity), true) = (sweep, refined.velocity, refined.taken) {
-                hits = sweep.place(&scan.hits, &refined.pose, &velocity);
+            let timing = (timed && dt > 0.0).then(|| Timing {
+                offsets: &relative,
+                from: last.pose.compose(&scan.sensor_offset),
+                interval: dt,
+            });
+            let (refined, placed) = self.refine_match(scan, &hits, &matched.pose, timing, &prior);
+            pose = refined.compose(&scan.sensor_offset.inverse());
+            if let Some(placed) = placed {
+                hits = placed;
             }
         }
         let integrated = trusted && self.due(&pose) && self.integrate(scan, &pose, &hits);
@@ -339,6 +318,57 @@ impl Mapper {
             score: if trusted { matched.score } else { 0.0 },
             integrated,
         }
+    }
+
+    /// The sub-cell refinement of a trusted grid match (`matched`, a sensor pose): of the
+    /// de-skewed `hits` for an instantaneous scan, or for a revolution of its endpoints as
+    /// measured, each seen along a velocity found with the pose. Returns the refined sensor pose
+    /// and, for a revolution whose refinement was taken, its endpoints placed with that velocity.
+    fn refine_match(
+        &self,
+        scan: &Scan,
+        hits: &[(f64, f64)],
+        matched: &Pose2,
+        timing: Option<Timing>,
+        prior: &Prior,
+    ) -> (Pose2, Option<Vec<(f64, f64)>>) {
+        let config = &self.config.refine;
+        let Some(timing) = timing else {
+            let refined = refine(&self.surfaces, hits, *matched, None, Some(prior), config);
+            return (refined.pose, None);
+        };
+        // The sensor's velocity from the last pose to this grid match, in the map frame.
+        let (from, dt) = (timing.from, timing.interval);
+        let (sigma_t, sigma_r) = (
+            config.velocity_translation_sigma,
+            config.velocity_rotation_sigma,
+        );
+        let sweep = Sweep {
+            offsets: timing.offsets,
+            velocity: [
+                (matched.x - from.x) / dt,
+                (matched.y - from.y) / dt,
+                wrap_angle(matched.theta - from.theta) / dt,
+            ],
+            information: [
+                1.0 / (sigma_t * sigma_t),
+                1.0 / (sigma_t * sigma_t),
+                1.0 / (sigma_r * sigma_r),
+            ],
+        };
+        let refined = refine(
+            &self.surfaces,
+            &scan.hits,
+            *matched,
+            Some(&sweep),
+            Some(prior),
+            config,
+        );
+        let placed = match (refined.taken, refined.velocity) {
+            (true, Some(velocity)) => Some(sweep.place(&scan.hits, &refined.pose, &velocity)),
+            _ => None,
+        };
+        (refined.pose, placed)
     }
 
     /// The predicted motion since the last scan (in its frame) and the prior's information
@@ -423,10 +453,10 @@ fn middle_of(times: &[f64]) -> f64 {
     }
 }
 
-/// Moves each endpoint to where it would have been seen from the sensor pose at the scan's
-/// time, given the robot's `motion` over the `interval` that ends at the scan (constant
-/// velocity in between): a beam taken `t` seconds after the scan time was seen from the robot
-/// pose `(t / interval) · motion` relative to it, x, y and θ scaled alike (a first-order
+/// Moves each endpoint to where it would have been seen from the sensor pose at the reference
+/// time its `times` are relative to, given the robot's `motion` over the `interval` that ends
+/// there (constant velocity): a beam taken `t` seconds after the reference was seen from the
+/// robot pose `(t / interval) · motion` relative to it, x, y and θ scaled alike (a first-order
 /// approximation of the arc, under a millimetre at trolley speeds).
 fn deskew(
     hits: &[(f64, f64)],
