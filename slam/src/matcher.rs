@@ -97,12 +97,13 @@ pub struct Prior {
 
 impl Prior {
     /// Adds this prior's term at `pose` to a Gauss–Newton system whose upper triangle is
-    /// being summed (`gradient` is the right-hand side), and returns the term's cost.
-    pub(crate) fn add_to(
+    /// being summed (`gradient` is the right-hand side) and whose first three unknowns are the
+    /// pose's x, y and ψ, and returns the term's cost.
+    pub(crate) fn add_to<const N: usize>(
         &self,
         pose: &Pose2,
-        hessian: &mut Matrix3,
-        gradient: &mut [f64; 3],
+        hessian: &mut [[f64; N]; N],
+        gradient: &mut [f64; N],
     ) -> f64 {
         let e = self.error(pose);
         let l = &self.information;
@@ -367,8 +368,8 @@ fn covariance_of(hessian: &Matrix3) -> Matrix3 {
 }
 
 /// Copies the upper triangle of a symmetric matrix, summed alone, into its lower one.
-pub(crate) fn fill_lower(m: &mut Matrix3) {
-    for a in 0..3 {
+pub(crate) fn fill_lower<const N: usize>(m: &mut [[f64; N]; N]) {
+    for a in 0..N {
         for b in 0..a {
             m[a][b] = m[b][a];
         }

@@ -42,17 +42,17 @@ impl OdometrySource {
     pub fn poses(&self, log: &CarmenLog) -> Option<Vec<Pose2>> {
         match *self {
             Self::LaserLines => Some(log.odometry_poses()),
-            Self::Track { latency } => {
-                let track = log.odometry_track()?;
-                Some(
-                    log.scans
-                        .iter()
-                        .map(|s| track.at(s.timestamp.seconds - latency))
-                        .collect(),
-                )
-            }
+            Self::Track { latency } => Some(track_poses(log, &log.odometry_track()?, latency)),
         }
     }
+}
+
+/// One pose per scan of `log`, read from `track` `latency` seconds before each laser stamp.
+fn track_poses(log: &CarmenLog, track: &OdometryTrack, latency: f64) -> Vec<Pose2> {
+    log.scans
+        .iter()
+        .map(|s| track.at(s.timestamp.seconds - latency))
+        .collect()
 }
 
 /// How well each odometry source agrees with a matcher pass.
@@ -111,14 +111,7 @@ pub fn calibrate(log: &CarmenLog, matched: &[Pose2]) -> Calibration {
 /// The latency within ±[`MAX_LATENCY`] at which the track's heading changes agree best with
 /// `matched`, and that disagreement.
 fn best_latency(track: &OdometryTrack, log: &CarmenLog, matched: &[Pose2]) -> (f64, f64) {
-    let at = |latency: f64| {
-        let poses: Vec<Pose2> = log
-            .scans
-            .iter()
-            .map(|s| track.at(s.timestamp.seconds - latency))
-            .collect();
-        heading_disagreement(matched, &poses)
-    };
+    let at = |latency: f64| heading_disagreement(matched, &track_poses(log, track, latency));
     let steps = (MAX_LATENCY / LATENCY_STEP).round() as i32;
     let costs: Vec<(f64, f64)> = (-steps..=steps)
         .map(|k| {

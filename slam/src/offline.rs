@@ -131,7 +131,7 @@ pub fn map_log_calibrated(
     mut progress: impl FnMut(usize),
 ) -> CalibratedRun {
     let first = map_log(log, config, limits, &log.odometry_poses(), &mut progress);
-    if !config.motion.use_odometry || log.odometry_track().is_none() {
+    if !config.motion.use_odometry || log.odometry.is_empty() {
         return CalibratedRun {
             run: first,
             odometry: OdometrySource::LaserLines,
@@ -141,12 +141,13 @@ pub fn map_log_calibrated(
     let matched: Vec<Pose2> = first.results.iter().map(|r| r.pose).collect();
     let calibration = calibrate(log, &matched);
     let source = calibration.best();
-    let run = match source.poses(log) {
-        Some(poses) if source != OdometrySource::LaserLines => {
+    let run = match source {
+        OdometrySource::LaserLines => first,
+        OdometrySource::Track { .. } => {
+            let poses = source.poses(log).expect("the log has ODOM lines");
             let done = log.scans.len();
             map_log(log, config, limits, &poses, |n| progress(done + n))
         }
-        _ => first,
     };
     CalibratedRun {
         run,

@@ -24,7 +24,7 @@ use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
 
 use crate::grid::cell_containing;
-use crate::matcher::{Loss, Matrix3, Prior, solve};
+use crate::matcher::{Loss, Matrix3, Prior, fill_lower, solve};
 use crate::pose::Pose2;
 
 /// How the grid match is refined against the cells' endpoint statistics.
@@ -408,17 +408,7 @@ fn linearise(
         }
     }
     if let Some(prior) = prior {
-        let mut pose_block = [[0.0; 3]; 3];
-        let mut pose_gradient = [0.0; 3];
-        for a in 0..3 {
-            pose_block[a] = [h[a][0], h[a][1], h[a][2]];
-            pose_gradient[a] = g[a];
-        }
-        cost += prior.add_to(pose, &mut pose_block, &mut pose_gradient);
-        for a in 0..3 {
-            h[a][..3].copy_from_slice(&pose_block[a]);
-            g[a] = pose_gradient[a];
-        }
+        cost += prior.add_to(pose, &mut h, &mut g);
     }
     if let Some(sweep) = sweep {
         for k in 0..3 {
@@ -428,11 +418,7 @@ fn linearise(
             h[3 + k][3 + k] += sweep.information[k];
         }
     }
-    for a in 0..6 {
-        for b in 0..a {
-            h[a][b] = h[b][a];
-        }
-    }
+    fill_lower(&mut h);
     Linearised {
         cost,
         hessian: h,

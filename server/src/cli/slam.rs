@@ -285,8 +285,7 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
             (None, true) => Some(OdometrySource::LaserLines),
             (None, false) => None,
         };
-        let calibrating =
-            fixed.is_none() && config.motion.use_odometry && log.odometry_track().is_some();
+        let calibrating = fixed.is_none() && config.motion.use_odometry && !log.odometry.is_empty();
         let passes = if calibrating { 2 } else { 1 };
         let bar = progress_bar((passes * log.scans.len()) as u64, args.quiet);
         let progress = |done: usize| {
