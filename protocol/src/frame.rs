@@ -3,8 +3,8 @@
 use serde::{Deserialize, Serialize};
 
 use crate::types::{
-    Ack, ClockModel, Command, DeviceStatus, Heartbeat, Hello, ImuSample, LidarRevolution,
-    StaticScan, StepperState, TimePing, TimePong,
+    Ack, ClockModel, Command, CommandReply, DeviceStatus, Heartbeat, Hello, ImuSample,
+    LidarRevolution, StaticScan, StepperState, TimePing, TimePong,
 };
 
 /// One message with its session and sequence number.
@@ -71,6 +71,7 @@ pub enum Direction {
 /// | 9 | [`Body::Command`] | server → edge |
 /// | 10 | [`Body::StaticScan`] | edge → server |
 /// | 11 | [`Body::ClockModel`] | server only (recorded, never sent) |
+/// | 12 | [`Body::CommandReply`] | edge → server |
 ///
 /// `TimePing` and `TimePong` travel in QUIC datagrams, not on the stream (see [`Frame`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -99,6 +100,8 @@ pub enum Body {
     StaticScan(StaticScan),
     /// The server's mapping of the edge clock, recorded in the session when it changes.
     ClockModel(ClockModel),
+    /// The edge's answer to a [`Body::Command`]: accepted, waiting or refused with the reason.
+    CommandReply(CommandReply),
 }
 
 impl Body {
@@ -117,6 +120,7 @@ impl Body {
             Body::Command(_) => "Command",
             Body::StaticScan(_) => "StaticScan",
             Body::ClockModel(_) => "ClockModel",
+            Body::CommandReply(_) => "CommandReply",
         }
     }
 
@@ -135,7 +139,8 @@ impl Body {
             | Body::Stepper(_)
             | Body::TimePong(_)
             | Body::Status(_)
-            | Body::StaticScan(_) => Direction::EdgeToServer,
+            | Body::StaticScan(_)
+            | Body::CommandReply(_) => Direction::EdgeToServer,
             // A clock model originates at the server (it is recorded, not sent): an edge that
             // sends one is misdirected like one sending a command.
             Body::TimePing(_) | Body::Command(_) | Body::ClockModel(_) => Direction::ServerToEdge,
@@ -169,4 +174,5 @@ body_from! {
     Command => Command,
     StaticScan => StaticScan,
     ClockModel => ClockModel,
+    CommandReply => CommandReply,
 }

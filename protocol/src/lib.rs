@@ -49,6 +49,7 @@
 //! | 9 | [`Command`] | server → edge | start static scan at a named position, stop it, set a motor speed |
 //! | 10 | [`StaticScan`] | edge → server | static 3D scan: start (position, step, mount), the yaws of each Sweep revolution's samples as runs of sample indices, warnings, end |
 //! | 11 | [`ClockModel`] | server only (recorded) | edge → server clock mapping: offset, skew, error bound, reference point |
+//! | 12 | [`CommandReply`] | edge → server | the answer to a [`Command`] (by its frame's `seq`): accepted (with the static scan's id), waiting (for the Sweep, say), or refused with the reason |
 //!
 //! **One sample timeline.** Every lidar sample travels once, in its [`LidarRevolution`], with
 //! the one measurement time the edge estimated for it. During a static scan the edge adds, per
@@ -95,11 +96,11 @@ pub use codec::{
 };
 pub use frame::{Body, Direction, Frame};
 pub use types::{
-    Ack, ClockModel, Command, DeviceStatus, Heartbeat, Hello, ImuSample, InvalidCommand,
-    LidarRevolution, MAX_MOTOR_SPEED_HZ, MAX_POSITION_NAME_LEN, MountInfo, RevolutionSample,
-    SampleTimeError, SensorId, SensorInfo, StaticScan, StaticScanEnd, StaticScanOutcome,
-    StaticScanProblem, StaticScanStart, StaticScanWarning, StaticScanYaws, StatusEvent,
-    StepperState, TimePing, TimePong, YawRun, theta_deg,
+    Ack, ClockModel, Command, CommandOutcome, CommandReply, DeviceStatus, Heartbeat, Hello,
+    ImuSample, InvalidCommand, LidarRevolution, MAX_MOTOR_SPEED_HZ, MAX_POSITION_NAME_LEN,
+    MountInfo, RevolutionSample, SampleTimeError, SensorId, SensorInfo, StaticScan, StaticScanEnd,
+    StaticScanOutcome, StaticScanProblem, StaticScanStart, StaticScanWarning, StaticScanYaws,
+    StatusEvent, StepperState, TimePing, TimePong, YawRun, theta_deg,
 };
 pub use version::{IncompatibleVersion, PROTOCOL_VERSION, check_compatible};
 

@@ -426,6 +426,48 @@ pub enum Command {
     },
 }
 
+/// The edge's answer to one [`Command`] (`Body::CommandReply`, edge → server, tag 12): which
+/// command it answers, and whether the edge acted on it. Recorded like every edge frame, so a
+/// session's recording says what was asked and what the edge did.
+///
+/// Every command gets a reply. A [`CommandOutcome::Waiting`] reply is followed by an
+/// [`CommandOutcome::Accepted`] or [`CommandOutcome::Refused`] reply to the same command once
+/// the edge can decide (e.g. the Sweep starts streaming).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CommandReply {
+    /// The `seq` of the server frame that carried the command (the server's numbering in this
+    /// session).
+    pub command_seq: u64,
+    /// Edge monotonic clock (ns) when the edge decided.
+    pub t_ns: u64,
+    /// What the edge did.
+    pub outcome: CommandOutcome,
+}
+
+/// What the edge did with a [`Command`].
+///
+/// Variant order is part of the wire: `Accepted` = 0, `Waiting` = 1, `Refused` = 2.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub enum CommandOutcome {
+    /// Carried out. For [`Command::StartStaticScan`] and [`Command::StopStaticScan`]: the
+    /// static scan started or being stopped (its [`StaticScanStart::scan_id`]).
+    Accepted {
+        /// The static scan concerned, if the command is about one.
+        scan_id: Option<u32>,
+    },
+    /// Accepted, but it cannot start yet (the Sweep is not streaming): the edge waits and
+    /// replies again, `Accepted` or `Refused`, to the same command.
+    Waiting {
+        /// What the edge waits for, for a human.
+        reason: String,
+    },
+    /// Not carried out; nothing changed on the edge.
+    Refused {
+        /// Why, for a human: e.g. `"no [stepper] in edge.toml: static scans are off"`.
+        reason: String,
+    },
+}
+
 /// Longest [`Command::StartStaticScan`] position name, in bytes (UTF-8). The name travels in
 /// every [`StaticScanStart`] and ends up in file names and tables, so it is meant to be short
 /// (`"p1"`, `"door"`); 256 bytes leaves room for descriptive names.

@@ -4,11 +4,11 @@
 
 use proptest::prelude::*;
 use scan3d_protocol::{
-    Ack, Body, ClockModel, Command, DecodeError, DeviceStatus, Frame, FrameReader, HEADER_LEN,
-    Heartbeat, Hello, ImuSample, LidarRevolution, MountInfo, RevolutionSample, SensorId,
-    SensorInfo, StaticScan, StaticScanEnd, StaticScanOutcome, StaticScanProblem, StaticScanStart,
-    StaticScanWarning, StaticScanYaws, StatusEvent, StepperState, TimePing, TimePong, YawRun,
-    decode, encode,
+    Ack, Body, ClockModel, Command, CommandOutcome, CommandReply, DecodeError, DeviceStatus, Frame,
+    FrameReader, HEADER_LEN, Heartbeat, Hello, ImuSample, LidarRevolution, MountInfo,
+    RevolutionSample, SensorId, SensorInfo, StaticScan, StaticScanEnd, StaticScanOutcome,
+    StaticScanProblem, StaticScanStart, StaticScanWarning, StaticScanYaws, StatusEvent,
+    StepperState, TimePing, TimePong, YawRun, decode, encode,
 };
 
 /// `S3DP` + version 1 LE: the only start a decodable frame can have.
@@ -275,7 +275,21 @@ fn body() -> impl Strategy<Value = Body> {
         command().prop_map(Body::Command),
         static_scan().prop_map(Body::StaticScan),
         clock_model().prop_map(Body::ClockModel),
+        command_reply().prop_map(Body::CommandReply),
     ]
+}
+
+fn command_reply() -> impl Strategy<Value = CommandReply> {
+    let outcome = prop_oneof![
+        proptest::option::of(any::<u32>()).prop_map(|scan_id| CommandOutcome::Accepted { scan_id }),
+        text().prop_map(|reason| CommandOutcome::Waiting { reason }),
+        text().prop_map(|reason| CommandOutcome::Refused { reason }),
+    ];
+    (any::<u64>(), any::<u64>(), outcome).prop_map(|(command_seq, t_ns, outcome)| CommandReply {
+        command_seq,
+        t_ns,
+        outcome,
+    })
 }
 
 fn clock_model() -> impl Strategy<Value = ClockModel> {

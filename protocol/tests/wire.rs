@@ -2,11 +2,11 @@
 //! format (LEB128 varints, zig-zag for signed, little-endian floats, varint enum tags).
 
 use scan3d_protocol::{
-    Ack, Body, ClockModel, Command, DecodeError, DeviceStatus, Direction, EncodeError, Frame,
-    FrameHeader, FrameReader, HEADER_LEN, Heartbeat, Hello, ImuSample, LidarRevolution,
-    MAX_FRAME_LEN, PROTOCOL_VERSION, RevolutionSample, SensorId, SensorInfo, StaticScan,
-    StaticScanProblem, StaticScanWarning, StaticScanYaws, StatusEvent, StepperState, TimePing,
-    TimePong, YawRun, decode, decode_header, encode,
+    Ack, Body, ClockModel, Command, CommandOutcome, CommandReply, DecodeError, DeviceStatus,
+    Direction, EncodeError, Frame, FrameHeader, FrameReader, HEADER_LEN, Heartbeat, Hello,
+    ImuSample, LidarRevolution, MAX_FRAME_LEN, PROTOCOL_VERSION, RevolutionSample, SensorId,
+    SensorInfo, StaticScan, StaticScanProblem, StaticScanWarning, StaticScanYaws, StatusEvent,
+    StepperState, TimePing, TimePong, YawRun, decode, decode_header, encode,
 };
 
 /// `S3DP`, version 1 LE.
@@ -315,6 +315,53 @@ fn command_exact_bytes() {
             },
         ),
         &[0x01, 0x00, 0x09, 0x02, 0x01, 0x00, 0x00, 0xA0, 0x40],
+    );
+}
+
+#[test]
+fn command_reply_exact_bytes() {
+    let reply = CommandReply {
+        command_seq: 3,
+        t_ns: 7,
+        outcome: CommandOutcome::Accepted { scan_id: Some(0) },
+    };
+    assert_eq!(
+        Body::from(reply.clone()).direction(),
+        Direction::EdgeToServer
+    );
+    assert_wire(
+        Frame::new(1, 4, reply),
+        &[
+            0x01, 0x04, 0x0C, // session, seq, tag 12 = CommandReply
+            0x03, 0x07, // command_seq, t_ns
+            0x00, 0x01, 0x00, // Accepted, Some(scan 0)
+        ],
+    );
+    assert_wire(
+        Frame::new(
+            1,
+            5,
+            CommandReply {
+                command_seq: 3,
+                t_ns: 8,
+                outcome: CommandOutcome::Refused {
+                    reason: "no".into(),
+                },
+            },
+        ),
+        &[0x01, 0x05, 0x0C, 0x03, 0x08, 0x02, 0x02, b'n', b'o'],
+    );
+    assert_wire(
+        Frame::new(
+            1,
+            6,
+            CommandReply {
+                command_seq: 3,
+                t_ns: 9,
+                outcome: CommandOutcome::Waiting { reason: "w".into() },
+            },
+        ),
+        &[0x01, 0x06, 0x0C, 0x03, 0x09, 0x01, 0x01, b'w'],
     );
 }
 

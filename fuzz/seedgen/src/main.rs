@@ -31,7 +31,7 @@ use scan3d_map::cloud::ply::write_ply_bundles;
 use scan3d_map::cloud::scans_file::write_scans;
 use scan3d_map::octree::{Resolution, SensorModel, VoxelMap};
 use scan3d_protocol::{
-    Ack, Body, Command, DeviceStatus, Frame, Heartbeat, Hello, ImuSample, LidarRevolution, MountInfo, SensorId, SensorInfo, StaticScan, StaticScanEnd, StaticScanOutcome, StaticScanProblem, StaticScanStart, StaticScanWarning, StaticScanYaws, StatusEvent, StepperState, TimePing, TimePong, YawRun, encode, ClockModel,
+    Ack, Body, Command, DeviceStatus, Frame, Heartbeat, Hello, ImuSample, LidarRevolution, MountInfo, SensorId, SensorInfo, StaticScan, StaticScanEnd, StaticScanOutcome, StaticScanProblem, StaticScanStart, StaticScanWarning, StaticScanYaws, StatusEvent, StepperState, TimePing, TimePong, YawRun, encode, ClockModel, CommandOutcome, CommandReply,
 };
 use scan3d_server::ingest::control::ControlRequest;
 use scan3d_server::ingest::recorder::SessionRecorder;
@@ -169,6 +169,17 @@ fn frames() -> Vec<(&'static str, Frame)> {
             .into(),
         ),
         ("command_stop", Command::StopStaticScan.into()),
+        (
+            "command_reply",
+            CommandReply {
+                command_seq: 1,
+                t_ns: 5,
+                outcome: CommandOutcome::Refused {
+                    reason: "no [stepper] in edge.toml".into(),
+                },
+            }
+            .into(),
+        ),
         (
             "command_speed",
             Command::SetMotorSpeed {

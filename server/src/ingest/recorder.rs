@@ -83,6 +83,7 @@
 //! | `/scan3d/heartbeat` | [`Body::Heartbeat`] from the edge | `sent_ns` |
 //! | `/scan3d/ack` | [`Body::Ack`] from the edge (it takes an edge sequence number too) | log time |
 //! | `/scan3d/command` | [`Body::Command`] the server sent ([`SessionRecorder::append_command`]) | log time |
+//! | `/scan3d/command_reply` | [`Body::CommandReply`]: the edge's answer to a command (accepted, waiting, refused with the reason) | `t_ns` |
 //! | `/scan3d/static_scan` | [`Body::StaticScan`]: start (position, step, mount), the yaws of a Sweep revolution's samples, warnings, end | `t_ns` (yaws: the revolution's `t0_ns`) |
 //! | `/scan3d/undecodable` | a frame the server could not decode ([`SessionRecorder::append_undecodable`]); encoding `scan3d-undecodable`, see below | log time |
 //!
@@ -280,6 +281,7 @@ pub fn topic(body: &Body) -> String {
         Body::Command(_) => "/scan3d/command".into(),
         Body::StaticScan(_) => "/scan3d/static_scan".into(),
         Body::ClockModel(_) => "/scan3d/timesync".into(),
+        Body::CommandReply(_) => "/scan3d/command_reply".into(),
     }
 }
 
@@ -299,6 +301,7 @@ fn edge_time_ns(body: &Body) -> Option<u64> {
             StaticScan::Finished(end) => end.t_ns,
         }),
         Body::ClockModel(model) => Some(model.valid_from_edge_ns),
+        Body::CommandReply(reply) => Some(reply.t_ns),
         Body::Hello(_) | Body::TimePing(_) | Body::Ack(_) | Body::Command(_) => None,
     }
 }
