@@ -29,7 +29,8 @@ use embedded_hal::delay::DelayNs;
 use embedded_hal::i2c::I2c;
 use embedded_hal_bus::i2c::MutexDevice;
 use scan3d_protocol::{
-    Body, Command, DeviceStatus, Hello, LidarRevolution, SensorId, SensorInfo, StatusEvent,
+    Body, Command, CommandOutcome, CommandReply, DeviceStatus, Hello, LidarRevolution, SensorId,
+    SensorInfo, StatusEvent,
 };
 use scan3d_service::daemon::{self, NotifyState};
 use tokio::sync::watch;
@@ -46,7 +47,9 @@ use crate::serial::SerialOptions;
 use crate::static_scan::StaticScanConfig;
 use crate::timing::{Revolution, TimingConfig};
 use crate::turntable::{Turntable, TurntableJob, TurntableReport};
-use crate::uplink::client::{SubmitError, Uplink, UplinkConfig, UplinkHandle, UplinkStats};
+use crate::uplink::client::{
+    ReceivedCommand, SubmitError, Uplink, UplinkConfig, UplinkHandle, UplinkStats,
+};
 use crate::uplink::tls;
 
 /// What one lidar worker did.
@@ -173,7 +176,10 @@ where
 {
     // A configuration built in code (the simulator, tests) gets the checks a file gets.
     config.validate()?;
-    let (scan_requests_tx, scan_requests) = std::sync::mpsc::channel::<Command>();
+    let (scan_requests_tx, scan_requests) = std::sync::mpsc::channel::<ReceivedCommand>();
+    // Where static-scan commands go is known once the stepper and the Sweep are set up; until
+    // then the router holds them (the uplink is still connecting).
+    let (scan_route_tx, scan_route_rx) = tokio::sync::oneshot::channel::<ScanRoute>();
     let (uplink_task, uplink_stop, uplink_handle) = match &config.uplink {
         Some(section) => {
             let client_config = tls::client_config(&section.pki_dir)?;
@@ -184,29 +190,15 @@ where
                 client_config,
                 spool,
             );
-            let (uplink, handle, mut commands) =
-                Uplink::new(uplink_config, clock.clone(), session_id)?;
+            let (uplink, handle, commands) = Uplink::new(uplink_config, clock.clone(), session_id)?;
             let (stop_tx, stop_rx) = watch::channel(false);
             let task = tokio::spawn(uplink.run(stop_rx));
-            let scan_requests = scan_requests_tx.clone();
-            tokio::spawn(async move {
-                while let Some(command) = commands.recv().await {
-                    match command {
-                        Command::StartStaticScan { .. } | Command::StopStaticScan => {
-                            tracing::info!(?command, "command from the server");
-                            if scan_requests.send(command).is_err() {
-                                tracing::warn!(
-                                    "static scan refused: no Sweep worker with a stepper"
-                                );
-                            }
-                        }
-                        Command::SetMotorSpeed { sensor, hz } => tracing::warn!(
-                            %sensor, hz,
-                            "SetMotorSpeed is not supported: set motor_hz in edge.toml"
-                        ),
-                    }
-                }
-            });
+            tokio::spawn(route_commands(
+                commands,
+                scan_route_rx,
+                handle.clone(),
+                clock.clone(),
+            ));
             (Some(task), Some(stop_tx), Some(handle))
         }
         None => {
@@ -289,28 +281,35 @@ where
                     tracing::debug!(error = %e, "stepper state not queued");
                 }
             }) {
-                Ok(turntable) => Some(turntable),
+                Ok(turntable) => Ok(turntable),
                 Err(e) => {
                     tracing::error!(error = %e, "stepper unavailable: static scans are off");
-                    None
+                    Err(format!("the stepper is unavailable: {e}"))
                 }
             }
         }
-        _ => None,
+        (None, _) => Err("no [stepper] in edge.toml".to_owned()),
+        (Some(_), None) => Err("the I2C bus is not open (see the edge's log)".to_owned()),
     };
-    let mut scan_hooks = match turntable {
-        Some(turntable) => Some(ScanHooks {
-            turntable,
-            requests: scan_requests,
-            config: config.static_scan.clone(),
-            session: None,
-            started: 0,
-        }),
-        None => {
-            drop(scan_requests);
-            None
+    // Static scans need the turntable and the Sweep; the reason they are off answers every
+    // scan command.
+    let (mut scan_hooks, scan_route) = match (turntable, &config.sweep) {
+        (Ok(turntable), Some(_)) => (
+            Some(ScanHooks::new(
+                turntable,
+                scan_requests,
+                config.static_scan.clone(),
+            )),
+            ScanRoute::Worker(scan_requests_tx),
+        ),
+        (Ok(_), None) => {
+            tracing::warn!("[stepper] without [sweep]: static scans are off");
+            (None, ScanRoute::Off("no [sweep] in edge.toml".to_owned()))
         }
+        (Err(why), _) => (None, ScanRoute::Off(why)),
     };
+    // No uplink, no commands: nobody listens.
+    let _ = scan_route_tx.send(scan_route);
 
     let mut workers: Vec<(SensorId, JoinHandle<(LidarReport, u32)>)> = Vec::new();
     if let Some(section) = &config.rplidar {
@@ -339,9 +338,6 @@ where
                 scan_hooks.take(),
             )?,
         ));
-    }
-    if scan_hooks.is_some() {
-        tracing::warn!("[stepper] without [sweep]: static scans are off");
     }
     daemon::notify(&[NotifyState::Ready]);
     let watchdog = tokio::spawn(daemon::watchdog());
@@ -403,21 +399,172 @@ fn spawn_worker(
         })
 }
 
+/// Where the server's static-scan commands go: the Sweep worker's [`ScanHooks`], or nowhere,
+/// with the reason static scans are off (which the edge's refusal carries).
+enum ScanRoute {
+    /// The Sweep worker with a turntable takes them.
+    Worker(std::sync::mpsc::Sender<ReceivedCommand>),
+    /// Static scans are off, for this reason.
+    Off(String),
+}
+
+/// The refusal of `command` that the router gives itself (without asking the Sweep worker):
+/// commands this edge does not support, and scan commands when static scans are off.
+fn route_refusal(command: &Command, route: &ScanRoute) -> Option<String> {
+    match (command, route) {
+        (Command::SetMotorSpeed { .. }, _) => {
+            Some("SetMotorSpeed is not supported: set motor_hz in edge.toml".to_owned())
+        }
+        (_, ScanRoute::Worker(_)) => None,
+        (Command::StopStaticScan, ScanRoute::Off(why)) => Some(format!(
+            "no static scan is running (static scans are off: {why})"
+        )),
+        (Command::StartStaticScan { .. }, ScanRoute::Off(why)) => {
+            Some(format!("static scans are off: {why}"))
+        }
+    }
+}
+
+/// Routes the server's commands: scan commands to the Sweep worker (which replies), the rest
+/// refused here with a [`CommandReply`]. Waits for the route first (the commands queue).
+async fn route_commands(
+    mut commands: tokio::sync::mpsc::UnboundedReceiver<ReceivedCommand>,
+    route: tokio::sync::oneshot::Receiver<ScanRoute>,
+    uplink: UplinkHandle,
+    clock: SharedClock,
+) {
+    let route = route
+        .await
+        .unwrap_or_else(|_| ScanRoute::Off("the edge daemon is stopping".to_owned()));
+    while let Some(received) = commands.recv().await {
+        let refusal = match route_refusal(&received.command, &route) {
+            Some(reason) => Some(reason),
+            None => match &route {
+                ScanRoute::Worker(worker) => worker
+                    .send(received.clone())
+                    .err()
+                    .map(|_| "the Sweep worker has stopped".to_owned()),
+                ScanRoute::Off(_) => None,
+            },
+        };
+        if let Some(reason) = refusal {
+            tracing::warn!(command = ?received.command, %reason, "command refused");
+            let reply = CommandReply {
+                command_seq: received.seq,
+                t_ns: clock.now_ns(),
+                outcome: CommandOutcome::Refused { reason },
+            };
+            if let Err(e) = uplink.submit(reply) {
+                tracing::warn!(error = %e, "command reply not queued");
+            }
+        }
+    }
+}
+
+/// How long after its last sample the Sweep still counts as streaming (a revolution takes at
+/// most 1 s at the slowest rate).
+const SWEEP_STREAMING_NS: u64 = 2_000_000_000;
+
 /// What the Sweep worker needs to run static scans.
 struct ScanHooks {
     turntable: Turntable,
-    requests: std::sync::mpsc::Receiver<Command>,
+    requests: std::sync::mpsc::Receiver<ReceivedCommand>,
     config: StaticScanConfig,
     session: Option<ScanSession>,
+    /// A start that waits for the Sweep to stream: its command's seq and position.
+    pending: Option<(u64, ScanPosition)>,
+    /// Edge time of the Sweep's latest sample.
+    last_sample_ns: Option<u64>,
     /// Scans started (the next scan's id).
     started: u32,
 }
 
+/// A reply to the command carried by server frame `seq`.
+fn reply(seq: u64, t_ns: u64, outcome: CommandOutcome) -> Body {
+    CommandReply {
+        command_seq: seq,
+        t_ns,
+        outcome,
+    }
+    .into()
+}
+
 impl ScanHooks {
+    fn new(
+        turntable: Turntable,
+        requests: std::sync::mpsc::Receiver<ReceivedCommand>,
+        config: StaticScanConfig,
+    ) -> Self {
+        ScanHooks {
+            turntable,
+            requests,
+            config,
+            session: None,
+            pending: None,
+            last_sample_ns: None,
+            started: 0,
+        }
+    }
+
+    /// Whether the Sweep sent a sample within [`SWEEP_STREAMING_NS`] of `now_ns`.
+    fn streaming(&self, now_ns: u64) -> bool {
+        self.last_sample_ns
+            .is_some_and(|t| now_ns.saturating_sub(t) <= SWEEP_STREAMING_NS)
+    }
+
+    /// Starts a scan at `position` for the command of `seq`; the reply goes to `bodies`.
+    fn start(
+        &mut self,
+        seq: u64,
+        position: ScanPosition,
+        now_ns: u64,
+        actions: &mut Vec<ScanAction>,
+    ) {
+        tracing::info!(scan = self.started, position = %position.name, x_m = position.x_m, y_m = position.y_m, "static scan starts");
+        match ScanSession::start(
+            self.started,
+            position,
+            &self.config,
+            (
+                self.turntable.step_angle_deg(),
+                self.turntable.step_rate_hz(),
+            ),
+            now_ns,
+        ) {
+            Ok((session, started)) => {
+                actions.push(ScanAction::Send(reply(
+                    seq,
+                    now_ns,
+                    CommandOutcome::Accepted {
+                        scan_id: Some(self.started),
+                    },
+                )));
+                self.session = Some(session);
+                self.started += 1;
+                actions.push(started);
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "static scan refused");
+                actions.push(ScanAction::Send(reply(
+                    seq,
+                    now_ns,
+                    CommandOutcome::Refused {
+                        reason: format!("static scan refused: {e}"),
+                    },
+                )));
+            }
+        }
+    }
+
     /// Handles commands and stepper reports; frames to send go to `bodies`.
     fn poll(&mut self, context: &Context, bodies: &mut Vec<Body>) {
         let mut actions = Vec::new();
-        while let Ok(command) = self.requests.try_recv() {
+        while let Ok(ReceivedCommand { seq, command }) = self.requests.try_recv() {
+            let now = context.clock.now_ns();
+            let refuse = |reason: String| {
+                tracing::warn!(%reason, "command refused");
+                ScanAction::Send(reply(seq, now, CommandOutcome::Refused { reason }))
+            };
             match command {
                 Command::StartStaticScan {
                     position,
@@ -425,41 +572,69 @@ impl ScanHooks {
                     y_m,
                     heading_deg,
                 } => {
-                    if self.session.is_some() {
-                        tracing::warn!(%position, "a static scan is already running; start refused");
-                        continue;
-                    }
                     let position = ScanPosition {
                         name: position,
                         x_m,
                         y_m,
                         heading_deg: heading_deg.unwrap_or(0.0),
                     };
-                    tracing::info!(scan = self.started, position = %position.name, x_m, y_m, "static scan starts");
-                    match ScanSession::start(
-                        self.started,
-                        position,
-                        &self.config,
-                        (
-                            self.turntable.step_angle_deg(),
-                            self.turntable.step_rate_hz(),
-                        ),
-                        context.clock.now_ns(),
-                    ) {
-                        Ok((session, started)) => {
-                            self.session = Some(session);
-                            self.started += 1;
-                            actions.push(started);
-                        }
-                        Err(e) => tracing::error!(error = %e, "static scan refused"),
+                    if let Some(session) = &self.session {
+                        actions.push(refuse(format!(
+                            "static scan {} is running; stop it first (scan3d scan --stop)",
+                            session.scan_id()
+                        )));
+                    } else if let Some((_, waiting)) = &self.pending {
+                        actions.push(refuse(format!(
+                            "a static scan at {:?} is waiting for the Sweep; stop it first (scan3d scan --stop)",
+                            waiting.name
+                        )));
+                    } else if self.streaming(now) {
+                        self.start(seq, position, now, &mut actions);
+                    } else {
+                        tracing::info!(position = %position.name, "static scan waits for the Sweep to stream");
+                        self.pending = Some((seq, position));
+                        actions.push(ScanAction::Send(reply(
+                            seq,
+                            now,
+                            CommandOutcome::Waiting {
+                                reason: "waiting for the Sweep to stream".to_owned(),
+                            },
+                        )));
                     }
                 }
                 Command::StopStaticScan => {
                     if let Some(session) = &mut self.session {
-                        session.stop(context.clock.now_ns(), &mut actions);
+                        let scan_id = session.scan_id();
+                        tracing::info!(scan = scan_id, "static scan stopped by the server");
+                        actions.push(ScanAction::Send(reply(
+                            seq,
+                            now,
+                            CommandOutcome::Accepted {
+                                scan_id: Some(scan_id),
+                            },
+                        )));
+                        session.stop(now, &mut actions);
+                    } else if let Some((waiting_seq, position)) = self.pending.take() {
+                        tracing::info!(position = %position.name, "static scan cancelled before the Sweep streamed");
+                        actions.push(ScanAction::Send(reply(
+                            waiting_seq,
+                            now,
+                            CommandOutcome::Refused {
+                                reason: "stopped before the Sweep streamed".to_owned(),
+                            },
+                        )));
+                        actions.push(ScanAction::Send(reply(
+                            seq,
+                            now,
+                            CommandOutcome::Accepted { scan_id: None },
+                        )));
+                    } else {
+                        actions.push(refuse("no static scan is running".to_owned()));
                     }
                 }
-                Command::SetMotorSpeed { .. } => {}
+                Command::SetMotorSpeed { .. } => actions.push(refuse(
+                    "SetMotorSpeed is not supported: set motor_hz in edge.toml".to_owned(),
+                )),
             }
         }
         while let Some(report) = self.turntable.try_report() {
@@ -488,15 +663,24 @@ impl ScanHooks {
         self.carry_out(actions, bodies);
     }
 
+    /// A Sweep sample: the Sweep streams, so a waiting scan starts (at this sample), and a
+    /// running one decides on it.
     fn on_sample(&mut self, sample: &crate::timing::StampedSample, bodies: &mut Vec<Body>) {
         let mut actions = Vec::new();
+        self.last_sample_ns = Some(sample.sample.t_ns);
+        if self.session.is_none()
+            && let Some((seq, position)) = self.pending.take()
+        {
+            self.start(seq, position, sample.sample.t_ns, &mut actions);
+        }
         if let Some(session) = &mut self.session {
             session.on_sample(sample, &mut actions);
         }
         self.carry_out(actions, bodies);
     }
 
-    /// Ends a running scan (Sweep lost, acquisition paused, daemon stopping).
+    /// Ends a running scan (Sweep lost, acquisition paused, daemon stopping). A scan waiting
+    /// for the Sweep keeps waiting.
     fn stop(&mut self, context: &Context, why: &str, bodies: &mut Vec<Body>) {
         let mut actions = Vec::new();
         if let Some(session) = &mut self.session {
@@ -525,11 +709,21 @@ impl ScanHooks {
         }
     }
 
-    /// At daemon stop: ends a running scan and waits (bounded) for the way home.
+    /// At daemon stop: ends a running scan, refuses a waiting one, and waits (bounded) for the
+    /// way home.
     fn shut_down(&mut self, context: &Context) {
         let mut bodies = Vec::new();
         let running = self.session.is_some();
         self.stop(context, "daemon stopping", &mut bodies);
+        if let Some((seq, _)) = self.pending.take() {
+            bodies.push(reply(
+                seq,
+                context.clock.now_ns(),
+                CommandOutcome::Refused {
+                    reason: "the edge daemon is stopping".to_owned(),
+                },
+            ));
+        }
         for body in bodies {
             if let Err(e) = context.submit(body) {
                 tracing::warn!(error = %e, "static scan frame not queued at shutdown");
@@ -840,6 +1034,39 @@ mod tests {
 
     fn heartbeat(n: u64) -> Body {
         Heartbeat { sent_ns: n }.into()
+    }
+
+    #[test]
+    fn the_router_refuses_what_the_sweep_worker_cannot_do_with_the_reason() {
+        let start = Command::StartStaticScan {
+            position: "p".into(),
+            x_m: 0.0,
+            y_m: 0.0,
+            heading_deg: None,
+        };
+        let off = ScanRoute::Off("no [stepper] in edge.toml".into());
+        assert_eq!(
+            route_refusal(&start, &off).as_deref(),
+            Some("static scans are off: no [stepper] in edge.toml")
+        );
+        assert_eq!(
+            route_refusal(&Command::StopStaticScan, &off).as_deref(),
+            Some("no static scan is running (static scans are off: no [stepper] in edge.toml)")
+        );
+        let (tx, _rx) = std::sync::mpsc::channel();
+        let worker = ScanRoute::Worker(tx);
+        assert_eq!(route_refusal(&start, &worker), None);
+        assert_eq!(route_refusal(&Command::StopStaticScan, &worker), None);
+        let speed = Command::SetMotorSpeed {
+            sensor: SensorId::SWEEP,
+            hz: 2.0,
+        };
+        for route in [&off, &worker] {
+            assert!(
+                route_refusal(&speed, route).is_some_and(|r| r.contains("not supported")),
+                "SetMotorSpeed is refused whatever the route"
+            );
+        }
     }
 
     #[test]

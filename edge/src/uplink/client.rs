@@ -129,7 +129,7 @@ struct Inner {
     session_id: u64,
     clock: SharedClock,
     stats: Mutex<UplinkStats>,
-    commands: mpsc::UnboundedSender<Command>,
+    commands: mpsc::UnboundedSender<ReceivedCommand>,
 }
 
 impl Inner {
@@ -316,6 +316,16 @@ pub fn classify(error: &quinn::ConnectionError) -> ConnectFailure {
     }
 }
 
+/// A command from the server with the `seq` of the frame that carried it, which the edge's
+/// [`scan3d_protocol::CommandReply`] names.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReceivedCommand {
+    /// The server frame's sequence number.
+    pub seq: u64,
+    /// The command.
+    pub command: Command,
+}
+
 impl Uplink {
     /// Opens the spool (recovering frames a previous run left on disk) and picks this boot's
     /// session id. Commands from the server arrive on the returned receiver.
@@ -323,7 +333,7 @@ impl Uplink {
         config: UplinkConfig,
         clock: SharedClock,
         session_id: u64,
-    ) -> Result<(Self, UplinkHandle, mpsc::UnboundedReceiver<Command>), SpoolError> {
+    ) -> Result<(Self, UplinkHandle, mpsc::UnboundedReceiver<ReceivedCommand>), SpoolError> {
         let spool = Spool::open(config.spool.clone())?;
         let recovery = spool.recovery();
         if recovery.damaged_records > 0 {
@@ -616,8 +626,11 @@ async fn read_from_server(mut recv: quinn::RecvStream, inner: Arc<Inner>) {
                     tracing::debug!("ignoring a time-sync ping on the stream");
                 }
                 Body::Command(command) => {
-                    tracing::info!(?command, "command from the server");
-                    let _ = inner.commands.send(command);
+                    tracing::info!(?command, seq = frame.seq, "command from the server");
+                    let _ = inner.commands.send(ReceivedCommand {
+                        seq: frame.seq,
+                        command,
+                    });
                 }
                 other => tracing::debug!(?other, "ignoring an unexpected frame from the server"),
             }
