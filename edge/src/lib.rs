@@ -9,6 +9,7 @@
 //! - [`config`]: the daemon's TOML configuration (`edge.toml`).
 //! - [`static_scan`]: static-scan controller: a step per revolution while blocked, φ per sample.
 //! - [`scan_session`]: one static scan as protocol messages and stepper jobs (sans-I/O).
+//! - [`i2c_socket`]: I2C over a Unix socket (the simulator's emulated bus), an embedded-hal `I2c`.
 //! - [`turntable`], [`imu_worker`]: the stepper and IMU threads on the shared I2C bus.
 //! - [`daemon`]: the `scan3d-edge` service: lidar workers, IMU, turntable, uplink.
 #![warn(missing_docs)]
@@ -20,6 +21,7 @@ pub mod config;
 pub mod daemon;
 pub mod drivers;
 pub mod i2c_probe;
+pub mod i2c_socket;
 pub mod imu_worker;
 pub mod lidar;
 pub mod madgwick;
