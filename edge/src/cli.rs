@@ -33,7 +33,8 @@ pub struct Cli {
 /// `scan3d-edge` subcommands.
 #[derive(Debug, Subcommand)]
 pub enum Command {
-    /// Talk to one lidar and print its info, health and a few revolutions as JSON lines.
+    /// Talk to one device (a lidar, the IMU or the stepper) and print what it answers as JSON
+    /// lines.
     #[command(subcommand)]
     Probe(ProbeCommand),
     /// Parse and validate an edge.toml, then print what it configures.
@@ -47,7 +48,7 @@ pub enum Command {
 /// `scan3d-edge probe …`
 #[derive(Debug, Subcommand)]
 pub enum ProbeCommand {
-    /// Probe a Slamtec RPLidar A1/A2.
+    /// Probe a Slamtec RPLidar A1/A2: its info, health and a few revolutions.
     Rplidar {
         /// Serial device (e.g. /dev/rplidar or /dev/ttyUSB0).
         path: PathBuf,
@@ -85,7 +86,7 @@ pub enum ProbeCommand {
         #[arg(long, default_value_t = 50)]
         steps: u64,
     },
-    /// Probe a Scanse Sweep.
+    /// Probe a Scanse Sweep: its info and a few revolutions.
     Sweep {
         /// Serial device (e.g. /dev/sweep or /dev/ttyUSB1).
         path: PathBuf,
@@ -95,7 +96,7 @@ pub enum ProbeCommand {
     },
 }
 
-/// Options shared by both probes.
+/// Options shared by the two lidar probes.
 #[derive(Debug, Args)]
 pub struct ProbeArgs {
     /// Full revolutions to print before stopping the device.

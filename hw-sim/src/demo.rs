@@ -47,8 +47,9 @@ use crate::world::World;
 /// Options of `scan3d-sim demo`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct DemoArgs {
-    /// Output directory: `session/` (the recording) and `scans/*.ply` go below it, replacing
-    /// those of an earlier run.
+    /// Output directory: the recording (`session/`, `static-sessions/`), `scans/*.ply`,
+    /// `clouds/`, `truth/`, `snapshots/`, `maps/` and `report/` go below it, replacing those
+    /// of an earlier run.
     #[arg(long, default_value = "demo-out")]
     pub out: PathBuf,
     /// Seconds of sensor data the server must receive per lidar.
@@ -64,7 +65,7 @@ pub struct DemoArgs {
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Octree resolution of the maps, metres.
-    #[arg(long, default_value_t = 0.05)]
+    #[arg(long, alias = "res", value_name = "M", default_value_t = 0.05)]
     pub resolution: f64,
     /// Which static maps to make (comma-separated among map2, map3, ref; empty = none).
     #[arg(long, value_delimiter = ',', default_value = "map2,map3,ref")]

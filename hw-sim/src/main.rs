@@ -35,7 +35,8 @@ enum Command {
         #[command(subcommand)]
         device: DeviceCommand,
     },
-    /// Run the demo: emulated lidars on ptys, read through the edge drivers.
+    /// Run the whole system on this machine: emulated lidars and turntable, the edge daemon,
+    /// the server, the paper's static maps and their report.
     Demo(DemoArgs),
 }
 
@@ -49,7 +50,8 @@ enum DeviceCommand {
 
 #[derive(Debug, Args)]
 struct CommonArgs {
-    /// Path of the symlink to create (e.g. /tmp/ttyRPLIDAR); replaced if it is a stale link.
+    /// Path of the symlink to create (e.g. /tmp/ttyRPLIDAR or /tmp/ttySWEEP); replaced if it
+    /// is a stale link.
     #[arg(long, value_name = "PATH")]
     link: PathBuf,
     /// Simulated seconds per real second (also scales the wire rate).

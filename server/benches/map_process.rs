@@ -77,7 +77,15 @@ fn main() {
         let (t, c) = best_run(
             reps,
             ours,
-            &["map", &graph_s, "--res", &r, "--out", &our_bt_s, "--quiet"],
+            &[
+                "map",
+                &graph_s,
+                "--resolution",
+                &r,
+                "--out",
+                &our_bt_s,
+                "--quiet",
+            ],
         );
         println!("ours    res {r}: scan3d map {t:.4} s (cpu {c:.4} s)");
         let Some(g2t) = &octomap else {

@@ -47,7 +47,7 @@ pub fn parse_bbox(s: &str) -> Result<MetricBox, String> {
 pub fn load_map(path: &Path) -> anyhow::Result<LeafMap> {
     let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
     LeafMap::read(&bytes, SensorModel::default())
-        .with_context(|| format!("{}: not a readable OctoMap .bt/.ot file", path.display()))
+        .with_context(|| format!("{}", path.display()))
 }
 
 /// The key box of a metric box at the reference's resolution.
@@ -212,6 +212,8 @@ pub struct WrittenReport {
     pub table: String,
     /// The files written: `table.md`, `metrics.json`, `fig11.svg`, `fig11.png`.
     pub files: Vec<PathBuf>,
+    /// What `metrics.json` holds: the reference, the truth and every map with its metrics.
+    pub metrics: serde_json::Value,
 }
 
 /// `scan3d report`: every map of `maps` against `reference` (and `truth`), inside `bbox`:
@@ -256,6 +258,7 @@ pub fn write_report(
         Ok(p)
     };
     let table = table_md(&report);
+    let metrics = serde_json::to_value(&report)?;
     let mut written = vec![
         write("table.md", table.as_bytes())?,
         write("metrics.json", &serde_json::to_vec_pretty(&report)?)?,
@@ -284,6 +287,7 @@ pub fn write_report(
     Ok(WrittenReport {
         table,
         files: written,
+        metrics,
     })
 }
 
@@ -354,7 +358,7 @@ pub fn write_resolution_sweep(
     out: &mut dyn Write,
 ) -> anyhow::Result<Vec<PathBuf>> {
     if resolutions.is_empty() {
-        anyhow::bail!("--res: give at least one resolution");
+        anyhow::bail!("--resolution: give at least one resolution");
     }
     let scans = load_cloud(cloud_path)?;
     let points: usize = scans.iter().map(|s| s.points.len()).sum();
@@ -374,7 +378,7 @@ pub fn write_resolution_sweep(
     )?;
     let mut rows = Vec::new();
     for &r in resolutions {
-        let res = Resolution::new(r).with_context(|| format!("--res {r}"))?;
+        let res = Resolution::new(r).with_context(|| format!("--resolution {r}"))?;
         let (build_s, tree) = best(reps, || {
             let mut map = VoxelMap::new(res, SensorModel::default());
             for s in &scans {

@@ -28,7 +28,7 @@ fn map_reports_points_dropped_by_the_reader_and_degenerate_rays_skipped() {
     let text = run_cli(&[
         "map",
         arg(&pcd),
-        "--res",
+        "--resolution",
         "0.1",
         "--out",
         arg(&out),

@@ -255,7 +255,7 @@ fn malformed_files_are_clear_errors() {
     }
     assert!(matches!(
         LeafMap::read(b"hello", m),
-        Err(OctreeError::BadMagic { .. })
+        Err(OctreeError::NotOctoMap)
     ));
     let no_res = b"# Octomap OcTree file\nid OcTree\nsize 1\ndata\n\0\0\0\0\0";
     assert!(matches!(

@@ -15,7 +15,7 @@ fn map_writes_octomaps_bytes() {
         run_cli(&[
             "map",
             arg(&graph),
-            "--res",
+            "--resolution",
             "0.2",
             "--out",
             arg(&out),
@@ -26,6 +26,31 @@ fn map_writes_octomaps_bytes() {
         let theirs = std::fs::read(data(&format!("reference/spherical_scan_0.2.{ext}"))).unwrap();
         assert!(ours == theirs, "{ext} differs from OctoMap's");
     }
+}
+
+#[test]
+fn the_old_spelling_res_still_sets_the_resolution() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("m.bt");
+    let graph = data("spherical_scan.graph");
+    run_cli(&[
+        "map",
+        arg(&graph),
+        "--res",
+        "0.2",
+        "--out",
+        arg(&out),
+        "--quiet",
+    ])
+    .unwrap();
+    assert_eq!(
+        std::fs::read(&out).unwrap(),
+        std::fs::read(data("reference/spherical_scan_0.2.bt")).unwrap()
+    );
+    // It is hidden: the help names the resolution once, as --resolution.
+    let help = run_cli(&["map", "--help"]).unwrap_err().to_string();
+    assert!(help.contains("--resolution <M>"), "{help}");
+    assert!(!help.contains("--res "), "{help}");
 }
 
 #[test]
@@ -54,7 +79,7 @@ fn a_cloud_through_ply_keeps_its_origins_and_gives_the_same_map() {
     run_cli(&[
         "map",
         arg(&ply),
-        "--res",
+        "--resolution",
         "0.1",
         "--out",
         arg(&ot),
@@ -97,7 +122,7 @@ fn non_finite_points_are_skipped_and_counted_and_filters_apply_in_order() {
     let text = run_cli(&[
         "map",
         arg(&ply),
-        "--res",
+        "--resolution",
         "0.5",
         "--origin",
         "0,0,0",
@@ -126,14 +151,26 @@ fn bad_inputs_give_one_clear_error() {
     std::fs::write(&truncated, &bytes[..bytes.len() / 2]).unwrap();
     let err = run_cli(&["info", arg(&truncated)]).unwrap_err().to_string();
     assert!(err.contains("t.bt"), "{err}");
-    let err = run_cli(&["map", "missing.ply", "--res", "0.1", "--out", "x.bt"])
+    // A file that is not OctoMap's: its header line named once, as OctoMap writes it.
+    let text = dir.path().join("text.bt");
+    std::fs::write(&text, "hello\n").unwrap();
+    let err = run_cli(&["info", arg(&text)]).unwrap_err();
+    assert_eq!(
+        format!("{err:#}"),
+        format!(
+            "{}: not an OctoMap file: the first line must start with \
+             \"# Octomap OcTree binary file\" (.bt) or \"# Octomap OcTree file\" (.ot)",
+            text.display()
+        )
+    );
+    let err = run_cli(&["map", "missing.ply", "--resolution", "0.1", "--out", "x.bt"])
         .unwrap_err()
         .to_string();
     assert!(err.contains("missing.ply"), "{err}");
     let err = run_cli(&[
         "map",
         arg(&data("spherical_scan.graph")),
-        "--res",
+        "--resolution",
         "0.1",
         "--out",
         "x.txt",

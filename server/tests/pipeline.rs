@@ -43,7 +43,7 @@ fn a_session_mapped_through_the_pipeline_equals_assembling_to_scans_then_mapping
     ] {
         let old = tmp.path().join("old.bt");
         let new = tmp.path().join("new.bt");
-        let base = ["--res", "0.1", "--quiet"];
+        let base = ["--resolution", "0.1", "--quiet"];
         let mut old_args = vec!["map", arg(&scans), "--out", arg(&old)];
         old_args.extend(base.iter().chain(extra));
         run_cli(&old_args).unwrap();
@@ -74,13 +74,21 @@ fn the_replay_snapshot_and_a_position_snapshot_equal_the_offline_maps() {
     let tmp = tempfile::tempdir().unwrap();
     let session = two_position_session().record(&tmp.path().join("data"), "pi");
     let out = tmp.path().join("replay");
-    let printed = run_cli(&["replay", arg(&session), "--res", "0.1", "--out", arg(&out)]).unwrap();
+    let printed = run_cli(&[
+        "replay",
+        arg(&session),
+        "--resolution",
+        "0.1",
+        "--out",
+        arg(&out),
+    ])
+    .unwrap();
     assert!(printed.contains("snapshot: 2 static scans"), "{printed}");
     let offline = tmp.path().join("offline.bt");
     run_cli(&[
         "map",
         arg(&session),
-        "--res",
+        "--resolution",
         "0.1",
         "--quiet",
         "--out",
@@ -123,7 +131,7 @@ fn the_replay_snapshot_and_a_position_snapshot_equal_the_offline_maps() {
     run_cli(&[
         "map",
         arg(&window_scans),
-        "--res",
+        "--resolution",
         "0.1",
         "--quiet",
         "--out",
@@ -215,7 +223,7 @@ fn a_reference_of_another_resolution_is_a_clear_error() {
     run_cli(&[
         "map",
         arg(&session),
-        "--res",
+        "--resolution",
         "0.2",
         "--quiet",
         "--out",
@@ -307,7 +315,7 @@ fn metrics_come_at_most_once_a_second_and_a_snapshot_scores_like_scan3d_eval() {
     run_cli(&[
         "map",
         arg(&session),
-        "--res",
+        "--resolution",
         "0.1",
         "--quiet",
         "--out",
@@ -368,12 +376,19 @@ fn metrics_come_at_most_once_a_second_and_a_snapshot_scores_like_scan3d_eval() {
             "metrics.txt"
         ]
     );
-    let eval = run_cli(&["eval", arg(&reference), arg(&snap.files[0]), "--json"]).unwrap();
+    let eval = run_cli(&[
+        "eval",
+        "--reference",
+        arg(&reference),
+        arg(&snap.files[0]),
+        "--json",
+    ])
+    .unwrap();
     let expected: serde_json::Value = serde_json::from_str(&eval).unwrap();
     let written: serde_json::Value = serde_json::from_slice(&read(&snap.files[3])).unwrap();
     assert_eq!(
         written, expected,
-        "metrics.json = scan3d eval REF map.bt --json"
+        "metrics.json = scan3d eval --reference REF map.bt --json"
     );
     // Through text both ways: serde_json's parser may round the last bit differently.
     let returned = serde_json::to_string(&snap.metrics.unwrap()).unwrap();
@@ -403,7 +418,7 @@ fn the_map_command_refuses_whole_cloud_filters_on_a_session() {
     let err = run_cli(&[
         "map",
         arg(&session),
-        "--res",
+        "--resolution",
         "0.1",
         "--filter",
         "sor:8,1.0",
@@ -515,7 +530,7 @@ fn mapping_a_damaged_session_fails_unless_lenient_and_then_maps_the_readable_res
     run_cli(&[
         "map",
         arg(&session),
-        "--res",
+        "--resolution",
         "0.1",
         "--quiet",
         "--out",
@@ -526,7 +541,15 @@ fn mapping_a_damaged_session_fails_unless_lenient_and_then_maps_the_readable_res
     let chunks = break_chunk(&session.join("0000.mcap"), 1);
     assert!(chunks >= 3, "{chunks} chunks");
     let out = tmp.path().join("damaged.bt");
-    let err = run_cli(&["map", arg(&session), "--res", "0.1", "--out", arg(&out)]).unwrap_err();
+    let err = run_cli(&[
+        "map",
+        arg(&session),
+        "--resolution",
+        "0.1",
+        "--out",
+        arg(&out),
+    ])
+    .unwrap_err();
     let line = format!("{err:#}");
     assert!(
         line.contains("recording damaged") && line.contains("--lenient"),
@@ -539,7 +562,7 @@ fn mapping_a_damaged_session_fails_unless_lenient_and_then_maps_the_readable_res
     let printed = run_cli(&[
         "map",
         arg(&session),
-        "--res",
+        "--resolution",
         "0.1",
         "--lenient",
         "--out",

@@ -59,8 +59,8 @@ fi
 
 check_tree() { # name graph resolution
     local name="$1" graph="$2" res="$3"
-    "$bin/scan3d" map "$graph" --res "$res" --out "$tmp/$name.ot" --quiet >/dev/null
-    "$bin/scan3d" map "$graph" --res "$res" --out "$tmp/$name.bt" --quiet >/dev/null
+    "$bin/scan3d" map "$graph" --resolution "$res" --out "$tmp/$name.ot" --quiet >/dev/null
+    "$bin/scan3d" map "$graph" --resolution "$res" --out "$tmp/$name.bt" --quiet >/dev/null
     convert_octree "$tmp/$name.bt" "$tmp/$name.from_bt.ot" >/dev/null 2>&1 \
         || { echo "convert_octree cannot read our $name.bt" >&2; exit 1; }
     convert_octree "$tmp/$name.ot" "$tmp/$name.from_ot.bt" >/dev/null 2>&1 \

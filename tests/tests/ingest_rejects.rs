@@ -784,7 +784,7 @@ fn a_snapshot_into_an_unwritable_directory_fails_and_the_daemon_keeps_recording(
         "scan3d".to_owned(),
         "map".into(),
         dir.display().to_string(),
-        "--res".into(),
+        "--resolution".into(),
         "0.05".into(),
         "--quiet".into(),
         "--out".into(),

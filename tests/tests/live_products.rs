@@ -23,7 +23,7 @@ fn offline_map(session: &Path, resolution: f64, max_range: f64, out: &Path) -> V
         "scan3d".to_owned(),
         "map".into(),
         session.display().to_string(),
-        "--res".into(),
+        "--resolution".into(),
         resolution.to_string(),
         "--max-range".into(),
         max_range.to_string(),

@@ -149,7 +149,7 @@ impl LeafMap {
     /// Reads a `.bt` or `.ot` file, chosen by its first line, like `Octree::read`: `.bt`
     /// leaves take `model`'s clamps, and `model`'s threshold decides occupied / free.
     pub fn read(bytes: &[u8], model: SensorModel) -> Result<Self, OctreeError> {
-        if bytes.starts_with(BT_MAGIC.as_bytes()) {
+        if crate::octree::is_binary(bytes)? {
             Self::read_bt(bytes, model)
         } else {
             Self::read_ot(bytes, model)

@@ -12,6 +12,22 @@ use super::walk::{NodeVisitor, walk_bt, walk_ot};
 pub(crate) const BT_MAGIC: &str = "# Octomap OcTree binary file";
 /// First line of an `.ot` file.
 pub(crate) const OT_MAGIC: &str = "# Octomap OcTree file";
+/// The file extension a header line belongs to: `.bt` or `.ot`.
+pub(crate) fn extension_of(magic: &str) -> &'static str {
+    if magic == BT_MAGIC { ".bt" } else { ".ot" }
+}
+
+/// Which reader a file's first line asks for: `Ok(true)` for `.bt`, `Ok(false)` for `.ot`.
+pub(crate) fn is_binary(bytes: &[u8]) -> Result<bool, OctreeError> {
+    if bytes.starts_with(BT_MAGIC.as_bytes()) {
+        Ok(true)
+    } else if bytes.starts_with(OT_MAGIC.as_bytes()) {
+        Ok(false)
+    } else {
+        Err(OctreeError::NotOctoMap)
+    }
+}
+
 const COMMENT: &str =
     "\n# (feel free to add / change comments, but leave the first line as it is!)\n#\n";
 
@@ -244,7 +260,7 @@ impl Octree {
     /// Reads a `.bt` or `.ot` file, chosen by its first line. `model` gives the clamps that
     /// `.bt` leaves take and the occupancy threshold (files do not store them).
     pub fn read(bytes: &[u8], model: SensorModel) -> Result<Octree, OctreeError> {
-        if bytes.starts_with(BT_MAGIC.as_bytes()) {
+        if is_binary(bytes)? {
             Self::read_bt(bytes, model)
         } else {
             Self::read_ot(bytes, model)
@@ -601,10 +617,20 @@ mod tests {
                 read: 33
             }
         );
-        assert!(matches!(
-            Octree::read(b"hello", model),
-            Err(OctreeError::BadMagic { .. })
-        ));
+        assert_eq!(
+            Octree::read(b"hello", model).unwrap_err().to_string(),
+            "not an OctoMap file: the first line must start with \"# Octomap OcTree binary file\" (.bt) or \"# Octomap OcTree file\" (.ot)"
+        );
+        assert_eq!(
+            Octree::read_bt(b"# Octomap OcTree file\n", model)
+                .unwrap_err()
+                .to_string(),
+            "not an OctoMap .bt file: the first line must start with \"# Octomap OcTree binary file\""
+        );
+        assert_eq!(
+            Octree::read_ot(b"hello", model).unwrap_err().to_string(),
+            "not an OctoMap .ot file: the first line must start with \"# Octomap OcTree file\""
+        );
         assert!(matches!(
             Octree::read(
                 b"# Octomap OcTree file\nid ColorOcTree\nres 0.1\nsize 1\ndata\n",

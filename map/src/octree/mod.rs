@@ -38,7 +38,7 @@ mod walk;
 
 pub use graph::{read_graph, read_graph_from, transform_point, visit_graph};
 pub use io::format_resolution;
-pub(crate) use io::{BT_MAGIC, Header, OT_MAGIC, parse_header};
+pub(crate) use io::{BT_MAGIC, Header, OT_MAGIC, is_binary, parse_header};
 pub use key::{KEY_CENTER, Key, Resolution, TREE_DEPTH};
 pub(crate) use key::{compact3, morton, spread3, unmorton};
 pub use model::{SensorModel, logodds};
@@ -56,11 +56,21 @@ pub enum OctreeError {
     #[error("resolution must be finite and > 0, got {0}")]
     BadResolution(f64),
     /// The first line is not the expected OctoMap file header.
-    #[error("not an OctoMap {expected} file (first line must start with {expected:?})")]
+    #[error(
+        "not an OctoMap {} file: the first line must start with {expected:?}",
+        io::extension_of(expected)
+    )]
     BadMagic {
         /// The header line expected.
         expected: &'static str,
     },
+    /// The first line is neither OctoMap header (a reader that takes `.bt` and `.ot`).
+    #[error(
+        "not an OctoMap file: the first line must start with {:?} (.bt) or {:?} (.ot)",
+        io::BT_MAGIC,
+        io::OT_MAGIC
+    )]
+    NotOctoMap,
     /// The header has no `data` line, or a field is missing or unparsable.
     #[error("bad OctoMap header: {0}")]
     BadHeader(String),

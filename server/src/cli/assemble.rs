@@ -28,7 +28,7 @@ pub struct AssembleArgs {
     #[arg(long = "position", value_name = "NAME")]
     pub positions: Vec<String>,
     /// Drop points farther than this from their sensor origin, metres.
-    #[arg(long)]
+    #[arg(long, value_name = "M")]
     pub max_range: Option<f64>,
     /// Go on with the readable rest of a damaged recording (with a warning) instead of failing.
     #[arg(long)]

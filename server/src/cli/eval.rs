@@ -1,5 +1,6 @@
-//! `scan3d eval REF TARGET [--bbox x0,y0,z0,x1,y1,z1] [--truth TRUTH] [--json]`: the paper's
-//! map metrics (`scan3d_map::eval`) of one map against a reference, as a table or one JSON object.
+//! `scan3d eval --reference REF TARGET [--bbox x0,y0,z0,x1,y1,z1] [--truth TRUTH] [--json]`: the
+//! paper's map metrics (`scan3d_map::eval`) of one map against a reference, as a table or one
+//! JSON object. The form of earlier versions, `scan3d eval REF TARGET`, still works.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -11,10 +12,20 @@ pub use crate::report::{MetricBox, evaluate_maps, key_box, load_map, opt, parse_
 /// Options of `scan3d eval`.
 #[derive(Debug, clap::Args)]
 pub struct EvalArgs {
-    /// The reference map (`.bt` or `.ot`).
-    pub reference: PathBuf,
-    /// The map to score against it (`.bt` or `.ot`, same resolution).
+    /// The reference map (`.bt` or `.ot`); required.
+    #[arg(
+        long,
+        alias = "ref",
+        value_name = "REF",
+        required_unless_present = "legacy_target"
+    )]
+    pub reference: Option<PathBuf>,
+    /// The map to score against the reference (`.bt` or `.ot`, same resolution).
     pub target: PathBuf,
+    /// `scan3d eval REF TARGET`, the form of earlier versions: then the first path is the
+    /// reference and this one the target.
+    #[arg(hide = true, conflicts_with = "reference")]
+    pub legacy_target: Option<PathBuf>,
     /// The universe box in metres, `x0,y0,z0,x1,y1,z1`: the voxels whose centre is inside.
     /// Default: the smallest key box holding every known voxel of either map.
     #[arg(long, value_parser = parse_bbox, allow_hyphen_values = true)]
@@ -27,10 +38,22 @@ pub struct EvalArgs {
     pub json: bool,
 }
 
+impl EvalArgs {
+    /// The reference and the target these options name, in either form.
+    pub fn maps(&self) -> anyhow::Result<(&Path, &Path)> {
+        match (&self.reference, &self.legacy_target) {
+            (Some(reference), _) => Ok((reference, &self.target)),
+            (None, Some(target)) => Ok((&self.target, target)),
+            (None, None) => anyhow::bail!("no reference map: give --reference REF"),
+        }
+    }
+}
+
 /// Runs `scan3d eval`.
 pub fn run(args: &EvalArgs, out: &mut dyn Write) -> anyhow::Result<()> {
-    let reference = load_map(&args.reference)?;
-    let target = load_map(&args.target)?;
+    let (reference_path, target_path) = args.maps()?;
+    let reference = load_map(reference_path)?;
+    let target = load_map(target_path)?;
     let truth = args.truth.as_deref().map(load_map).transpose()?;
     let bbox = key_box(&reference, args.bbox)?;
     let m = evaluate_maps(&reference, &target, bbox, truth.as_ref())?;
@@ -38,7 +61,7 @@ pub fn run(args: &EvalArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         serde_json::to_writer_pretty(&mut *out, &m)?;
         writeln!(out)?;
     } else {
-        write_table(&m, &args.reference, &args.target, out)?;
+        write_table(&m, reference_path, target_path, out)?;
     }
     Ok(())
 }

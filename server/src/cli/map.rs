@@ -1,4 +1,4 @@
-//! `scan3d map INPUT --res R … --out OUT.bt|OUT.ot`: a point cloud (OctoMap `.graph`, `.scans`,
+//! `scan3d map INPUT --resolution R … --out OUT.bt|OUT.ot`: a point cloud (OctoMap `.graph`, `.scans`,
 //! PLY or PCD) filtered as asked and inserted into an OctoMap-identical occupancy octree; or a
 //! recorded session directory, streamed through the server pipeline (assembly by eq. 1, the
 //! filters per revolution, insertion per half revolution), which gives the same map as
@@ -76,10 +76,10 @@ pub struct MapArgs {
     /// directory (`data_dir/sessions/<edge>/<session-id>`).
     pub input: PathBuf,
     /// Voxel edge length, metres.
-    #[arg(long)]
-    pub res: f64,
+    #[arg(long, alias = "res", value_name = "M")]
+    pub resolution: f64,
     /// Rays longer than this are cut (free up to the cut, no hit); negative = no limit.
-    #[arg(long, default_value_t = -1.0, allow_negative_numbers = true)]
+    #[arg(long, value_name = "M", default_value_t = -1.0, allow_negative_numbers = true)]
     pub max_range: f64,
     /// Sensor origin `x,y,z` for a PLY/PCD cloud that carries none.
     #[arg(long, value_parser = parse_xyz_arg, allow_negative_numbers = true)]
@@ -163,7 +163,7 @@ fn map_graph_streaming(args: &MapArgs) -> anyhow::Result<(VoxelMap, InsertStats,
         bar
     });
     let source = std::io::BufReader::with_capacity(1 << 16, file);
-    let mut map = VoxelMap::new(Resolution::new(args.res)?, args.model());
+    let mut map = VoxelMap::new(Resolution::new(args.resolution)?, args.model());
     let mut points = 0;
     // The file is read and parsed on a thread of its own while the previous node is
     // inserted; two buffers go back and forth, so memory stays two nodes.
@@ -289,7 +289,7 @@ pub fn run(args: &MapArgs, out: &mut dyn Write) -> anyhow::Result<()> {
     if TreeFormat::of(&args.out).is_none() {
         anyhow::bail!("{}: a map must end in .bt or .ot", args.out.display());
     }
-    Resolution::new(args.res)?;
+    Resolution::new(args.resolution)?;
     if args.input.is_dir() {
         return run_session(args, out);
     }
@@ -320,7 +320,13 @@ pub fn run(args: &MapArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         let names: Vec<String> = args.filters.iter().map(ToString::to_string).collect();
         writeln!(out, "filters {}: {kept} points kept", names.join(" → "))?;
     }
-    let (map, stats) = build_map(&scans, args.res, args.max_range, args.model(), !args.quiet)?;
+    let (map, stats) = build_map(
+        &scans,
+        args.resolution,
+        args.max_range,
+        args.model(),
+        !args.quiet,
+    )?;
     let written = write_map(args, &map, &stats, out);
     // Freeing the map and the cloud (tens of thousands of allocations at fine resolutions) is
     // left to a thread of its own: a one-shot `scan3d map` exits without waiting for it, and
@@ -346,7 +352,7 @@ pub fn session_settings(args: &MapArgs) -> anyhow::Result<PipelineSettings> {
         anyhow::bail!("--origin is for PLY/PCD clouds; a session carries its sensor origins");
     }
     Ok(PipelineSettings {
-        resolution_m: args.res,
+        resolution_m: args.resolution,
         max_range_m: (args.max_range >= 0.0).then_some(args.max_range),
         sensor: args.model(),
         revolution_filters: args.filters.clone(),
@@ -434,7 +440,7 @@ fn write_map(
         out,
         "wrote {}: resolution {} m, {} nodes, {} leaves ({} occupied, {} free)",
         args.out.display(),
-        args.res,
+        args.resolution,
         tree.num_nodes(),
         tree.num_leaves(),
         tree.num_occupied(),

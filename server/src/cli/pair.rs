@@ -135,11 +135,7 @@ fn print_outcome(outcome: &PairOutcome, name: &str, out: &mut dyn Write) -> anyh
             "restart `scan3d serve` to use the new server certificate"
         )?;
     }
-    writeln!(
-        out,
-        "next: copy the bundle to the Pi and point edge.toml at it, e.g.\n  scp -r {} pi:/etc/scan3d/pki",
-        outcome.edge_dir.display()
-    )?;
+    writeln!(out, "{}", copy_hint(&outcome.edge_dir))?;
     writeln!(
         out,
         "the edge must connect with one of the server names above: {}",
@@ -151,6 +147,19 @@ fn print_outcome(outcome: &PairOutcome, name: &str, out: &mut dyn Write) -> anyh
         outcome.ca_key.display()
     )?;
     Ok(())
+}
+
+/// The next step after pairing: the bundle's files (not its directory) into the Pi's
+/// `/etc/scan3d/pki`, owned by `scan3d` and keeping `edge.key`'s 0600, as deploy/README.md §2
+/// does it (`scp -r DIR pi:/etc/scan3d/pki` would nest them one directory too deep).
+fn copy_hint(edge_dir: &std::path::Path) -> String {
+    format!(
+        "next: copy the bundle's files into the Pi's /etc/scan3d/pki (as in deploy/README.md), e.g.\n  \
+         sudo tar -C {} -c . | ssh pi@raspberrypi.local \\\n    \
+         'sudo install -d -m 0755 /etc/scan3d && sudo install -d -m 0700 -o scan3d -g scan3d /etc/scan3d/pki &&\n     \
+         sudo tar -C /etc/scan3d/pki --no-same-owner -x && sudo chown -R scan3d:scan3d /etc/scan3d/pki'",
+        edge_dir.display()
+    )
 }
 
 #[cfg(test)]
@@ -186,9 +195,33 @@ mod tests {
         assert!(first.contains("CA created"), "{first}");
         assert!(first.contains("server certificate created"), "{first}");
         assert!(first.contains("for scanhost, 10.1.2.3"), "{first}");
+        // The copy hint is deploy/README.md's tar pipe, with this bundle's directory.
+        let hint: Vec<&str> = first
+            .lines()
+            .skip_while(|l| !l.starts_with("next: "))
+            .take(4)
+            .collect();
+        assert_eq!(
+            hint,
+            [
+                "next: copy the bundle's files into the Pi's /etc/scan3d/pki (as in deploy/README.md), e.g.",
+                &format!("  sudo tar -C {dir}/edges/pi-01 -c . | ssh pi@raspberrypi.local \\"),
+                "    'sudo install -d -m 0755 /etc/scan3d && sudo install -d -m 0700 -o scan3d -g scan3d /etc/scan3d/pki &&",
+                "     sudo tar -C /etc/scan3d/pki --no-same-owner -x && sudo chown -R scan3d:scan3d /etc/scan3d/pki'",
+            ]
+        );
+        let readme = include_str!("../../../deploy/README.md");
+        for line in &hint[2..] {
+            assert!(
+                readme.contains(line.trim()),
+                "not in deploy/README.md: {line}"
+            );
+        }
         assert!(
-            first.contains(&format!("scp -r {dir}/edges/pi-01 pi:/etc/scan3d/pki")),
-            "{first}"
+            readme.contains(
+                "sudo tar -C /etc/scan3d/pki/edges/edge-pi-01 -c . | ssh pi@raspberrypi.local \\"
+            ),
+            "deploy/README.md's tar pipe changed"
         );
         assert!(tmp.path().join("edges/pi-01/edge.key").is_file());
 

@@ -28,10 +28,10 @@ pub struct ReplayArgs {
     #[arg(long)]
     pub lenient: bool,
     /// Voxel edge length of the octree, metres.
-    #[arg(long, default_value_t = 0.05)]
-    pub res: f64,
+    #[arg(long, alias = "res", value_name = "M", default_value_t = 0.05)]
+    pub resolution: f64,
     /// Rays longer than this are cut (free up to the cut, no hit), metres.
-    #[arg(long)]
+    #[arg(long, value_name = "M")]
     pub max_range: Option<f64>,
     /// Per-revolution filters, in order: `voxel:LEAF`, `box:x0,y0,z0,x1,y1,z1`, `box-out:…`.
     #[arg(long = "filter", value_name = "FILTER", allow_hyphen_values = true)]
@@ -44,14 +44,14 @@ pub struct ReplayArgs {
     )]
     pub snapshot_filters: Vec<Filter>,
     /// A reference map (`.bt`/`.ot`, same resolution) to compute the metrics against.
-    #[arg(long)]
+    #[arg(long, alias = "ref", value_name = "REF")]
     pub reference: Option<PathBuf>,
 }
 
 /// Runs `scan3d replay`.
 pub fn run(args: &ReplayArgs, out: &mut dyn Write) -> anyhow::Result<()> {
     let settings = PipelineSettings {
-        resolution_m: args.res,
+        resolution_m: args.resolution,
         max_range_m: args.max_range,
         revolution_filters: args.filters.clone(),
         snapshot_filters: args.snapshot_filters.clone(),

@@ -1,5 +1,6 @@
-//! `scan3d report --ref REF --maps A.bt B.bt … [--truth T] [--bbox …] --out DIR`: Table III,
-//! the metric table, `metrics.json` and a Fig. 11-style chart (`fig11.svg`, `fig11.png`).
+//! `scan3d report --reference REF --maps A.bt B.bt … [--truth T] [--bbox …] --out DIR [--json]`:
+//! Table III, the metric table, `metrics.json` and a Fig. 11-style chart (`fig11.svg`,
+//! `fig11.png`); on stdout the tables, or with `--json` one JSON object.
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -10,7 +11,7 @@ use crate::report::{MetricBox, parse_bbox, write_report};
 #[derive(Debug, clap::Args)]
 pub struct ReportArgs {
     /// The reference map (`.bt` or `.ot`).
-    #[arg(long = "ref", value_name = "REF")]
+    #[arg(long, alias = "ref", value_name = "REF")]
     pub reference: PathBuf,
     /// The maps to score against the reference (same resolution).
     #[arg(long, num_args = 1.., required = true)]
@@ -24,6 +25,11 @@ pub struct ReportArgs {
     /// Output directory (created if missing).
     #[arg(long)]
     pub out: PathBuf,
+    /// Print one JSON object instead of the tables: what `metrics.json` holds (`reference`,
+    /// `truth`, `maps`, each map with `name`, `path`, `summary` and `metrics`) and `files`,
+    /// the files written.
+    #[arg(long)]
+    pub json: bool,
 }
 
 /// Runs `scan3d report`.
@@ -35,6 +41,21 @@ pub fn run(args: &ReportArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         args.bbox,
         &args.out,
     )?;
+    if args.json {
+        let mut object = written.metrics;
+        let files = written
+            .files
+            .iter()
+            .map(|p| serde_json::Value::String(p.display().to_string()))
+            .collect();
+        object
+            .as_object_mut()
+            .ok_or_else(|| anyhow::anyhow!("the report is not a JSON object"))?
+            .insert("files".into(), serde_json::Value::Array(files));
+        serde_json::to_writer_pretty(&mut *out, &object)?;
+        writeln!(out)?;
+        return Ok(());
+    }
     write!(out, "{}", written.table)?;
     writeln!(out)?;
     for p in written.files {

@@ -50,8 +50,9 @@ pub struct SlamArgs {
     /// Match scans against the map only (the one mode until loop closure lands).
     #[arg(long)]
     pub no_loop_closure: bool,
-    /// Treat readings beyond this range (m) as no return. Without it, only the log's
-    /// no-return value (its largest reading: 81.83 / 50.00 / 81.91 m in the classic logs) is.
+    /// Treat readings beyond this range (m) as no return. Without it, only readings at the
+    /// log's no-return value (its largest reading: 81.83 / 50.00 / 81.91 m in the classic
+    /// logs) count as no return.
     #[arg(long, value_name = "M")]
     pub max_range: Option<f64>,
     /// Drop readings closer than this (m).

@@ -243,12 +243,15 @@ pub struct StatusReport {
 #[derive(Debug, thiserror::Error)]
 pub enum LiveError {
     /// No session of that edge (or not that one) since the daemon started.
-    #[error("no live session {session} of edge {edge:?} (known: {known})")]
+    #[error(
+        "no live session{} of edge {edge:?} (known: {known})",
+        session.map_or_else(String::new, |id| format!(" {id:016x}"))
+    )]
     NoSession {
         /// The edge asked for.
         edge: String,
-        /// The session asked for, or "any".
-        session: String,
+        /// The session asked for; `None`: any (the latest).
+        session: Option<u64>,
         /// The sessions there are, as `edge/session`.
         known: String,
     },
@@ -644,7 +647,7 @@ impl LivePipelines {
                         .collect();
                     return Err(LiveError::NoSession {
                         edge: edge.to_owned(),
-                        session: wanted.map_or("any".into(), |id| format!("{id:016x}")),
+                        session: wanted,
                         known: if known.is_empty() {
                             "none".into()
                         } else {
@@ -1007,6 +1010,26 @@ impl WorkerRun {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_snapshot_of_an_edge_without_a_session_names_it_and_what_there_is() {
+        let data = tempfile::tempdir().unwrap();
+        let settings = LiveSettings::new(PipelineSettings::default(), data.path().to_path_buf());
+        let live = LivePipelines::new(settings).unwrap();
+        let out = data.path().join("snap");
+        let any = live.snapshot("pi-01", None, None, &out).unwrap_err();
+        assert_eq!(
+            any.to_string(),
+            "no live session of edge \"pi-01\" (known: none)"
+        );
+        let one = live
+            .snapshot("pi-01", Some("00000000000000ab"), None, &out)
+            .unwrap_err();
+        assert_eq!(
+            one.to_string(),
+            "no live session 00000000000000ab of edge \"pi-01\" (known: none)"
+        );
+    }
 
     #[test]
     fn latency_percentiles_come_from_the_sorted_window() {

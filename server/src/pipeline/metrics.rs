@@ -1,4 +1,4 @@
-//! The reference map and the metrics against it, as `scan3d eval REF map.bt` computes them.
+//! The reference map and the metrics against it, as `scan3d eval --reference REF map.bt` computes them.
 
 use std::io::Write;
 use std::path::Path;
@@ -16,8 +16,8 @@ pub fn load_reference(path: &Path, res: &Resolution) -> Result<LeafMap, Pipeline
         reason,
     };
     let bytes = std::fs::read(path).map_err(|e| unreadable(e.to_string()))?;
-    let reference = LeafMap::read(&bytes, SensorModel::default())
-        .map_err(|e| unreadable(format!("not a readable OctoMap .bt/.ot file: {e}")))?;
+    let reference =
+        LeafMap::read(&bytes, SensorModel::default()).map_err(|e| unreadable(e.to_string()))?;
     check_resolution(&reference, res, path)?;
     Ok(reference)
 }
@@ -40,7 +40,7 @@ pub(super) fn check_resolution(
 }
 
 /// The metrics' view of `tree` as its `.bt` file holds it (max-likelihood values), so the
-/// pipeline's metrics equal `scan3d eval REF map.bt`.
+/// pipeline's metrics equal `scan3d eval --reference REF map.bt`.
 pub(super) fn leaf_map(tree: &Octree) -> LeafMap {
     leaf_map_of_bt(tree, &tree.to_bt_bytes())
 }
