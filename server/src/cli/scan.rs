@@ -1,9 +1,16 @@
-//! `scan3d scan --edge NAME --at X,Y[,HEADING] [--name POS]`: starts a static 3D scan on a
-//! connected edge through the running server's control socket; `--stop` ends one early.
+//! `scan3d scan --edge NAME --at X,Y[,HEADING] [--name POS] [--wait] [--json]`: starts a static
+//! 3D scan on a connected edge through the running server's control socket and reports what
+//! the edge did; `--stop` ends one early.
 //!
-//! The edge answers in its session: a `StaticScan::Started` frame with the position and mount,
-//! a `StaticScan::Yaws` per Sweep revolution, then `StaticScan::Finished`; `scan3d assemble SESSION_DIR` turns
-//! them into a cloud.
+//! The command waits for the edge's answer (its `CommandReply` frame): accepted, refused with
+//! the reason (exit status 1), or waiting for the Sweep to stream. `--wait` follows the scan to
+//! its end (revolutions, yaw reached, late steps; a progress bar on a terminal, plain lines
+//! otherwise) and exits 0 only when it completed. `--json` prints the last status as one JSON
+//! object ([`crate::ingest::control::CommandStatus`]).
+//!
+//! The edge's session holds the scan: a `StaticScan::Started` frame with the position and
+//! mount, a `StaticScan::Yaws` per Sweep revolution, then `StaticScan::Finished`;
+//! `scan3d assemble SESSION_DIR` turns them into a cloud.
 
 use std::io::Write;
 use std::str::FromStr;
@@ -11,7 +18,9 @@ use std::str::FromStr;
 use scan3d_protocol::Command;
 
 use super::DataDirArgs;
-use crate::ingest::control::{ControlRequest, request, socket_path};
+use crate::ingest::control::{
+    CommandRequest, CommandState, CommandStatus, request_command, socket_path,
+};
 
 /// A position on the floor as the operator types it: `X,Y` or `X,Y,HEADING` (metres, degrees).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -70,8 +79,18 @@ pub struct ScanArgs {
     #[arg(long, value_name = "POS")]
     pub name: Option<String>,
     /// Stop the running scan instead (the turntable returns home).
-    #[arg(long, conflicts_with_all = ["at", "name"])]
+    #[arg(long, conflicts_with_all = ["at", "name", "wait"])]
     pub stop: bool,
+    /// Follow the scan to its end (also while the edge waits for the Sweep); exit 0 only if
+    /// it completed.
+    #[arg(long)]
+    pub wait: bool,
+    /// Print the last status as JSON.
+    #[arg(long)]
+    pub json: bool,
+    /// Seconds to wait for the edge's answer.
+    #[arg(long, value_name = "SECS", default_value_t = 15.0)]
+    pub timeout: f64,
     /// Which server.
     #[command(flatten)]
     pub data: DataDirArgs,
@@ -102,19 +121,90 @@ pub fn run(args: &ScanArgs, out: &mut dyn Write) -> anyhow::Result<()> {
     command
         .validate()
         .map_err(|e| anyhow::anyhow!("invalid command: {e}"))?;
-    let socket = socket_path(&args.data.resolve()?);
-    let reply = request(
-        &socket,
-        &ControlRequest {
-            edge: args.edge.clone(),
-            command,
-        },
-    )?;
-    if !reply.ok {
-        anyhow::bail!("{}", reply.detail);
+    if !(args.timeout.is_finite() && args.timeout > 0.0) {
+        anyhow::bail!(
+            "--timeout {} is not a positive number of seconds",
+            args.timeout
+        );
     }
-    writeln!(out, "{}", reply.detail)?;
+    let socket = socket_path(&args.data.resolve()?);
+    let request = CommandRequest {
+        edge: args.edge.clone(),
+        command,
+        follow: args.wait,
+        reply_timeout_s: Some(args.timeout),
+    };
+    let mut progress = Progress::new(args.wait && !args.json);
+    let last = request_command(&socket, &request, &mut |status| {
+        if !status.done {
+            progress.show(status, out)
+        }
+    })?;
+    progress.finish();
+    if args.json {
+        writeln!(out, "{}", serde_json::to_string_pretty(&last)?)?;
+    } else if last.ok {
+        writeln!(out, "{}", last.detail)?;
+    }
+    if !last.ok {
+        anyhow::bail!("{}", last.detail);
+    }
     Ok(())
+}
+
+/// How `--wait` shows a scan under way: a bar on a terminal (stderr), a line per change on
+/// stdout otherwise.
+struct Progress {
+    enabled: bool,
+    bar: Option<indicatif::ProgressBar>,
+    last_line: Option<(CommandState, u32)>,
+}
+
+impl Progress {
+    fn new(enabled: bool) -> Self {
+        use std::io::IsTerminal;
+        let bar = (enabled && std::io::stderr().is_terminal()).then(|| {
+            let bar = indicatif::ProgressBar::new(1000);
+            bar.set_style(
+                indicatif::ProgressStyle::with_template("{bar:30} {percent:>3}% {msg}")
+                    .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+            );
+            bar
+        });
+        Progress {
+            enabled,
+            bar,
+            last_line: None,
+        }
+    }
+
+    fn show(&mut self, status: &CommandStatus, out: &mut dyn Write) {
+        if !self.enabled {
+            return;
+        }
+        let revolutions = status.progress.as_ref().map_or(0, |p| p.revolutions);
+        match &self.bar {
+            Some(bar) => {
+                let fraction = status.progress.as_ref().map_or(0.0, |p| p.fraction());
+                bar.set_position((fraction * 1000.0).round() as u64);
+                bar.set_message(status.detail.clone());
+            }
+            None => {
+                // Keep-alive repeats change nothing: one line per state or revolution.
+                let key = (status.state, revolutions);
+                if self.last_line != Some(key) {
+                    self.last_line = Some(key);
+                    let _ = writeln!(out, "{}", status.detail);
+                }
+            }
+        }
+    }
+
+    fn finish(&mut self) {
+        if let Some(bar) = self.bar.take() {
+            bar.finish_and_clear();
+        }
+    }
 }
 
 #[cfg(test)]

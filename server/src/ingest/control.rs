@@ -1,10 +1,21 @@
 //! Operator control of connected edges: [`EdgeControl`] routes a [`Command`] to an edge's live
 //! connection, and a local Unix socket lets `scan3d scan` (another process on the laptop) use it.
 //!
-//! The socket protocol is one JSON line each way, so it can be driven by hand with `socat`:
+//! The socket protocol is JSON lines, so it can be driven by hand with `socat`. A command
+//! followed until the edge answers ([`CommandRequest`], what `scan3d scan` sends) gets one
+//! [`CommandStatus`] line per change, the last with `"done":true`:
 //!
 //! ```text
-//! → {"edge":"pi","command":{"StartStaticScan":{"position":"door","x_m":1.0,"y_m":2.0,"heading_deg":null}}}
+//! → {"request":"command","edge":"pi","command":{"StartStaticScan":{"position":"door","x_m":1.0,"y_m":2.0,"heading_deg":null}},"follow":false}
+//! ← {"ok":true,"detail":"edge pi started static scan 0","data":{"state":"accepted","done":true,"scan_id":0,...}}
+//! ```
+//!
+//! The edge's answer is its [`CommandReply`] frame (recorded in the session), matched by the
+//! command frame's sequence number; with `"follow":true` the static scan's frames are folded
+//! into [`ScanProgress`] until it ends. A bare command (no `"request"` key) is only queued:
+//!
+//! ```text
+//! → {"edge":"pi","command":"StopStaticScan"}
 //! ← {"ok":true,"detail":"sent to pi"}
 //! ```
 //!
@@ -26,11 +37,13 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use scan3d_protocol::{Command, InvalidCommand};
+use scan3d_protocol::{Body, Command, CommandOutcome, CommandReply, InvalidCommand, StaticScan};
 use serde::{Deserialize, Serialize};
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::net::{UnixListener, UnixStream};
-use tokio::sync::mpsc;
+use tokio::sync::{broadcast, mpsc, oneshot};
+
+use super::scan_progress::ScanProgress;
 
 /// The control socket of a server whose recordings live in `data_dir`.
 pub fn socket_path(data_dir: &Path) -> PathBuf {
@@ -53,29 +66,117 @@ pub enum ControlError {
     Invalid(#[from] InvalidCommand),
 }
 
+/// A command on its way to an edge's connection task; `sent` learns the session and sequence
+/// number the command's frame got (which the edge's [`CommandReply`] names).
+#[derive(Debug)]
+pub struct QueuedCommand {
+    /// The command.
+    pub command: Command,
+    /// Told where the command went, if someone follows it.
+    pub sent: Option<oneshot::Sender<SentCommand>>,
+}
+
+/// Where a command went: the edge session it was recorded in and its frame's sequence number.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SentCommand {
+    /// The edge session.
+    pub session_id: u64,
+    /// The server frame's sequence number in that session.
+    pub seq: u64,
+}
+
+/// What a follower of a command sees of an edge: its connection coming and going, and the
+/// recorded frames that answer commands ([`Body::CommandReply`]) or tell a static scan's
+/// progress ([`Body::StaticScan`]).
+#[derive(Debug, Clone, PartialEq)]
+pub enum EdgeEvent {
+    /// The edge connected.
+    Connected,
+    /// The edge's connection ended (no newer one replaced it).
+    Disconnected {
+        /// Why.
+        reason: String,
+    },
+    /// A frame recorded for the first time.
+    Frame {
+        /// Its session.
+        session_id: u64,
+        /// A `CommandReply` or a `StaticScan`.
+        body: Body,
+    },
+}
+
+/// Events buffered per edge for followers that fall behind.
+const EVENT_CAPACITY: usize = 4096;
+
+#[derive(Debug, Default)]
+struct Links {
+    commands: HashMap<String, mpsc::UnboundedSender<QueuedCommand>>,
+    /// Kept across reconnections, so a follower sees the edge come back.
+    events: HashMap<String, broadcast::Sender<EdgeEvent>>,
+}
+
+impl Links {
+    fn events(&mut self, edge: &str) -> &broadcast::Sender<EdgeEvent> {
+        self.events
+            .entry(edge.to_owned())
+            .or_insert_with(|| broadcast::channel(EVENT_CAPACITY).0)
+    }
+}
+
+/// A command queued by [`EdgeControl::submit`]: where it went, and the edge's events from
+/// before it was queued on.
+#[derive(Debug)]
+pub struct CommandTicket {
+    /// Fires once the connection task recorded the command and queued its frame.
+    pub sent: oneshot::Receiver<SentCommand>,
+    /// The edge's events.
+    pub events: broadcast::Receiver<EdgeEvent>,
+}
+
 /// Routes commands to the edges connected to an ingest server; cheap to clone.
 #[derive(Debug, Clone, Default)]
 pub struct EdgeControl {
-    edges: Arc<Mutex<HashMap<String, mpsc::UnboundedSender<Command>>>>,
+    links: Arc<Mutex<Links>>,
 }
 
 impl EdgeControl {
     /// Registers an edge's connection; its task receives the commands. A newer connection of
     /// the same edge replaces the older one.
-    pub(crate) fn register(&self, edge: &str) -> mpsc::UnboundedReceiver<Command> {
+    pub(crate) fn register(&self, edge: &str) -> mpsc::UnboundedReceiver<QueuedCommand> {
         let (tx, rx) = mpsc::unbounded_channel();
-        self.lock().insert(edge.to_owned(), tx);
+        let mut links = self.lock();
+        links.commands.insert(edge.to_owned(), tx);
+        let _ = links.events(edge).send(EdgeEvent::Connected);
         rx
     }
 
-    /// Forgets an edge whose connection ended (unless a newer one already replaced it).
-    pub(crate) fn unregister(&self, edge: &str) {
-        let mut edges = self.lock();
-        if edges
+    /// Forgets an edge whose connection ended (unless a newer one already replaced it), and
+    /// tells its followers why.
+    pub(crate) fn unregister(&self, edge: &str, reason: &str) {
+        let mut links = self.lock();
+        if links
+            .commands
             .get(edge)
             .is_some_and(mpsc::UnboundedSender::is_closed)
         {
-            edges.remove(edge);
+            links.commands.remove(edge);
+            let _ = links.events(edge).send(EdgeEvent::Disconnected {
+                reason: reason.to_owned(),
+            });
+        }
+    }
+
+    /// Hands a recorded frame of `edge` to the followers of its commands, if it is one they
+    /// follow (a command reply or a static-scan message).
+    pub(crate) fn publish(&self, edge: &str, frame: &scan3d_protocol::Frame) {
+        if matches!(frame.body, Body::CommandReply(_) | Body::StaticScan(_))
+            && let Some(events) = self.lock().events.get(edge)
+        {
+            let _ = events.send(EdgeEvent::Frame {
+                session_id: frame.session_id,
+                body: frame.body.clone(),
+            });
         }
     }
 
@@ -83,6 +184,7 @@ impl EdgeControl {
     pub fn connected(&self) -> Vec<String> {
         let mut names: Vec<String> = self
             .lock()
+            .commands
             .iter()
             .filter(|(_, tx)| !tx.is_closed())
             .map(|(name, _)| name.clone())
@@ -95,13 +197,33 @@ impl EdgeControl {
     /// command is validated first ([`Command::validate`]): this is the only way commands reach
     /// a connection, so a connection never holds one it cannot encode.
     pub fn send(&self, edge: &str, command: Command) -> Result<(), ControlError> {
+        self.queue(edge, command, None).map(drop)
+    }
+
+    /// [`EdgeControl::send`], and follow the command: the ticket tells where it went and
+    /// carries the edge's events from now on (the edge's reply among them).
+    pub fn submit(&self, edge: &str, command: Command) -> Result<CommandTicket, ControlError> {
+        let (tx, rx) = oneshot::channel();
+        let events = self.queue(edge, command, Some(tx))?;
+        Ok(CommandTicket { sent: rx, events })
+    }
+
+    fn queue(
+        &self,
+        edge: &str,
+        command: Command,
+        sent: Option<oneshot::Sender<SentCommand>>,
+    ) -> Result<broadcast::Receiver<EdgeEvent>, ControlError> {
         command.validate()?;
-        let sent = self
-            .lock()
+        let mut links = self.lock();
+        let events = links.events(edge).subscribe();
+        let queued = links
+            .commands
             .get(edge)
-            .is_some_and(|tx| tx.send(command).is_ok());
-        if sent {
-            Ok(())
+            .is_some_and(|tx| tx.send(QueuedCommand { command, sent }).is_ok());
+        drop(links);
+        if queued {
+            Ok(events)
         } else {
             let connected = self.connected();
             Err(ControlError::NotConnected {
@@ -115,8 +237,8 @@ impl EdgeControl {
         }
     }
 
-    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<String, mpsc::UnboundedSender<Command>>> {
-        self.edges.lock().unwrap_or_else(|e| e.into_inner())
+    fn lock(&self) -> std::sync::MutexGuard<'_, Links> {
+        self.links.lock().unwrap_or_else(|e| e.into_inner())
     }
 }
 
@@ -182,16 +304,488 @@ impl ControlReply {
     }
 }
 
+/// A command that the control socket follows until the edge answers (and, with `follow`,
+/// until the static scan it started ends), told apart by `"request":"command"`:
+///
+/// ```text
+/// → {"request":"command","edge":"pi","command":{"StartStaticScan":{...}},"follow":true}
+/// ← {"ok":true,"detail":"edge pi waits: waiting for the Sweep to stream","data":{"state":"waiting","done":false,...}}
+/// ← {"ok":true,"detail":"static scan 0 at \"door\": 3 revolutions, ...","data":{"state":"running","done":false,"progress":{...}}}
+/// ← {"ok":true,"detail":"static scan 0 at \"door\" completed: ...","data":{"state":"completed","done":true,...}}
+/// ```
+///
+/// Every line's `data` is a [`CommandStatus`]; the last has `"done":true`, and its `ok` says
+/// whether the command did what was asked. Without an update the socket repeats the current
+/// status every few seconds, so a client can bound its wait per line.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CommandRequest {
+    /// The edge's name (its certificate's).
+    pub edge: String,
+    /// What to tell it.
+    pub command: Command,
+    /// Follow a static scan the command starts until it ends (and the edge while it waits
+    /// for the Sweep), instead of answering with the edge's first reply.
+    #[serde(default)]
+    pub follow: bool,
+    /// How long to wait for the edge's reply, seconds (default [`REPLY_TIMEOUT`]).
+    #[serde(default)]
+    pub reply_timeout_s: Option<f64>,
+}
+
+/// How long the control socket waits for an edge to answer a command.
+pub const REPLY_TIMEOUT: Duration = Duration::from_secs(15);
+/// How long a followed edge may stay disconnected before its command is given up as lost.
+pub const LOST_GRACE: Duration = Duration::from_secs(30);
+/// How often a followed command's status is repeated when nothing changes.
+pub const KEEPALIVE: Duration = Duration::from_secs(5);
+
+/// Where a followed command stands.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CommandState {
+    /// Queued or sent; no reply yet.
+    Sent,
+    /// The edge is not connected (final).
+    NotConnected,
+    /// The edge did not answer in time (final).
+    Timeout,
+    /// The edge refused, with the reason (final).
+    Refused,
+    /// The edge accepted and waits (for the Sweep to stream).
+    Waiting,
+    /// The edge accepted (final unless followed).
+    Accepted,
+    /// The static scan runs.
+    Running,
+    /// The static scan turned the whole planned angle (final).
+    Completed,
+    /// The static scan was stopped (final).
+    Stopped,
+    /// The static scan was aborted after failed steps (final).
+    Aborted,
+    /// The edge's connection was lost and did not come back in time (final).
+    Lost,
+}
+
+/// One status line of a followed command (the `data` of each reply line).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CommandStatus {
+    /// Where it stands.
+    pub state: CommandState,
+    /// Whether this is the last line.
+    pub done: bool,
+    /// Whether the command did (or, not done yet, is doing) what was asked.
+    pub ok: bool,
+    /// The edge.
+    pub edge: String,
+    /// The edge session the command went to (16 hex digits), once sent.
+    pub session: Option<String>,
+    /// The command frame's sequence number, once sent.
+    pub command_seq: Option<u64>,
+    /// The static scan concerned, once the edge named it.
+    pub scan_id: Option<u32>,
+    /// The edge's reason (refused, waiting), or why the command was given up.
+    pub reason: Option<String>,
+    /// The static scan's progress, while followed.
+    pub progress: Option<ScanProgress>,
+    /// Seconds since the request.
+    pub elapsed_s: f64,
+    /// One line for a human.
+    pub detail: String,
+}
+
+/// The timing of a [`CommandFollower`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FollowTiming {
+    /// Wait for the edge's reply at most this long.
+    pub reply_timeout: Duration,
+    /// A disconnected edge is lost after this long.
+    pub lost_grace: Duration,
+}
+
+impl Default for FollowTiming {
+    fn default() -> Self {
+        FollowTiming {
+            reply_timeout: REPLY_TIMEOUT,
+            lost_grace: LOST_GRACE,
+        }
+    }
+}
+
+/// Messages kept while the reply is awaited (a scan's first frames may come first).
+const EARLY_EVENTS: usize = 1024;
+
+/// The state machine of one followed command, without a network: fed where the command went
+/// ([`CommandFollower::on_sent`]), the edge's events and the time, it says what to tell the
+/// client. `Instant`s are passed in.
+#[derive(Debug)]
+pub struct CommandFollower {
+    edge: String,
+    starts_scan: bool,
+    follow: bool,
+    timing: FollowTiming,
+    started: std::time::Instant,
+    sent: Option<SentCommand>,
+    state: CommandState,
+    scan_id: Option<u32>,
+    reason: Option<String>,
+    progress: Option<ScanProgress>,
+    lost: Option<(std::time::Instant, String)>,
+    early: Vec<EdgeEvent>,
+}
+
+impl CommandFollower {
+    /// A follower of `command` to `edge`, asked at `now`.
+    pub fn new(
+        edge: &str,
+        command: &Command,
+        follow: bool,
+        timing: FollowTiming,
+        now: std::time::Instant,
+    ) -> Self {
+        CommandFollower {
+            edge: edge.to_owned(),
+            starts_scan: matches!(command, Command::StartStaticScan { .. }),
+            follow,
+            timing,
+            started: now,
+            sent: None,
+            state: CommandState::Sent,
+            scan_id: None,
+            reason: None,
+            progress: None,
+            lost: None,
+            early: Vec::new(),
+        }
+    }
+
+    /// The command could not be queued (the edge is not connected, the command invalid).
+    pub fn failed(&mut self, error: &ControlError, now: std::time::Instant) -> CommandStatus {
+        self.state = match error {
+            ControlError::NotConnected { .. } => CommandState::NotConnected,
+            ControlError::Invalid(_) => CommandState::Refused,
+        };
+        self.reason = Some(error.to_string());
+        self.status(now)
+    }
+
+    /// The connection task sent the command; events that came first are replayed.
+    pub fn on_sent(&mut self, sent: SentCommand, now: std::time::Instant) -> Option<CommandStatus> {
+        self.sent = Some(sent);
+        let mut update = None;
+        for event in std::mem::take(&mut self.early) {
+            if let Some(status) = self.on_event(&event, now) {
+                update = Some(status);
+                if self.is_done() {
+                    break;
+                }
+            }
+        }
+        update
+    }
+
+    /// One event of the edge; the status to tell, if it changed.
+    pub fn on_event(
+        &mut self,
+        event: &EdgeEvent,
+        now: std::time::Instant,
+    ) -> Option<CommandStatus> {
+        if self.is_done() {
+            return None;
+        }
+        match event {
+            EdgeEvent::Connected => {
+                self.lost = None;
+                None
+            }
+            EdgeEvent::Disconnected { reason } => {
+                self.lost = Some((now, reason.clone()));
+                None
+            }
+            EdgeEvent::Frame { session_id, body } => {
+                let Some(sent) = self.sent else {
+                    if self.early.len() < EARLY_EVENTS {
+                        self.early.push(event.clone());
+                    }
+                    return None;
+                };
+                if *session_id != sent.session_id {
+                    return None;
+                }
+                match body {
+                    Body::CommandReply(reply) if reply.command_seq == sent.seq => {
+                        self.on_reply(reply, now)
+                    }
+                    Body::StaticScan(message) => self.on_scan(message, event, now),
+                    _ => None,
+                }
+            }
+        }
+    }
+
+    fn on_reply(&mut self, reply: &CommandReply, now: std::time::Instant) -> Option<CommandStatus> {
+        match &reply.outcome {
+            CommandOutcome::Refused { reason } => {
+                self.state = CommandState::Refused;
+                self.reason = Some(reason.clone());
+            }
+            CommandOutcome::Waiting { reason } => {
+                self.state = CommandState::Waiting;
+                self.reason = Some(reason.clone());
+            }
+            CommandOutcome::Accepted { scan_id } => {
+                self.scan_id = *scan_id;
+                self.reason = None;
+                match scan_id {
+                    Some(id) if self.follow && self.starts_scan => {
+                        self.state = CommandState::Running;
+                        self.progress = Some(ScanProgress::new(*id));
+                        for event in std::mem::take(&mut self.early) {
+                            if let EdgeEvent::Frame {
+                                body: Body::StaticScan(message),
+                                ..
+                            } = &event
+                            {
+                                self.fold(message);
+                            }
+                        }
+                    }
+                    _ => self.state = CommandState::Accepted,
+                }
+            }
+        }
+        Some(self.status(now))
+    }
+
+    fn on_scan(
+        &mut self,
+        message: &StaticScan,
+        event: &EdgeEvent,
+        now: std::time::Instant,
+    ) -> Option<CommandStatus> {
+        match self.state {
+            CommandState::Running => self.fold(message).then(|| self.status(now)),
+            CommandState::Sent | CommandState::Waiting => {
+                // The scan's first frames may overtake the reply.
+                if self.early.len() < EARLY_EVENTS {
+                    self.early.push(event.clone());
+                }
+                None
+            }
+            _ => None,
+        }
+    }
+
+    /// Folds a message of the followed scan; true if it was one.
+    fn fold(&mut self, message: &StaticScan) -> bool {
+        let Some(progress) = &mut self.progress else {
+            return false;
+        };
+        if !progress.on_message(message) {
+            return false;
+        }
+        if let Some(outcome) = progress.outcome.as_deref() {
+            self.state = match outcome {
+                "completed" => CommandState::Completed,
+                "aborted" => CommandState::Aborted,
+                _ => CommandState::Stopped,
+            };
+        }
+        true
+    }
+
+    /// The time passed: the final status if the reply is overdue or the edge lost.
+    pub fn on_tick(&mut self, now: std::time::Instant) -> Option<CommandStatus> {
+        if self.is_done() {
+            return None;
+        }
+        if self.state == CommandState::Sent
+            && now.duration_since(self.started) >= self.timing.reply_timeout
+        {
+            self.state = CommandState::Timeout;
+            self.reason = Some(match &self.lost {
+                Some((_, why)) => format!("the edge disconnected before it answered ({why})"),
+                None => format!(
+                    "no answer within {:.0} s (is the edge's scan3d-edge as new as this server?)",
+                    self.timing.reply_timeout.as_secs_f64()
+                ),
+            });
+            return Some(self.status(now));
+        }
+        if let Some((since, why)) = &self.lost
+            && now.duration_since(*since) >= self.timing.lost_grace
+        {
+            self.reason = Some(format!(
+                "the edge's connection ended ({why}) and did not come back within {:.0} s",
+                self.timing.lost_grace.as_secs_f64()
+            ));
+            self.state = CommandState::Lost;
+            return Some(self.status(now));
+        }
+        None
+    }
+
+    /// Whether the last status was told.
+    pub fn is_done(&self) -> bool {
+        match self.state {
+            CommandState::Sent | CommandState::Running => false,
+            CommandState::Waiting => !self.follow,
+            _ => true,
+        }
+    }
+
+    /// The current status.
+    pub fn status(&self, now: std::time::Instant) -> CommandStatus {
+        let done = self.is_done();
+        let ok = matches!(
+            self.state,
+            CommandState::Sent
+                | CommandState::Waiting
+                | CommandState::Accepted
+                | CommandState::Running
+                | CommandState::Completed
+        );
+        let edge = &self.edge;
+        let reason = self.reason.as_deref().unwrap_or("");
+        let progress = self.progress.as_ref();
+        let summary = || progress.map_or_else(String::new, ScanProgress::summary);
+        let detail = match self.state {
+            CommandState::Sent => format!("sent to {edge}; waiting for its answer"),
+            CommandState::NotConnected | CommandState::Refused if reason.starts_with("invalid") => {
+                reason.to_owned()
+            }
+            CommandState::NotConnected => reason.to_owned(),
+            CommandState::Timeout => format!("edge {edge} did not answer: {reason}"),
+            CommandState::Refused => format!("edge {edge} refused: {reason}"),
+            CommandState::Waiting => format!("edge {edge} accepted and waits: {reason}"),
+            CommandState::Accepted => match (self.starts_scan, self.scan_id) {
+                (true, Some(id)) => format!("edge {edge} started static scan {id}"),
+                (false, Some(id)) => format!("edge {edge} stops static scan {id}"),
+                _ => format!("edge {edge} accepted"),
+            },
+            CommandState::Running => summary(),
+            CommandState::Completed => format!("{} — completed", summary()),
+            CommandState::Stopped => format!("{} — stopped before the end", summary()),
+            CommandState::Aborted => format!("{} — aborted (failed steps)", summary()),
+            CommandState::Lost => format!("edge {edge} lost: {reason}"),
+        };
+        CommandStatus {
+            state: self.state,
+            done,
+            ok,
+            edge: edge.clone(),
+            session: self.sent.map(|s| format!("{:016x}", s.session_id)),
+            command_seq: self.sent.map(|s| s.seq),
+            scan_id: self.scan_id,
+            reason: self.reason.clone(),
+            progress: self.progress.clone(),
+            elapsed_s: now.duration_since(self.started).as_secs_f64(),
+            detail,
+        }
+    }
+}
+
+/// The reply line carrying `status`.
+fn status_reply(status: &CommandStatus) -> ControlReply {
+    ControlReply {
+        ok: status.ok,
+        detail: status.detail.clone(),
+        data: serde_json::to_value(status).ok(),
+    }
+}
+
+/// Follows `request` on the socket: writes each status line until the last.
+async fn stream_command<W: tokio::io::AsyncWrite + Unpin>(
+    control: &EdgeControl,
+    request: CommandRequest,
+    write: &mut W,
+    write_timeout: Duration,
+) -> std::io::Result<()> {
+    use std::time::Instant;
+    let timing = FollowTiming {
+        reply_timeout: request
+            .reply_timeout_s
+            .filter(|s| s.is_finite() && *s > 0.0)
+            .map_or(REPLY_TIMEOUT, |s| Duration::from_secs_f64(s.min(3600.0))),
+        ..FollowTiming::default()
+    };
+    let mut follower = CommandFollower::new(
+        &request.edge,
+        &request.command,
+        request.follow,
+        timing,
+        Instant::now(),
+    );
+    let mut emit = async |status: CommandStatus| -> std::io::Result<()> {
+        tracing::info!(edge = %status.edge, state = ?status.state, detail = %status.detail, "command status");
+        let line = reply_line(&status_reply(&status));
+        tokio::time::timeout(write_timeout, write.write_all(line.as_bytes()))
+            .await
+            .map_err(|_| std::io::Error::new(std::io::ErrorKind::TimedOut, "client not reading"))?
+    };
+    let CommandTicket {
+        mut sent,
+        mut events,
+    } = match control.submit(&request.edge, request.command.clone()) {
+        Ok(ticket) => ticket,
+        Err(e) => return emit(follower.failed(&e, Instant::now())).await,
+    };
+    let mut sent_pending = true;
+    let mut tick = tokio::time::interval(Duration::from_millis(250));
+    let mut last_emit = Instant::now();
+    loop {
+        let update = tokio::select! {
+            result = &mut sent, if sent_pending => {
+                sent_pending = false;
+                // A dropped sender: the connection ended with the command queued; the reply
+                // timeout says so.
+                result.ok().and_then(|s| follower.on_sent(s, Instant::now()))
+            }
+            event = events.recv() => match event {
+                Ok(event) => follower.on_event(&event, Instant::now()),
+                Err(broadcast::error::RecvError::Lagged(n)) => {
+                    tracing::warn!(edge = %request.edge, missed = n, "a command's follower fell behind the edge's events");
+                    None
+                }
+                Err(broadcast::error::RecvError::Closed) => follower.on_tick(Instant::now()),
+            },
+            _ = tick.tick() => {
+                let now = Instant::now();
+                follower.on_tick(now).or_else(|| {
+                    (now.duration_since(last_emit) >= KEEPALIVE).then(|| follower.status(now))
+                })
+            }
+        };
+        if let Some(status) = update {
+            let done = status.done;
+            emit(status).await?;
+            last_emit = Instant::now();
+            if done {
+                return Ok(());
+            }
+        }
+    }
+}
+
 /// A parsed request line.
 enum Request {
     Command(ControlRequest),
     Products(ProductRequest),
+    Follow(CommandRequest),
 }
 
 fn parse_request(line: &str) -> Result<Request, String> {
     let value: serde_json::Value =
         serde_json::from_str(line).map_err(|e| format!("malformed request: {e}"))?;
-    if value.get("request").is_some() {
+    if let Some(serde_json::Value::Object(mut object)) =
+        (value.get("request") == Some(&serde_json::Value::from("command"))).then_some(value.clone())
+    {
+        object.remove("request");
+        serde_json::from_value(serde_json::Value::Object(object))
+            .map(Request::Follow)
+            .map_err(|e| format!("malformed request: {e}"))
+    } else if value.get("request").is_some() {
         serde_json::from_value(value)
             .map(Request::Products)
             .map_err(|e| format!("malformed request: {e}"))
@@ -218,6 +812,9 @@ pub fn handle_request(control: &EdgeControl, line: &str) -> ControlReply {
     match parse_request(line) {
         Ok(Request::Command(request)) => send_command(control, request),
         Ok(Request::Products(_)) => ControlReply::failed(NO_PIPELINE.into()),
+        Ok(Request::Follow(_)) => {
+            ControlReply::failed("a followed command needs the socket (ControlSocket)".into())
+        }
         Err(detail) => ControlReply::failed(detail),
     }
 }
@@ -225,12 +822,13 @@ pub fn handle_request(control: &EdgeControl, line: &str) -> ControlReply {
 const NO_PIPELINE: &str = "the server runs without the live pipeline ([pipeline] enabled = false)";
 
 /// The reply to one request line; product requests go to `live` on a blocking thread.
-async fn handle_line(
+async fn handle_parsed(
     control: &EdgeControl,
     live: Option<&Arc<dyn LiveProducts>>,
-    line: &str,
+    parsed: Result<Request, String>,
 ) -> ControlReply {
-    match parse_request(line) {
+    match parsed {
+        Ok(Request::Follow(_)) => ControlReply::failed("followed commands are streamed".into()),
         Ok(Request::Command(request)) => send_command(control, request),
         Ok(Request::Products(request)) => match live {
             None => ControlReply::failed(NO_PIPELINE.into()),
@@ -522,10 +1120,15 @@ async fn answer(
             );
             (ControlReply::failed(detail), true)
         } else {
-            let reply = match std::str::from_utf8(&line) {
-                Ok(text) => handle_line(control, live, text).await,
-                Err(e) => ControlReply::failed(format!("malformed request: not UTF-8 ({e})")),
+            let parsed = match std::str::from_utf8(&line) {
+                Ok(text) => parse_request(text),
+                Err(e) => Err(format!("malformed request: not UTF-8 ({e})")),
             };
+            if let Ok(Request::Follow(request)) = parsed {
+                stream_command(control, request, &mut write, limits.idle_timeout).await?;
+                continue;
+            }
+            let reply = handle_parsed(control, live, parsed).await;
             // A last line without newline is answered, then the peer's end of stream closes.
             (reply, false)
         };
@@ -551,6 +1154,66 @@ pub fn request(path: &Path, request: &ControlRequest) -> anyhow::Result<ControlR
 /// snapshot waits for its session to catch up and writes files.
 pub fn request_products(path: &Path, request: &ProductRequest) -> anyhow::Result<ControlReply> {
     request_with(path, request, std::time::Duration::from_secs(60))
+}
+
+/// How long a client waits for each status line of a followed command: several times
+/// [`KEEPALIVE`], so only a server that stopped answering runs into it.
+pub const STATUS_LINE_TIMEOUT: Duration = Duration::from_secs(60);
+
+/// Sends a [`CommandRequest`] and reads its status lines (blocking; for the CLI): each goes to
+/// `on_update`, the last (`done`) is returned. A refusal is a returned status with `ok` false,
+/// not an error; errors are a server that cannot be reached or stops answering.
+pub fn request_command(
+    path: &Path,
+    request: &CommandRequest,
+    on_update: &mut dyn FnMut(&CommandStatus),
+) -> anyhow::Result<CommandStatus> {
+    use std::io::{BufRead, Write};
+    let mut stream = std::os::unix::net::UnixStream::connect(path).map_err(|e| {
+        anyhow::anyhow!(
+            "cannot reach the server's control socket {} ({e}); is `scan3d serve` running with this data_dir?",
+            path.display()
+        )
+    })?;
+    stream.set_read_timeout(Some(STATUS_LINE_TIMEOUT))?;
+    let mut value = serde_json::to_value(request)?;
+    if let serde_json::Value::Object(object) = &mut value {
+        object.insert("request".into(), "command".into());
+    }
+    let mut line = serde_json::to_string(&value)?;
+    line.push('\n');
+    stream
+        .write_all(line.as_bytes())
+        .map_err(|e| anyhow::anyhow!("control socket {}: {e}", path.display()))?;
+    let mut reader = std::io::BufReader::new(&stream);
+    loop {
+        let mut answer = String::new();
+        let n = reader.read_line(&mut answer).map_err(|e| {
+            anyhow::anyhow!(
+                "control socket {}: no status for {} s ({e})",
+                path.display(),
+                STATUS_LINE_TIMEOUT.as_secs()
+            )
+        })?;
+        if n == 0 {
+            anyhow::bail!(
+                "control socket {}: closed before the command's last status",
+                path.display()
+            );
+        }
+        let reply: ControlReply = serde_json::from_str(&answer)
+            .map_err(|e| anyhow::anyhow!("unreadable answer from the server ({e}): {answer:?}"))?;
+        let Some(data) = reply.data else {
+            // A refusal of the request itself (malformed, too many connections).
+            anyhow::bail!("{}", reply.detail);
+        };
+        let status: CommandStatus = serde_json::from_value(data)
+            .map_err(|e| anyhow::anyhow!("unreadable command status from the server ({e})"))?;
+        on_update(&status);
+        if status.done {
+            return Ok(status);
+        }
+    }
 }
 
 /// Asks the daemon listening on `socket` for a snapshot (what `scan3d snapshot` does, for the
@@ -619,6 +1282,280 @@ fn request_with(
 mod tests {
     use super::*;
 
+    fn start_command() -> Command {
+        Command::StartStaticScan {
+            position: "door".into(),
+            x_m: 1.0,
+            y_m: 2.0,
+            heading_deg: None,
+        }
+    }
+
+    fn reply_event(session_id: u64, command_seq: u64, outcome: CommandOutcome) -> EdgeEvent {
+        EdgeEvent::Frame {
+            session_id,
+            body: CommandReply {
+                command_seq,
+                t_ns: 1,
+                outcome,
+            }
+            .into(),
+        }
+    }
+
+    fn scan_event(session_id: u64, message: StaticScan) -> EdgeEvent {
+        EdgeEvent::Frame {
+            session_id,
+            body: message.into(),
+        }
+    }
+
+    fn finished(scan_id: u32, outcome: scan3d_protocol::StaticScanOutcome) -> StaticScan {
+        StaticScan::Finished(scan3d_protocol::StaticScanEnd {
+            scan_id,
+            t_ns: 9,
+            outcome,
+            yaw_deg: 180.0,
+            revolutions: 100,
+            tagged: 1000,
+            blocked: 10,
+            untrusted: 0,
+            late_steps: 1,
+            failed_steps: 0,
+        })
+    }
+
+    #[test]
+    fn a_followed_scan_goes_waiting_running_completed_and_ignores_other_commands_replies() {
+        let t0 = std::time::Instant::now();
+        let at = |s: u64| t0 + Duration::from_secs(s);
+        let mut follower =
+            CommandFollower::new("pi", &start_command(), true, FollowTiming::default(), t0);
+        // The reply overtakes the connection task's word on where the command went.
+        let waiting = reply_event(
+            7,
+            3,
+            CommandOutcome::Waiting {
+                reason: "waiting for the Sweep to stream".into(),
+            },
+        );
+        assert_eq!(follower.on_event(&waiting, at(0)), None);
+        let status = follower
+            .on_sent(
+                SentCommand {
+                    session_id: 7,
+                    seq: 3,
+                },
+                at(0),
+            )
+            .unwrap();
+        assert_eq!(
+            (status.state, status.done, status.ok),
+            (CommandState::Waiting, false, true)
+        );
+        assert_eq!(
+            status.detail,
+            "edge pi accepted and waits: waiting for the Sweep to stream"
+        );
+        // Waiting has no reply deadline.
+        assert_eq!(follower.on_tick(at(100)), None);
+        // Another command's reply, another session's: not ours.
+        let other = reply_event(7, 4, CommandOutcome::Accepted { scan_id: Some(5) });
+        assert_eq!(follower.on_event(&other, at(1)), None);
+        let stale = reply_event(6, 3, CommandOutcome::Accepted { scan_id: Some(5) });
+        assert_eq!(follower.on_event(&stale, at(1)), None);
+        let accepted = reply_event(7, 3, CommandOutcome::Accepted { scan_id: Some(0) });
+        let status = follower.on_event(&accepted, at(101)).unwrap();
+        assert_eq!(
+            (status.state, status.scan_id),
+            (CommandState::Running, Some(0))
+        );
+        // A disconnection that heals within the grace changes nothing.
+        let lost = EdgeEvent::Disconnected {
+            reason: "timeout".into(),
+        };
+        assert_eq!(follower.on_event(&lost, at(102)), None);
+        assert_eq!(follower.on_tick(at(110)), None);
+        assert_eq!(follower.on_event(&EdgeEvent::Connected, at(111)), None);
+        assert_eq!(follower.on_tick(at(200)), None);
+        let end = scan_event(
+            7,
+            finished(0, scan3d_protocol::StaticScanOutcome::Completed),
+        );
+        let status = follower.on_event(&end, at(201)).unwrap();
+        assert_eq!(
+            (status.state, status.done, status.ok),
+            (CommandState::Completed, true, true)
+        );
+        let progress = status.progress.unwrap();
+        assert_eq!((progress.revolutions, progress.late_steps), (100, 1));
+        assert!(status.detail.ends_with("completed"), "{}", status.detail);
+    }
+
+    #[test]
+    fn refused_stopped_overdue_and_lost_commands_end_not_ok_with_the_reason() {
+        let t0 = std::time::Instant::now();
+        let at = |s: u64| t0 + Duration::from_secs(s);
+        let sent = SentCommand {
+            session_id: 1,
+            seq: 0,
+        };
+        // Refused.
+        let mut follower =
+            CommandFollower::new("pi", &start_command(), false, FollowTiming::default(), t0);
+        follower.on_sent(sent, t0);
+        let refused = reply_event(
+            1,
+            0,
+            CommandOutcome::Refused {
+                reason: "static scans are off: no [stepper] in edge.toml".into(),
+            },
+        );
+        let status = follower.on_event(&refused, at(1)).unwrap();
+        assert_eq!(
+            (status.state, status.done, status.ok),
+            (CommandState::Refused, true, false)
+        );
+        assert_eq!(
+            status.detail,
+            "edge pi refused: static scans are off: no [stepper] in edge.toml"
+        );
+        // Stopped while followed.
+        let mut follower =
+            CommandFollower::new("pi", &start_command(), true, FollowTiming::default(), t0);
+        follower.on_sent(sent, t0);
+        follower.on_event(
+            &reply_event(1, 0, CommandOutcome::Accepted { scan_id: Some(2) }),
+            t0,
+        );
+        let end = scan_event(1, finished(2, scan3d_protocol::StaticScanOutcome::Stopped));
+        let status = follower.on_event(&end, at(5)).unwrap();
+        assert_eq!(
+            (status.state, status.done, status.ok),
+            (CommandState::Stopped, true, false)
+        );
+        // No answer: bounded.
+        let mut follower = CommandFollower::new(
+            "pi",
+            &Command::StopStaticScan,
+            false,
+            FollowTiming::default(),
+            t0,
+        );
+        follower.on_sent(sent, t0);
+        assert_eq!(follower.on_tick(at(14)), None);
+        let status = follower.on_tick(at(15)).unwrap();
+        assert_eq!(
+            (status.state, status.done, status.ok),
+            (CommandState::Timeout, true, false)
+        );
+        assert!(
+            status
+                .detail
+                .starts_with("edge pi did not answer: no answer within 15 s"),
+            "{}",
+            status.detail
+        );
+        // Lost while running.
+        let mut follower =
+            CommandFollower::new("pi", &start_command(), true, FollowTiming::default(), t0);
+        follower.on_sent(sent, t0);
+        follower.on_event(
+            &reply_event(1, 0, CommandOutcome::Accepted { scan_id: Some(0) }),
+            t0,
+        );
+        let gone = EdgeEvent::Disconnected {
+            reason: "connection lost".into(),
+        };
+        follower.on_event(&gone, at(10));
+        assert_eq!(follower.on_tick(at(39)), None);
+        let status = follower.on_tick(at(40)).unwrap();
+        assert_eq!(
+            (status.state, status.done, status.ok),
+            (CommandState::Lost, true, false)
+        );
+        assert!(
+            status.detail.contains("connection lost"),
+            "{}",
+            status.detail
+        );
+        // Not connected.
+        let mut follower =
+            CommandFollower::new("pi", &start_command(), false, FollowTiming::default(), t0);
+        let status = follower.failed(
+            &EdgeControl::default()
+                .submit("pi", start_command())
+                .unwrap_err(),
+            t0,
+        );
+        assert_eq!(
+            (status.state, status.done, status.ok),
+            (CommandState::NotConnected, true, false)
+        );
+        assert_eq!(
+            status.detail,
+            "edge \"pi\" is not connected (connected: none)"
+        );
+    }
+
+    #[tokio::test]
+    async fn the_socket_streams_a_commands_status_until_the_edges_answer() {
+        let dir = tempfile::tempdir().unwrap();
+        let control = EdgeControl::default();
+        let mut rx = control.register("pi");
+        let (path, server) = start(dir.path(), &control, test_limits()).await;
+        // A stand-in for the connection task: says where the command went, and the edge
+        // refuses it.
+        let edge = control.clone();
+        let connection = tokio::spawn(async move {
+            let queued = rx.recv().await.unwrap();
+            assert_eq!(queued.command, Command::StopStaticScan);
+            queued
+                .sent
+                .unwrap()
+                .send(SentCommand {
+                    session_id: 9,
+                    seq: 4,
+                })
+                .unwrap();
+            let frame = scan3d_protocol::Frame::new(
+                9,
+                12,
+                CommandReply {
+                    command_seq: 4,
+                    t_ns: 1,
+                    outcome: CommandOutcome::Refused {
+                        reason: "no static scan is running".into(),
+                    },
+                },
+            );
+            edge.publish("pi", &frame);
+            rx
+        });
+        let request = CommandRequest {
+            edge: "pi".into(),
+            command: Command::StopStaticScan,
+            follow: false,
+            reply_timeout_s: None,
+        };
+        let mut updates = Vec::new();
+        let last = tokio::task::spawn_blocking(move || {
+            let last = request_command(&path, &request, &mut |s| updates.push(s.clone()));
+            (last, updates)
+        })
+        .await
+        .unwrap();
+        let (last, updates) = last;
+        let last = last.unwrap();
+        assert_eq!(updates.last(), Some(&last));
+        assert_eq!((last.state, last.ok), (CommandState::Refused, false));
+        assert_eq!(last.session.as_deref(), Some("0000000000000009"));
+        assert_eq!(last.command_seq, Some(4));
+        assert_eq!(last.detail, "edge pi refused: no static scan is running");
+        let _rx = connection.await.unwrap();
+        server.abort();
+    }
+
     #[test]
     fn routes_to_the_registered_edge_only() {
         let control = EdgeControl::default();
@@ -629,7 +1566,7 @@ mod tests {
         );
         assert!(reply.ok, "{reply:?}");
         assert_eq!(
-            rx.try_recv().ok(),
+            rx.try_recv().ok().map(|q| q.command),
             Some(Command::StartStaticScan {
                 position: "door".into(),
                 x_m: 1.0,
@@ -647,7 +1584,7 @@ mod tests {
         assert!(!reply.ok);
         assert!(reply.detail.starts_with("malformed request"), "{reply:?}");
         drop(rx);
-        control.unregister("pi");
+        control.unregister("pi", "test");
         assert!(control.connected().is_empty());
     }
 
@@ -673,7 +1610,7 @@ mod tests {
             parse_request(r#"{"request":"snapshot","edge":"pi","out":"/tmp/s"}"#)
                 .map(|r| match r {
                     Request::Products(p) => Some(p),
-                    Request::Command(_) => None,
+                    Request::Command(_) | Request::Follow(_) => None,
                 })
                 .ok()
                 .flatten(),
@@ -715,7 +1652,10 @@ mod tests {
         .unwrap()
         .unwrap();
         assert!(reply.ok);
-        assert_eq!(rx.recv().await, Some(Command::StopStaticScan));
+        assert_eq!(
+            rx.recv().await.map(|q| q.command),
+            Some(Command::StopStaticScan)
+        );
         server.abort();
     }
 
@@ -793,7 +1733,10 @@ mod tests {
         assert!(rx.try_recv().is_err());
         assert_eq!(control.connected(), ["pi"]);
         assert!(handle_request(&control, stop_line().trim()).ok);
-        assert_eq!(rx.try_recv().ok(), Some(Command::StopStaticScan));
+        assert_eq!(
+            rx.try_recv().ok().map(|q| q.command),
+            Some(Command::StopStaticScan)
+        );
         // The same check guards every route, not only the socket.
         let nan = Command::StartStaticScan {
             position: "p".into(),
@@ -886,7 +1829,10 @@ mod tests {
         });
         let reply = exchange_one(&path, &stop_line()).await;
         assert!(reply.starts_with("{\"ok\":true"), "{reply}");
-        assert_eq!(rx.recv().await, Some(Command::StopStaticScan));
+        assert_eq!(
+            rx.recv().await.map(|q| q.command),
+            Some(Command::StopStaticScan)
+        );
         assert!(failures.load(std::sync::atomic::Ordering::SeqCst) >= 4);
         assert!(!server.is_finished());
         server.abort();

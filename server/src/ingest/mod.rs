@@ -6,10 +6,12 @@
 //! - [`server`]: the endpoint, one task per edge connection.
 //! - [`acks`]: which acknowledgements to send, from what is durable and what was acknowledged.
 //! - [`control`]: operator commands to connected edges, and the local control socket.
+//! - [`scan_progress`]: a static scan's progress folded from its messages.
 
 pub mod acks;
 pub mod control;
 pub mod pki;
 pub mod recorder;
+pub mod scan_progress;
 pub mod server;
 pub mod tls;

@@ -60,7 +60,7 @@ use tokio::sync::{OwnedSemaphorePermit, Semaphore, mpsc, watch};
 use tokio::task::JoinSet;
 
 use super::acks::AckPlan;
-use super::control::EdgeControl;
+use super::control::{EdgeControl, QueuedCommand, SentCommand};
 use super::recorder::{Appended, SessionRecorder, body_name};
 use super::tls;
 use crate::pose::timesync::{
@@ -643,7 +643,7 @@ async fn handle_incoming(
             edges.remove(&edge);
         }
     }
-    shared.control.unregister(&edge);
+    shared.control.unregister(&edge, &reason);
     tracing::info!(%edge, %reason, "edge disconnected");
     shared.emit(IngestEvent::Disconnected { edge, reason });
 }
@@ -705,7 +705,7 @@ impl EdgeConnection {
         &mut self,
         connection: &quinn::Connection,
         mut stop: watch::Receiver<bool>,
-        mut commands: mpsc::UnboundedReceiver<Command>,
+        mut commands: mpsc::UnboundedReceiver<QueuedCommand>,
     ) -> EndReason {
         let first_stream_timeout = self.shared.config.limits.first_stream_timeout;
         let (mut send, mut recv) = tokio::select! {
@@ -774,9 +774,14 @@ impl EdgeConnection {
                     Err(e) => Some(format!("connection lost: {e}")),
                 },
                 // Commands wait until the edge has said which session it runs.
-                Some(command) = commands.recv(), if self.current_session.is_some() => {
-                    match self.command(command) {
-                        Ok(()) => None,
+                Some(queued) = commands.recv(), if self.current_session.is_some() => {
+                    match self.command(queued.command) {
+                        Ok(sent) => {
+                            if let Some(tell) = queued.sent {
+                                let _ = tell.send(sent);
+                            }
+                            None
+                        }
                         Err(reason) => {
                             connection.close(close_code::STORAGE_ERROR.into(), reason.as_bytes());
                             Some(reason)
@@ -913,6 +918,7 @@ impl EdgeConnection {
                     s.frames += 1;
                     s.bytes += bytes;
                 });
+                self.shared.control.publish(&self.edge, &frame);
                 self.shared.emit(IngestEvent::Frame {
                     edge: self.edge.clone(),
                     frame,
@@ -1031,10 +1037,11 @@ impl EdgeConnection {
         Ok(())
     }
 
-    /// Records a command in the edge's current session and queues it for sending.
-    fn command(&mut self, command: Command) -> Result<(), String> {
+    /// Records a command in the edge's current session and queues it for sending; says where
+    /// it went.
+    fn command(&mut self, command: Command) -> Result<SentCommand, String> {
         let Some(session_id) = self.current_session else {
-            return Ok(());
+            return Err("a command without a session".into());
         };
         let frame = self.server_frame(session_id, command)?;
         let raw = encode(&frame).map_err(|e| format!("cannot encode a command: {e}"))?;
@@ -1042,9 +1049,13 @@ impl EdgeConnection {
         open.recorder
             .append_command(&raw, &frame, unix_now_ns())
             .map_err(|e| format!("cannot record a command: {e}"))?;
-        tracing::info!(edge = %self.edge, command = ?frame.body, "command sent");
+        tracing::info!(edge = %self.edge, command = ?frame.body, seq = frame.seq, "command sent");
+        let sent = SentCommand {
+            session_id,
+            seq: frame.seq,
+        };
         self.outgoing.push(frame);
-        Ok(())
+        Ok(sent)
     }
 
     /// A server-originated frame of `session_id` with the next server sequence number.
