@@ -1,6 +1,7 @@
 //! Occupancy rasters written the way ROS tools read them: `map_server`'s PGM (binary P5) + YAML
 //! pair, as `map_saver` writes it, and a PNG to look at (optionally with a trajectory drawn on
-//! it). Independent of how the grid was built: it takes one value per cell.
+//! it, axes and a scale bar in metres). Independent of how the grid was built: it takes one
+//! value per cell.
 
 use std::io::{self, Write};
 
@@ -234,7 +235,8 @@ pub fn write_png(
     out: impl Write,
 ) -> io::Result<()> {
     encode_png(
-        raster,
+        raster.width,
+        raster.height,
         png::ColorType::Grayscale,
         &raster.trinary_pixels(thresholds),
         out,
@@ -244,17 +246,32 @@ pub fn write_png(
 /// The colour of a trajectory drawn by [`write_png_with_trajectory`].
 pub const TRAJECTORY_RGB: [u8; 3] = [220, 30, 30];
 
-/// Writes the map as an RGB PNG (grey as in [`write_png`]) with the positions of `trajectory`
-/// (metres, the raster's frame) joined by a line in [`TRAJECTORY_RGB`]; the parts outside the
-/// raster are clipped away, so far-off poses cost nothing.
+/// The colour of the frame, ticks, labels and scale bar around the map.
+pub const INK_RGB: [u8; 3] = [0, 0, 0];
+
+/// The colour of the margin around the map.
+pub const PAPER_RGB: [u8; 3] = [255, 255, 255];
+
+/// Writes the map as an RGB PNG to look at: the cells (grey as in [`write_png`], one pixel
+/// each) inside a frame with axes in metres (ticks every 1, 2 or 5 × 10^k m, numbered), a
+/// scale bar below them, and the positions of `trajectory` (metres, the raster's frame) joined
+/// by a line in [`TRAJECTORY_RGB`]. The parts of the trajectory outside the raster are clipped
+/// away, so far-off poses cost nothing.
 pub fn write_png_with_trajectory(
     raster: &OccupancyRaster,
     thresholds: &Thresholds,
     trajectory: &[Pose2],
     out: impl Write,
 ) -> io::Result<()> {
+    let layout = Layout::of(raster)
+        .ok_or_else(|| io::Error::other("the map with its axes is too large for a PNG"))?;
+    let mut canvas = Canvas::new(layout.width, layout.height);
     let grey = raster.trinary_pixels(thresholds);
-    let mut rgb: Vec<u8> = grey.iter().flat_map(|&g| [g, g, g]).collect();
+    for (row, cells) in grey.chunks_exact(raster.width).enumerate() {
+        for (col, &g) in cells.iter().enumerate() {
+            canvas.set(layout.left + col, layout.top + row, [g, g, g]);
+        }
+    }
     let (w, h) = (raster.width as f64, raster.height as f64);
     // Image coordinates: u along columns, v down from the top edge, in cells.
     let to_image = |p: &Pose2| {
@@ -279,12 +296,285 @@ pub fn write_png_with_trajectory(
             let (u, v) = (a.0 + s * (b.0 - a.0), a.1 + s * (b.1 - a.1));
             let (col, row) = (u.floor(), v.floor());
             if col >= 0.0 && row >= 0.0 && col < w && row < h {
-                let i = 3 * (row as usize * raster.width + col as usize);
-                rgb[i..i + 3].copy_from_slice(&TRAJECTORY_RGB);
+                canvas.set(
+                    layout.left + col as usize,
+                    layout.top + row as usize,
+                    TRAJECTORY_RGB,
+                );
             }
         }
     }
-    encode_png(raster, png::ColorType::Rgb, &rgb, out)
+    layout.draw(&mut canvas);
+    encode_png(
+        layout.width,
+        layout.height,
+        png::ColorType::Rgb,
+        &canvas.rgb,
+        out,
+    )
+}
+
+/// An RGB image being drawn, paper-coloured at first; writes outside it are ignored.
+struct Canvas {
+    width: usize,
+    height: usize,
+    rgb: Vec<u8>,
+}
+
+impl Canvas {
+    fn new(width: usize, height: usize) -> Self {
+        Canvas {
+            width,
+            height,
+            rgb: PAPER_RGB.repeat(width * height),
+        }
+    }
+
+    fn set(&mut self, col: usize, row: usize, rgb: [u8; 3]) {
+        if col < self.width && row < self.height {
+            let i = 3 * (row * self.width + col);
+            self.rgb[i..i + 3].copy_from_slice(&rgb);
+        }
+    }
+
+    fn fill(&mut self, col: usize, row: usize, width: usize, height: usize, rgb: [u8; 3]) {
+        for r in row..row.saturating_add(height).min(self.height) {
+            for c in col..col.saturating_add(width).min(self.width) {
+                self.set(c, r, rgb);
+            }
+        }
+    }
+
+    /// `text` in [`glyph`]s `scale` pixels a dot, its top-left corner at (col, row).
+    fn text(&mut self, col: usize, row: usize, text: &str, scale: usize) {
+        for (i, c) in text.chars().enumerate() {
+            let left = col + i * GLYPH_ADVANCE * scale;
+            for (dy, bits) in glyph(c).iter().enumerate() {
+                for dx in 0..GLYPH_WIDTH {
+                    if bits & (1 << (GLYPH_WIDTH - 1 - dx)) != 0 {
+                        self.fill(left + dx * scale, row + dy * scale, scale, scale, INK_RGB);
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Dots across a glyph of the built-in font.
+const GLYPH_WIDTH: usize = 5;
+/// Dots down a glyph.
+const GLYPH_HEIGHT: usize = 7;
+/// Dots from one glyph's left edge to the next one's.
+const GLYPH_ADVANCE: usize = 6;
+
+/// A 5 × 7 dot glyph (one row a byte, the leftmost dot the highest of five bits) for the
+/// characters the axes need: digits, `-`, `.`, `m`, `x`, `y`, parentheses and space; any
+/// other character is blank.
+fn glyph(c: char) -> [u8; GLYPH_HEIGHT] {
+    match c {
+        '0' => [0x0e, 0x11, 0x13, 0x15, 0x19, 0x11, 0x0e],
+        '1' => [0x04, 0x0c, 0x04, 0x04, 0x04, 0x04, 0x0e],
+        '2' => [0x0e, 0x11, 0x01, 0x02, 0x04, 0x08, 0x1f],
+        '3' => [0x1f, 0x02, 0x04, 0x02, 0x01, 0x11, 0x0e],
+        '4' => [0x02, 0x06, 0x0a, 0x12, 0x1f, 0x02, 0x02],
+        '5' => [0x1f, 0x10, 0x1e, 0x01, 0x01, 0x11, 0x0e],
+        '6' => [0x06, 0x08, 0x10, 0x1e, 0x11, 0x11, 0x0e],
+        '7' => [0x1f, 0x01, 0x02, 0x04, 0x08, 0x08, 0x08],
+        '8' => [0x0e, 0x11, 0x11, 0x0e, 0x11, 0x11, 0x0e],
+        '9' => [0x0e, 0x11, 0x11, 0x0f, 0x01, 0x02, 0x0c],
+        '-' => [0x00, 0x00, 0x00, 0x1f, 0x00, 0x00, 0x00],
+        '.' => [0x00, 0x00, 0x00, 0x00, 0x00, 0x0c, 0x0c],
+        'm' => [0x00, 0x00, 0x1a, 0x15, 0x15, 0x15, 0x15],
+        'x' => [0x00, 0x00, 0x11, 0x0a, 0x04, 0x0a, 0x11],
+        'y' => [0x00, 0x00, 0x11, 0x11, 0x0f, 0x01, 0x0e],
+        '(' => [0x02, 0x04, 0x08, 0x08, 0x08, 0x04, 0x02],
+        ')' => [0x08, 0x04, 0x02, 0x02, 0x02, 0x04, 0x08],
+        _ => [0; GLYPH_HEIGHT],
+    }
+}
+
+/// Width in pixels of `text` at `scale` (no trailing gap).
+fn text_width(text: &str, scale: usize) -> usize {
+    let n = text.chars().count();
+    if n == 0 {
+        0
+    } else {
+        ((n - 1) * GLYPH_ADVANCE + GLYPH_WIDTH) * scale
+    }
+}
+
+/// The smallest of 1, 2, 5 × 10^k that is at least `at_least` (a positive finite number).
+fn nice_at_least(at_least: f64) -> f64 {
+    let decade = 10f64.powf(at_least.log10().floor());
+    [1.0, 2.0, 5.0, 10.0]
+        .into_iter()
+        .map(|m| m * decade)
+        .find(|v| *v >= at_least * (1.0 - 1e-12))
+        .unwrap_or(10.0 * decade)
+}
+
+/// The largest of 1, 2, 5 × 10^k that is at most `at_most` (a positive finite number).
+fn nice_at_most(at_most: f64) -> f64 {
+    let decade = 10f64.powf(at_most.log10().floor());
+    [5.0, 2.0, 1.0]
+        .into_iter()
+        .map(|m| m * decade)
+        .find(|v| *v <= at_most * (1.0 + 1e-12))
+        .unwrap_or(decade)
+}
+
+/// `value` (a multiple of `step`, metres) as the axes print it: as many decimals as `step`
+/// needs, no `-0`.
+fn format_metres(value: f64, step: f64) -> String {
+    let decimals = (-step.log10().floor()).max(0.0) as usize;
+    let text = format!("{value:.decimals$}");
+    if text
+        .trim_start_matches('-')
+        .chars()
+        .all(|c| c == '0' || c == '.')
+    {
+        text.trim_start_matches('-').to_owned()
+    } else {
+        text
+    }
+}
+
+/// Where everything goes in the annotated PNG: the map's cells at (`left`, `top`), one pixel
+/// a cell; a one-pixel frame just outside them; ticks and numbers on the left (y) and bottom
+/// (x) edges; the scale bar under the x numbers, starting at the map's left edge.
+#[derive(Debug, Clone, PartialEq)]
+struct Layout {
+    /// The whole image, pixels.
+    width: usize,
+    height: usize,
+    /// The column and row of the map's top-left cell.
+    left: usize,
+    top: usize,
+    /// The map's size in cells (= pixels).
+    map_width: usize,
+    map_height: usize,
+    /// Pixels a dot of the font (1, or 2 for maps at least 400 cells wide or high).
+    scale: usize,
+    /// x ticks: (column, label); y ticks: (row, label).
+    x_ticks: Vec<(usize, String)>,
+    y_ticks: Vec<(usize, String)>,
+    /// The scale bar: its length in metres, in pixels, and the row of its top edge.
+    bar_metres: f64,
+    bar_pixels: usize,
+    bar_row: usize,
+}
+
+/// Pixels at least between two ticks.
+const TICK_SPACING: f64 = 80.0;
+
+impl Layout {
+    /// The layout for `raster`; `None` when the image would be too large for a PNG.
+    fn of(raster: &OccupancyRaster) -> Option<Layout> {
+        let (w, h, res) = (raster.width, raster.height, raster.resolution);
+        let (ox, oy) = raster.origin;
+        let scale = if w.max(h) >= 400 { 2 } else { 1 };
+        let glyph_height = GLYPH_HEIGHT * scale;
+        let tick = 4 * scale;
+        let gap = 2 * scale;
+        let step = nice_at_least(TICK_SPACING * res);
+        // The ticks: multiples of `step` within the map, in metres, and their offset in cells.
+        let ticks = |from: f64, cells: usize| -> Vec<(f64, f64)> {
+            let to = from + cells as f64 * res;
+            let first = (from / step - 1e-9).ceil() as i64;
+            let last = (to / step + 1e-9).floor() as i64;
+            // At most cells / 80 + 2 ticks: `step` is at least 80 cells.
+            (first..=last)
+                .map(|k| (k as f64 * step, (k as f64 * step - from) / res))
+                .collect()
+        };
+        let x_values = ticks(ox, w);
+        let y_values = ticks(oy, h);
+        let label = |v: f64| format_metres(v, step);
+        let y_label_width = y_values
+            .iter()
+            .map(|&(v, _)| text_width(&label(v), scale))
+            .max()
+            .unwrap_or(0);
+        let x_label_half = x_values
+            .iter()
+            .map(|&(v, _)| text_width(&label(v), scale).div_ceil(2))
+            .max()
+            .unwrap_or(0);
+        let y_title = "y (m)";
+        let left = (gap + y_label_width + gap + tick + 1).max(text_width(y_title, scale) + gap);
+        let top = gap + glyph_height + 2 * gap;
+        let bar_metres = nice_at_most(w as f64 * res / 4.0);
+        let bar_pixels = (bar_metres / res).round() as usize;
+        let bar_row = top + h + 1 + tick + gap + glyph_height + 3 * gap;
+        let bottom_rows = 1 + tick + gap + glyph_height + 3 * gap + glyph_height + gap;
+        let right = (x_label_half + gap).max(1 + gap);
+        let width = left.checked_add(w)?.checked_add(right)?;
+        let height = top.checked_add(h)?.checked_add(bottom_rows)?;
+        let pixels = width.checked_mul(height)?;
+        pixels.checked_mul(3)?;
+        u32::try_from(width.max(height)).ok()?;
+        Some(Layout {
+            width,
+            height,
+            left,
+            top,
+            map_width: w,
+            map_height: h,
+            scale,
+            x_ticks: x_values
+                .iter()
+                .map(|&(v, cells)| (left + cells.round() as usize, label(v)))
+                .collect(),
+            y_ticks: y_values
+                .iter()
+                .map(|&(v, cells)| (top + h - (cells.round() as usize).min(h), label(v)))
+                .collect(),
+            bar_metres,
+            bar_pixels,
+            bar_row,
+        })
+    }
+
+    /// Draws the frame, the ticks and their numbers, the axis titles and the scale bar.
+    fn draw(&self, canvas: &mut Canvas) {
+        let (s, left, top) = (self.scale, self.left, self.top);
+        let (w, h) = (self.map_width, self.map_height);
+        let (tick, gap, glyph_height) = (4 * s, 2 * s, GLYPH_HEIGHT * s);
+        // The frame, one pixel outside the cells.
+        canvas.fill(left - 1, top - 1, w + 2, 1, INK_RGB);
+        canvas.fill(left - 1, top + h, w + 2, 1, INK_RGB);
+        canvas.fill(left - 1, top - 1, 1, h + 2, INK_RGB);
+        canvas.fill(left + w, top - 1, 1, h + 2, INK_RGB);
+        for (col, text) in &self.x_ticks {
+            canvas.fill(*col, top + h + 1, 1, tick, INK_RGB);
+            let half = text_width(text, s) / 2;
+            canvas.text(col.saturating_sub(half), top + h + 1 + tick + gap, text, s);
+        }
+        for (row, text) in &self.y_ticks {
+            canvas.fill(left - 1 - tick, *row, tick, 1, INK_RGB);
+            let col = (left - 1 - tick - gap).saturating_sub(text_width(text, s));
+            canvas.text(col, row.saturating_sub(glyph_height / 2), text, s);
+        }
+        canvas.text(gap, gap, "y (m)", s);
+        let x_title = "x (m)";
+        canvas.text(
+            (left + w).saturating_sub(text_width(x_title, s)),
+            self.bar_row,
+            x_title,
+            s,
+        );
+        // The scale bar, as thick as a third of a glyph, its number after it.
+        let thickness = (glyph_height / 3).max(2);
+        canvas.fill(
+            left,
+            self.bar_row + thickness,
+            self.bar_pixels,
+            thickness,
+            INK_RGB,
+        );
+        let bar_text = format!("{} m", format_metres(self.bar_metres, self.bar_metres));
+        canvas.text(left + self.bar_pixels + 2 * gap, self.bar_row, &bar_text, s);
+    }
 }
 
 /// Liang–Barsky: the part of segment a–b inside [0, w] × [0, h], if any (None for non-finite ends).
@@ -317,7 +607,8 @@ fn clip_segment(a: (f64, f64), b: (f64, f64), w: f64, h: f64) -> Option<((f64, f
 }
 
 fn encode_png(
-    raster: &OccupancyRaster,
+    width: usize,
+    height: usize,
     color: png::ColorType,
     data: &[u8],
     out: impl Write,
@@ -326,8 +617,8 @@ fn encode_png(
         png::EncodingError::IoError(e) => e,
         e => io::Error::other(e),
     };
-    // Both fit in u32: checked in OccupancyRaster::new.
-    let mut encoder = png::Encoder::new(out, raster.width as u32, raster.height as u32);
+    // Both fit in u32: checked in OccupancyRaster::new and Layout::of.
+    let mut encoder = png::Encoder::new(out, width as u32, height as u32);
     encoder.set_color(color);
     encoder.set_depth(png::BitDepth::Eight);
     let mut writer = encoder.write_header().map_err(to_io)?;
@@ -421,13 +712,171 @@ mod tests {
         write_png_with_trajectory(&tiny(), &Thresholds::default(), &path, &mut out).unwrap();
         let (info, rgb) = decode(&out);
         assert_eq!(info.color_type, png::ColorType::Rgb);
-        let px = |col: usize, row: usize| &rgb[3 * (row * 3 + col)..3 * (row * 3 + col) + 3];
+        let layout = Layout::of(&tiny()).unwrap();
+        assert_eq!(
+            (info.width as usize, info.height as usize),
+            (layout.width, layout.height)
+        );
+        // (col, row) of the map's cells, inside the frame.
+        let px = |col: usize, row: usize| {
+            let i = 3 * ((layout.top + row) * layout.width + layout.left + col);
+            &rgb[i..i + 3]
+        };
         // Image row 1 is the bottom row: columns 0 and 1 crossed, column 2 not reached.
         assert_eq!(px(0, 1), TRAJECTORY_RGB);
         assert_eq!(px(1, 1), TRAJECTORY_RGB);
         assert_eq!(px(2, 1), [205, 205, 205]);
         assert_eq!(px(0, 0), [205, 205, 205]);
         assert_eq!(px(2, 0), [0, 0, 0]);
+    }
+
+    /// An all-unknown raster of `width` × `height` cells of `resolution` m at `origin`, as
+    /// the annotated PNG draws it: (pixels, width, height).
+    fn annotated(
+        width: usize,
+        height: usize,
+        resolution: f64,
+        origin: (f64, f64),
+    ) -> (Vec<u8>, usize, usize) {
+        let raster = OccupancyRaster::new(
+            width,
+            height,
+            resolution,
+            origin,
+            vec![None; width * height],
+        )
+        .unwrap();
+        let mut out = Vec::new();
+        write_png_with_trajectory(&raster, &Thresholds::default(), &[], &mut out).unwrap();
+        let (info, rgb) = decode(&out);
+        (rgb, info.width as usize, info.height as usize)
+    }
+
+    /// The longest run of ink in each row below `from_row`: (row, first column, length).
+    fn longest_ink_runs(
+        rgb: &[u8],
+        width: usize,
+        height: usize,
+        from_row: usize,
+    ) -> Vec<(usize, usize, usize)> {
+        let ink = |col: usize, row: usize| rgb[3 * (row * width + col)..][..3] == INK_RGB;
+        (from_row..height)
+            .filter_map(|row| {
+                let mut best: Option<(usize, usize)> = None;
+                let mut col = 0;
+                while col < width {
+                    if ink(col, row) {
+                        let start = col;
+                        while col < width && ink(col, row) {
+                            col += 1;
+                        }
+                        if best.is_none_or(|(_, n)| col - start > n) {
+                            best = Some((start, col - start));
+                        }
+                    }
+                    col += 1;
+                }
+                best.map(|(start, n)| (row, start, n))
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_scale_bar_is_as_long_as_its_metres_at_the_resolution_under_the_map() {
+        // 20 m × 10 m; the bar is the largest 1/2/5 × 10^k m within a quarter of the width.
+        for (cells, resolution, bar_m) in [(400, 0.05, 5.0), (200, 0.1, 5.0), (300, 0.05, 2.0)] {
+            let (rgb, width, height) = annotated(cells, cells / 2, resolution, (0.0, 0.0));
+            // The frame: its top edge is the first row of ink as wide as the map and the frame.
+            let runs = longest_ink_runs(&rgb, width, height, 0);
+            let &(frame_top, frame_col, _) = runs
+                .iter()
+                .find(|&&(_, _, n)| n == cells + 2)
+                .expect("the frame's top edge");
+            let (left, frame_row) = (frame_col + 1, frame_top + cells / 2 + 1);
+            let at = |col: usize, row: usize| &rgb[3 * (row * width + col)..][..3];
+            assert_eq!(at(left, frame_top + 1), [UNKNOWN_PIXEL; 3]);
+            assert!((frame_col..left + cells + 1).all(|c| at(c, frame_row) == INK_RGB));
+            assert_eq!(at(left + cells / 2, frame_row - 1), [UNKNOWN_PIXEL; 3]);
+            // Below the frame: the bar, from the map's left edge, bar_m / resolution long.
+            let bar: Vec<_> = runs
+                .iter()
+                .filter(|&&(row, _, n)| row > frame_row && n > 10)
+                .collect();
+            let expected = (bar_m / resolution as f64).round() as usize;
+            assert!(!bar.is_empty(), "no scale bar below row {frame_row}");
+            for &&(_, start, n) in &bar {
+                assert_eq!(
+                    (start, n),
+                    (left, expected),
+                    "{cells} cells of {resolution} m"
+                );
+            }
+            // Ticks every nice step under the frame: at 0 m, and one step further.
+            let layout = Layout::of(
+                &OccupancyRaster::new(
+                    cells,
+                    cells / 2,
+                    resolution,
+                    (0.0, 0.0),
+                    vec![None; cells * cells / 2],
+                )
+                .unwrap(),
+            )
+            .unwrap();
+            assert_eq!(layout.x_ticks[0], (left, "0".to_owned()));
+            let step = (layout.x_ticks[1].0 - left) as f64 * resolution;
+            assert!(
+                [2.0, 5.0, 10.0].iter().any(|s| (s - step).abs() < 1e-9),
+                "{step}"
+            );
+            for &(col, _) in &layout.x_ticks {
+                assert_eq!(
+                    rgb[3 * ((frame_row + 1) * width + col)..][..3],
+                    INK_RGB,
+                    "tick at column {col}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn the_axes_are_numbered_in_metres_of_the_raster_frame() {
+        // 47 m × 36 m from (−20, −15), as a benchmark log's map: ticks every 5 m.
+        let raster =
+            OccupancyRaster::new(940, 720, 0.05, (-20.0, -15.0), vec![None; 940 * 720]).unwrap();
+        let layout = Layout::of(&raster).unwrap();
+        let labels: Vec<&str> = layout.x_ticks.iter().map(|(_, t)| t.as_str()).collect();
+        assert_eq!(
+            labels,
+            ["-20", "-15", "-10", "-5", "0", "5", "10", "15", "20", "25"]
+        );
+        assert_eq!(layout.x_ticks[4].0, layout.left + 400);
+        let labels: Vec<&str> = layout.y_ticks.iter().map(|(_, t)| t.as_str()).collect();
+        assert_eq!(labels, ["-15", "-10", "-5", "0", "5", "10", "15", "20"]);
+        // y = 0 m is 300 cells above the bottom edge, image rows counting down.
+        assert_eq!(layout.y_ticks[3].0, layout.top + 720 - 300);
+        assert_eq!((layout.bar_metres, layout.bar_pixels), (10.0, 200));
+        // The numbers are drawn: the glyphs of "0" under its tick, centred.
+        let mut expected = Canvas::new(layout.width, layout.height);
+        let (col, text) = &layout.x_ticks[4];
+        let s = layout.scale;
+        let text_row = layout.top + 720 + 1 + 4 * s + 2 * s;
+        expected.text(col - text_width(text, s) / 2, text_row, text, s);
+        let mut drawn = Canvas::new(layout.width, layout.height);
+        layout.draw(&mut drawn);
+        let region = |c: &Canvas| -> Vec<u8> {
+            (text_row..text_row + GLYPH_HEIGHT * s)
+                .flat_map(|r| {
+                    let i = 3 * (r * c.width + col - 10);
+                    c.rgb[i..i + 3 * 20].to_vec()
+                })
+                .collect()
+        };
+        assert_eq!(region(&drawn), region(&expected));
+        assert!(region(&drawn).chunks(3).any(|p| p == INK_RGB));
+        assert_eq!(format_metres(-0.0, 5.0), "0");
+        assert_eq!(format_metres(2.5, 0.5), "2.5");
+        assert_eq!(format_metres(-0.2, 0.2), "-0.2");
     }
 
     #[test]

@@ -62,7 +62,7 @@ pub struct SlamArgs {
     #[arg(long, value_name = "slam.toml")]
     pub config: Option<PathBuf>,
     /// Also write the final grid as ROS map_server `OUT.pgm` + `OUT.yaml`, and `OUT.png` with
-    /// the trajectory drawn on it.
+    /// the trajectory drawn on it, axes and a scale bar in metres.
     #[arg(long, value_name = "OUT")]
     pub map: Option<PathBuf>,
     /// Skip malformed log lines (and count them) instead of stopping at the first one; for a
