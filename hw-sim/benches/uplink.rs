@@ -42,7 +42,7 @@ use scan3d_hw_sim::fleet::{
     self, EdgeHandle, EdgeIdentity, LidarStream, Produced, Producers, SimEdge, StaticScanPlan,
     Submission, clock_ns, mono_ns,
 };
-use scan3d_hw_sim::rig::{self, ServerThread};
+use scan3d_hw_sim::installation::{self, ServerThread};
 use scan3d_hw_sim::world::World;
 use scan3d_server::ingest::server::{IngestEvent, IngestStats};
 use scan3d_server::pipeline::PipelineSettings;
@@ -197,7 +197,7 @@ fn wait_until(limit: Duration, what: &str, mut done: impl FnMut() -> bool) -> an
 /// The recorded time is stamped by a collector thread as the server's `IngestEvent::Frame`
 /// arrives (the server emits it right after appending the frame to its recording).
 fn serve(pki_dir: &Path, data_dir: &Path) -> anyhow::Result<()> {
-    let mut config = rig::ingest_config(pki_dir, data_dir, 0);
+    let mut config = installation::ingest_config(pki_dir, data_dir, 0);
     config.commit_interval = COMMIT_INTERVAL;
     config.time_sync_interval = TIME_SYNC_INTERVAL;
     config.max_connections = MAX_FLEET;

@@ -38,9 +38,9 @@ use scan3d_server::report::{MetricBox, RESOLUTION_SWEEP_M, write_report, write_r
 use scan3d_map::cloud::RayBundle;
 use scan3d_map::cloud::io;
 
+use crate::installation::{self, Delivery, EdgeThread, LidarOptions, ServerThread, SimLidars};
 use crate::maps::{MapPlan, MapResult, MapSetup, paper_maps, scan_map};
 use crate::noise::RangeNoise;
-use crate::rig::{self, Delivery, EdgeThread, LidarOptions, ServerThread, SimLidars};
 use crate::truth::{GroundTruth, truth_map, write_world_description};
 use crate::world::World;
 
@@ -296,8 +296,8 @@ fn run_in(
         args.time_scale
     );
     let pki = work.join("pki");
-    let bundle = rig::pair_certificates(&pki)?;
-    let mut server = ServerThread::start(rig::ingest_config(&pki, data_dir, 0))?;
+    let bundle = installation::pair_certificates(&pki)?;
+    let mut server = ServerThread::start(installation::ingest_config(&pki, data_dir, 0))?;
     let options = LidarOptions {
         time_scale: args.time_scale,
         corrupt: args.corrupt,
@@ -308,7 +308,7 @@ fn run_in(
     let clock: SharedClock = Arc::new(ScaledClock::new(args.time_scale));
     let config = lidars.edge_config(
         &work.join("edge-state"),
-        Some(rig::uplink_section(server.addr(), &bundle)),
+        Some(installation::uplink_section(server.addr(), &bundle)),
     );
     let session_id = rand::random::<u64>();
     let edge = EdgeThread::start(config, clock.clone(), session_id)?;
@@ -332,8 +332,8 @@ fn run_in(
     let edge_report = edge.stop()?;
     received.drain(&mut server);
     let server_stats = server.stop();
-    let session = session_dir(data_dir, rig::EDGE_NAME, session_id);
-    let deliveries = rig::account(&session, &lidars, Some(&edge_report))?;
+    let session = session_dir(data_dir, installation::EDGE_NAME, session_id);
+    let deliveries = installation::account(&session, &lidars, Some(&edge_report))?;
     lidars.shutdown();
     let scans = received
         .scans

@@ -31,8 +31,8 @@ use scan3d_server::ingest::pki::{self, PairRequest};
 use tokio::runtime::Runtime;
 use tokio::sync::watch;
 
+use crate::installation;
 use crate::mounts;
-use crate::rig;
 use crate::rplidar::RplidarEmulator;
 use crate::sweep::SweepEmulator;
 use crate::world::{Scanner, World};
@@ -65,7 +65,7 @@ pub struct EdgeIdentity {
 
 /// The name of the `index`th synthetic edge (`sim-edge-000`, `sim-edge-001`, …).
 pub fn edge_name(index: usize) -> String {
-    format!("{}-{index:03}", rig::EDGE_NAME)
+    format!("{}-{index:03}", installation::EDGE_NAME)
 }
 
 /// Issues `count` edge bundles in `pki_dir` with the pairing code `scan3d pair` runs (the first
@@ -279,14 +279,14 @@ impl EdgeHandle {
 }
 
 /// The uplink settings a real edge paired as `identity` would use to reach `server`: its TLS
-/// bundle, an 8 MiB memory + 256 MiB disk spool in `spool_dir` (as [`rig::uplink_section`]),
+/// bundle, an 8 MiB memory + 256 MiB disk spool in `spool_dir` (as [`installation::uplink_section`]),
 /// the edge's default backoffs and QUIC transport.
 pub fn uplink_config(
     server: SocketAddr,
     identity: &EdgeIdentity,
     spool_dir: PathBuf,
 ) -> anyhow::Result<UplinkConfig> {
-    let section = rig::uplink_section(server, &identity.bundle);
+    let section = installation::uplink_section(server, &identity.bundle);
     let spool = section.spool_config(spool_dir)?;
     Ok(UplinkConfig::new(
         section.server.clone(),

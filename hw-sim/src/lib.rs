@@ -12,8 +12,10 @@
 //! - [`fleet`]: synthetic edges (own certificate, spool and session each) for load and soak runs.
 //! - [`pair`]: a driver wired straight to an emulator in memory (deterministic tests, benches).
 //! - [`pty`]: runs an emulator on a Linux pty behind a symlink, paced at the wire rate.
-//! - [`rig`]: a whole installation (lidars, certificates, server, edge daemon) for the demo and tests.
-//! - [`static_rig`]: the paper's scanner: Sweep on the turntable, IMU and motor HAT on I2C.
+//! - [`installation`]: a whole installation in-process (lidars, certificates, server, edge daemon)
+//!   for the demo and tests.
+//! - [`turntable_head`]: the paper's scanner in-process: Sweep on the turntable, IMU and motor HAT
+//!   on I2C.
 //! - [`maps`]: the paper's static maps through the whole system, scored against ground truth.
 //! - [`demo`]: the README's demo.
 //! - [`clock`]: a drifting edge clock and delay model driving the real time-sync exchange.
@@ -26,16 +28,16 @@ pub mod faults;
 pub mod fleet;
 pub mod i2c;
 pub mod imu;
+pub mod installation;
 pub mod maps;
 pub mod mounts;
 pub mod noise;
 pub mod pair;
 pub mod pty;
-pub mod rig;
 pub mod rplidar;
-pub mod static_rig;
 pub mod stepper;
 pub mod sweep;
 pub mod truth;
 pub mod turntable;
+pub mod turntable_head;
 pub mod world;

@@ -1,5 +1,5 @@
 //! The paper's static maps of the conference room, made through the whole system: for each map
-//! a [`ScanRig`] (Sweep on the turntable, IMU and HAT on I2C), the edge daemon, and the server;
+//! a [`TurntableHead`] (Sweep on the turntable, IMU and HAT on I2C), the edge daemon, and the server;
 //! at each position the operator's `StartStaticScan` goes server → edge over QUIC, the edge
 //! steps the turntable during the blind sector and streams yaw-tagged samples. The server runs
 //! the live pipeline as `scan3d serve` does, and the map is the daemon's own: a
@@ -35,10 +35,10 @@ use scan3d_server::pipeline::PipelineSettings;
 use scan3d_server::pipeline::live::LiveSettings;
 use scan3d_server::pipeline::offline::assemble_session;
 
+use crate::installation::{self, EDGE_NAME, EdgeThread, ServerThread};
 use crate::noise::RangeNoise;
-use crate::rig::{self, EDGE_NAME, EdgeThread, ServerThread};
-use crate::static_rig::{ScanRig, ScanRigOptions};
 use crate::truth::{Accuracy, GroundTruth};
+use crate::turntable_head::{TurntableHead, TurntableHeadOptions};
 use crate::world::World;
 
 /// One map of the paper's experiment.
@@ -178,7 +178,7 @@ pub struct MapSetup<'a> {
     pub full_rates: bool,
 }
 
-/// Runs one map: starts a server, the rig and the edge, scans every position, assembles the
+/// Runs one map: starts a server, the turntable head and the edge, scans every position, assembles the
 /// recording and writes `clouds_dir/<name>.ply` and `.scans`.
 pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResult> {
     let MapSetup {
@@ -201,18 +201,19 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
         .context("a map needs at least one position")?;
     let work = work.join(plan.name);
     let pki = work.join("pki");
-    let bundle = rig::pair_certificates(&pki)?;
+    let bundle = installation::pair_certificates(&pki)?;
     let live = LiveSettings {
         queue_frames,
         ..LiveSettings::new(map_pipeline(plan, resolution_m), data_dir.to_path_buf())
     };
-    let mut server = ServerThread::start_live(rig::ingest_config(&pki, data_dir, 0), live)?;
+    let mut server =
+        ServerThread::start_live(installation::ingest_config(&pki, data_dir, 0), live)?;
     let socket = socket_path(data_dir);
-    let rig = ScanRig::start(
+    let head = TurntableHead::start(
         &work.join("links"),
         world.clone(),
         first.clone(),
-        &ScanRigOptions {
+        &TurntableHeadOptions {
             time_scale,
             motor_hz: plan.motor_hz,
             seed,
@@ -222,17 +223,17 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
     )?;
     let clock = ScaledClock::new(time_scale);
     let shared: SharedClock = Arc::new(clock);
-    let mut config = rig.edge_config(
+    let mut config = head.edge_config(
         &work.join("edge-state"),
-        Some(rig::uplink_section(server.addr(), &bundle)),
+        Some(installation::uplink_section(server.addr(), &bundle)),
     );
     let rplidar = if full_rates {
-        let options = rig::LidarOptions {
+        let options = installation::LidarOptions {
             time_scale,
             seed,
             ..Default::default()
         };
-        let pty = rig::spawn_rplidar(&work.join("links"), world.clone(), &options)?;
+        let pty = installation::spawn_rplidar(&work.join("links"), world.clone(), &options)?;
         config.rplidar = Some(RplidarSection {
             path: pty.link().to_path_buf(),
             driver: Default::default(),
@@ -245,8 +246,8 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
         None
     };
     let session_id = rand::random::<u64>();
-    let edge = EdgeThread::start_with_i2c(config, shared, session_id, Some(rig.bus()))?;
-    let bus_start = (rig.bus_stats().transactions, clock.now_ns());
+    let edge = EdgeThread::start_with_i2c(config, shared, session_id, Some(head.bus()))?;
+    let bus_start = (head.bus_stats().transactions, clock.now_ns());
 
     // Scanning: the server has the Sweep's revolutions at the planned rate.
     let ready_by = Instant::now() + Duration::from_secs_f64(60.0 / time_scale + 20.0);
@@ -260,7 +261,7 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
     let mut scan_seconds = Vec::new();
     let mut warnings = 0;
     for position in &plan.positions {
-        rig.move_to(position.clone());
+        head.move_to(position.clone());
         // What the operator types: `scan3d scan --edge sim-edge --at X,Y,HEADING --name POS`,
         // through the server's control socket.
         let command = ControlRequest {
@@ -311,15 +312,15 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
         scan_seconds.push(clock.now_ns().saturating_sub(started) as f64 / 1e9);
         // The turntable goes home before the operator carries it on.
         let home_by = Instant::now() + Duration::from_secs(10);
-        while rig.rotor_deg().abs() > 1e-6 && Instant::now() < home_by {
+        while head.rotor_deg().abs() > 1e-6 && Instant::now() < home_by {
             std::thread::sleep(Duration::from_millis(5));
         }
     }
     let (transactions, bus_ns) = (
-        rig.bus_stats().transactions - bus_start.0,
+        head.bus_stats().transactions - bus_start.0,
         clock.now_ns() - bus_start.1,
     );
-    let steps_lost = rig.steps_lost();
+    let steps_lost = head.steps_lost();
     // Everything the edge sent is acknowledged once it has stopped.
     edge.stop()?;
     drain(&mut server);
@@ -334,7 +335,7 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
     let live_status = session_status(status.data.as_ref(), &session_hex)
         .with_context(|| format!("scan3d status has no line for session {session_hex}"))?;
     server.stop();
-    rig.shutdown();
+    head.shutdown();
     if let Some(pty) = rplidar {
         pty.shutdown();
     }

@@ -1,6 +1,6 @@
 //! Where the emulated sensors sit in the default room (world frame: metres, z up).
 //!
-//! One place for the poses so the CLI, the demo and the tests all simulate the same rig.
+//! One place for the poses so the CLI, the demo and the tests all simulate the same sensor head.
 
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion};
 

@@ -7,7 +7,7 @@
 //!               └─> I2C bus: MPU-9250 + AK8963 (0x68, 0x0C), PCA9685 HAT (0x60) ─ rotor ─┘
 //! ```
 //!
-//! The operator carries the rig from position to position ([`ScanRig::move_to`]); the edge
+//! The operator carries the head from position to position ([`TurntableHead::move_to`]); the edge
 //! daemon sees a Sweep on a serial port and chips on a bus, exactly as on the Pi.
 
 use std::path::Path;
@@ -25,9 +25,9 @@ use scan3d_map::cloud::assembly::{MountGeometry, Position};
 use crate::faults::FaultConfig;
 use crate::i2c::{BusStats, I2cBus};
 use crate::imu::{ImuEmulator, StaticTruth};
+use crate::installation::EDGE_NAME;
 use crate::noise::RangeNoise;
 use crate::pty::{PtyDevice, PtyHandle, PtyOptions};
-use crate::rig::EDGE_NAME;
 use crate::stepper::Pca9685Emulator;
 use crate::sweep::{SweepEmulator, SweepEmulatorConfig};
 use crate::turntable::TurntableMount;
@@ -40,9 +40,9 @@ pub const DEMO_MOUNT: MountGeometry = MountGeometry {
     azimuth_zero_deg: 0.0,
 };
 
-/// Settings of a [`ScanRig`].
+/// Settings of a [`TurntableHead`].
 #[derive(Debug, Clone)]
-pub struct ScanRigOptions {
+pub struct TurntableHeadOptions {
     /// Simulated seconds per real second.
     pub time_scale: f64,
     /// The Sweep's rotation rate, Hz (the edge sets it at start-up).
@@ -55,7 +55,7 @@ pub struct ScanRigOptions {
     pub noise: RangeNoise,
 }
 
-/// A movable [`TurntableMount`]: the operator may carry the rig between scans.
+/// A movable [`TurntableMount`]: the operator may carry the head between scans.
 #[derive(Debug, Clone)]
 struct CarriedMount(Arc<RwLock<TurntableMount>>);
 
@@ -69,7 +69,7 @@ impl PoseSource for CarriedMount {
 }
 
 /// The emulated scanner: Sweep on a pty, turntable and IMU on an I2C bus, one world clock.
-pub struct ScanRig {
+pub struct TurntableHead {
     world_clock: ScaledClock,
     sweep: PtyHandle,
     mount: CarriedMount,
@@ -78,13 +78,13 @@ pub struct ScanRig {
     motor_hz: u8,
 }
 
-impl ScanRig {
-    /// Starts the devices in `world`, the Sweep's link in `links_dir`, the rig at `start`.
+impl TurntableHead {
+    /// Starts the devices in `world`, the Sweep's link in `links_dir`, the head at `start`.
     pub fn start(
         links_dir: &Path,
         world: Arc<World>,
         start: Position,
-        options: &ScanRigOptions,
+        options: &TurntableHeadOptions,
     ) -> anyhow::Result<Self> {
         std::fs::create_dir_all(links_dir)
             .with_context(|| format!("cannot create {}", links_dir.display()))?;
@@ -171,7 +171,7 @@ impl ScanRig {
             .steps_lost(Port::One)
     }
 
-    /// The edge configuration for this rig: the Sweep at `motor_hz`, the IMU, the stepper on
+    /// The edge configuration for this head: the Sweep at `motor_hz`, the IMU, the stepper on
     /// port 1, static scans with the demo mount.
     pub fn edge_config(&self, state_dir: &Path, uplink: Option<UplinkSection>) -> EdgeConfig {
         EdgeConfig {

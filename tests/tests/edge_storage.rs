@@ -17,7 +17,7 @@ use scan3d_edge::clock::{MonotonicClock, SharedClock};
 use scan3d_edge::uplink::client::{SubmitError, Uplink, UplinkConfig};
 use scan3d_edge::uplink::spool::SpoolConfig;
 use scan3d_edge::uplink::tls;
-use scan3d_hw_sim::rig::{self, ServerThread};
+use scan3d_hw_sim::installation::{self, ServerThread};
 use scan3d_protocol::{Body, DeviceStatus, SensorId, StatusEvent};
 use scan3d_server::ingest::recorder::{read_session, session_dir};
 
@@ -81,7 +81,7 @@ fn status(n: usize) -> DeviceStatus {
 #[ignore = "needs root to mount a tmpfs; run with --ignored"]
 fn a_full_disk_pauses_the_spool_without_losing_a_frame_and_everything_arrives_once_it_has_room() {
     let site = tempfile::tempdir().unwrap();
-    let bundle = rig::pair_certificates(&site.path().join("pki")).unwrap();
+    let bundle = installation::pair_certificates(&site.path().join("pki")).unwrap();
     let spool_dir = site.path().join("spool");
     let disk = Tmpfs::mount(&spool_dir, "64k");
     let port = std::net::UdpSocket::bind("127.0.0.1:0")
@@ -132,7 +132,7 @@ fn a_full_disk_pauses_the_spool_without_losing_a_frame_and_everything_arrives_on
     for n in next..total {
         handle.submit(status(n)).unwrap();
     }
-    let server = ServerThread::start(rig::ingest_config(
+    let server = ServerThread::start(installation::ingest_config(
         &site.path().join("pki"),
         &site.path().join("data"),
         port,
@@ -147,7 +147,11 @@ fn a_full_disk_pauses_the_spool_without_losing_a_frame_and_everything_arrives_on
     assert_eq!(stats.storage_episodes, 1, "{stats:?}");
     assert_eq!(stats.frames_lost_on_edge, 0, "{stats:?}");
 
-    let session = session_dir(&site.path().join("data"), rig::EDGE_NAME, session_id);
+    let session = session_dir(
+        &site.path().join("data"),
+        installation::EDGE_NAME,
+        session_id,
+    );
     let recorded: Vec<(u64, String)> = read_session(&session)
         .unwrap()
         .into_iter()

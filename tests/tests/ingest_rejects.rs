@@ -22,8 +22,8 @@ use scan3d_edge::clock::{ScaledClock, SharedClock};
 use scan3d_edge::uplink::client::{Uplink, UplinkConfig};
 use scan3d_edge::uplink::spool::SpoolConfig;
 use scan3d_edge::uplink::tls::client_config;
+use scan3d_hw_sim::installation::{self, ServerThread};
 use scan3d_hw_sim::maps::session_status;
-use scan3d_hw_sim::rig::{self, ServerThread};
 use scan3d_map::octree::{Octree, SensorModel};
 use scan3d_protocol::{
     Ack, Body, Command, Frame, FrameReader, HEADER_LEN, Heartbeat, LidarRevolution, MAGIC,
@@ -162,8 +162,8 @@ struct Site {
 fn start_server_with(tune: impl FnOnce(&mut IngestConfig)) -> Site {
     let dir = tempfile::tempdir().expect("temp dir");
     let pki = dir.path().join("pki");
-    let bundle = rig::pair_certificates(&pki).expect("pairing");
-    let mut config = rig::ingest_config(&pki, &dir.path().join("data"), 0);
+    let bundle = installation::pair_certificates(&pki).expect("pairing");
+    let mut config = installation::ingest_config(&pki, &dir.path().join("data"), 0);
     tune(&mut config);
     let server = ServerThread::start(config).expect("server");
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -251,8 +251,12 @@ fn a_frame_that_does_not_decode_is_recorded_raw_and_every_frame_after_it_acknowl
     });
     let stats = site.server.stop();
     assert_eq!((stats.frames, stats.undecodable), (5, 1), "{stats:?}");
-    let dir = session_dir(&site.dir.path().join("data"), rig::EDGE_NAME, session);
-    let summary = summarize_session(rig::EDGE_NAME, session, &dir).expect("summary");
+    let dir = session_dir(
+        &site.dir.path().join("data"),
+        installation::EDGE_NAME,
+        session,
+    );
+    let summary = summarize_session(installation::EDGE_NAME, session, &dir).expect("summary");
     assert_eq!(
         (summary.frames, summary.undecodable_frames),
         (5, 1),
@@ -445,7 +449,11 @@ fn a_reconnecting_edge_replaces_its_old_connection_once_that_is_silent() {
     let stats = site.server.stop();
     assert_eq!((stats.replaced, stats.duplicate_names), (1, 0), "{stats:?}");
     assert_eq!((stats.frames, stats.duplicates), (2, 0), "{stats:?}");
-    let dir = session_dir(&site.dir.path().join("data"), rig::EDGE_NAME, session);
+    let dir = session_dir(
+        &site.dir.path().join("data"),
+        installation::EDGE_NAME,
+        session,
+    );
     let frames = scan3d_server::ingest::recorder::read_session(&dir).expect("recording");
     assert_eq!(
         frames.iter().map(|f| f.frame.seq).collect::<Vec<_>>(),
@@ -518,7 +526,11 @@ fn an_idle_session_is_closed_and_reopened_when_its_frames_come_back() {
     let stats = site.server.stop();
     assert!(stats.sessions_idle_closed >= 1, "{stats:?}");
     assert_eq!((stats.frames, stats.duplicates), (2, 1), "{stats:?}");
-    let dir = session_dir(&site.dir.path().join("data"), rig::EDGE_NAME, session);
+    let dir = session_dir(
+        &site.dir.path().join("data"),
+        installation::EDGE_NAME,
+        session,
+    );
     let frames = scan3d_server::ingest::recorder::read_session(&dir).expect("recording");
     assert_eq!(
         frames.iter().map(|f| f.frame.seq).collect::<Vec<_>>(),
@@ -605,9 +617,9 @@ fn start_live_server(queue_frames: usize) -> Site {
 fn start_live_server_with(tune: impl FnOnce(&mut LiveSettings)) -> Site {
     let dir = tempfile::tempdir().expect("temp dir");
     let pki = dir.path().join("pki");
-    let bundle = rig::pair_certificates(&pki).expect("pairing");
+    let bundle = installation::pair_certificates(&pki).expect("pairing");
     let data = dir.path().join("data");
-    let config = rig::ingest_config(&pki, &data, 0);
+    let config = installation::ingest_config(&pki, &data, 0);
     let mut live = LiveSettings::new(PipelineSettings::default(), data);
     tune(&mut live);
     let server = ServerThread::start_live(config, live).expect("server");
@@ -698,7 +710,11 @@ fn a_live_session_with_a_gap_and_an_unknown_body_is_processed_around_them_and_al
     assert!(live["catch_ups"].as_u64() > Some(0), "{live}");
     assert!(live["max_lag_frames"].as_u64() > Some(0), "{live}");
     // The same counts as the recording replayed offline.
-    let dir = session_dir(&site.dir.path().join("data"), rig::EDGE_NAME, session);
+    let dir = session_dir(
+        &site.dir.path().join("data"),
+        installation::EDGE_NAME,
+        session,
+    );
     let (mut offline, _) = run_session(
         &dir,
         &PipelineSettings::default(),
@@ -742,7 +758,7 @@ fn a_snapshot_into_an_unwritable_directory_fails_and_the_daemon_keeps_recording(
         let blocker = site.dir.path().join("not-a-dir");
         std::fs::write(&blocker, b"x").expect("file");
         let unwritable = blocker.join("snapshot");
-        let error = request_snapshot(&socket, rig::EDGE_NAME, None, None, &unwritable)
+        let error = request_snapshot(&socket, installation::EDGE_NAME, None, None, &unwritable)
             .expect_err("the snapshot must fail");
         assert!(
             error
@@ -764,7 +780,13 @@ fn a_snapshot_into_an_unwritable_directory_fails_and_the_daemon_keeps_recording(
     // A lidar-only session: `scan3d snapshot` exits 0 with a valid empty map and cloud, the
     // same map the offline `scan3d map SESSION_DIR` makes.
     let out = site.dir.path().join("snapshot");
-    let args = ["scan3d", "snapshot", "--edge", rig::EDGE_NAME, "--out"];
+    let args = [
+        "scan3d",
+        "snapshot",
+        "--edge",
+        installation::EDGE_NAME,
+        "--out",
+    ];
     let mut args: Vec<String> = args.iter().map(ToString::to_string).collect();
     args.extend([
         out.display().to_string(),
@@ -779,7 +801,7 @@ fn a_snapshot_into_an_unwritable_directory_fails_and_the_daemon_keeps_recording(
     let ply = std::fs::read_to_string(out.join("cloud.ply")).expect("cloud.ply");
     assert!(ply.contains("element vertex 0"), "{ply}");
     let offline = site.dir.path().join("offline.bt");
-    let dir = session_dir(&data, rig::EDGE_NAME, session);
+    let dir = session_dir(&data, installation::EDGE_NAME, session);
     let cli = scan3d_server::cli::Cli::try_parse_from([
         "scan3d".to_owned(),
         "map".into(),
@@ -805,7 +827,7 @@ fn periodic_snapshots_are_written_into_the_data_directory_while_the_session_stre
         .dir
         .path()
         .join("data/snapshots")
-        .join(rig::EDGE_NAME)
+        .join(installation::EDGE_NAME)
         .join(format!("{session:016x}"));
     site.runtime.block_on(async {
         let mut client = connect(site.server.addr(), &site.bundle).await;

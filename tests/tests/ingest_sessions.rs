@@ -10,7 +10,7 @@ use std::net::SocketAddr;
 use std::time::Duration;
 
 use scan3d_edge::uplink::tls::client_config;
-use scan3d_hw_sim::rig::{self, ServerThread};
+use scan3d_hw_sim::installation::{self, ServerThread};
 use scan3d_protocol::{Ack, Body, Frame, FrameReader, Heartbeat, encode};
 use scan3d_server::ingest::recorder::list_sessions;
 use scan3d_server::ingest::server::IngestLimits;
@@ -38,10 +38,10 @@ fn fifteen_hundred_session_ids_from_one_edge_keep_fds_and_memory_bounded() {
     let dir = tempfile::tempdir().expect("temp dir");
     let pki = dir.path().join("pki");
     let data = dir.path().join("data");
-    let bundle = rig::pair_certificates(&pki).expect("pairing");
+    let bundle = installation::pair_certificates(&pki).expect("pairing");
     let fds_before = open_fds();
     let rss_before = rss_mib();
-    let server = ServerThread::start(rig::ingest_config(&pki, &data, 0)).expect("server");
+    let server = ServerThread::start(installation::ingest_config(&pki, &data, 0)).expect("server");
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
         .enable_all()

@@ -18,9 +18,9 @@ use scan3d_edge::serial::SerialOptions;
 use scan3d_edge::timing::{Revolution, TimedSample, TimingConfig};
 use scan3d_hw_sim::device::Device;
 use scan3d_hw_sim::faults::{FaultConfig, SentSample};
+use scan3d_hw_sim::installation;
 use scan3d_hw_sim::mounts;
 use scan3d_hw_sim::pty::{PtyDevice, PtyHandle, PtyOptions};
-use scan3d_hw_sim::rig;
 use scan3d_hw_sim::rplidar::{RplidarEmulator, RplidarEmulatorConfig, RplidarModel};
 use scan3d_hw_sim::sweep::{SweepEmulator, SweepEmulatorConfig};
 use scan3d_hw_sim::world::World;
@@ -189,7 +189,7 @@ fn match_against_log(
             s.touched && integrity == Integrity::UnprotectedFields && angle_error < 10.0;
         exact || undetectable_flip
     };
-    let (matched, unexplained) = rig::match_in_order(&decoded, sent, |d, s| same(d, s));
+    let (matched, unexplained) = installation::match_in_order(&decoded, sent, |d, s| same(d, s));
     if let Some(&i) = unexplained.first() {
         panic!(
             "{} decoded samples were never sent, the first #{i}: {:?}",

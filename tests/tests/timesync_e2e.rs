@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 use scan3d_edge::clock::{Clock, MonotonicClock};
 use scan3d_edge::uplink::client::{Uplink, UplinkConfig};
 use scan3d_edge::uplink::tls::client_config;
-use scan3d_hw_sim::rig::{self, EDGE_NAME, ServerThread};
+use scan3d_hw_sim::installation::{self, EDGE_NAME, ServerThread};
 use scan3d_protocol::{Body, DeviceStatus, Hello, SensorId, StatusEvent};
 use scan3d_server::ingest::recorder::{read_session, session_dir};
 use scan3d_server::ingest::server::IngestEvent;
@@ -22,8 +22,8 @@ fn the_clock_model_arrives_is_recorded_and_replays_identically_and_pongs_never_t
     let dir = tempfile::tempdir().expect("temp dir");
     let pki = dir.path().join("pki");
     let data = dir.path().join("data");
-    let bundle = rig::pair_certificates(&pki).expect("pairing");
-    let mut config = rig::ingest_config(&pki, &data, 0);
+    let bundle = installation::pair_certificates(&pki).expect("pairing");
+    let mut config = installation::ingest_config(&pki, &data, 0);
     config.time_sync_interval = Duration::from_millis(50);
     let mut server = ServerThread::start(config).expect("server");
     let edge_clock = Arc::new(MonotonicClock::new());
@@ -34,7 +34,7 @@ fn the_clock_model_arrives_is_recorded_and_replays_identically_and_pongs_never_t
         .enable_all()
         .build()
         .expect("runtime");
-    let section = rig::uplink_section(server.addr(), &bundle);
+    let section = installation::uplink_section(server.addr(), &bundle);
     let uplink_config = UplinkConfig::new(
         section.server.clone(),
         section.tls_name().to_owned(),

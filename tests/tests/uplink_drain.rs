@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 use scan3d_edge::clock::MonotonicClock;
 use scan3d_edge::uplink::client::{Uplink, UplinkConfig};
 use scan3d_edge::uplink::tls::client_config;
-use scan3d_hw_sim::rig;
+use scan3d_hw_sim::installation;
 use scan3d_protocol::{DeviceStatus, SensorId, StatusEvent};
 use scan3d_server::ingest::tls::server_config;
 
@@ -17,7 +17,7 @@ use scan3d_server::ingest::tls::server_config;
 fn a_shutdown_with_a_write_blocked_by_flow_control_ends_at_the_drain_deadline() {
     let dir = tempfile::tempdir().expect("temp dir");
     let pki = dir.path().join("pki");
-    let bundle = rig::pair_certificates(&pki).expect("pairing");
+    let bundle = installation::pair_certificates(&pki).expect("pairing");
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -44,7 +44,7 @@ fn a_shutdown_with_a_write_blocked_by_flow_control_ends_at_the_drain_deadline() 
             drop((streams, connection, server));
         });
 
-        let section = rig::uplink_section(addr, &bundle);
+        let section = installation::uplink_section(addr, &bundle);
         let mut config = UplinkConfig::new(
             section.server.clone(),
             section.tls_name().to_owned(),

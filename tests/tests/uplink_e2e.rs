@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 
 use scan3d_edge::clock::{ScaledClock, SharedClock};
 use scan3d_edge::config::UplinkSection;
-use scan3d_hw_sim::rig::{
+use scan3d_hw_sim::installation::{
     self, Delivery, EdgeThread, LidarOptions, ServerThread, SimLidars, account,
 };
 use scan3d_server::ingest::recorder::session_dir;
@@ -79,7 +79,7 @@ struct Site {
 impl Site {
     fn new() -> Self {
         let dir = tempfile::tempdir().expect("temp dir");
-        let bundle = rig::pair_certificates(&dir.path().join("pki")).expect("pairing");
+        let bundle = installation::pair_certificates(&dir.path().join("pki")).expect("pairing");
         Self { dir, bundle }
     }
 
@@ -89,7 +89,7 @@ impl Site {
 
     /// The in-process server on loopback `port` (0 = any).
     fn server(&self, port: u16) -> ServerThread {
-        ServerThread::start(rig::ingest_config(
+        ServerThread::start(installation::ingest_config(
             &self.path("pki"),
             &self.path("data"),
             port,
@@ -109,7 +109,7 @@ impl Site {
         clock: SharedClock,
         tune: impl FnOnce(&mut UplinkSection),
     ) -> (EdgeThread, u64) {
-        let mut uplink = rig::uplink_section(server, &self.bundle);
+        let mut uplink = installation::uplink_section(server, &self.bundle);
         tune(&mut uplink);
         let config = lidars.edge_config(&self.path("edge-state"), Some(uplink));
         let session_id = rand::random::<u64>();
@@ -120,7 +120,7 @@ impl Site {
     }
 
     fn session(&self, session_id: u64) -> PathBuf {
-        session_dir(&self.path("data"), rig::EDGE_NAME, session_id)
+        session_dir(&self.path("data"), installation::EDGE_NAME, session_id)
     }
 }
 

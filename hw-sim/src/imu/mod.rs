@@ -93,7 +93,7 @@ impl ImuEmulator {
         &mut self.ak
     }
 
-    /// Replaces the ground truth (e.g. when the emulated IMU is moved to another rig).
+    /// Replaces the ground truth (e.g. when the emulated IMU is moved to another sensor head).
     pub fn set_truth(&mut self, truth: Arc<dyn ImuTruth>) {
         self.truth = truth;
     }

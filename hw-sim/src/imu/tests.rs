@@ -45,21 +45,21 @@ fn quiet() -> ImuEmulatorConfig {
     }
 }
 
-struct Rig {
+struct Fixture {
     clock: SimClock,
     bus: I2cBus,
     imu: Arc<Mutex<ImuEmulator>>,
 }
 
-fn rig(config: ImuEmulatorConfig, truth: Arc<dyn ImuTruth>) -> Rig {
+fn fixture(config: ImuEmulatorConfig, truth: Arc<dyn ImuTruth>) -> Fixture {
     let clock = SimClock::new();
     let bus = I2cBus::with_clock(clock.shared());
     let imu = Arc::new(Mutex::new(ImuEmulator::new(config, truth)));
     bus.attach(imu.clone());
-    Rig { clock, bus, imu }
+    Fixture { clock, bus, imu }
 }
 
-impl Rig {
+impl Fixture {
     fn rd(&mut self, address: u8, reg: u8, n: usize) -> Vec<u8> {
         let mut buf = vec![0u8; n];
         self.bus.write_read(address, &[reg], &mut buf).unwrap();
@@ -77,7 +77,7 @@ impl Rig {
 
 #[test]
 fn reset_values_identity_and_bypass_gating() {
-    let mut r = rig(quiet(), Arc::new(StaticTruth::default()));
+    let mut r = fixture(quiet(), Arc::new(StaticTruth::default()));
     assert_eq!(r.rd(MPU, 0x75, 1), [0x71]);
     assert_eq!(r.rd(MPU, 0x6B, 1), [0x01]);
     assert_eq!(r.rd(MPU, 0x19, 5), [0x00; 5]);
@@ -103,7 +103,7 @@ fn reset_values_identity_and_bypass_gating() {
 
 #[test]
 fn h_reset_restores_defaults_and_nacks_while_resetting() {
-    let mut r = rig(quiet(), Arc::new(StaticTruth::default()));
+    let mut r = fixture(quiet(), Arc::new(StaticTruth::default()));
     r.wr(MPU, 0x1A, 0x03);
     r.wr(MPU, 0x37, 0x02);
     r.wr(MPU, 0x6B, 0x41); // asleep
@@ -127,7 +127,7 @@ fn burst_read_is_big_endian_and_scaled_by_the_full_scale() {
         yaw_rate_rad_s: 10f64.to_radians(),
         ..YawRateTruth::default()
     };
-    let mut r = rig(quiet(), Arc::new(truth));
+    let mut r = fixture(quiet(), Arc::new(truth));
     r.wr(MPU, 0x1A, 0x03);
     r.wr(MPU, 0x19, 0x04); // 200 Hz
     r.at_ms(5);
@@ -162,7 +162,7 @@ fn samples_fall_on_the_rate_grid_and_set_raw_data_ready() {
         gyro_rad_s: [(t_ns as f64 / 1e6).to_radians(), 0.0, 0.0],
         ..fixed_mag([0.0; 3])
     });
-    let mut r = rig(quiet(), Arc::new(truth));
+    let mut r = fixture(quiet(), Arc::new(truth));
     r.wr(MPU, 0x1A, 0x03);
     r.wr(MPU, 0x19, 0x04); // 200 Hz from t = 0
     r.at_ms(12);
@@ -193,7 +193,7 @@ fn samples_fall_on_the_rate_grid_and_set_raw_data_ready() {
 fn ak8963_fuse_rom_is_readable_only_in_fuse_rom_mode() {
     let mut config = quiet();
     config.ak.asa = [0xB0, 0xB3, 0xA6];
-    let mut r = rig(config, Arc::new(StaticTruth::default()));
+    let mut r = fixture(config, Arc::new(StaticTruth::default()));
     r.wr(MPU, 0x37, 0x02);
     assert_eq!(r.rd(AK, 0x10, 3), [0x00; 3]);
     r.wr(AK, 0x0A, 0x0F);
@@ -207,7 +207,7 @@ fn ak8963_modes_data_layout_and_axis_mapping() {
     // Body field (1.2, 3, 4.8) µT → chip (Hx, Hy, Hz) = (3, 1.2, −4.8) µT
     // = (20, 8, −32) LSB at 0.15 µT/LSB, little-endian.
     let truth = FnTruth(|_| fixed_mag([1.2, 3.0, 4.8]));
-    let mut r = rig(quiet(), Arc::new(truth));
+    let mut r = fixture(quiet(), Arc::new(truth));
     r.wr(MPU, 0x37, 0x02);
     r.wr(AK, 0x0A, 0x16); // 16-bit, continuous mode 2 (100 Hz), at t = 0
     r.at_ms(9);
@@ -246,7 +246,7 @@ fn ak8963_modes_data_layout_and_axis_mapping() {
 fn ak8963_overrun_and_read_protection() {
     // Field along body x (= chip y) equal to the time in ms, in µT.
     let truth = FnTruth(|t_ns| fixed_mag([t_ns as f64 / 1e6, 0.0, 0.0]));
-    let mut r = rig(quiet(), Arc::new(truth));
+    let mut r = fixture(quiet(), Arc::new(truth));
     r.wr(MPU, 0x37, 0x02);
     r.wr(AK, 0x0A, 0x16);
     r.at_ms(30);
@@ -269,7 +269,7 @@ fn ak8963_overrun_and_read_protection() {
 
 #[test]
 fn ak8963_overflow_from_the_field_and_by_injection() {
-    let mut r = rig(
+    let mut r = fixture(
         quiet(),
         Arc::new(FnTruth(|_| fixed_mag([3000.0, 2000.0, 0.0]))),
     );
@@ -287,7 +287,7 @@ fn ak8963_overflow_from_the_field_and_by_injection() {
 
 #[test]
 fn injected_nacks_fail_whole_transactions() {
-    let mut r = rig(quiet(), Arc::new(StaticTruth::default()));
+    let mut r = fixture(quiet(), Arc::new(StaticTruth::default()));
     lock(&r.imu).nack_next(2);
     for _ in 0..2 {
         let err = r.bus.write_read(MPU, &[0x75], &mut [0]).unwrap_err();
@@ -306,8 +306,8 @@ mod with_driver {
 
     use super::*;
 
-    fn started(config: ImuEmulatorConfig, truth: Arc<dyn ImuTruth>) -> (Rig, Mpu9250<I2cBus>) {
-        let r = rig(config, truth);
+    fn started(config: ImuEmulatorConfig, truth: Arc<dyn ImuTruth>) -> (Fixture, Mpu9250<I2cBus>) {
+        let r = fixture(config, truth);
         let mut imu = Mpu9250::new(r.bus.clone(), ImuConfig::default());
         let mut delay = r.clock.clone();
         imu.init(&mut delay).unwrap();
@@ -315,7 +315,7 @@ mod with_driver {
     }
 
     /// Reads for `ms` milliseconds at the 200 Hz sample rate.
-    fn run(r: &Rig, imu: &mut Mpu9250<I2cBus>, ms: u64) -> Vec<ImuReading> {
+    fn run(r: &Fixture, imu: &mut Mpu9250<I2cBus>, ms: u64) -> Vec<ImuReading> {
         (0..ms / 5)
             .map(|_| {
                 r.clock.advance_ns(5_000_000);
@@ -388,7 +388,7 @@ mod with_driver {
         let mut config = quiet();
         config.ak.asa = [0xB0, 0xB3, 0xA6];
         // At rest during the bias estimate is not possible on a turning table; skip it.
-        let r = rig(config, Arc::new(truth));
+        let r = fixture(config, Arc::new(truth));
         let mut imu = Mpu9250::new(
             r.bus.clone(),
             ImuConfig {
@@ -436,7 +436,7 @@ mod with_driver {
 
     #[test]
     fn wrong_who_am_i_is_a_clear_error() {
-        let r = rig(quiet(), Arc::new(StaticTruth::default()));
+        let r = fixture(quiet(), Arc::new(StaticTruth::default()));
         lock(&r.imu).mpu_mut().set_who_am_i(0x70);
         let mut imu = Mpu9250::new(r.bus.clone(), ImuConfig::default());
         let err = imu.init(&mut r.clock.clone()).unwrap_err();

@@ -202,7 +202,7 @@ fn rotor_decodes_phases_and_loses_fast_or_skipped_changes() {
 }
 
 /// The edge driver on a simulated bus with the emulator, paced on simulated time.
-struct Rig {
+struct Fixture {
     clock: SimClock,
     emu: Arc<Mutex<Pca9685Emulator>>,
     table: Turntable,
@@ -210,7 +210,7 @@ struct Rig {
     motor: Stepper,
 }
 
-fn rig(config: StepperConfig) -> Rig {
+fn fixture(config: StepperConfig) -> Fixture {
     let clock = SimClock::new();
     let emu = Arc::new(Mutex::new(Pca9685Emulator::motor_hat()));
     let table = lock(&emu).turntable(config.port);
@@ -219,7 +219,7 @@ fn rig(config: StepperConfig) -> Rig {
     let mut hat = MotorHat::new(bus, config.address, config.retries);
     hat.init(&mut clock.clone()).unwrap();
     let motor = Stepper::new(&config).unwrap();
-    Rig {
+    Fixture {
         clock,
         emu,
         table,
@@ -236,7 +236,7 @@ fn one_turn(style: StepStyle) -> StepperConfig {
     }
 }
 
-impl Rig {
+impl Fixture {
     fn run(&mut self, direction: Direction, steps: u64) {
         self.motor
             .run(
@@ -250,7 +250,7 @@ impl Rig {
 
 #[test]
 fn driver_init_leaves_the_chip_at_1600_hz_with_everything_off() {
-    let r = rig(StepperConfig::default());
+    let r = fixture(StepperConfig::default());
     let emu = lock(&r.emu);
     assert_eq!(emu.register(0x00), 0x21); // awake, AI, ALLCALL, no restart pending
     assert_eq!(emu.register(0x01), 0x04);
@@ -265,7 +265,7 @@ fn driver_init_leaves_the_chip_at_1600_hz_with_everything_off() {
 
 #[test]
 fn full_steps_one_revolution() {
-    let mut r = rig(one_turn(StepStyle::Full));
+    let mut r = fixture(one_turn(StepStyle::Full));
     r.motor.hold(&mut r.hat).unwrap();
     r.run(Direction::Forward, 200);
     assert!((r.table.angle_deg() - 360.0).abs() < 1e-9);
@@ -276,7 +276,7 @@ fn full_steps_one_revolution() {
 
 #[test]
 fn half_steps_one_revolution() {
-    let mut r = rig(one_turn(StepStyle::Half));
+    let mut r = fixture(one_turn(StepStyle::Half));
     r.run(Direction::Forward, 400);
     assert!((r.table.angle_deg() - 360.0).abs() < 1e-9);
     assert_eq!(r.table.counters().steps_taken, 400);
@@ -285,7 +285,7 @@ fn half_steps_one_revolution() {
 
 #[test]
 fn microsteps_one_revolution_and_a_fraction_of_a_step() {
-    let mut r = rig(one_turn(StepStyle::Micro(16)));
+    let mut r = fixture(one_turn(StepStyle::Micro(16)));
     r.run(Direction::Forward, 3);
     // 3/16 of 1.8°.
     // (PWM duties are rounded to 1/4096, so the field angle is within a few thousandths.)
@@ -298,7 +298,7 @@ fn microsteps_one_revolution_and_a_fraction_of_a_step() {
 
 #[test]
 fn backward_turns_the_other_way_and_port_two_is_independent() {
-    let mut r = rig(StepperConfig {
+    let mut r = fixture(StepperConfig {
         port: Port::Two,
         ..StepperConfig::default()
     });
@@ -309,7 +309,7 @@ fn backward_turns_the_other_way_and_port_two_is_independent() {
 
 #[test]
 fn release_frees_and_hold_keeps_the_position() {
-    let mut r = rig(StepperConfig::default());
+    let mut r = fixture(StepperConfig::default());
     r.run(Direction::Forward, 10);
     r.motor.release(&mut r.hat).unwrap();
     assert!(!r.table.is_holding());
@@ -324,7 +324,7 @@ fn release_frees_and_hold_keeps_the_position() {
 
 #[test]
 fn return_home_unwinds_within_the_wrap_limit() {
-    let mut r = rig(StepperConfig::default()); // limit ±180°
+    let mut r = fixture(StepperConfig::default()); // limit ±180°
     r.run(Direction::Forward, 100);
     assert!((r.table.angle_deg() - 180.0).abs() < 1e-9);
     assert!(r.motor.step(&mut r.hat, Direction::Forward).is_err());
@@ -348,7 +348,7 @@ fn return_home_unwinds_within_the_wrap_limit() {
 #[test]
 fn stepping_at_the_rate_limit_keeps_every_step() {
     // 500 full steps/s = 1000 half steps/s: each step starts as the last one ends.
-    let mut r = rig(StepperConfig {
+    let mut r = fixture(StepperConfig {
         full_steps_per_sec: 500.0,
         ..one_turn(StepStyle::Full)
     });
@@ -359,7 +359,7 @@ fn stepping_at_the_rate_limit_keeps_every_step() {
 
 #[test]
 fn overspeed_loses_steps_and_commanded_differs_from_actual() {
-    let mut r = rig(StepperConfig {
+    let mut r = fixture(StepperConfig {
         full_steps_per_sec: 800.0,
         ..one_turn(StepStyle::Full)
     });
@@ -377,7 +377,7 @@ fn overspeed_loses_steps_and_commanded_differs_from_actual() {
 
 #[test]
 fn the_turntable_angle_is_interpolated_during_a_step() {
-    let mut r = rig(StepperConfig::default());
+    let mut r = fixture(StepperConfig::default());
     r.motor.hold(&mut r.hat).unwrap();
     r.clock.set_ns(10_000_000);
     r.motor.step(&mut r.hat, Direction::Forward).unwrap();
