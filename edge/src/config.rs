@@ -17,7 +17,7 @@ use crate::drivers::imu::ImuConfig;
 use crate::drivers::rplidar::RplidarConfig;
 use crate::drivers::stepper::StepperConfig;
 use crate::drivers::sweep::SweepConfig;
-use crate::static_scan::{StaticScanConfig, StaticScanError};
+use crate::static_scan::{MountConfig, StaticScanConfig, StaticScanError};
 use crate::uplink::spool::SpoolConfig;
 
 /// The whole `edge.toml`.
@@ -47,17 +47,30 @@ pub struct EdgeConfig {
     pub static_scan: StaticScanConfig,
 }
 
-/// `[i2c]`: which bus the IMU and the motor HAT share.
-#[derive(Debug, Clone, PartialEq, Deserialize)]
+/// `[i2c]`: the bus the IMU and the motor HAT share: the Pi's `/dev/i2c-N` (`bus = N`, rppal),
+/// or an emulated bus behind a Unix socket (`socket = "PATH"`, [`crate::i2c_socket`], served by
+/// `scan3d-sim rig`). At most one of the two; neither means bus 1.
+#[derive(Debug, Clone, PartialEq, Default, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct I2cSection {
-    /// Linux I2C bus number (`/dev/i2c-N`); 1 on every Pi since model B rev 2.
-    pub bus: u8,
+    /// Linux I2C bus number (`/dev/i2c-N`); 1 on every Pi since model B rev 2 (the default).
+    pub bus: Option<u8>,
+    /// The Unix socket of an emulated bus ([`crate::i2c_socket`]) instead of `/dev/i2c-N`.
+    pub socket: Option<PathBuf>,
 }
 
-impl Default for I2cSection {
-    fn default() -> Self {
-        Self { bus: 1 }
+impl I2cSection {
+    /// The bus number used when no socket is set: `bus`, or 1.
+    pub fn bus_number(&self) -> u8 {
+        self.bus.unwrap_or(1)
+    }
+
+    /// The device this section opens: the socket, or `/dev/i2c-N`.
+    pub fn device_path(&self) -> PathBuf {
+        match &self.socket {
+            Some(socket) => socket.clone(),
+            None => PathBuf::from(format!("/dev/i2c-{}", self.bus_number())),
+        }
     }
 }
 
@@ -72,6 +85,8 @@ pub struct ImuSection {
     /// Initial orientation `[w, x, y, z]` (`initial_orientation_wxyz`); without it the first
     /// accelerometer + magnetometer pair sets it.
     pub initial_orientation_wxyz: Option<[f64; 4]>,
+    /// `[imu.mount]`: the IMU's pose in the `base` frame.
+    pub mount: Option<Mount>,
 }
 
 impl TryFrom<toml::Table> for ImuSection {
@@ -89,6 +104,7 @@ impl TryFrom<toml::Table> for ImuSection {
                     .map_err(|e| format!("[imu]: `initial_orientation_wxyz`: {e}"))?,
             ),
         };
+        let mount = take_mount(&mut table).map_err(|e| format!("[imu]: {e}"))?;
         let driver =
             ImuConfig::deserialize(toml::Value::Table(table)).map_err(|e| format!("[imu]: {e}"))?;
         driver.validate().map_err(|e| format!("[imu]: {e}"))?;
@@ -96,6 +112,7 @@ impl TryFrom<toml::Table> for ImuSection {
             driver,
             beta,
             initial_orientation_wxyz,
+            mount,
         })
     }
 }
@@ -215,6 +232,8 @@ pub struct RplidarSection {
     pub path: PathBuf,
     /// Driver settings (scan mode, baud, motor PWM, timeouts), written in the same table.
     pub driver: RplidarConfig,
+    /// `[rplidar.mount]`: the RPLidar's pose in the `base` frame.
+    pub mount: Option<Mount>,
 }
 
 /// `[sweep]`: where the Scanse Sweep is and how to drive it.
@@ -225,35 +244,192 @@ pub struct SweepSection {
     pub path: PathBuf,
     /// Driver settings (motor speed, sample rate, timeouts), written in the same table.
     pub driver: SweepConfig,
+    /// `[sweep.mount]`: the Sweep's pose in the `base` frame; on a turntable it sets the
+    /// static scans' geometry ([`Mount::turntable_geometry`]), superseding `[static_scan.mount]`.
+    pub mount: Option<Mount>,
 }
 
-/// Splits a device table into its `path` and the driver settings. (serde's `flatten` would
-/// silently accept misspelt keys; the driver configs deny unknown fields, so we split by hand.)
+/// Splits a device table into its `path`, its `mount` and the driver settings. (serde's
+/// `flatten` would silently accept misspelt keys; the driver configs deny unknown fields, so we
+/// split by hand. Errors inside lose their place here; [`EdgeConfig::from_toml_str`] finds the
+/// key's line again.)
 fn split_section<T: serde::de::DeserializeOwned>(
     mut table: toml::Table,
-) -> Result<(PathBuf, T), String> {
+) -> Result<(PathBuf, Option<Mount>, T), String> {
     let path = match table.remove("path") {
         Some(toml::Value::String(path)) => PathBuf::from(path),
         Some(other) => return Err(format!("`path` must be a string, got {}", other.type_str())),
         None => return Err("missing `path` (the serial device, e.g. \"/dev/rplidar\")".into()),
     };
+    let mount = take_mount(&mut table)?;
     let driver = T::deserialize(toml::Value::Table(table)).map_err(|e| e.to_string())?;
-    Ok((path, driver))
+    Ok((path, mount, driver))
+}
+
+/// Removes and parses the `mount` sub-table of a device section.
+fn take_mount(table: &mut toml::Table) -> Result<Option<Mount>, String> {
+    table
+        .remove("mount")
+        .map(|value| Mount::deserialize(value).map_err(|e| format!("mount: {e}")))
+        .transpose()
 }
 
 impl TryFrom<toml::Table> for RplidarSection {
     type Error = String;
     fn try_from(table: toml::Table) -> Result<Self, String> {
-        let (path, driver) = split_section(table).map_err(|e| format!("[rplidar]: {e}"))?;
-        Ok(Self { path, driver })
+        let (path, mount, driver) = split_section(table).map_err(|e| format!("[rplidar]: {e}"))?;
+        Ok(Self {
+            path,
+            driver,
+            mount,
+        })
     }
 }
 
 impl TryFrom<toml::Table> for SweepSection {
     type Error = String;
     fn try_from(table: toml::Table) -> Result<Self, String> {
-        let (path, driver) = split_section(table).map_err(|e| format!("[sweep]: {e}"))?;
-        Ok(Self { path, driver })
+        let (path, mount, driver) = split_section(table).map_err(|e| format!("[sweep]: {e}"))?;
+        Ok(Self {
+            path,
+            driver,
+            mount,
+        })
+    }
+}
+
+/// A sensor's pose in the `base` frame (`[rplidar.mount]`, `[sweep.mount]`, `[imu.mount]`).
+///
+/// Frames: `base` is the turntable's or the trolley's frame on the floor: origin on the
+/// turntable axis (trolley: its reference point) at floor level, z up, x the direction of
+/// turntable yaw 0 (trolley: forwards). The sensor's own frame has z along its spin axis and
+/// azimuth 0 along its x, azimuths increasing counter-clockwise about z (as the device reports
+/// them); the IMU's frame is its chip axes. The pose maps sensor to base coordinates:
+/// p_base = R · p_sensor + (x, y, z), with R = Rz(yaw) · Ry(pitch) · Rx(roll) (intrinsic
+/// Z-Y-X: yaw about base z, then pitch, then roll).
+#[derive(Debug, Clone, Copy, PartialEq, Default, Deserialize, serde::Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Mount {
+    /// Position of the optical centre (IMU: the chip) in `base`, metres.
+    pub x: f64,
+    /// See `x`.
+    pub y: f64,
+    /// Height above the floor, metres.
+    pub z: f64,
+    /// Rotation about x, degrees.
+    pub roll: f64,
+    /// Rotation about y, degrees.
+    pub pitch: f64,
+    /// Rotation about z, degrees.
+    pub yaw: f64,
+}
+
+/// How far a `[sweep.mount]` may be from what eq. (1) describes: metres for `y`, and the
+/// length of the difference of unit vectors for the spin axis (1e-6 ≈ 0.00006°).
+const TURNTABLE_TOLERANCE: f64 = 1e-6;
+
+impl Mount {
+    /// The rotation sensor → base.
+    pub fn rotation(&self) -> nalgebra::UnitQuaternion<f64> {
+        nalgebra::UnitQuaternion::from_euler_angles(
+            self.roll.to_radians(),
+            self.pitch.to_radians(),
+            self.yaw.to_radians(),
+        )
+    }
+
+    /// The static-scan geometry of eq. (1) this Sweep mount stands for, with the device
+    /// azimuth that points up, or why eq. (1) cannot represent it.
+    ///
+    /// Eq. (1) (map/src/cloud/assembly.rs) places the Sweep at yaw φ = 0 with its scan plane the
+    /// base's y–z plane, its optical centre at (`axis_offset_m`, 0, `height_m`), θ = azimuth −
+    /// `azimuth_zero_deg` turning from +z (θ = 0) towards +y (θ = 90°): the spin axis is base
+    /// −x. So the mapping is `axis_offset_m` = x, `height_m` = z, and `azimuth_zero_deg` = the
+    /// azimuth whose ray points up; a mount with y ≠ 0 or a spin axis other than −x (a tilted
+    /// or turned scan plane) is refused. E.g. roll 0, pitch −90, yaw 0 is azimuth zero 0.
+    pub fn turntable_geometry(&self) -> Result<(MountConfig, f64), String> {
+        let r = self.rotation();
+        let spin = r * nalgebra::Vector3::z();
+        if (spin + nalgebra::Vector3::x()).norm() > TURNTABLE_TOLERANCE {
+            return Err(format!(
+                "the Sweep's spin axis points along ({:.3}, {:.3}, {:.3}) in base; a static scan \
+                 (eq. 1) needs it along -x (its scan plane the y-z plane at yaw 0), e.g. \
+                 roll = 0, pitch = -90, yaw = 0",
+                spin.x, spin.y, spin.z
+            ));
+        }
+        if self.y.abs() > TURNTABLE_TOLERANCE {
+            return Err(format!(
+                "y = {} m: a static scan (eq. 1) needs the Sweep's optical centre in the plane \
+                 through the turntable axis normal to its scan plane (y = 0)",
+                self.y
+            ));
+        }
+        // The ray of azimuth a is R·(cos a, sin a, 0); it points up where (cos a, sin a, 0) is
+        // base +z seen from the sensor (its z component is 0: the spin axis is horizontal).
+        let up = r.inverse() * nalgebra::Vector3::z();
+        let azimuth_zero_deg = up.y.atan2(up.x).to_degrees().rem_euclid(360.0);
+        Ok((
+            MountConfig {
+                axis_offset_m: self.x,
+                height_m: self.z,
+            },
+            if azimuth_zero_deg >= 360.0 {
+                0.0
+            } else {
+                azimuth_zero_deg
+            },
+        ))
+    }
+
+    /// The Sweep mount an eq. (1) geometry stands for (the inverse of
+    /// [`Mount::turntable_geometry`]), for translating a `[static_scan.mount]`.
+    pub fn from_turntable_geometry(mount: &MountConfig, azimuth_zero_deg: f64) -> Self {
+        let (s, c) = azimuth_zero_deg.to_radians().sin_cos();
+        // Columns: the base directions of the sensor's x, y and z axes.
+        #[rustfmt::skip]
+        let m = nalgebra::Matrix3::new(
+            0.0, 0.0, -1.0,
+            -s,  c,   0.0,
+            c,   s,   0.0,
+        );
+        let r = nalgebra::UnitQuaternion::from_rotation_matrix(
+            &nalgebra::Rotation3::from_matrix_unchecked(m),
+        );
+        let (roll, pitch, yaw) = r.euler_angles();
+        Self {
+            x: mount.axis_offset_m,
+            y: 0.0,
+            z: mount.height_m,
+            roll: roll.to_degrees(),
+            pitch: pitch.to_degrees(),
+            yaw: yaw.to_degrees(),
+        }
+    }
+
+    /// Checks every value is finite and in range; `key` is the section (`sweep.mount`).
+    fn validate(&self, key: &str) -> Result<(), InvalidSetting> {
+        for (name, value) in [("x", self.x), ("y", self.y), ("z", self.z)] {
+            check_f64(
+                &format!("{key}.{name}"),
+                value,
+                -100.0..=100.0,
+                "a finite distance of at most 100 m",
+            )?;
+        }
+        for (name, value) in [
+            ("roll", self.roll),
+            ("pitch", self.pitch),
+            ("yaw", self.yaw),
+        ] {
+            check_f64(
+                &format!("{key}.{name}"),
+                value,
+                -360.0..=360.0,
+                "a finite angle from -360 to 360 degrees",
+            )?;
+        }
+        Ok(())
     }
 }
 
@@ -306,17 +482,75 @@ fn check_f64(
 
 impl EdgeConfig {
     /// Parses a configuration from TOML text and [validates](Self::validate) it; `origin`
-    /// names it in errors, which start with the line of the offending key.
+    /// names it in errors, which start with the line of the offending key. A
+    /// `[static_scan.mount]` is translated to `[sweep.mount]` (with a warning), and the
+    /// `[sweep.mount]` sets the static scans' geometry ([`EdgeConfig::apply_sweep_mount`]).
     pub fn from_toml_str(text: &str, origin: &Path) -> Result<Self, ConfigError> {
-        let config: Self = scan3d_service::config::parse_toml(text, origin)?;
-        config.validate().map_err(|invalid| ConfigError::Parse {
+        let parse_error = |message: String| ConfigError::Parse {
             path: origin.to_path_buf(),
-            message: match line_of_key(text, &invalid.key) {
+            message,
+        };
+        let at_key = |invalid: InvalidSetting| {
+            parse_error(match line_of_key(text, &invalid.key) {
                 Some(line) => format!("line {line}: {invalid}"),
                 None => invalid.to_string(),
-            },
-        })?;
+            })
+        };
+        let mut config: Self =
+            toml::from_str(text).map_err(|e| parse_error(locate_error(text, &e)))?;
+        config.validate().map_err(at_key)?;
+        let static_mount = written_key_line(text, "static_scan.mount");
+        if let Some(sweep) = &mut config.sweep {
+            match (sweep.mount, static_mount) {
+                (Some(_), Some(line)) => {
+                    return Err(parse_error(format!(
+                        "line {line}: [static_scan.mount] and [sweep.mount] both given: \
+                         [sweep.mount] supersedes it, remove [static_scan.mount]"
+                    )));
+                }
+                (Some(_), None) => {
+                    if let Some(line) = written_key_line(text, "static_scan.azimuth_zero_deg") {
+                        return Err(parse_error(format!(
+                            "line {line}: `static_scan.azimuth_zero_deg` and [sweep.mount] both \
+                             given: the mount's orientation sets it, remove the key"
+                        )));
+                    }
+                }
+                (None, Some(_)) => {
+                    let mount = Mount::from_turntable_geometry(
+                        &config.static_scan.mount,
+                        config.static_scan.azimuth_zero_deg,
+                    );
+                    tracing::warn!(
+                        "{}: [static_scan.mount] is read as [sweep.mount] x = {}, y = 0, z = {}, \
+                         roll = {:.3}, pitch = {:.3}, yaw = {:.3}; write that instead",
+                        origin.display(),
+                        mount.x,
+                        mount.z,
+                        mount.roll,
+                        mount.pitch,
+                        mount.yaw
+                    );
+                    sweep.mount = Some(mount);
+                }
+                (None, None) => {}
+            }
+        }
+        config.apply_sweep_mount();
         Ok(config)
+    }
+
+    /// Sets `static_scan`'s mount geometry and azimuth zero from `[sweep.mount]`, when given
+    /// and representable by eq. (1) ([`Mount::turntable_geometry`]; [`EdgeConfig::validate`]
+    /// refuses one that is not while `[stepper]` is configured). The daemon calls it, so a
+    /// configuration built in code gets it too.
+    pub fn apply_sweep_mount(&mut self) {
+        if let Some(mount) = self.sweep.as_ref().and_then(|s| s.mount)
+            && let Ok((geometry, azimuth_zero_deg)) = mount.turntable_geometry()
+        {
+            self.static_scan.mount = geometry;
+            self.static_scan.azimuth_zero_deg = azimuth_zero_deg;
+        }
     }
 
     /// Reads, parses and validates the configuration file at `path`.
@@ -365,6 +599,48 @@ impl EdgeConfig {
         }
         if let Some(stepper) = &self.stepper {
             validate_stepper(stepper)?;
+        }
+        if let (Some(_), Some(socket)) = (self.i2c.bus, &self.i2c.socket) {
+            return Err(InvalidSetting::new(
+                "i2c.socket",
+                format!("{:?}", socket.display().to_string()),
+                "either `bus` (the Pi's /dev/i2c-N) or `socket` (an emulated bus), not both",
+            ));
+        }
+        if self
+            .i2c
+            .socket
+            .as_ref()
+            .is_some_and(|s| s.as_os_str().is_empty())
+        {
+            return Err(InvalidSetting::new(
+                "i2c.socket",
+                "\"\"",
+                "the path of the emulated bus's Unix socket",
+            ));
+        }
+        let mounts = [
+            ("rplidar.mount", self.rplidar.as_ref().and_then(|s| s.mount)),
+            ("sweep.mount", self.sweep.as_ref().and_then(|s| s.mount)),
+            ("imu.mount", self.imu.as_ref().and_then(|s| s.mount)),
+        ];
+        for (key, mount) in mounts {
+            if let Some(mount) = mount {
+                mount.validate(key)?;
+            }
+        }
+        if self.stepper.is_some()
+            && let Some(mount) = self.sweep.as_ref().and_then(|s| s.mount)
+            && let Err(reason) = mount.turntable_geometry()
+        {
+            return Err(InvalidSetting::new(
+                "sweep.mount",
+                format!(
+                    "{{ x = {}, y = {}, z = {}, roll = {}, pitch = {}, yaw = {} }}",
+                    mount.x, mount.y, mount.z, mount.roll, mount.pitch, mount.yaw
+                ),
+                format!("with [stepper], a pose a static scan can use: {reason}"),
+            ));
         }
         validate_static_scan(&self.static_scan)
     }
@@ -475,24 +751,122 @@ fn static_scan_value(config: &StaticScanConfig, key: &str) -> String {
 /// The line (1-based) where a dotted key is written in `text`, or its section's header when
 /// the key itself is not written (a default that conflicts with another key).
 fn line_of_key(text: &str, dotted: &str) -> Option<usize> {
+    key_line(text, dotted, false)
+}
+
+/// The line where a dotted key (or table) is written in `text`; `None` when it is not.
+pub fn written_key_line(text: &str, dotted: &str) -> Option<usize> {
+    key_line(text, dotted, true)
+}
+
+fn key_line(text: &str, dotted: &str, strict: bool) -> Option<usize> {
     let table = toml::de::DeTable::parse(text).ok()?;
     let mut span = None;
     let mut current = table.get_ref();
-    for part in dotted.split('.') {
-        let Some((_, value)) = current
+    let mut parts = dotted.split('.').peekable();
+    while let Some(part) = parts.next() {
+        let Some((key, value)) = current
             .iter()
             .find(|(key, _)| key.get_ref().as_ref() == part)
         else {
+            if strict {
+                return None;
+            }
             break;
         };
-        span = Some(value.span());
+        // A table's own span covers its header; a value's, the value on the key's line.
+        span = Some(match value.get_ref() {
+            toml::de::DeValue::Table(_) => key.span(),
+            _ => value.span(),
+        });
         match value.get_ref() {
             toml::de::DeValue::Table(inner) => current = inner,
+            _ if parts.peek().is_some() && strict => return None,
             _ => break,
         }
     }
-    let start = span?.start;
-    Some(text.get(..start)?.bytes().filter(|&b| b == b'\n').count() + 1)
+    Some(line_at(text, span?.start))
+}
+
+/// The 1-based line of a byte offset.
+fn line_at(text: &str, offset: usize) -> usize {
+    text.get(..offset)
+        .unwrap_or(text)
+        .bytes()
+        .filter(|&b| b == b'\n')
+        .count()
+        + 1
+}
+
+/// Sub-tables of the device sections split by hand, and the keys taken out before the driver's.
+const HAND_SPLIT: [(&str, &[&str]); 3] = [
+    ("rplidar", &["path", "mount"]),
+    ("sweep", &["path", "mount"]),
+    ("imu", &["beta", "initial_orientation_wxyz", "mount"]),
+];
+
+/// The message of a TOML error with the line of the offending key. The device sections are
+/// parsed through `toml::Table` (to split `path` and `mount` from the driver's keys), which
+/// loses the places inside them, so such an error would name the section's header: it is
+/// parsed again here, from the document's spanned tree, to find the key's line.
+fn locate_error(text: &str, error: &toml::de::Error) -> String {
+    let message = error.message().trim_end();
+    let located = HAND_SPLIT.iter().find_map(|(section, keys)| {
+        let rest = message.strip_prefix(&format!("[{section}]: "))?;
+        let line = relocate(text, section, keys, rest)?;
+        Some(format!("line {line}: {message}"))
+    });
+    located.unwrap_or_else(|| match error.span() {
+        Some(span) => format!("line {}: {message}", line_at(text, span.start)),
+        None => message.to_owned(),
+    })
+}
+
+/// The line of the key an error inside `[section]` is about.
+fn relocate(text: &str, section: &str, own_keys: &[&str], message: &str) -> Option<usize> {
+    use toml::de::{DeTable, DeValue};
+    // An error in a key split by hand names it: `path`, `beta`, `mount: …`.
+    if let Some(inner) = message.strip_prefix("mount: ") {
+        let key = backticked(inner);
+        return written_key_line(text, &format!("{section}.mount.{}", key.unwrap_or("")))
+            .or_else(|| written_key_line(text, &format!("{section}.mount")));
+    }
+    if let Some(key) = backticked(message).filter(|key| own_keys.contains(key)) {
+        return written_key_line(text, &format!("{section}.{key}"));
+    }
+    // Otherwise the driver's keys: deserialise them again with their places.
+    let doc = DeTable::parse(text).ok()?;
+    let (_, value) = doc
+        .get_ref()
+        .iter()
+        .find(|(key, _)| key.get_ref().as_ref() == section)?;
+    let DeValue::Table(table) = value.get_ref() else {
+        return None;
+    };
+    let mut rest = DeTable::new();
+    for (key, value) in table.iter() {
+        if !own_keys.contains(&key.get_ref().as_ref()) {
+            rest.insert(key.clone(), value.clone());
+        }
+    }
+    let spanned = toml::Spanned::new(value.span(), DeValue::Table(rest));
+    let deserializer = toml::de::ValueDeserializer::from(spanned);
+    let error = match section {
+        "rplidar" => RplidarConfig::deserialize(deserializer).err(),
+        "sweep" => SweepConfig::deserialize(deserializer).err(),
+        _ => ImuConfig::deserialize(deserializer).err(),
+    };
+    match error.and_then(|e| e.span()) {
+        Some(span) if span.start != value.span().start => Some(line_at(text, span.start)),
+        // No better place: the first backticked name, if it is a key of the section.
+        _ => written_key_line(text, &format!("{section}.{}", backticked(message)?)),
+    }
+}
+
+/// The first `name` in backticks in a message.
+fn backticked(message: &str) -> Option<&str> {
+    let (_, rest) = message.split_once('`')?;
+    Some(rest.split_once('`')?.0)
 }
 
 #[cfg(test)]
@@ -520,7 +894,7 @@ mod tests {
         assert_eq!((imu.driver.address, imu.beta), (0x68, 0.1));
         assert_eq!(config.stepper.expect("stepper section").steps_per_rev, 200);
         assert_eq!(config.static_scan.mount.height_m, 1.0);
-        assert_eq!(config.i2c.bus, 1);
+        assert_eq!(config.i2c.bus_number(), 1);
     }
 
     #[test]
@@ -528,8 +902,168 @@ mod tests {
         let text = "device_name = \"x\"\n[rplidar]\npath = \"/dev/rplidar\"\nbaudrate = 9600\n";
         let err = EdgeConfig::from_toml_str(text, Path::new("edge.toml")).unwrap_err();
         let message = err.to_string();
-        assert!(message.starts_with("edge.toml: line 2:"), "{message}");
+        assert!(message.starts_with("edge.toml: line 4:"), "{message}");
         assert!(message.contains("baudrate"), "{message}");
+    }
+
+    /// Errors inside the sections parsed by hand name the key's line, not the header's.
+    #[test]
+    fn errors_inside_device_sections_point_at_the_key() {
+        let cases = [
+            (
+                "[rplidar]\npath = \"/dev/rplidar\"\n\nbaud = \"fast\"\n",
+                5,
+                "baud",
+            ),
+            (
+                "[rplidar]\npath = \"/dev/rplidar\"\nmotor_pwm = 600\nbogus = 1\n",
+                5,
+                "bogus",
+            ),
+            ("[sweep]\n\npath = 7\n", 4, "path"),
+            (
+                "[sweep]\npath = \"/dev/sweep\"\nmotor_hz = \"x\"\n",
+                4,
+                "motor_hz",
+            ),
+            ("[imu]\nbeta = 0.1\nadress = 0x69\n", 4, "adress"),
+            ("[imu]\nbeta = \"high\"\n", 3, "beta"),
+            (
+                "[imu]\naddress = 0x68\nsample_rate_hz = \"fast\"\n",
+                4,
+                "fast",
+            ),
+            (
+                "[rplidar]\npath = \"/dev/rplidar\"\n[rplidar.mount]\nx = 0.1\nzz = 2.0\n",
+                6,
+                "zz",
+            ),
+        ];
+        for (sections, line, word) in cases {
+            let text = format!("device_name = \"t\"\n{sections}");
+            let message = EdgeConfig::from_toml_str(&text, Path::new("edge.toml"))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                message.starts_with(&format!("edge.toml: line {line}: ")),
+                "{message}\nfor:\n{text}"
+            );
+            assert!(message.contains(word), "{message}");
+        }
+    }
+
+    fn parse(text: &str) -> Result<EdgeConfig, String> {
+        EdgeConfig::from_toml_str(&format!("device_name = \"t\"\n{text}"), Path::new("e"))
+            .map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn the_i2c_bus_is_a_number_or_a_socket_not_both() {
+        let config = parse("[i2c]\nsocket = \"/run/rig/i2c.sock\"\n").unwrap();
+        assert_eq!(
+            config.i2c.socket.as_deref(),
+            Some(Path::new("/run/rig/i2c.sock"))
+        );
+        assert_eq!(config.i2c.device_path(), Path::new("/run/rig/i2c.sock"));
+        let config = parse("").unwrap();
+        assert_eq!(config.i2c.device_path(), Path::new("/dev/i2c-1"));
+        let message = parse("[i2c]\nbus = 1\nsocket = \"/tmp/i2c.sock\"\n").unwrap_err();
+        assert!(message.starts_with("e: line 4: `i2c.socket`"), "{message}");
+        assert!(message.contains("not both"), "{message}");
+    }
+
+    const SWEEP: &str = "[sweep]\npath = \"/dev/sweep\"\n";
+
+    #[test]
+    fn mounts_parse_and_the_sweep_mount_sets_the_static_scan_geometry() {
+        let text = format!(
+            "[rplidar]\npath = \"/dev/rplidar\"\n[rplidar.mount]\nz = 0.4\nyaw = 90.0\n\
+             {SWEEP}[sweep.mount]\nx = 0.05\nz = 1.2\npitch = -90.0\n\
+             [imu]\n[imu.mount]\nx = -0.1\nroll = 180.0\n[stepper]\n"
+        );
+        let config = parse(&text).unwrap();
+        let rplidar = config.rplidar.unwrap().mount.unwrap();
+        assert_eq!((rplidar.z, rplidar.yaw), (0.4, 90.0));
+        assert_eq!(config.imu.unwrap().mount.unwrap().roll, 180.0);
+        let sweep = config.sweep.unwrap().mount.unwrap();
+        assert_eq!((sweep.x, sweep.z, sweep.pitch), (0.05, 1.2, -90.0));
+        assert_eq!(config.static_scan.mount.axis_offset_m, 0.05);
+        assert_eq!(config.static_scan.mount.height_m, 1.2);
+        assert!(config.static_scan.azimuth_zero_deg.abs() < 1e-9);
+    }
+
+    #[test]
+    fn a_sweep_mount_turned_about_its_spin_axis_moves_the_azimuth_zero() {
+        for zero in [0.0, 30.0, 90.0, 180.0, 270.0, 333.0] {
+            let geometry = MountConfig {
+                axis_offset_m: 0.03,
+                height_m: 0.9,
+            };
+            let mount = Mount::from_turntable_geometry(&geometry, zero);
+            let (back, back_zero) = mount.turntable_geometry().unwrap();
+            assert_eq!(back, geometry);
+            let diff = (back_zero - zero + 540.0).rem_euclid(360.0) - 180.0;
+            assert!(diff.abs() < 1e-9, "{zero} -> {back_zero} via {mount:?}");
+        }
+        // Hand check: roll 90, pitch 0, yaw -90 puts azimuth 90 up.
+        let mount = Mount {
+            roll: 90.0,
+            yaw: -90.0,
+            ..Mount::default()
+        };
+        let (_, zero) = mount.turntable_geometry().unwrap();
+        assert!((zero - 90.0).abs() < 1e-9, "{zero}");
+    }
+
+    #[test]
+    fn a_legacy_static_scan_mount_is_translated_and_both_together_are_refused() {
+        let text = format!(
+            "{SWEEP}[static_scan]\nazimuth_zero_deg = 90.0\n[static_scan.mount]\n\
+             axis_offset_m = 0.02\nheight_m = 0.8\n"
+        );
+        let config = parse(&text).unwrap();
+        let mount = config
+            .sweep
+            .unwrap()
+            .mount
+            .expect("translated to [sweep.mount]");
+        assert_eq!((mount.x, mount.y, mount.z), (0.02, 0.0, 0.8));
+        assert!((config.static_scan.azimuth_zero_deg - 90.0).abs() < 1e-9);
+        assert_eq!(config.static_scan.mount.height_m, 0.8);
+
+        let both =
+            format!("{SWEEP}[sweep.mount]\npitch = -90.0\n[static_scan.mount]\nheight_m = 0.8\n");
+        let message = parse(&both).unwrap_err();
+        assert!(
+            message.starts_with("e: line 6: [static_scan.mount] and [sweep.mount]"),
+            "{message}"
+        );
+        let zero =
+            format!("{SWEEP}[sweep.mount]\npitch = -90.0\n[static_scan]\nazimuth_zero_deg = 5.0\n");
+        let message = parse(&zero).unwrap_err();
+        assert!(
+            message.starts_with("e: line 7: `static_scan.azimuth_zero_deg`"),
+            "{message}"
+        );
+    }
+
+    #[test]
+    fn a_sweep_mount_eq_1_cannot_represent_is_refused_only_for_static_scans() {
+        // A Sweep lying flat (spin axis up), as on a trolley: fine without a stepper.
+        let flat = format!("{SWEEP}[sweep.mount]\nz = 0.5\n");
+        assert!(parse(&flat).is_ok());
+        let message = parse(&format!("{flat}[stepper]\n")).unwrap_err();
+        assert!(message.starts_with("e: line 4: `sweep.mount`"), "{message}");
+        assert!(message.contains("spin axis"), "{message}");
+        let beside = format!("{SWEEP}[sweep.mount]\ny = 0.1\npitch = -90.0\n[stepper]\n");
+        let message = parse(&beside).unwrap_err();
+        assert!(message.contains("y = 0.1"), "{message}");
+        let far = format!("{SWEEP}[sweep.mount]\nx = inf\n");
+        assert!(
+            parse(&far)
+                .unwrap_err()
+                .starts_with("e: line 5: `sweep.mount.x`")
+        );
     }
 
     #[test]
@@ -538,7 +1072,7 @@ mod tests {
                     initial_orientation_wxyz = [1.0, 0.0, 0.0, 0.0]\n[stepper]\nsteps_per_rev = 400\n\
                     [static_scan]\nblocked_sector_deg = 90.0\n[static_scan.mount]\nheight_m = 0.4\n";
         let config = EdgeConfig::from_toml_str(text, Path::new("x")).unwrap();
-        assert_eq!(config.i2c.bus, 3);
+        assert_eq!(config.i2c.bus_number(), 3);
         let imu = config.imu.unwrap();
         assert_eq!((imu.driver.address, imu.beta), (0x69, 0.05));
         assert_eq!(imu.initial_orientation_wxyz, Some([1.0, 0.0, 0.0, 0.0]));

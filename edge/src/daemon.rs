@@ -40,6 +40,7 @@ use crate::clock::{ClockDelay, SharedClock};
 use crate::config::EdgeConfig;
 use crate::drivers::rplidar::Rplidar;
 use crate::drivers::sweep::Sweep;
+use crate::i2c_socket::SocketI2c;
 use crate::imu_worker::{ImuEvent, ImuReport, ImuWorker};
 use crate::lidar::{LidarDriver, LidarEvent};
 use crate::scan_session::{ScanAction, ScanPosition, ScanSession};
@@ -137,22 +138,40 @@ impl Context {
 
 /// Runs the daemon until `shutdown` turns true. Must be called inside a multi-threaded tokio
 /// runtime. `session_id` should be random per boot (the server keys recordings by it).
-/// With `[imu]` or `[stepper]` configured, opens the Pi's I2C bus `[i2c] bus` through rppal; if
-/// it cannot, the lidars still run and the error is logged.
+/// With `[imu]` or `[stepper]` configured, opens the I2C bus: the emulated bus at
+/// `[i2c] socket` ([`SocketI2c`]; one that is not there yet is logged and the IMU and the
+/// stepper keep retrying), or the Pi's `/dev/i2c-N` through rppal (if it cannot, the lidars
+/// still run and the error is logged).
 pub async fn run(
     config: EdgeConfig,
     clock: SharedClock,
     session_id: u64,
     shutdown: watch::Receiver<bool>,
 ) -> anyhow::Result<DaemonReport> {
-    let i2c = if config.imu.is_some() || config.stepper.is_some() {
-        match rppal::i2c::I2c::with_bus(config.i2c.bus) {
-            Ok(bus) => Some(I2cHardware {
-                bus,
-                delay: ClockDelay(clock.clone()),
-            }),
+    let wants_i2c = config.imu.is_some() || config.stepper.is_some();
+    if wants_i2c && let Some(socket) = config.i2c.socket.clone() {
+        let mut bus = SocketI2c::new(&socket);
+        if let Err(e) = bus.connect() {
+            tracing::error!(path = %socket.display(), error = %e, "cannot open the I2C socket (is `scan3d-sim rig` running?): the IMU and the stepper retry every second");
+        }
+        let hardware = I2cHardware {
+            bus,
+            delay: ClockDelay(clock.clone()),
+        };
+        return run_with_i2c(config, clock, session_id, shutdown, Some(hardware)).await;
+    }
+    let i2c = if wants_i2c {
+        let bus = config.i2c.bus_number();
+        match rppal::i2c::I2c::with_bus(bus) {
+            Ok(i2c) => {
+                tracing::info!(path = %config.i2c.device_path().display(), "I2C bus opened");
+                Some(I2cHardware {
+                    bus: i2c,
+                    delay: ClockDelay(clock.clone()),
+                })
+            }
             Err(e) => {
-                tracing::error!(bus = config.i2c.bus, error = %e, "cannot open /dev/i2c-{}: running without IMU and stepper", config.i2c.bus);
+                tracing::error!(path = %config.i2c.device_path().display(), error = %e, "cannot open the I2C bus (enable it with `raspi-config nonint do_i2c 0`; the user needs the i2c group): running without IMU and stepper");
                 None
             }
         }
@@ -164,7 +183,7 @@ pub async fn run(
 
 /// [`run`] with the I2C bus passed in (the hw-sim's emulated bus, or any embedded-hal bus).
 pub async fn run_with_i2c<I, D>(
-    config: EdgeConfig,
+    mut config: EdgeConfig,
     clock: SharedClock,
     session_id: u64,
     mut shutdown: watch::Receiver<bool>,
@@ -176,6 +195,7 @@ where
 {
     // A configuration built in code (the simulator, tests) gets the checks a file gets.
     config.validate()?;
+    config.apply_sweep_mount();
     let (scan_requests_tx, scan_requests) = std::sync::mpsc::channel::<ReceivedCommand>();
     // Where static-scan commands go is known once the stepper and the Sweep are set up; until
     // then the router holds them (the uplink is still connecting).
@@ -240,7 +260,7 @@ where
                     let body: Body = match event {
                         ImuEvent::Sample(sample) => sample.into(),
                         ImuEvent::Ready(ids) => {
-                            tracing::info!(who_am_i = ids.who_am_i, wia = ?ids.wia, "IMU ready");
+                            tracing::info!(model = "MPU-9250", who_am_i = ids.who_am_i, wia = ?ids.wia, "IMU ready");
                             context.inventory_insert(SensorInfo {
                                 sensor: SensorId::IMU,
                                 model: "MPU-9250".into(),
@@ -258,8 +278,12 @@ where
                             )
                         }
                         ImuEvent::Lost(reason) => {
-                            tracing::error!(%reason, "IMU lost");
-                            lost = true;
+                            // Once per loss: the worker retries every second while it lasts.
+                            if std::mem::replace(&mut lost, true) {
+                                tracing::debug!(%reason, "IMU still not answering");
+                                return;
+                            }
+                            tracing::error!(%reason, "IMU lost; retrying every second");
                             status_body(&context, SensorId::IMU, StatusEvent::SensorLost, reason)
                         }
                     };
@@ -843,7 +867,7 @@ fn lidar_worker(
                         Some(revolution_frame(sensor, &rev).into())
                     }
                     AcquisitionEvent::Driver(LidarEvent::Info(info)) => {
-                        tracing::info!(%sensor, model = %info.model, firmware = %info.firmware, serial = %info.serial, "lidar identified");
+                        tracing::info!(%sensor, path = %serial.path.display(), model = %info.model, firmware = %info.firmware, serial = %info.serial, "lidar identified");
                         let entry = SensorInfo {
                             sensor,
                             model: info.model,

@@ -96,6 +96,7 @@ pub fn run<D: LidarDriver + ?Sized>(
     mut on_event: impl FnMut(SerialEvent) -> ControlFlow<()>,
 ) -> Result<(), SerialError> {
     let mut backoff = options.initial_backoff;
+    let mut open_errors = RepeatLimit::default();
     loop {
         if shutdown.load(Ordering::Relaxed) {
             return Ok(());
@@ -103,7 +104,11 @@ pub fn run<D: LidarDriver + ?Sized>(
         let mut port = match open(&options.path, options.baud, options.max_read_wait) {
             Ok(port) => port,
             Err(reason) if options.reconnect => {
-                tracing::debug!(path = %options.path.display(), %reason, "open failed; retrying");
+                if open_errors.should_log(&reason, Instant::now()) {
+                    tracing::error!(path = %options.path.display(), "cannot open {}: {reason} (retrying)", options.path.display());
+                } else {
+                    tracing::debug!(path = %options.path.display(), %reason, "open failed; retrying");
+                }
                 sleep_unless_shutdown(backoff, shutdown);
                 backoff = (backoff * 2).min(options.max_backoff);
                 continue;
@@ -116,6 +121,7 @@ pub fn run<D: LidarDriver + ?Sized>(
             }
         };
         backoff = options.initial_backoff;
+        open_errors = RepeatLimit::default();
         tracing::info!(path = %options.path.display(), baud = options.baud, "serial port open");
         if on_event(SerialEvent::Opened).is_break() {
             return Ok(());
@@ -224,23 +230,148 @@ fn flush_transmits<D: LidarDriver + ?Sized>(
     Ok(())
 }
 
-/// Opens `path` raw 8N1 at `baud`, with a readable reason on failure.
+/// How often an unchanged open error is logged again while the device stays unavailable.
+pub const OPEN_ERROR_REPEAT: Duration = Duration::from_secs(60);
+
+/// Decides when a repeated error is worth a log line: the first, one whose text changed, and
+/// then at most once per [`OPEN_ERROR_REPEAT`].
+#[derive(Debug, Default)]
+pub struct RepeatLimit {
+    last: Option<(String, Instant)>,
+}
+
+impl RepeatLimit {
+    /// Whether `message`, seen `now`, should be logged (and if so, remembers it).
+    pub fn should_log(&mut self, message: &str, now: Instant) -> bool {
+        let due = match &self.last {
+            None => true,
+            Some((last, at)) => last != message || now.duration_since(*at) >= OPEN_ERROR_REPEAT,
+        };
+        if due {
+            self.last = Some((message.to_owned(), now));
+        }
+        due
+    }
+}
+
+/// What the path of a serial device is, as far as opening it is concerned.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PathKind {
+    /// Nothing there (or a dangling udev link).
+    Missing,
+    /// A character device (a tty, or the pty the simulator links).
+    CharDevice,
+    /// Something else: a regular file, a directory, a socket (its description).
+    Other(&'static str),
+    /// It could not be examined (e.g. a directory without search permission).
+    Unknown,
+}
+
+impl PathKind {
+    /// Examines `path` (following links, as opening does).
+    pub fn of(path: &Path) -> Self {
+        use std::os::unix::fs::FileTypeExt;
+        match std::fs::metadata(path) {
+            Ok(meta) => {
+                let t = meta.file_type();
+                if t.is_char_device() {
+                    Self::CharDevice
+                } else if t.is_file() {
+                    Self::Other("a regular file")
+                } else if t.is_dir() {
+                    Self::Other("a directory")
+                } else if t.is_block_device() {
+                    Self::Other("a block device")
+                } else if t.is_socket() {
+                    Self::Other("a socket")
+                } else if t.is_fifo() {
+                    Self::Other("a named pipe")
+                } else {
+                    Self::Other("not a character device")
+                }
+            }
+            Err(e) if e.kind() == ErrorKind::NotFound => Self::Missing,
+            Err(_) => Self::Unknown,
+        }
+    }
+}
+
+/// Why a serial port could not be opened, for the hint that goes with it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum OpenFailure {
+    /// Not allowed: the user is not in the dialout group, or the udev rules give other modes.
+    PermissionDenied,
+    /// Another process has the port (EBUSY from TIOCEXCL, or serialport's flock).
+    Busy,
+    /// The device or its link is not there.
+    Missing,
+    /// The path is not a serial device (a regular file, a directory, or a character device that
+    /// is no terminal: ENOTTY).
+    NotSerial(&'static str),
+    /// Anything else: the error's own text stands.
+    Other,
+}
+
+impl OpenFailure {
+    /// Classifies an open error from serialport (its kind and text) and what the path is.
+    pub fn classify(kind: serialport::ErrorKind, description: &str, path: PathKind) -> Self {
+        match path {
+            PathKind::Missing => return Self::Missing,
+            PathKind::Other(what) => return Self::NotSerial(what),
+            PathKind::CharDevice | PathKind::Unknown => {}
+        }
+        let text = description.to_ascii_lowercase();
+        match kind {
+            serialport::ErrorKind::Io(ErrorKind::PermissionDenied) => Self::PermissionDenied,
+            serialport::ErrorKind::Io(ErrorKind::NotFound) => Self::Missing,
+            // serialport reports EBUSY and a held flock as NoDevice.
+            serialport::ErrorKind::NoDevice if text.contains("lock") || text.contains("busy") => {
+                Self::Busy
+            }
+            serialport::ErrorKind::NoDevice => Self::Missing,
+            _ if text.contains("typewriter") || text.contains("inappropriate ioctl") => {
+                Self::NotSerial("not a terminal")
+            }
+            _ if text.contains("busy") => Self::Busy,
+            _ => Self::Other,
+        }
+    }
+
+    /// The one-line reason for `path`, with the hint that helps.
+    pub fn message(self, path: &Path, error: &str) -> String {
+        let path = path.display();
+        match self {
+            Self::PermissionDenied => format!(
+                "permission denied on {path}: add the user to the dialout group \
+                 (`sudo usermod -aG dialout $USER`, then log in again) or check the udev rules \
+                 (deploy/udev)"
+            ),
+            Self::Busy => {
+                format!("{path} is in use by another process (find it with `fuser -v {path}`)")
+            }
+            Self::Missing => format!(
+                "{path} does not exist: is the device plugged in? is its udev link there \
+                 (`ls -l {path}`, deploy/udev)?"
+            ),
+            Self::NotSerial(what) => format!("{path} is not a serial device ({what})"),
+            Self::Other => error.to_owned(),
+        }
+    }
+}
+
+/// Opens `path` raw 8N1 at `baud`, with a readable reason on failure ([`OpenFailure`]).
 pub fn open(path: &Path, baud: u32, timeout: Duration) -> Result<TTYPort, String> {
+    // A regular file "opens" and then fails its first ioctl; refuse it by what it is.
+    let kind = PathKind::of(path);
+    if let PathKind::Other(what) = kind {
+        return Err(OpenFailure::NotSerial(what).message(path, ""));
+    }
     serialport::new(path.to_string_lossy(), baud)
         .timeout(timeout)
         .open_native()
         .map_err(|e| {
-            let hint = match e.kind() {
-                serialport::ErrorKind::Io(ErrorKind::PermissionDenied) => {
-                    " (add the user to the dialout group, or check the udev rules)"
-                }
-                serialport::ErrorKind::NoDevice
-                | serialport::ErrorKind::Io(ErrorKind::NotFound) => {
-                    " (is the device plugged in? check the path)"
-                }
-                _ => "",
-            };
-            format!("{e}{hint}")
+            let kind = PathKind::of(path);
+            OpenFailure::classify(e.kind(), &e.description, kind).message(path, &e.to_string())
         })
 }
 
@@ -252,5 +383,114 @@ fn sleep_unless_shutdown(total: Duration, shutdown: &AtomicBool) {
             return;
         }
         std::thread::sleep(left.min(Duration::from_millis(20)));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn classify(kind: serialport::ErrorKind, text: &str, path: PathKind) -> OpenFailure {
+        OpenFailure::classify(kind, text, path)
+    }
+
+    #[test]
+    fn open_errors_get_the_hint_that_fits_their_cause() {
+        use serialport::ErrorKind as K;
+        let dev = PathKind::CharDevice;
+        assert_eq!(
+            classify(K::Io(ErrorKind::PermissionDenied), "Permission denied", dev),
+            OpenFailure::PermissionDenied
+        );
+        // EBUSY (TIOCEXCL held) and serialport's own flock both come as NoDevice.
+        assert_eq!(
+            classify(K::NoDevice, "Device or resource busy", dev),
+            OpenFailure::Busy
+        );
+        assert_eq!(
+            classify(
+                K::NoDevice,
+                "Unable to acquire exclusive lock on serial port",
+                dev
+            ),
+            OpenFailure::Busy
+        );
+        assert_eq!(
+            classify(K::NoDevice, "No such device", dev),
+            OpenFailure::Missing
+        );
+        assert_eq!(
+            classify(
+                K::Io(ErrorKind::NotFound),
+                "No such file or directory",
+                PathKind::Missing
+            ),
+            OpenFailure::Missing
+        );
+        // ENOTTY, whatever libc calls it.
+        assert_eq!(
+            classify(K::Unknown, "Not a typewriter", dev),
+            OpenFailure::NotSerial("not a terminal")
+        );
+        assert_eq!(
+            classify(K::Unknown, "Inappropriate ioctl for device", dev),
+            OpenFailure::NotSerial("not a terminal")
+        );
+        assert_eq!(
+            classify(
+                K::Unknown,
+                "Not a typewriter",
+                PathKind::Other("a regular file")
+            ),
+            OpenFailure::NotSerial("a regular file")
+        );
+        assert_eq!(classify(K::Unknown, "I/O error", dev), OpenFailure::Other);
+
+        let path = Path::new("/dev/ttyUSB9");
+        let busy = OpenFailure::Busy.message(path, "");
+        assert!(busy.contains("in use by another process"), "{busy}");
+        let denied = OpenFailure::PermissionDenied.message(path, "");
+        assert!(
+            denied.contains("dialout") && denied.contains("udev"),
+            "{denied}"
+        );
+        let missing = OpenFailure::Missing.message(path, "");
+        assert!(
+            missing.contains("plugged in") && missing.contains("udev link"),
+            "{missing}"
+        );
+    }
+
+    #[test]
+    fn opening_a_regular_file_or_a_missing_path_says_what_is_wrong() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("ttyFAKE");
+        std::fs::write(&file, b"").unwrap();
+        let e = open(&file, 115_200, Duration::from_millis(10)).unwrap_err();
+        assert_eq!(
+            e,
+            format!("{} is not a serial device (a regular file)", file.display())
+        );
+        assert!(!e.contains("typewriter"));
+        let missing = dir.path().join("ttyGONE");
+        let e = open(&missing, 115_200, Duration::from_millis(10)).unwrap_err();
+        assert!(
+            e.contains("does not exist") && e.contains("plugged in"),
+            "{e}"
+        );
+        assert_eq!(PathKind::of(dir.path()), PathKind::Other("a directory"));
+    }
+
+    #[test]
+    fn an_unchanged_error_is_repeated_at_most_once_a_minute() {
+        let mut limit = RepeatLimit::default();
+        let t0 = Instant::now();
+        assert!(limit.should_log("missing", t0));
+        assert!(!limit.should_log("missing", t0 + Duration::from_secs(1)));
+        assert!(!limit.should_log("missing", t0 + Duration::from_secs(59)));
+        assert!(limit.should_log("missing", t0 + Duration::from_secs(60)));
+        assert!(!limit.should_log("missing", t0 + Duration::from_secs(61)));
+        // A different cause is news.
+        assert!(limit.should_log("busy", t0 + Duration::from_secs(62)));
     }
 }

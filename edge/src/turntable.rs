@@ -59,6 +59,9 @@ pub struct Turntable {
 impl Turntable {
     /// Initialises the HAT (errors name the chip and address) and starts the thread. Every
     /// state change is handed to `on_state` (the daemon streams it as a `Stepper` frame).
+    /// A HAT that does not answer yet (an emulated bus that starts later, a bus that went
+    /// away) is logged and initialised again before the next job, at most once a second;
+    /// jobs fail until it answers. Only a configuration error refuses to start.
     pub fn spawn<I, D>(
         bus: I,
         mut delay: D,
@@ -72,8 +75,14 @@ impl Turntable {
     {
         let mut stepper = Stepper::new(config)?;
         let mut hat = MotorHat::new(bus, config.address, config.retries);
-        hat.init(&mut delay)
-            .map_err(|e| anyhow::anyhow!("stepper HAT: {e}"))?;
+        let mut ready = match hat.init(&mut delay) {
+            Ok(()) => true,
+            Err(e) => {
+                tracing::error!(error = %e, "stepper HAT not answering; trying again before each move");
+                false
+            }
+        };
+        let mut last_init = std::time::Instant::now();
         let step_angle_deg = stepper.step_angle_deg();
         let step_rate_hz = 1e9 / f64::from(stepper.step_period_ns().max(1));
         let (jobs, job_rx) = mpsc::channel::<TurntableJob>();
@@ -88,6 +97,35 @@ impl Turntable {
                     holding: stepper.is_energised(),
                 };
                 while let Ok(job) = job_rx.recv() {
+                    if !ready {
+                        // At most one attempt a second, however fast jobs come.
+                        let since = last_init.elapsed();
+                        if since < std::time::Duration::from_secs(1) {
+                            std::thread::sleep(std::time::Duration::from_secs(1) - since);
+                        }
+                        last_init = std::time::Instant::now();
+                        match hat.init(&mut delay) {
+                            Ok(()) => {
+                                tracing::info!("stepper HAT answering");
+                                ready = true;
+                            }
+                            Err(e) => {
+                                let error = format!("stepper HAT not answering: {e}");
+                                let report = match job {
+                                    TurntableJob::Move(_) => TurntableReport::Failed {
+                                        t_ns: clock.now_ns(),
+                                        steps_done: 0,
+                                        error,
+                                    },
+                                    TurntableJob::Home => TurntableReport::Home(Err(error)),
+                                };
+                                if report_tx.send(report).is_err() {
+                                    break;
+                                }
+                                continue;
+                            }
+                        }
+                    }
                     let report = match job {
                         TurntableJob::Move(mv) => {
                             let before = stepper.position();
@@ -110,6 +148,13 @@ impl Turntable {
                                 .map_err(|e| e.to_string()),
                         ),
                     };
+                    // After a bus error the HAT may have been reset (an emulator restarted).
+                    if matches!(
+                        report,
+                        TurntableReport::Failed { .. } | TurntableReport::Home(Err(_))
+                    ) {
+                        ready = false;
+                    }
                     on_state(state(&stepper, clock.now_ns()));
                     if report_tx.send(report).is_err() {
                         break;

@@ -99,10 +99,12 @@ impl SimLidars {
             rplidar: Some(RplidarSection {
                 path: self.rplidar.link().to_path_buf(),
                 driver: RplidarConfig::default(),
+                mount: None,
             }),
             sweep: Some(SweepSection {
                 path: self.sweep.link().to_path_buf(),
                 driver: SweepConfig::default(),
+                mount: None,
             }),
             uplink,
             i2c: Default::default(),

@@ -237,6 +237,7 @@ pub fn scan_map(plan: &MapPlan, setup: &MapSetup<'_>) -> anyhow::Result<MapResul
         config.rplidar = Some(RplidarSection {
             path: pty.link().to_path_buf(),
             driver: Default::default(),
+            mount: None,
         });
         if let Some(sweep) = &mut config.sweep {
             sweep.driver.sample_rate_code = Some(3);

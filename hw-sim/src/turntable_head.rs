@@ -184,6 +184,7 @@ impl TurntableHead {
                     motor_hz: Some(self.motor_hz),
                     ..Default::default()
                 },
+                mount: None,
             }),
             uplink,
             i2c: Default::default(),
@@ -191,6 +192,7 @@ impl TurntableHead {
                 driver: Default::default(),
                 beta: 0.1,
                 initial_orientation_wxyz: None,
+                mount: None,
             }),
             stepper: Some(StepperConfig::default()),
             static_scan: StaticScanConfig {
