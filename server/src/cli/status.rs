@@ -13,7 +13,8 @@ use crate::ingest::control::{ProductRequest, request_products, socket_path};
 /// Options of `scan3d status`.
 #[derive(Debug, clap::Args)]
 pub struct StatusArgs {
-    /// Print the daemon's answer as JSON (`{"edges": [{"name", "sessions": [...]}]}`).
+    /// Print the daemon's answer as JSON (`{"edges": [{"name", "connected", "sensors": [...],
+    /// "static_scans": [...], "sessions": [...]}]}`).
     #[arg(long)]
     pub json: bool,
     /// Which server.
@@ -43,52 +44,92 @@ pub fn run(args: &StatusArgs, out: &mut dyn Write) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The report as a table, one line per session.
+/// Lays out rows of cells in columns as wide as their widest cell: the first `left` columns
+/// left-aligned, the others right-aligned, two spaces between.
+fn columns(rows: &[Vec<String>], left: usize) -> String {
+    use std::fmt::Write as _;
+    let width = |i: usize| {
+        rows.iter()
+            .filter_map(|row| row.get(i))
+            .map(|cell| cell.chars().count())
+            .max()
+            .unwrap_or(0)
+    };
+    let widths: Vec<usize> = (0..rows.iter().map(Vec::len).max().unwrap_or(0))
+        .map(width)
+        .collect();
+    let mut s = String::new();
+    for row in rows {
+        let mut line = String::new();
+        for (i, cell) in row.iter().enumerate() {
+            if i > 0 {
+                line.push_str("  ");
+            }
+            let _ = if i < left {
+                write!(line, "{cell:<w$}", w = widths[i])
+            } else {
+                write!(line, "{cell:>w$}", w = widths[i])
+            };
+        }
+        let _ = writeln!(s, "{}", line.trim_end());
+    }
+    s
+}
+
+/// The report for a human: one line per session (clock sync as its error bound and skew:
+/// the raw offset between two unrelated monotonic clocks means nothing to read), then each
+/// edge's sensors and static scans.
 pub fn table(report: &Value) -> String {
     use std::fmt::Write as _;
-    let mut s = String::new();
-    let _ = writeln!(
-        s,
-        "{:<16} {:<16} {:>7} {:>9} {:>6} {:>9} {:>9} {:>7} {:>6} {:>10} {:>8} {:>8} {:>8}",
-        "edge",
-        "session",
-        "frames",
-        "samples",
-        "revs",
-        "occupied",
-        "free",
-        "lag ms",
-        "lag fr",
-        "offset ms",
-        "skew ppm",
-        "± ms",
-        "IoU w"
-    );
     let edges = report["edges"].as_array().cloned().unwrap_or_default();
     if edges.is_empty() {
-        let _ = writeln!(s, "(no edge connected, no session seen)");
+        return "(no edge connected, no session seen)\n".to_owned();
     }
     let num = |v: &Value| v.as_u64().map_or("-".to_owned(), |n| n.to_string());
-    let ms = |v: &Value, digits: usize| {
+    let fixed = |v: &Value, scale: f64, digits: usize| {
         v.as_f64()
-            .map_or("-".to_owned(), |n| format!("{:.digits$}", n / 1e6))
+            .map_or("-".to_owned(), |n| format!("{:.digits$}", n / scale))
     };
+    let mut rows = vec![
+        [
+            "edge",
+            "state",
+            "session",
+            "frames",
+            "samples",
+            "revs",
+            "occupied",
+            "free",
+            "lag ms",
+            "lag fr",
+            "sync ±ms",
+            "skew ppm",
+            "IoU w",
+        ]
+        .map(str::to_owned)
+        .to_vec(),
+    ];
     for edge in &edges {
-        let mut name = edge["name"].as_str().unwrap_or("?").to_owned();
-        if edge["connected"] == Value::Bool(false) {
-            name.push_str(" (gone)");
-        }
+        let name = edge["name"].as_str().unwrap_or("?").to_owned();
+        let state = if edge["connected"] == Value::Bool(false) {
+            "gone"
+        } else {
+            "connected"
+        };
         let sessions = edge["sessions"].as_array().cloned().unwrap_or_default();
         if sessions.is_empty() {
-            let _ = writeln!(s, "{name:<16} (no session yet)");
+            rows.push(vec![
+                name.clone(),
+                state.to_owned(),
+                "(no session yet)".to_owned(),
+            ]);
         }
         for session in &sessions {
             let sync = &session["timesync"];
-            let _ = writeln!(
-                s,
-                "{:<16} {:<16} {:>7} {:>9} {:>6} {:>9} {:>9} {:>7} {:>6} {:>10} {:>8} {:>8} {:>8}",
-                name,
-                session["id"].as_str().unwrap_or("?"),
+            rows.push(vec![
+                name.clone(),
+                state.to_owned(),
+                session["id"].as_str().unwrap_or("?").to_owned(),
                 num(&session["frames"]),
                 num(&session["samples"]),
                 num(&session["revolutions"]),
@@ -96,15 +137,67 @@ pub fn table(report: &Value) -> String {
                 num(&session["free_voxels"]),
                 num(&session["lag_ms"]),
                 num(&session["lag_frames"]),
-                ms(&sync["offset_ns"], 3),
-                sync["skew_ppm"]
-                    .as_f64()
-                    .map_or("-".to_owned(), |p| format!("{p:.2}")),
-                ms(&sync["error_bound_ns"], 3),
-                session["metrics"]["iou"]["weighted"]
-                    .as_f64()
-                    .map_or("-".to_owned(), |w| format!("{w:.4}")),
-            );
+                fixed(&sync["error_bound_ns"], 1e6, 3),
+                fixed(&sync["skew_ppm"], 1.0, 2),
+                fixed(&session["metrics"]["iou"]["weighted"], 1.0, 4),
+            ]);
+        }
+    }
+    let mut s = columns(&rows, 3);
+    for edge in &edges {
+        let name = edge["name"].as_str().unwrap_or("?");
+        let sensors = edge["sensors"].as_array().cloned().unwrap_or_default();
+        if !sensors.is_empty() {
+            let _ = writeln!(s, "\n{name}: sensors");
+            let mut rows = vec![
+                [
+                    "sensor",
+                    "model",
+                    "state",
+                    "frames/s",
+                    "samples/s",
+                    "last data",
+                ]
+                .map(str::to_owned)
+                .to_vec(),
+            ];
+            for sensor in &sensors {
+                let mut state = sensor["state"].as_str().unwrap_or("?").to_owned();
+                if let Some(reason) = sensor["reason"].as_str() {
+                    state = format!("{state} ({reason})");
+                }
+                rows.push(vec![
+                    sensor["kind"].as_str().unwrap_or("?").to_owned(),
+                    sensor["model"].as_str().unwrap_or("").to_owned(),
+                    state,
+                    fixed(&sensor["frames_per_s"], 1.0, 1),
+                    fixed(&sensor["samples_per_s"], 1.0, 0),
+                    sensor["last_data_age_s"]
+                        .as_f64()
+                        .map_or("never".to_owned(), |a| format!("{a:.1} s ago")),
+                ]);
+            }
+            for line in columns(&rows, 3).lines() {
+                let _ = writeln!(s, "  {line}");
+            }
+        }
+        let scans = edge["static_scans"].as_array().cloned().unwrap_or_default();
+        if !scans.is_empty() {
+            let _ = writeln!(s, "\n{name}: static scans");
+            for scan in &scans {
+                let _ = writeln!(
+                    s,
+                    "  scan {} at {:?} ({}): {}, {} revolutions, yaw {:.1}° of {:.1}°, {} late steps",
+                    num(&scan["scan_id"]),
+                    scan["position"].as_str().unwrap_or(""),
+                    scan["session"].as_str().unwrap_or("?"),
+                    scan["outcome"].as_str().unwrap_or("running"),
+                    num(&scan["revolutions"]),
+                    scan["yaw_deg"].as_f64().unwrap_or(0.0),
+                    scan["total_deg"].as_f64().unwrap_or(0.0),
+                    num(&scan["late_steps"]),
+                );
+            }
         }
     }
     s
@@ -115,19 +208,33 @@ mod tests {
     use super::*;
 
     #[test]
-    fn the_table_has_a_line_per_session_with_its_lag_and_time_sync() {
-        let report = serde_json::json!({"edges": [{"name": "pi", "connected": true, "sessions": [
-            {"id": "00000000000000ab", "frames": 12, "samples": 3400, "revolutions": 7,
-             "occupied_voxels": 90, "free_voxels": 1200, "lag_ms": 35, "lag_frames": 2,
-             "timesync": {"offset_ns": -1_500_000, "skew_ppm": null, "error_bound_ns": 250_000},
-             "metrics": null}]}]});
+    fn the_table_fits_its_columns_and_shows_sync_as_bound_and_skew() {
+        let report = serde_json::json!({"edges": [
+            {"name": "pi", "connected": true, "sessions": [
+                {"id": "00000000000000ab", "frames": 12, "samples": 3400, "revolutions": 7,
+                 "occupied_voxels": 90, "free_voxels": 1200, "lag_ms": 35, "lag_frames": 2,
+                 "timesync": {"offset_ns": -1_796_277_375_188_796_000i64, "skew_ppm": 1.234,
+                              "error_bound_ns": 250_000},
+                 "metrics": null}],
+             "sensors": [{"kind": "sweep", "model": "Sweep", "state": "lost",
+                          "reason": "unplugged", "frames_per_s": 2.0, "samples_per_s": 1000.0,
+                          "last_data_age_s": 4.25}],
+             "static_scans": [{"session": "00000000000000ab", "scan_id": 0, "position": "door",
+                               "total_deg": 360.0, "revolutions": 12, "yaw_deg": 43.2,
+                               "late_steps": 1, "failed_steps": 0, "warnings": 1,
+                               "tagged": 100, "outcome": null}]},
+            {"name": "a-much-longer-edge-name", "connected": false, "sessions": [
+                {"id": "00000000000000cd", "frames": 1, "samples": 0, "revolutions": 0,
+                 "occupied_voxels": 0, "free_voxels": 0, "lag_ms": 0, "lag_frames": 0,
+                 "timesync": null, "metrics": null}]}]});
         let table = table(&report);
-        let line = table.lines().nth(1).unwrap();
-        let cells: Vec<&str> = line.split_whitespace().collect();
+        let lines: Vec<&str> = table.lines().collect();
+        let cells: Vec<&str> = lines[1].split_whitespace().collect();
         assert_eq!(
             cells,
             [
                 "pi",
+                "connected",
                 "00000000000000ab",
                 "12",
                 "3400",
@@ -136,11 +243,29 @@ mod tests {
                 "1200",
                 "35",
                 "2",
-                "-1.500",
-                "-",
                 "0.250",
+                "1.23",
                 "-"
             ]
+        );
+        assert!(!table.contains("1796277"), "no raw offset: {table}");
+        // Columns line up whatever the names: every session starts at the same column.
+        let at = |line: &str| line.find("000000000000").unwrap();
+        assert_eq!(at(lines[1]), at(lines[2]), "{table}");
+        assert!(
+            lines[2].starts_with("a-much-longer-edge-name  gone "),
+            "{table}"
+        );
+        assert!(table.contains("sweep   Sweep  lost (unplugged)"), "{table}");
+        assert!(
+            table.contains("4.2 s ago") || table.contains("4.3 s ago"),
+            "{table}"
+        );
+        assert!(
+            table.contains(
+                "scan 0 at \"door\" (00000000000000ab): running, 12 revolutions, yaw 43.2° of 360.0°, 1 late steps"
+            ),
+            "{table}"
         );
         let empty = super::table(&serde_json::json!({"edges": []}));
         assert!(empty.contains("no edge connected"), "{empty}");

@@ -24,9 +24,11 @@ use std::time::{Duration, Instant};
 use scan3d_protocol::{Body, Frame, SensorId, StaticScan};
 use serde::Serialize;
 
+use super::edge_activity::{EdgeActivity, SensorStatus};
 use super::{PipelineError, PipelineSettings, SessionPipeline, SessionStatus, Snapshot};
 use crate::ingest::control::{ControlReply, LiveProducts, ProductRequest};
 use crate::ingest::recorder::{SeqSet, SessionItem, session_dir, visit_session_items};
+use crate::ingest::scan_progress::ScanProgress;
 use crate::ingest::server::{IngestEvent, IngestSink, unix_now_ns};
 use scan3d_protocol::ClockModel;
 
@@ -228,8 +230,23 @@ pub struct EdgeStatus {
     pub name: String,
     /// Whether it is connected now.
     pub connected: bool,
+    /// Its sensors: kind, state, data rate, age of the last data.
+    pub sensors: Vec<SensorStatus>,
+    /// Its static scans since the daemon started (the newest 64), oldest first.
+    pub static_scans: Vec<StaticScanStatus>,
     /// Its sessions the daemon has seen since it started, oldest first.
     pub sessions: Vec<LiveSessionStatus>,
+}
+
+/// One static scan in `scan3d status`: its session and progress (position, revolutions, yaw
+/// reached, late steps, outcome).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct StaticScanStatus {
+    /// The session (16 hex digits).
+    pub session: String,
+    /// Its progress.
+    #[serde(flatten)]
+    pub progress: ScanProgress,
 }
 
 /// The answer to `scan3d status`.
@@ -314,6 +331,8 @@ struct State {
     workers: Vec<Worker>,
     connected: BTreeSet<String>,
     timesync: HashMap<(String, u64), TimeSyncStatus>,
+    /// Per edge: its sensors and static scans, from the frames recorded.
+    activity: HashMap<String, EdgeActivity>,
 }
 
 struct Worker {
@@ -472,6 +491,14 @@ impl LivePipelines {
     fn on_frame(&self, edge: &str, frame: Frame) {
         let (queue, shared) = {
             let mut state = lock(&self.inner.state);
+            match state.activity.get_mut(edge) {
+                Some(activity) => activity.on_body(frame.session_id, &frame.body, Instant::now()),
+                None => {
+                    let mut activity = EdgeActivity::default();
+                    activity.on_body(frame.session_id, &frame.body, Instant::now());
+                    state.activity.insert(edge.to_owned(), activity);
+                }
+            }
             let index = match state
                 .workers
                 .iter()
@@ -559,19 +586,47 @@ impl LivePipelines {
 
     /// Every edge and session: counters, lag, time sync, metrics.
     pub fn status(&self) -> StatusReport {
-        let (workers, connected, timesync) = {
+        let now = Instant::now();
+        let (workers, connected, timesync, activity) = {
             let state = lock(&self.inner.state);
             let workers: Vec<Arc<WorkerShared>> =
                 state.workers.iter().map(|w| w.shared.clone()).collect();
-            (workers, state.connected.clone(), state.timesync.clone())
+            let activity: HashMap<String, (Vec<SensorStatus>, Vec<StaticScanStatus>)> = state
+                .activity
+                .iter()
+                .map(|(edge, activity)| {
+                    let scans = activity
+                        .scans()
+                        .into_iter()
+                        .map(|(session, progress)| StaticScanStatus {
+                            session: format!("{session:016x}"),
+                            progress,
+                        })
+                        .collect();
+                    let sensors = activity.sensors(now, state.connected.contains(edge));
+                    (edge.clone(), (sensors, scans))
+                })
+                .collect();
+            (
+                workers,
+                state.connected.clone(),
+                state.timesync.clone(),
+                activity,
+            )
+        };
+        let edge_status = |name: &str, connected: bool| {
+            let (sensors, static_scans) = activity.get(name).cloned().unwrap_or_default();
+            EdgeStatus {
+                name: name.to_owned(),
+                connected,
+                sensors,
+                static_scans,
+                sessions: Vec::new(),
+            }
         };
         let mut edges: Vec<EdgeStatus> = connected
             .iter()
-            .map(|name| EdgeStatus {
-                name: name.clone(),
-                connected: true,
-                sessions: Vec::new(),
-            })
+            .map(|name| edge_status(name, true))
             .collect();
         for shared in workers {
             let (pipeline, map_memory_bytes) = {
@@ -608,9 +663,8 @@ impl LivePipelines {
             match edges.iter_mut().find(|e| e.name == shared.edge) {
                 Some(edge) => edge.sessions.push(session),
                 None => edges.push(EdgeStatus {
-                    name: shared.edge.clone(),
-                    connected: connected.contains(&shared.edge),
                     sessions: vec![session],
+                    ..edge_status(&shared.edge, connected.contains(&shared.edge))
                 }),
             }
         }

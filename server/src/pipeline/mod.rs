@@ -32,6 +32,7 @@
 //! filtered points (turn it off with [`Products::cloud`] when only the octree is wanted, as
 //! `scan3d map` does).
 
+pub mod edge_activity;
 pub mod live;
 mod metrics;
 pub mod offline;
