@@ -536,16 +536,20 @@ fn send_upstream(upstream: &UdpSocket, datagram: &[u8]) -> bool {
 mod tests {
     use super::*;
 
-    const WAIT: Duration = Duration::from_millis(300);
+    /// How long a datagram that must come may take: generous, so that a busy machine (a
+    /// parallel build, the rest of the suite) only makes the test slower, never wrong.
+    const ARRIVAL: Duration = Duration::from_secs(30);
+    /// How long to listen before concluding that nothing comes. Under load this can only let a
+    /// late datagram go unseen (the check passes), so it stays short.
+    const QUIET: Duration = Duration::from_millis(300);
 
     fn socket() -> UdpSocket {
-        let socket = UdpSocket::bind((Ipv4Addr::LOCALHOST, 0)).unwrap();
-        socket.set_read_timeout(Some(WAIT)).unwrap();
-        socket
+        UdpSocket::bind((Ipv4Addr::LOCALHOST, 0)).unwrap()
     }
 
-    /// Receives one datagram, or `None` after [`WAIT`].
-    fn recv(socket: &UdpSocket) -> Option<(Vec<u8>, SocketAddr)> {
+    /// Receives one datagram, or `None` after `timeout`.
+    fn recv_within(socket: &UdpSocket, timeout: Duration) -> Option<(Vec<u8>, SocketAddr)> {
+        socket.set_read_timeout(Some(timeout)).unwrap();
         let mut buf = [0u8; 2048];
         match socket.recv_from(&mut buf) {
             Ok((len, from)) => Some((buf[..len].to_vec(), from)),
@@ -558,6 +562,25 @@ mod tests {
                 None
             }
             Err(e) => panic!("recv: {e}"),
+        }
+    }
+
+    /// A datagram that must come: waits up to [`ARRIVAL`] for it.
+    fn recv(socket: &UdpSocket) -> Option<(Vec<u8>, SocketAddr)> {
+        recv_within(socket, ARRIVAL)
+    }
+
+    /// What arrives within [`QUIET`]: `None` when the path is silent, as it must be.
+    fn recv_nothing(socket: &UdpSocket) -> Option<(Vec<u8>, SocketAddr)> {
+        recv_within(socket, QUIET)
+    }
+
+    /// Waits up to [`ARRIVAL`] for `done`, checking every few milliseconds.
+    fn wait_until(what: &str, mut done: impl FnMut() -> bool) {
+        let deadline = Instant::now() + ARRIVAL;
+        while !done() {
+            assert!(Instant::now() < deadline, "{what}: not within {ARRIVAL:?}");
+            std::thread::sleep(Duration::from_millis(5));
         }
     }
 
@@ -593,13 +616,17 @@ mod tests {
         relay.cut();
         assert!(relay.is_cut());
         client.send_to(b"lost", relay.local_addr()).unwrap();
-        assert_eq!(recv(&client), None);
+        // The relay has seen it (and dropped it) before the path is restored.
+        wait_until("the datagram sent during the cut dropped", || {
+            relay.stats().dropped == 1
+        });
+        assert_eq!(recv_nothing(&client), None);
 
         relay.restore();
         client.send_to(b"two", relay.local_addr()).unwrap();
         // The datagram sent during the cut was dropped, not held back.
         assert_eq!(recv(&client), Some((b"two".to_vec(), relay.local_addr())));
-        assert_eq!(recv(&client), None);
+        assert_eq!(recv_nothing(&client), None);
         assert_eq!(
             relay.stats(),
             RelayStats {
@@ -628,8 +655,11 @@ mod tests {
         relay.cut();
         client.send_to(b"up", relay.local_addr()).unwrap();
         target.send_to(b"down", upstream).unwrap();
-        assert_eq!(recv(&target), None);
-        assert_eq!(recv(&client), None);
+        wait_until("both datagrams sent during the cut dropped", || {
+            relay.stats().dropped == 2
+        });
+        assert_eq!(recv_nothing(&target), None);
+        assert_eq!(recv_nothing(&client), None);
 
         relay.restore();
         target.send_to(b"down again", upstream).unwrap();
@@ -669,7 +699,7 @@ mod tests {
             recv(&second).map(|(d, _)| d),
             Some(b"for the second".to_vec())
         );
-        assert_eq!(recv(&first), None);
+        assert_eq!(recv_nothing(&first), None);
 
         // The same client keeps its path.
         first.send_to(b"again", relay.local_addr()).unwrap();
@@ -685,11 +715,13 @@ mod tests {
         client
             .send_to(b"into the void", relay.local_addr())
             .unwrap();
-        assert_eq!(recv(&client), None);
+        wait_until("the first datagram forwarded", || {
+            relay.stats().forwarded == 1
+        });
+        assert_eq!(recv_nothing(&client), None);
 
         // The target comes back on the same port; the relay still forwards.
         let target = UdpSocket::bind(gone).unwrap();
-        target.set_read_timeout(Some(WAIT)).unwrap();
         client.send_to(b"back", relay.local_addr()).unwrap();
         assert_eq!(recv(&target).map(|(d, _)| d), Some(b"back".to_vec()));
     }
@@ -821,20 +853,67 @@ mod tests {
         let relay = UdpRelay::start_impaired(server, impairment).unwrap();
         let client = socket();
         let n: u32 = 400;
-        let start = Instant::now();
+        // The echoes are read as they come, on their own thread, and at most WINDOW datagrams
+        // are unresolved (neither echoed nor counted lost) at a time: a busy machine then
+        // slows the exchange down but never fills a socket's receive buffer, whose overflow
+        // the kernel would drop unseen by the relay (a few hundred datagrams fill one).
+        const WINDOW: u64 = 48;
+        let echoed = Arc::new(AtomicU64::new(0));
+        let done = Arc::new(AtomicBool::new(false));
+        let receiver = {
+            let (socket, echoed, done) =
+                (client.try_clone().unwrap(), echoed.clone(), done.clone());
+            std::thread::spawn(move || {
+                let mut echoes = Vec::new();
+                while !done.load(Ordering::SeqCst) {
+                    if let Some((data, _)) = recv_within(&socket, Duration::from_millis(20)) {
+                        let seq = u32::from_le_bytes(data[..4].try_into().unwrap());
+                        echoes.push((seq, Instant::now()));
+                        echoed.fetch_add(1, Ordering::SeqCst);
+                    }
+                }
+                echoes
+            })
+        };
+        let resolved = || echoed.load(Ordering::SeqCst) + relay.stats().lost;
+        let deadline = Instant::now() + ARRIVAL;
         let mut sent_at = Vec::new();
         for i in 0..n {
+            while u64::from(i) >= resolved() + WINDOW {
+                assert!(
+                    Instant::now() < deadline,
+                    "{} of {i} sent resolved",
+                    resolved()
+                );
+                std::thread::sleep(Duration::from_millis(1));
+            }
+            // Stamped before the send: the relay's delays count from its arrival, later still.
+            sent_at.push(Instant::now());
             client
                 .send_to(&i.to_le_bytes(), relay.local_addr())
                 .unwrap();
-            sent_at.push(start.elapsed());
             std::thread::sleep(Duration::from_micros(500));
         }
-        let mut echoes = Vec::new();
-        while let Some((data, _)) = recv(&client) {
-            let seq = u32::from_le_bytes(data[..4].try_into().unwrap());
-            echoes.push((seq, start.elapsed() - sent_at[seq as usize]));
+        // Every datagram ends echoed or counted lost (on either pass): wait for that, not for
+        // a pause in the echoes, which a busy machine makes at any time.
+        while resolved() < u64::from(n) {
+            assert!(
+                Instant::now() < deadline,
+                "{} echoed + {} lost of {n} within {ARRIVAL:?}",
+                echoed.load(Ordering::SeqCst),
+                relay.stats().lost
+            );
+            std::thread::sleep(Duration::from_millis(5));
         }
+        done.store(true, Ordering::SeqCst);
+        let echoes: Vec<(u32, Duration)> = receiver
+            .join()
+            .unwrap()
+            .into_iter()
+            .map(|(seq, at)| (seq, at - sent_at[seq as usize]))
+            .collect();
+        // Nothing more comes: no datagram is both echoed and counted lost.
+        assert_eq!(recv_nothing(&client), None);
         // Each way 10 % lost: 81 % of 400 = 324 expected back (sd ≈ 8).
         assert!(
             (290..=360).contains(&echoes.len()),
