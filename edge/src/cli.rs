@@ -182,34 +182,205 @@ pub fn execute(cli: Cli, out: &mut dyn Write) -> anyhow::Result<()> {
             let mut driver = Sweep::new(SweepConfig::default())?;
             run_probe(&mut driver, path, 115_200, &common, out)
         }
-        Command::CheckConfig { config } => {
-            let config = EdgeConfig::load(&config)?;
-            writeln!(out, "device {}", config.device_name)?;
-            if let Some(r) = &config.rplidar {
-                writeln!(
-                    out,
-                    "rplidar {} at {} baud, {:?} scan",
-                    r.path.display(),
-                    r.driver.baud,
-                    r.driver.scan_mode
-                )?;
+        Command::CheckConfig { config: path } => {
+            let config = EdgeConfig::load(&path)?;
+            print_config(&config, out)?;
+            let problems = environment_problems(&config);
+            if problems.is_empty() {
+                return Ok(());
             }
-            if let Some(s) = &config.sweep {
-                writeln!(out, "sweep {}", s.path.display())?;
-            }
-            if let Some(u) = &config.uplink {
-                writeln!(
-                    out,
-                    "uplink to {} (TLS name {}), spool {} MiB in memory, {} MiB on disk",
-                    u.server,
-                    u.tls_name(),
-                    u.spool_memory_mb,
-                    u.spool_disk_mb
-                )?;
-            }
-            Ok(())
+            // One line per problem, each naming the file.
+            let lines: Vec<String> = problems
+                .iter()
+                .map(|p| format!("{}: {p}", path.display()))
+                .collect();
+            anyhow::bail!("{}", lines.join("\n"))
         }
     }
+}
+
+/// Prints every section of a configuration, one or two lines each (`check-config`).
+fn print_config(config: &EdgeConfig, out: &mut dyn Write) -> std::io::Result<()> {
+    let mount = |mount: &Option<crate::config::Mount>| match mount {
+        Some(m) => format!(
+            "mount x {} y {} z {} m, roll {} pitch {} yaw {} deg",
+            m.x, m.y, m.z, m.roll, m.pitch, m.yaw
+        ),
+        None => "no mount".to_owned(),
+    };
+    writeln!(out, "device {}", config.device_name)?;
+    writeln!(out, "state_dir {}", config.state_dir.display())?;
+    match &config.rplidar {
+        Some(r) => writeln!(
+            out,
+            "rplidar {} at {} baud, {:?} scan; {}; {:?}",
+            r.path.display(),
+            r.driver.baud,
+            r.driver.scan_mode,
+            mount(&r.mount),
+            r.driver
+        )?,
+        None => writeln!(out, "rplidar: not configured")?,
+    }
+    match &config.sweep {
+        Some(s) => writeln!(
+            out,
+            "sweep {}; {}; {:?}",
+            s.path.display(),
+            mount(&s.mount),
+            s.driver
+        )?,
+        None => writeln!(out, "sweep: not configured")?,
+    }
+    match &config.uplink {
+        Some(u) => writeln!(
+            out,
+            "uplink to {} (TLS name {}), bundle {}, spool {} MiB in memory, {} MiB on disk",
+            u.server,
+            u.tls_name(),
+            u.pki_dir.display(),
+            u.spool_memory_mb,
+            u.spool_disk_mb
+        )?,
+        None => writeln!(out, "uplink: not configured (acquiring without streaming)")?,
+    }
+    let i2c_used = config.imu.is_some() || config.stepper.is_some();
+    writeln!(
+        out,
+        "i2c {} ({}){}",
+        config.i2c.device_path().display(),
+        if config.i2c.socket.is_some() {
+            "emulated bus socket"
+        } else {
+            "rppal"
+        },
+        if i2c_used { "" } else { ", unused" }
+    )?;
+    match &config.imu {
+        Some(imu) => writeln!(
+            out,
+            "imu address {:#04x}, beta {}, initial orientation {:?}; {}; {:?}",
+            imu.driver.address,
+            imu.beta,
+            imu.initial_orientation_wxyz,
+            mount(&imu.mount),
+            imu.driver
+        )?,
+        None => writeln!(out, "imu: not configured")?,
+    }
+    match &config.stepper {
+        Some(stepper) => writeln!(out, "stepper {stepper:?}")?,
+        None => writeln!(out, "stepper: not configured (no static scans)")?,
+    }
+    let scan = &config.static_scan;
+    writeln!(
+        out,
+        "static_scan blocked sector {} deg, {} step(s) per Sweep revolution, total {} deg, \
+         azimuth zero {} deg, mount axis offset {} m height {} m; {:?}",
+        scan.blocked_sector_deg,
+        scan.steps_per_revolution_of_sweep,
+        scan.total_sweep_deg,
+        scan.azimuth_zero_deg,
+        scan.mount.axis_offset_m,
+        scan.mount.height_m,
+        scan
+    )
+}
+
+/// What `check-config` finds wrong outside the file: serial paths that are missing or not
+/// character devices, an I2C bus or socket that is not there, PKI files that do not load, a
+/// `device_name` other than the certificate's. One line per problem.
+pub fn environment_problems(config: &EdgeConfig) -> Vec<String> {
+    use crate::serial::{OpenFailure, PathKind};
+    let mut problems = Vec::new();
+    let lidars = [
+        ("rplidar", config.rplidar.as_ref().map(|s| &s.path)),
+        ("sweep", config.sweep.as_ref().map(|s| &s.path)),
+    ];
+    for (section, path) in lidars {
+        let Some(path) = path else { continue };
+        match PathKind::of(path) {
+            PathKind::CharDevice => {}
+            PathKind::Missing => problems.push(format!(
+                "[{section}] {}",
+                OpenFailure::Missing.message(path, "")
+            )),
+            PathKind::Other(what) => problems.push(format!(
+                "[{section}] {}",
+                OpenFailure::NotSerial(what).message(path, "")
+            )),
+            PathKind::Unknown => problems.push(format!(
+                "[{section}] {} cannot be examined (permission denied on a directory?)",
+                path.display()
+            )),
+        }
+    }
+    if config.imu.is_some() || config.stepper.is_some() {
+        problems.extend(i2c_problem(&config.i2c));
+    }
+    if let Some(uplink) = &config.uplink {
+        if let Err(e) = crate::uplink::tls::client_config(&uplink.pki_dir) {
+            problems.push(format!(
+                "[uplink] {}",
+                scan3d_service::report::error_chain(&e)
+            ));
+        } else {
+            let cert = uplink.pki_dir.join(crate::uplink::tls::BUNDLE_CERT);
+            match certificate_name(&cert) {
+                Ok(name) if name == config.device_name => {}
+                Ok(name) => problems.push(format!(
+                    "device_name {:?} differs from the name in {} ({name:?}): the server records \
+                     this edge under {name:?}; set device_name = {name:?}, or pair again with \
+                     `scan3d pair --edge {}`",
+                    config.device_name,
+                    cert.display(),
+                    config.device_name
+                )),
+                Err(e) => problems.push(format!("[uplink] {}: {e}", cert.display())),
+            }
+        }
+    }
+    problems
+}
+
+/// Whether the I2C bus device or socket is there.
+fn i2c_problem(i2c: &crate::config::I2cSection) -> Option<String> {
+    use std::os::unix::fs::FileTypeExt;
+    let path = i2c.device_path();
+    let meta = std::fs::metadata(&path);
+    match (&i2c.socket, meta) {
+        (Some(_), Ok(meta)) if meta.file_type().is_socket() => None,
+        (Some(_), Ok(_)) => Some(format!("[i2c] {} is not a Unix socket", path.display())),
+        (Some(_), Err(e)) => Some(format!(
+            "[i2c] socket {}: {e} (is `scan3d-sim rig` running? the edge waits for it)",
+            path.display()
+        )),
+        (None, Ok(meta)) if meta.file_type().is_char_device() => None,
+        (None, Ok(_)) => Some(format!(
+            "[i2c] {} is not a character device",
+            path.display()
+        )),
+        (None, Err(e)) => Some(format!(
+            "[i2c] {}: {e} (enable I2C with `raspi-config nonint do_i2c 0`)",
+            path.display()
+        )),
+    }
+}
+
+/// The common name of the first certificate in a PEM file: the name the server records the
+/// edge under.
+pub fn certificate_name(path: &std::path::Path) -> Result<String, String> {
+    let certs = scan3d_service::link::read_certs(path).map_err(|e| e.to_string())?;
+    let (_, cert) = x509_parser::parse_x509_certificate(&certs[0])
+        .map_err(|e| format!("not a certificate: {e}"))?;
+    let cn = cert
+        .subject()
+        .iter_common_name()
+        .next()
+        .ok_or("the certificate has no common name")?;
+    cn.as_str()
+        .map(str::to_owned)
+        .map_err(|e| format!("common name: {e}"))
 }
 
 fn run_probe(
@@ -255,7 +426,7 @@ fn run_daemon(config_path: &std::path::Path) -> anyhow::Result<()> {
         });
         let clock: Arc<dyn Clock> = Arc::new(MonotonicClock::new());
         let session_id = rand::random::<u64>();
-        tracing::info!(device = %config.device_name, session = format!("{session_id:016x}"), "edge daemon starting");
+        tracing::info!(config = %config_path.display(), device = %config.device_name, session = format!("{session_id:016x}"), version = env!("CARGO_PKG_VERSION"), "edge daemon starting");
         let report = daemon::run(config, clock, session_id, stop_rx).await?;
         for (sensor, lidar) in &report.lidars {
             tracing::info!(%sensor, revolutions = lidar.revolutions, samples = lidar.samples, pauses = lidar.pauses, "lidar summary");
@@ -323,7 +494,8 @@ impl JsonLines<'_> {
 mod tests {
     use super::*;
 
-    fn check_config(path: PathBuf) -> anyhow::Result<String> {
+    /// Runs `check-config`: what it printed, and its error (one line per problem).
+    fn check_config(path: PathBuf) -> (String, Result<(), String>) {
         let cli = Cli::parse_from(
             ["scan3d-edge", "check-config", "--config"]
                 .map(Into::into)
@@ -331,22 +503,185 @@ mod tests {
                 .chain([path.into_os_string()]),
         );
         let mut out = Vec::new();
-        execute(cli, &mut out)?;
-        Ok(String::from_utf8(out)?)
+        let result = execute(cli, &mut out).map_err(|e| {
+            let error: &(dyn std::error::Error + 'static) = e.as_ref();
+            scan3d_service::report::error_chain(error)
+        });
+        (String::from_utf8(out).unwrap(), result)
     }
 
+    const SECTIONS: [&str; 9] = [
+        "device ",
+        "state_dir ",
+        "rplidar",
+        "sweep",
+        "uplink",
+        "i2c ",
+        "imu",
+        "stepper",
+        "static_scan ",
+    ];
+
     #[test]
-    fn check_config_passes_the_shipped_example_and_refuses_what_the_daemon_cannot_use() {
+    fn check_config_prints_every_section_of_the_shipped_example_and_refuses_what_the_daemon_cannot_use()
+     {
         let shipped = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../deploy/edge.toml"));
-        let printed = check_config(shipped).unwrap();
+        let (printed, _) = check_config(shipped);
         assert!(printed.starts_with("device edge-pi-01\n"), "{printed}");
+        let lines: Vec<&str> = printed.lines().collect();
+        for (line, section) in lines.iter().zip(SECTIONS) {
+            assert!(
+                line.starts_with(section),
+                "{line:?} is not {section:?}:\n{printed}"
+            );
+        }
+        assert_eq!(lines.len(), SECTIONS.len(), "{printed}");
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("edge.toml");
         std::fs::write(&path, "device_name = \"t\"\n[stepper]\nsteps_per_rev = 0\n").unwrap();
-        let message = format!("{:#}", check_config(path).unwrap_err());
+        let message = check_config(path).1.unwrap_err();
         assert!(
             message.contains("line 3: `stepper.steps_per_rev` = 0"),
             "{message}"
         );
+    }
+
+    /// A bundle as `scan3d pair` writes it, for an edge named `name`.
+    fn write_bundle(dir: &std::path::Path, name: &str) {
+        use rcgen::{
+            BasicConstraints, CertificateParams, DnType, ExtendedKeyUsagePurpose, IsCa, Issuer,
+            KeyPair,
+        };
+        use std::os::unix::fs::PermissionsExt;
+        let ca_key = KeyPair::generate().unwrap();
+        let mut ca_params = CertificateParams::default();
+        ca_params.distinguished_name.push(DnType::CommonName, "ca");
+        ca_params.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
+        let ca = ca_params.self_signed(&ca_key).unwrap();
+        let issuer = Issuer::new(ca_params, ca_key);
+        let key = KeyPair::generate().unwrap();
+        let mut params = CertificateParams::new(vec![name.to_owned()]).unwrap();
+        params.distinguished_name.push(DnType::CommonName, name);
+        params.extended_key_usages = vec![ExtendedKeyUsagePurpose::ClientAuth];
+        let cert = params.signed_by(&key, &issuer).unwrap();
+        std::fs::create_dir_all(dir).unwrap();
+        std::fs::write(dir.join("edge.pem"), cert.pem()).unwrap();
+        std::fs::write(dir.join("ca.pem"), ca.pem()).unwrap();
+        let key_path = dir.join("edge.key");
+        std::fs::write(&key_path, key.serialize_pem()).unwrap();
+        std::fs::set_permissions(&key_path, std::fs::Permissions::from_mode(0o600)).unwrap();
+    }
+
+    /// An edge.toml in `dir` for the devices given, the bundle in `dir/pki`.
+    fn write_config(
+        dir: &std::path::Path,
+        name: &str,
+        rplidar: &str,
+        sweep: &str,
+        i2c: &str,
+    ) -> PathBuf {
+        let path = dir.join("edge.toml");
+        let text = format!(
+            "device_name = \"{name}\"\nstate_dir = \"{state}\"\n\
+             [rplidar]\npath = \"{rplidar}\"\n[rplidar.mount]\nz = 0.4\n\
+             [sweep]\npath = \"{sweep}\"\n[sweep.mount]\nz = 1.0\npitch = -90.0\n\
+             [i2c]\n{i2c}\n[imu]\n[imu.mount]\nz = 0.2\n[stepper]\n\
+             [uplink]\nserver = \"localhost:4433\"\npki_dir = \"{pki}\"\n",
+            state = dir.join("state").display(),
+            pki = dir.join("pki").display(),
+        );
+        std::fs::write(&path, text).unwrap();
+        path
+    }
+
+    #[test]
+    fn check_config_accepts_present_devices_and_a_matching_bundle() {
+        let dir = tempfile::tempdir().unwrap();
+        write_bundle(&dir.path().join("pki"), "pi-01");
+        let socket = dir.path().join("i2c.sock");
+        let _listener = std::os::unix::net::UnixListener::bind(&socket).unwrap();
+        let i2c = format!("socket = \"{}\"", socket.display());
+        let path = write_config(dir.path(), "pi-01", "/dev/null", "/dev/null", &i2c);
+        let (printed, result) = check_config(path);
+        assert_eq!(result, Ok(()), "{printed}");
+        for section in SECTIONS {
+            assert!(
+                printed.lines().any(|l| l.starts_with(section)),
+                "{section} missing:\n{printed}"
+            );
+        }
+        assert!(printed.contains("emulated bus socket"), "{printed}");
+        assert!(
+            printed.contains("mount x 0 y 0 z 1 m, roll 0 pitch -90 yaw 0 deg"),
+            "{printed}"
+        );
+    }
+
+    #[test]
+    fn check_config_reports_every_problem_on_its_own_line() {
+        let dir = tempfile::tempdir().unwrap();
+        write_bundle(&dir.path().join("pki"), "pi-01");
+        let file = dir.path().join("ttyFILE");
+        std::fs::write(&file, "").unwrap();
+        let gone = dir.path().join("ttyGONE");
+        let socket = dir.path().join("i2c.sock");
+        let i2c = format!("socket = \"{}\"", socket.display());
+        let path = write_config(
+            dir.path(),
+            "pi-02",
+            &gone.display().to_string(),
+            &file.display().to_string(),
+            &i2c,
+        );
+        let (_, result) = check_config(path.clone());
+        let message = result.unwrap_err();
+        let lines: Vec<&str> = message.lines().collect();
+        assert_eq!(lines.len(), 4, "{message}");
+        for line in &lines {
+            assert!(line.starts_with(&format!("{}: ", path.display())), "{line}");
+        }
+        assert!(
+            lines[0].contains("[rplidar]") && lines[0].contains("does not exist"),
+            "{message}"
+        );
+        assert!(
+            lines[1].contains("is not a serial device (a regular file)"),
+            "{message}"
+        );
+        assert!(
+            lines[2].contains("[i2c] socket") && lines[2].contains("i2c.sock"),
+            "{message}"
+        );
+        assert!(
+            lines[3].contains("\"pi-02\" differs")
+                && lines[3].contains("records this edge under \"pi-01\""),
+            "{message}"
+        );
+        assert!(!message.contains("typewriter"), "{message}");
+
+        // A missing bundle: its file named, its cause once.
+        std::fs::remove_dir_all(dir.path().join("pki")).unwrap();
+        let message = check_config(path).1.unwrap_err();
+        let pki = message
+            .lines()
+            .find(|l| l.contains("[uplink]"))
+            .expect(&message);
+        assert!(pki.contains("ca.pem"), "{pki}");
+        assert_eq!(pki.matches("No such file").count(), 1, "{pki}");
+    }
+
+    #[test]
+    fn check_config_refuses_a_bus_and_a_socket_together_at_the_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = write_config(
+            dir.path(),
+            "pi-01",
+            "/dev/null",
+            "/dev/null",
+            "bus = 1\nsocket = \"/x\"",
+        );
+        let message = check_config(path).1.unwrap_err();
+        assert!(message.contains("line 14: `i2c.socket`"), "{message}");
+        assert!(message.contains("not both"), "{message}");
     }
 }

@@ -87,12 +87,12 @@ pub enum ProbeError {
     #[error(transparent)]
     Serial(#[from] serial::SerialError),
     /// The driver gave up (no answer, wrong device, device error).
-    #[error("{path}: {source}")]
+    #[error("{path}: {reason}")]
     Driver {
         /// The device path.
         path: PathBuf,
-        /// The driver's reason.
-        source: DriverError,
+        /// The driver's reason (in the message, so not also a `source()`: printed once).
+        reason: DriverError,
     },
     /// Nothing conclusive within the deadline.
     #[error("{path}: timed out after {seconds} s waiting for {waiting_for}")]
@@ -226,10 +226,10 @@ pub fn run<D: LidarDriver + ?Sized>(
     shutdown.store(true, Ordering::Relaxed);
     let _ = watchdog.join();
     result?;
-    if let Some(source) = probe.failure.take() {
+    if let Some(reason) = probe.failure.take() {
         return Err(ProbeError::Driver {
             path: options.path.clone(),
-            source,
+            reason,
         });
     }
     if was_timeout && !probe.done() {

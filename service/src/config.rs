@@ -9,12 +9,12 @@ use serde::de::DeserializeOwned;
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
     /// The file could not be read.
-    #[error("cannot read {path}: {source}")]
+    #[error("cannot read {path}: {error}")]
     Read {
         /// The file.
         path: PathBuf,
-        /// The I/O error.
-        source: std::io::Error,
+        /// The I/O error (in the message, so not also a `source()`: printed once).
+        error: std::io::Error,
     },
     /// The TOML is malformed or has unknown, mistyped or out-of-range keys.
     #[error("{path}: {message}")]
@@ -46,9 +46,9 @@ pub fn parse_toml<T: DeserializeOwned>(text: &str, origin: &Path) -> Result<T, C
 
 /// Reads and parses the TOML file at `path`.
 pub fn load_toml<T: DeserializeOwned>(path: &Path) -> Result<T, ConfigError> {
-    let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+    let text = std::fs::read_to_string(path).map_err(|error| ConfigError::Read {
         path: path.to_path_buf(),
-        source,
+        error,
     })?;
     parse_toml(&text, path)
 }
@@ -78,9 +78,28 @@ mod tests {
     }
 
     #[test]
-    fn a_missing_file_is_a_read_error_naming_it() {
+    fn a_missing_file_is_a_read_error_naming_it_and_its_cause_once() {
         let err = load_toml::<Example>(Path::new("/nonexistent/scan3d.toml")).unwrap_err();
         assert!(matches!(err, ConfigError::Read { .. }));
         assert!(err.to_string().contains("/nonexistent/scan3d.toml"));
+        // However it is printed: the cause is in the message and not chained again.
+        assert!(std::error::Error::source(&err).is_none());
+        let printed = format!("{:#}", anyhow_like(&err));
+        assert_eq!(
+            printed.matches("No such file or directory").count(),
+            1,
+            "{printed}"
+        );
+    }
+
+    /// `{:#}` as anyhow prints it: every level of the chain joined by ": ".
+    fn anyhow_like(e: &(dyn std::error::Error + 'static)) -> String {
+        let mut out = e.to_string();
+        let mut cause = e.source();
+        while let Some(c) = cause {
+            out.push_str(&format!(": {c}"));
+            cause = c.source();
+        }
+        out
     }
 }

@@ -5,9 +5,12 @@ use std::time::Duration;
 pub use sd_notify::NotifyState;
 
 /// Logs to stderr (journald under systemd) with `RUST_LOG`, or `default_filter` without it.
+/// Colours only when stderr is a terminal: a file or the journal gets plain text.
 pub fn init_logging(default_filter: &str) {
+    use std::io::IsTerminal;
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
+        .with_ansi(std::io::stderr().is_terminal())
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default_filter)),

@@ -41,12 +41,12 @@ pub fn transport_config() -> quinn::TransportConfig {
 #[derive(Debug, thiserror::Error)]
 pub enum PemError {
     /// The file is missing, unreadable or not PEM.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {error}", path.display())]
     Read {
         /// The file.
         path: PathBuf,
-        /// The PEM/IO error.
-        source: rustls::pki_types::pem::Error,
+        /// The PEM/IO error (in the message, so not also a `source()`: printed once).
+        error: rustls::pki_types::pem::Error,
     },
     /// The file holds no certificate.
     #[error("{}: no certificate in the file", path.display())]
@@ -66,12 +66,12 @@ pub enum PemError {
         mode: u32,
     },
     /// The key file's metadata could not be read.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {error}", path.display())]
     Metadata {
         /// The key file.
         path: PathBuf,
-        /// The OS error.
-        source: std::io::Error,
+        /// The OS error (in the message, so not also a `source()`: printed once).
+        error: std::io::Error,
     },
 }
 
@@ -89,9 +89,9 @@ impl PemError {
 
 /// Every certificate in a PEM file (at least one).
 pub fn read_certs(path: &Path) -> Result<Vec<CertificateDer<'static>>, PemError> {
-    let read_err = |source| PemError::Read {
+    let read_err = |error| PemError::Read {
         path: path.to_path_buf(),
-        source,
+        error,
     };
     let certs = CertificateDer::pem_file_iter(path)
         .map_err(read_err)?
@@ -107,9 +107,9 @@ pub fn read_certs(path: &Path) -> Result<Vec<CertificateDer<'static>>, PemError>
 
 /// The private key in a PEM file.
 pub fn read_key(path: &Path) -> Result<PrivateKeyDer<'static>, PemError> {
-    PrivateKeyDer::from_pem_file(path).map_err(|source| PemError::Read {
+    PrivateKeyDer::from_pem_file(path).map_err(|error| PemError::Read {
         path: path.to_path_buf(),
-        source,
+        error,
     })
 }
 
@@ -119,9 +119,9 @@ pub fn read_key(path: &Path) -> Result<PrivateKeyDer<'static>, PemError> {
 pub fn check_key_mode(path: &Path) -> Result<(), PemError> {
     use std::os::unix::fs::PermissionsExt;
     let mode = std::fs::metadata(path)
-        .map_err(|source| PemError::Metadata {
+        .map_err(|error| PemError::Metadata {
             path: path.to_path_buf(),
-            source,
+            error,
         })?
         .permissions()
         .mode()
