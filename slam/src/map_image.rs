@@ -802,7 +802,7 @@ mod tests {
                 .iter()
                 .filter(|&&(row, _, n)| row > frame_row && n > 10)
                 .collect();
-            let expected = (bar_m / resolution as f64).round() as usize;
+            let expected = (bar_m / resolution).round() as usize;
             assert!(!bar.is_empty(), "no scale bar below row {frame_row}");
             for &&(_, start, n) in &bar {
                 assert_eq!(
