@@ -31,12 +31,20 @@ fn revolutions(summary: &SessionSummary) -> Vec<(&str, u64)> {
         .collect()
 }
 
-/// Seconds between the first and the last received frame.
+/// Seconds of data: from the first to the last sample time (the edge's clock), whatever the
+/// files and however late the frames arrived.
 fn duration_s(summary: &SessionSummary) -> f64 {
-    match (summary.first_log_time_ns, summary.last_log_time_ns) {
+    match (summary.first_sample_ns, summary.last_sample_ns) {
         (Some(first), Some(last)) => last.saturating_sub(first) as f64 / 1e9,
         _ => 0.0,
     }
+}
+
+/// Files a crash cut short (not those a live server is still writing).
+fn cut_short(summary: &SessionSummary) -> usize {
+    summary
+        .incomplete_files
+        .saturating_sub(summary.files_being_written)
 }
 
 fn json_line(summary: &SessionSummary) -> serde_json::Value {
@@ -46,6 +54,8 @@ fn json_line(summary: &SessionSummary) -> serde_json::Value {
         "dir": summary.dir,
         "files": summary.files,
         "incomplete_files": summary.incomplete_files,
+        "cut_short_files": cut_short(summary),
+        "open": summary.files_being_written > 0,
         "frames": summary.frames,
         "frames_per_topic": summary.frames_per_topic,
         "revolutions": revolutions(summary).into_iter().collect::<std::collections::BTreeMap<_, _>>(),
@@ -55,6 +65,8 @@ fn json_line(summary: &SessionSummary) -> serde_json::Value {
         "missing_seqs": summary.missing_seqs,
         "first_log_time_ns": summary.first_log_time_ns,
         "last_log_time_ns": summary.last_log_time_ns,
+        "first_sample_ns": summary.first_sample_ns,
+        "last_sample_ns": summary.last_sample_ns,
         "duration_s": duration_s(summary),
         "bytes": summary.bytes,
     })
@@ -118,8 +130,11 @@ fn print(
                 .collect::<Vec<_>>()
                 .join(" ");
             let mut notes = Vec::new();
-            if s.incomplete_files > 0 {
-                notes.push(format!("{} cut short", s.incomplete_files));
+            if s.files_being_written > 0 {
+                notes.push("open: being recorded".to_owned());
+            }
+            if cut_short(s) > 0 {
+                notes.push(format!("{} cut short", cut_short(s)));
             }
             if !s.losses.is_empty() {
                 notes.push(format!("{} damaged", s.losses.len()));
@@ -182,12 +197,30 @@ mod tests {
     use scan3d_protocol::{Frame, Hello, LidarRevolution, SensorId, encode};
 
     fn record(data_dir: &std::path::Path) {
+        record_open(data_dir).close().expect("close");
+    }
+
+    /// The session of [`record`], its recorder still open (as a live server has it).
+    fn record_open(data_dir: &std::path::Path) -> SessionRecorder {
         let mut rec = SessionRecorder::open(data_dir, "trolley-pi", 0xabc).expect("open");
         let frames = [
             Frame::new(0xabc, 0, Hello::new("trolley-pi", "0.1.0", vec![])),
-            Frame::new(0xabc, 1, LidarRevolution::new(SensorId::RPLIDAR, 0, 1)),
-            Frame::new(0xabc, 2, LidarRevolution::new(SensorId::SWEEP, 0, 1)),
-            Frame::new(0xabc, 3, LidarRevolution::new(SensorId::RPLIDAR, 1, 2)),
+            // 58 s of data (edge clock), received within 2.5 s (a backlog sent late).
+            Frame::new(
+                0xabc,
+                1,
+                LidarRevolution::new(SensorId::RPLIDAR, 1_000_000_000, 1_100_000_000),
+            ),
+            Frame::new(
+                0xabc,
+                2,
+                LidarRevolution::new(SensorId::SWEEP, 5_000_000_000, 5_500_000_000),
+            ),
+            Frame::new(
+                0xabc,
+                3,
+                LidarRevolution::new(SensorId::RPLIDAR, 58_900_000_000, 59_000_000_000),
+            ),
         ];
         // Receive times 1.0 s .. 3.5 s after the epoch.
         for (i, frame) in frames.iter().enumerate() {
@@ -195,7 +228,44 @@ mod tests {
             let t = 1_000_000_000 + i as u64 * 833_333_333;
             rec.append(&raw, frame, t).expect("append");
         }
-        rec.close().expect("close");
+        rec.commit().expect("commit");
+        rec
+    }
+
+    fn table_of(data_dir: &std::path::Path) -> String {
+        let mut out = Vec::new();
+        let args = SessionsArgs {
+            data: DataDirArgs {
+                data_dir: Some(data_dir.to_path_buf()),
+                config: PathBuf::from("/nonexistent/server.toml"),
+            },
+            json: false,
+            lenient: false,
+        };
+        run(&args, &mut out).expect("run");
+        String::from_utf8(out).expect("utf8")
+    }
+
+    #[test]
+    fn a_recording_being_written_is_open_not_cut_short() {
+        let tmp = tempfile::tempdir().expect("tempdir");
+        let rec = record_open(tmp.path());
+        let text = table_of(tmp.path());
+        assert!(text.contains("1 (open: being recorded)"), "{text}");
+        assert!(!text.contains("cut short"), "{text}");
+        // A crash leaves the file without its end and unlocked: cut short. (Its bytes as they
+        // are now, in another data directory, are what a crash leaves.)
+        let file = tmp
+            .path()
+            .join("sessions/trolley-pi/0000000000000abc/0000.mcap");
+        let crashed = tempfile::tempdir().expect("tempdir");
+        let dir = crashed.path().join("sessions/trolley-pi/0000000000000abc");
+        std::fs::create_dir_all(&dir).expect("mkdir");
+        std::fs::copy(&file, dir.join("0000.mcap")).expect("copy");
+        drop(rec);
+        let text = table_of(crashed.path());
+        assert!(!text.contains("open"), "{text}");
+        assert!(text.contains("1 (1 cut short)"), "{text}");
     }
 
     #[test]
@@ -221,7 +291,7 @@ mod tests {
         );
         assert_eq!(
             lines[1],
-            "trolley-pi  0000000000000abc      1       4  rplidar=2 sweep=1  2.5 s"
+            "trolley-pi  0000000000000abc      1       4  rplidar=2 sweep=1  58.0 s"
         );
     }
 

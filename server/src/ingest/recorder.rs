@@ -589,6 +589,13 @@ pub struct SessionSummary {
     pub first_log_time_ns: Option<u64>,
     /// Latest server receive time (ns since the UNIX epoch), if any frame.
     pub last_log_time_ns: Option<u64>,
+    /// The first lidar or IMU sample's time (edge monotonic clock, ns), if any.
+    pub first_sample_ns: Option<u64>,
+    /// The last lidar or IMU sample's time (edge monotonic clock, ns), if any.
+    pub last_sample_ns: Option<u64>,
+    /// Files a live server is writing now ([`is_being_written`]); they are counted in
+    /// `incomplete_files` too, as they have no end yet.
+    pub files_being_written: usize,
     /// Total size of the files in bytes.
     pub bytes: u64,
     /// Damaged stretches skipped, and the seqs they probably held (see [`SessionReport`]).
@@ -1253,6 +1260,13 @@ pub fn check_losses(
     }
 }
 
+/// Whether a recording file is being written now: a live server holds an exclusive lock on
+/// every file it writes, released when it closes the file or dies.
+pub fn is_being_written(path: &Path) -> bool {
+    fs::File::open(path)
+        .is_ok_and(|file| matches!(file.try_lock_shared(), Err(fs::TryLockError::WouldBlock)))
+}
+
 /// Summarises one session directory (see [`SessionSummary`]); damage is reported in it, not
 /// as an error.
 pub fn summarize_session(
@@ -1264,14 +1278,30 @@ pub fn summarize_session(
     let mut frames_per_topic: BTreeMap<String, u64> = BTreeMap::new();
     let mut first_log_time_ns: Option<u64> = None;
     let mut last_log_time_ns: Option<u64> = None;
+    let mut first_sample_ns: Option<u64> = None;
+    let mut last_sample_ns: Option<u64> = None;
     let report = visit_session(session_dir, |recorded| {
         frames += 1;
-        *frames_per_topic.entry(recorded.topic).or_default() += 1;
         let t = recorded.log_time_ns;
         first_log_time_ns = Some(first_log_time_ns.map_or(t, |f| f.min(t)));
         last_log_time_ns = Some(last_log_time_ns.map_or(t, |l| l.max(t)));
+        // The data's own times (edge clock): a revolution spans t0..t1, a reading its t.
+        let span = match &recorded.frame.body {
+            Body::Revolution(rev) => Some((rev.t0_ns, rev.t1_ns)),
+            Body::Imu(imu) => Some((imu.t_ns, imu.t_ns)),
+            _ => None,
+        };
+        if let Some((from, to)) = span {
+            first_sample_ns = Some(first_sample_ns.map_or(from, |f| f.min(from)));
+            last_sample_ns = Some(last_sample_ns.map_or(to, |l| l.max(to)));
+        }
+        *frames_per_topic.entry(recorded.topic).or_default() += 1;
         Ok(())
     })?;
+    let files_being_written = session_files(session_dir)?
+        .iter()
+        .filter(|(_, path)| is_being_written(path))
+        .count();
     Ok(SessionSummary {
         edge: edge.to_string(),
         session_id,
@@ -1284,6 +1314,9 @@ pub fn summarize_session(
         undecodable_frames: report.undecodable_frames,
         first_log_time_ns,
         last_log_time_ns,
+        first_sample_ns,
+        last_sample_ns,
+        files_being_written,
         bytes: report.bytes,
         losses: report.losses,
         missing_seqs: report.missing_seqs,
@@ -1773,6 +1806,11 @@ impl SessionRecorder {
             .create_new(true)
             .open(&path)
             .map_err(RecorderError::io(&path))?;
+        // Held while the file is written, so `scan3d sessions` can tell a recording being
+        // written from one a crash cut short (see [`is_being_written`]).
+        if let Err(e) = file.try_lock() {
+            tracing::warn!(path = %path.display(), error = %e, "cannot lock the new recording file");
+        }
         let file = Arc::new(file);
         let started = Self::start_file(&path, file.clone(), edge, session_id, file_index)
             .and_then(|writer| sync_dir(dir).map(|()| writer));
