@@ -302,9 +302,9 @@ impl TryFrom<toml::Table> for SweepSection {
 ///
 /// Frames: `base` is the turntable's or the trolley's frame on the floor: origin on the
 /// turntable axis (trolley: its reference point) at floor level, z up, x the direction of
-/// turntable yaw 0 (trolley: forwards). The sensor's own frame has z along its spin axis and
-/// azimuth 0 along its x, azimuths increasing counter-clockwise about z (as the device reports
-/// them); the IMU's frame is its chip axes. The pose maps sensor to base coordinates:
+/// turntable yaw 0 (trolley: forwards). A lidar's own frame has z along its spin axis and
+/// azimuth 0 along its x, azimuths (as the edge's samples carry them) increasing
+/// counter-clockwise about z; the IMU's frame is its chip axes. The pose maps sensor to base coordinates:
 /// p_base = R · p_sensor + (x, y, z), with R = Rz(yaw) · Ry(pitch) · Rx(roll) (intrinsic
 /// Z-Y-X: yaw about base z, then pitch, then roll).
 #[derive(Debug, Clone, Copy, PartialEq, Default, Deserialize, serde::Serialize)]
@@ -880,6 +880,11 @@ mod tests {
         let config = EdgeConfig::load(path).expect("deploy/edge.toml must parse");
         assert_eq!(config.device_name, "edge-pi-01");
         let rplidar = config.rplidar.expect("rplidar section");
+        assert_eq!(rplidar.mount.map(|m| m.z), Some(0.4));
+        assert_eq!(
+            config.sweep.as_ref().and_then(|s| s.mount).map(|m| m.pitch),
+            Some(-90.0)
+        );
         assert_eq!(rplidar.path, Path::new("/dev/rplidar"));
         assert_eq!(rplidar.driver.scan_mode, ScanMode::Express);
         assert_eq!(rplidar.driver.baud, 115_200);
@@ -892,8 +897,11 @@ mod tests {
         assert_eq!(uplink.pki_dir, Path::new("/etc/scan3d/pki"));
         let imu = config.imu.expect("imu section");
         assert_eq!((imu.driver.address, imu.beta), (0x68, 0.1));
+        assert_eq!(imu.mount.map(|m| m.z), Some(0.1));
         assert_eq!(config.stepper.expect("stepper section").steps_per_rev, 200);
         assert_eq!(config.static_scan.mount.height_m, 1.0);
+        assert_eq!(config.static_scan.mount.axis_offset_m, 0.05);
+        assert!(config.static_scan.azimuth_zero_deg.abs() < 1e-9);
         assert_eq!(config.i2c.bus_number(), 1);
     }
 
