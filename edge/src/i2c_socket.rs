@@ -448,7 +448,7 @@ impl<'a> Reader<'a> {
 }
 
 /// Why a [`SocketI2c`] operation failed.
-#[derive(Debug, thiserror::Error)]
+#[derive(thiserror::Error)]
 pub enum SocketI2cError {
     /// The device did not acknowledge (its address, or a data byte).
     #[error("no acknowledge ({0:?})")]
@@ -478,6 +478,13 @@ pub enum SocketI2cError {
         /// What went wrong.
         reason: String,
     },
+}
+
+/// The message itself: the drivers print an I2C error with `{:?}` after its kind.
+impl std::fmt::Debug for SocketI2cError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{self}")
+    }
 }
 
 impl embedded_hal::i2c::Error for SocketI2cError {
@@ -511,6 +518,8 @@ pub struct SocketI2c {
     lost: bool,
     /// A connection was made at least once.
     connected_once: bool,
+    /// Why the last connect attempt or connection failed.
+    last_failure: String,
     buf: Vec<u8>,
 }
 
@@ -525,6 +534,7 @@ impl SocketI2c {
             next_attempt: None,
             lost: false,
             connected_once: false,
+            last_failure: String::new(),
             buf: Vec::new(),
         }
     }
@@ -565,6 +575,7 @@ impl SocketI2c {
             }
             Err(reason) => {
                 self.next_attempt = Some(Instant::now() + RECONNECT_INTERVAL);
+                self.last_failure.clone_from(&reason);
                 tracing::debug!(path = %self.path.display(), %reason, "I2C socket connect failed; retrying in 1 s");
                 Err(SocketI2cError::NotConnected {
                     path: self.path.clone(),
@@ -593,6 +604,7 @@ impl SocketI2c {
     fn lose(&mut self, reason: String) -> SocketI2cError {
         self.stream = None;
         self.lost = true;
+        self.last_failure.clone_from(&reason);
         self.next_attempt = Some(Instant::now() + RECONNECT_INTERVAL);
         tracing::warn!(path = %self.path.display(), %reason, "I2C socket lost; reconnecting every second");
         SocketI2cError::Lost {
@@ -612,7 +624,7 @@ impl SocketI2c {
             {
                 return Err(SocketI2cError::NotConnected {
                     path: self.path.clone(),
-                    reason: "waiting to reconnect".into(),
+                    reason: format!("{} (next attempt within 1 s)", self.last_failure),
                 });
             }
             self.connect()?;
