@@ -5,6 +5,7 @@
 //! - [`device`]: the sans-I/O emulator contract (host bytes in, paced wire units out).
 //! - [`rplidar`], [`sweep`]: the two lidar emulators speaking the real wire protocols.
 //! - [`i2c`]: a simulated I2C bus dispatching to register-level chip emulators.
+//! - [`i2c_socket`]: that bus behind a Unix socket, for the real edge daemon.
 //! - [`faults`]: stray bytes, bit flips and dropped bytes, with a log of what was really sent.
 //! - [`mounts`]: where the emulated sensors sit in the room.
 //! - [`truth`]: ground truth for scoring clouds: surface samples, exact distances, the world file.
@@ -12,6 +13,7 @@
 //! - [`fleet`]: synthetic edges (own certificate, spool and session each) for load and soak runs.
 //! - [`pair`]: a driver wired straight to an emulator in memory (deterministic tests, benches).
 //! - [`pty`]: runs an emulator on a Linux pty behind a symlink, paced at the wire rate.
+//! - [`rig`]: `scan3d-sim rig`, the whole sensor head in real time for the real edge daemon.
 //! - [`installation`]: a whole installation in-process (lidars, certificates, server, edge daemon)
 //!   for the demo and tests.
 //! - [`turntable_head`]: the paper's scanner in-process: Sweep on the turntable, IMU and motor HAT
@@ -27,6 +29,7 @@ pub mod device;
 pub mod faults;
 pub mod fleet;
 pub mod i2c;
+pub mod i2c_socket;
 pub mod imu;
 pub mod installation;
 pub mod maps;
@@ -34,6 +37,7 @@ pub mod mounts;
 pub mod noise;
 pub mod pair;
 pub mod pty;
+pub mod rig;
 pub mod rplidar;
 pub mod stepper;
 pub mod sweep;

@@ -1,7 +1,7 @@
 //! `scan3d-sim`: simulated scan3d hardware. Runs an emulated lidar on a pty until interrupted,
 //! or the demo.
 
-use std::io::Write;
+use std::io::{IsTerminal, Write};
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -14,6 +14,7 @@ use scan3d_hw_sim::device::Device;
 use scan3d_hw_sim::faults::FaultConfig;
 use scan3d_hw_sim::mounts;
 use scan3d_hw_sim::pty::{PtyDevice, PtyOptions};
+use scan3d_hw_sim::rig::{Rig, RigOptions};
 use scan3d_hw_sim::rplidar::{RplidarEmulator, RplidarEmulatorConfig, RplidarModel};
 use scan3d_hw_sim::sweep::{SweepEmulator, SweepEmulatorConfig};
 use scan3d_hw_sim::world::World;
@@ -38,6 +39,47 @@ enum Command {
     /// Run the whole system on this machine: emulated lidars and turntable, the edge daemon,
     /// the server, the paper's static maps and their report.
     Demo(DemoArgs),
+    /// Run the whole sensor head in real time for the real scan3d-edge daemon until
+    /// interrupted: the RPLidar and the Sweep on ptys (DIR/ttyRPLIDAR, DIR/ttySWEEP), the IMU
+    /// and the motor HAT on one I2C bus behind DIR/i2c.sock, and DIR/edge.toml with the edge's
+    /// sensor sections (prepend device_name and state_dir, append [uplink]).
+    ///
+    /// Prints the paths it created on stdout once they exist.
+    Rig(RigArgs),
+}
+
+#[derive(Debug, Args)]
+struct RigArgs {
+    /// Directory of the links, the socket and edge.toml (created if missing; stale links and
+    /// sockets from an earlier run are replaced).
+    #[arg(long, value_name = "DIR")]
+    dir: PathBuf,
+    /// Where the head stands in the room: X,Y in metres and the heading of its yaw 0 in
+    /// degrees (default: the room's centre, heading 0).
+    #[arg(long, value_name = "X,Y,HEADING", value_parser = parse_at)]
+    at: Option<[f64; 3]>,
+    /// Write the true trajectory of the head's base to FILE: TUM lines `t x y z qx qy qz qw`
+    /// (UNIX seconds, room frame) at 50 Hz, each flushed.
+    #[arg(long, value_name = "FILE")]
+    truth: Option<PathBuf>,
+    /// Seed of the range noise.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// World file (TOML) instead of the default conference room.
+    #[arg(long, value_name = "FILE")]
+    world: Option<PathBuf>,
+}
+
+fn parse_at(s: &str) -> Result<[f64; 3], String> {
+    let values: Vec<f64> = s
+        .split(',')
+        .map(|v| v.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| format!("expected X,Y,HEADING (three numbers), got {s:?}"))?;
+    match values[..] {
+        [x, y, h] if values.iter().all(|v| v.is_finite()) => Ok([x, y, h]),
+        _ => Err(format!("expected X,Y,HEADING (three numbers), got {s:?}")),
+    }
 }
 
 #[derive(Debug, Subcommand)]
@@ -171,9 +213,36 @@ fn serve(common: &CommonArgs, device: Box<dyn Device>) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Runs the rig until a signal arrives.
+fn run_rig(args: &RigArgs) -> anyhow::Result<()> {
+    install_signal_handlers()?;
+    let world = load_world(args.world.as_ref())?;
+    let rig = Rig::start(
+        world,
+        &RigOptions {
+            dir: args.dir.clone(),
+            at: args.at,
+            truth: args.truth.clone(),
+            seed: args.seed,
+        },
+    )?;
+    let mut stdout = std::io::stdout().lock();
+    for path in rig.paths() {
+        writeln!(stdout, "{}", path.display()).context("cannot write to stdout")?;
+    }
+    stdout.flush().context("cannot write to stdout")?;
+    while !STOP.load(Ordering::SeqCst) {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    tracing::info!("stopping");
+    rig.shutdown();
+    Ok(())
+}
+
 fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Demo(args) => demo::run(&args),
+        Command::Rig(args) => run_rig(&args),
         Command::Device {
             device: DeviceCommand::Rplidar(args),
         } => {
@@ -208,7 +277,7 @@ fn main() {
     // The demo prints its own summary; devices log their plugging and client connections.
     let default_level = match cli.command {
         Command::Demo(_) => "warn",
-        Command::Device { .. } => "info",
+        Command::Device { .. } | Command::Rig(_) => "info",
     };
     tracing_subscriber::fmt()
         .with_env_filter(
@@ -216,6 +285,7 @@ fn main() {
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default_level)),
         )
         .with_writer(std::io::stderr)
+        .with_ansi(std::io::stderr().is_terminal())
         .init();
     if let Err(e) = run(cli) {
         eprintln!("scan3d-sim: error: {}", one_line(&e));
@@ -278,6 +348,19 @@ mod tests {
             "0.001",
         ]);
         assert!(ok.is_ok());
+        let rig = Cli::try_parse_from(["scan3d-sim", "rig", "--dir", "/tmp/r", "--at", "1.5,3,90"]);
+        assert!(matches!(
+            rig,
+            Ok(Cli {
+                command: Command::Rig(RigArgs {
+                    at: Some([1.5, 3.0, 90.0]),
+                    ..
+                })
+            })
+        ));
+        assert!(
+            Cli::try_parse_from(["scan3d-sim", "rig", "--dir", "/tmp/r", "--at", "1.5,3"]).is_err()
+        );
         for bad in [
             [
                 "scan3d-sim",

@@ -1,0 +1,368 @@
+//! `scan3d-sim rig`: the whole sensor head, in real time, for the real `scan3d-edge` daemon.
+//!
+//! In `DIR`: the RPLidar and the Sweep on ptys (`ttyRPLIDAR`, `ttySWEEP`, their real
+//! protocols), the MPU-9250/AK8963 and the PCA9685 motor HAT on one emulated I2C bus behind
+//! `i2c.sock` ([`crate::i2c_socket`]), and `edge.toml` with the edge's sensor sections for this
+//! head ([`edge_toml`]). Everything runs on one clock at time scale 1.
+//!
+//! Frames: `room` is the map; `base` is the turntable's frame on the floor (origin on the
+//! turntable axis, z up, x along turntable yaw 0), standing at `--at X,Y,HEADING` in `room`;
+//! each sensor's mount pose in `base` is written to `edge.toml` (`[rplidar.mount]`,
+//! `[sweep.mount]`, `[imu.mount]`). The static head: the Sweep on the turntable, turned when
+//! the edge steps the stepper; the RPLidar horizontal on the base.
+//!
+//! `--truth FILE` writes the pose of `base` in `room` as TUM lines ([`TumWriter`]).
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+use anyhow::Context;
+use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use scan3d_edge::clock::{ScaledClock, SharedClock};
+use scan3d_edge::drivers::stepper::Port;
+use scan3d_map::cloud::assembly::Position;
+
+use crate::faults::FaultConfig;
+use crate::i2c::I2cBus;
+use crate::i2c_socket::I2cSocketServer;
+use crate::imu::{ImuEmulator, StaticTruth};
+use crate::pty::{PtyDevice, PtyHandle, PtyOptions};
+use crate::rplidar::{RplidarEmulator, RplidarEmulatorConfig};
+use crate::stepper::Pca9685Emulator;
+use crate::sweep::{SweepEmulator, SweepEmulatorConfig};
+use crate::turntable::TurntableMount;
+use crate::turntable_head::DEMO_MOUNT;
+use crate::world::World;
+
+/// The RPLidar's link in the rig's directory.
+pub const RPLIDAR_LINK: &str = "ttyRPLIDAR";
+/// The Sweep's link in the rig's directory.
+pub const SWEEP_LINK: &str = "ttySWEEP";
+/// The I2C bus's socket in the rig's directory.
+pub const I2C_SOCKET: &str = "i2c.sock";
+/// The edge's sensor sections for this head, in the rig's directory.
+pub const EDGE_TOML: &str = "edge.toml";
+
+/// The RPLidar's mount in `base`: horizontal, 0.4 m up, 0.15 m behind the turntable axis.
+pub const RPLIDAR_MOUNT: [f64; 6] = [-0.15, 0.0, 0.4, 0.0, 0.0, 0.0];
+/// The IMU's mount in `base`: level on the base, 0.1 m up, chip axes = base axes.
+pub const IMU_MOUNT: [f64; 6] = [0.0, -0.1, 0.1, 0.0, 0.0, 0.0];
+/// The Sweep's rotation rate the rig's `edge.toml` asks for, Hz: with 3.6° per revolution a
+/// 180° static scan takes 50 revolutions, 10 s, and the two steps (20 ms at 100 steps/s) fit
+/// in the 60° blind sector (33 ms at 5 Hz).
+pub const SWEEP_MOTOR_HZ: u8 = 5;
+/// Full steps (1.8° each) per Sweep revolution in the rig's `[static_scan]`.
+pub const STEPS_PER_REVOLUTION: u32 = 2;
+/// Truth lines per second.
+pub const TRUTH_HZ: f64 = 50.0;
+
+/// What `scan3d-sim rig` runs.
+#[derive(Debug, Clone)]
+pub struct RigOptions {
+    /// Directory of the links, the socket and `edge.toml` (created if missing).
+    pub dir: PathBuf,
+    /// Where `base` stands in `room`: x, y (m) and the heading of its x axis (deg); `None` =
+    /// the room's centre, heading 0.
+    pub at: Option<[f64; 3]>,
+    /// Where to write the true trajectory of `base` (TUM lines).
+    pub truth: Option<PathBuf>,
+    /// Seed of the range noise.
+    pub seed: u64,
+}
+
+/// A running rig; [`Rig::shutdown`] (or drop) stops it and removes its links and socket.
+pub struct Rig {
+    rplidar: Option<PtyHandle>,
+    sweep: Option<PtyHandle>,
+    i2c: Option<I2cSocketServer>,
+    edge_toml: PathBuf,
+    truth: Option<(Arc<AtomicBool>, JoinHandle<()>)>,
+}
+
+/// A pose of `base` in `room` from x, y (m) and heading (deg).
+pub fn base_pose(at: [f64; 3]) -> Isometry3<f64> {
+    Isometry3::from_parts(
+        Translation3::new(at[0], at[1], 0.0),
+        UnitQuaternion::from_axis_angle(&Vector3::z_axis(), at[2].to_radians()),
+    )
+}
+
+/// A mount pose (x, y, z m; roll, pitch, yaw deg, intrinsic Z-Y-X) as an isometry sensor → base.
+pub fn mount_pose(m: [f64; 6]) -> Isometry3<f64> {
+    Isometry3::from_parts(
+        Translation3::new(m[0], m[1], m[2]),
+        UnitQuaternion::from_euler_angles(m[3].to_radians(), m[4].to_radians(), m[5].to_radians()),
+    )
+}
+
+impl Rig {
+    /// Starts every device in `world` and writes `edge.toml`.
+    pub fn start(world: Arc<World>, options: &RigOptions) -> anyhow::Result<Self> {
+        let dir = &options.dir;
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        let at = options.at.unwrap_or_else(|| {
+            let room = world.room();
+            [
+                (room.min.x + room.max.x) / 2.0,
+                (room.min.y + room.max.y) / 2.0,
+                0.0,
+            ]
+        });
+        let base = base_pose(at);
+        let clock = ScaledClock::new(1.0);
+        let shared: SharedClock = Arc::new(clock);
+        let bus = I2cBus::with_clock(shared);
+        let hat = Arc::new(Mutex::new(Pca9685Emulator::motor_hat()));
+        let turntable = hat
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .turntable(Port::One);
+        bus.attach(hat);
+        bus.attach(Arc::new(Mutex::new(ImuEmulator::new(
+            Default::default(),
+            Arc::new(StaticTruth::default()),
+        ))));
+        let pty = |seed: u64| PtyOptions {
+            time_scale: 1.0,
+            faults: FaultConfig::default(),
+            seed,
+            epoch: Some(clock.epoch()),
+        };
+        let rplidar = RplidarEmulator::new(
+            RplidarEmulatorConfig::default(),
+            RplidarEmulator::default_scanner(world.clone(), base * mount_pose(RPLIDAR_MOUNT)),
+            options.seed,
+        );
+        let rplidar =
+            PtyDevice::spawn(dir.join(RPLIDAR_LINK), Box::new(rplidar), pty(options.seed))
+                .context("cannot start the emulated RPLidar")?;
+        let position = Position {
+            name: "rig".into(),
+            x_m: at[0],
+            y_m: at[1],
+            heading_deg: at[2],
+        };
+        let sweep = SweepEmulator::new(
+            SweepEmulatorConfig::default(),
+            SweepEmulator::default_scanner(world, crate::mounts::sweep()),
+            options.seed.wrapping_add(1),
+        )
+        .with_pose_source(TurntableMount::new(turntable, position, DEMO_MOUNT));
+        let sweep = PtyDevice::spawn(
+            dir.join(SWEEP_LINK),
+            Box::new(sweep),
+            pty(options.seed.wrapping_add(101)),
+        )
+        .context("cannot start the emulated Sweep")?;
+        let i2c = I2cSocketServer::start(&dir.join(I2C_SOCKET), bus)?;
+        let edge_toml = dir.join(EDGE_TOML);
+        let text = edge_toml_text(rplidar.link(), sweep.link(), i2c.path());
+        std::fs::write(&edge_toml, text)
+            .with_context(|| format!("cannot write {}", edge_toml.display()))?;
+        let truth = match &options.truth {
+            Some(path) => Some(start_truth(path, base)?),
+            None => None,
+        };
+        tracing::info!(
+            rplidar = %rplidar.link().display(),
+            sweep = %sweep.link().display(),
+            i2c = %i2c.path().display(),
+            x = at[0], y = at[1], heading_deg = at[2],
+            "rig running: static head"
+        );
+        Ok(Self {
+            rplidar: Some(rplidar),
+            sweep: Some(sweep),
+            i2c: Some(i2c),
+            edge_toml,
+            truth,
+        })
+    }
+
+    /// The paths the rig created: the two links, the socket, `edge.toml`.
+    pub fn paths(&self) -> Vec<PathBuf> {
+        let mut paths = Vec::new();
+        paths.extend(self.rplidar.as_ref().map(|p| p.link().to_path_buf()));
+        paths.extend(self.sweep.as_ref().map(|p| p.link().to_path_buf()));
+        paths.extend(self.i2c.as_ref().map(|s| s.path().to_path_buf()));
+        paths.push(self.edge_toml.clone());
+        paths
+    }
+
+    /// Stops every device and removes the links and the socket (`edge.toml` stays).
+    pub fn shutdown(mut self) {
+        self.stop();
+    }
+
+    fn stop(&mut self) {
+        if let Some((stop, thread)) = self.truth.take() {
+            stop.store(true, Ordering::SeqCst);
+            let _ = thread.join();
+        }
+        if let Some(i2c) = self.i2c.take() {
+            i2c.shutdown();
+        }
+        for pty in [self.rplidar.take(), self.sweep.take()]
+            .into_iter()
+            .flatten()
+        {
+            pty.shutdown();
+        }
+    }
+}
+
+impl Drop for Rig {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
+
+/// The edge's sensor sections for the static head whose devices are at these paths. An
+/// operator prepends `device_name` and `state_dir` and appends `[uplink]`.
+pub fn edge_toml_text(rplidar: &Path, sweep: &Path, i2c_socket: &Path) -> String {
+    let mount = |m: [f64; 6]| {
+        format!(
+            "x = {:?}\ny = {:?}\nz = {:?}\nroll = {:?}\npitch = {:?}\nyaw = {:?}\n",
+            m[0], m[1], m[2], m[3], m[4], m[5]
+        )
+    };
+    // The Sweep on the turntable as eq. (1) has it: spin axis along base -x, azimuth 0 up.
+    let sweep_mount = [
+        DEMO_MOUNT.axis_offset_m,
+        0.0,
+        DEMO_MOUNT.height_m,
+        0.0,
+        -90.0,
+        0.0,
+    ];
+    format!(
+        "# The sensor head of `scan3d-sim rig` (generated). Prepend device_name and state_dir,\n\
+         # append [uplink].\n\n\
+         [rplidar]\npath = {rplidar:?}\n\n[rplidar.mount]\n{rplidar_mount}\n\
+         [sweep]\npath = {sweep:?}\nmotor_hz = {SWEEP_MOTOR_HZ}\n\n[sweep.mount]\n{sweep_mount}\n\
+         [i2c]\nsocket = {i2c_socket:?}\n\n\
+         [imu]\n\n[imu.mount]\n{imu_mount}\n\
+         [stepper]\n\n\
+         [static_scan]\nsteps_per_revolution_of_sweep = {STEPS_PER_REVOLUTION}\n",
+        rplidar = rplidar.display().to_string(),
+        sweep = sweep.display().to_string(),
+        i2c_socket = i2c_socket.display().to_string(),
+        rplidar_mount = mount(RPLIDAR_MOUNT),
+        sweep_mount = mount(sweep_mount),
+        imu_mount = mount(IMU_MOUNT),
+    )
+}
+
+/// Writes poses as TUM lines `t x y z qx qy qz qw`, each flushed.
+pub struct TumWriter<W: Write> {
+    out: W,
+}
+
+impl<W: Write> TumWriter<W> {
+    /// A writer onto `out`.
+    pub fn new(out: W) -> Self {
+        Self { out }
+    }
+
+    /// One line: `t` in seconds, the pose's translation and its rotation as a unit quaternion.
+    pub fn pose(&mut self, t_s: f64, pose: &Isometry3<f64>) -> std::io::Result<()> {
+        let p = pose.translation.vector;
+        let q = pose.rotation.quaternion();
+        writeln!(
+            self.out,
+            "{t_s:.6} {:.6} {:.6} {:.6} {:.9} {:.9} {:.9} {:.9}",
+            p.x, p.y, p.z, q.i, q.j, q.k, q.w
+        )?;
+        self.out.flush()
+    }
+
+    /// The last line once `base` rests at the end of its path.
+    pub fn end_of_path(&mut self) -> std::io::Result<()> {
+        writeln!(self.out, "# end of path")?;
+        self.out.flush()
+    }
+}
+
+fn unix_now_s() -> f64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_secs_f64())
+        .unwrap_or(0.0)
+}
+
+/// The static head's truth: its constant pose at [`TRUTH_HZ`] until stopped.
+fn start_truth(
+    path: &Path,
+    base: Isometry3<f64>,
+) -> anyhow::Result<(Arc<AtomicBool>, JoinHandle<()>)> {
+    let file = std::fs::File::create(path)
+        .with_context(|| format!("cannot create the truth file {}", path.display()))?;
+    let mut writer = TumWriter::new(std::io::BufWriter::new(file));
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    let path = path.to_path_buf();
+    let thread = std::thread::Builder::new()
+        .name("rig-truth".into())
+        .spawn(move || {
+            let period = Duration::from_secs_f64(1.0 / TRUTH_HZ);
+            let mut next = std::time::Instant::now();
+            while !flag.load(Ordering::SeqCst) {
+                if let Err(e) = writer.pose(unix_now_s(), &base) {
+                    tracing::error!(path = %path.display(), "cannot write the truth: {e}");
+                    return;
+                }
+                next += period;
+                if let Some(wait) = next.checked_duration_since(std::time::Instant::now()) {
+                    std::thread::sleep(wait);
+                }
+            }
+        })
+        .context("cannot start the truth thread")?;
+    Ok((stop, thread))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tum_lines_carry_the_pose_and_the_end() {
+        let mut out = Vec::new();
+        let mut writer = TumWriter::new(&mut out);
+        writer
+            .pose(1_700_000_000.25, &base_pose([1.5, 3.0, 90.0]))
+            .unwrap();
+        writer.end_of_path().unwrap();
+        let text = String::from_utf8(out).unwrap();
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines.len(), 2);
+        let v: Vec<f64> = lines[0].split(' ').map(|f| f.parse().unwrap()).collect();
+        assert_eq!(v.len(), 8);
+        assert_eq!(v[0], 1_700_000_000.25);
+        assert_eq!(&v[1..4], &[1.5, 3.0, 0.0]);
+        let h = std::f64::consts::FRAC_PI_4;
+        let expected = [0.0, 0.0, h.sin(), h.cos()];
+        for (got, want) in v[4..].iter().zip(expected) {
+            assert!((got - want).abs() < 1e-8, "{v:?}");
+        }
+        assert_eq!(lines[1], "# end of path");
+    }
+
+    #[test]
+    fn the_sweep_mount_is_the_demo_turntable() {
+        let text = edge_toml_text(Path::new("/r"), Path::new("/s"), Path::new("/i"));
+        let table: toml::Table = text.parse().unwrap();
+        let mount = &table["sweep"]["mount"];
+        assert_eq!(mount["x"].as_float(), Some(DEMO_MOUNT.axis_offset_m));
+        assert_eq!(mount["pitch"].as_float(), Some(-90.0));
+        assert_eq!(table["i2c"]["socket"].as_str(), Some("/i"));
+        assert_eq!(table["rplidar"]["path"].as_str(), Some("/r"));
+        // The mount rotation maps the Sweep's spin axis (z) to base -x.
+        let spin = mount_pose([0.05, 0.0, 1.0, 0.0, -90.0, 0.0]).rotation * Vector3::z();
+        assert!((spin + Vector3::x()).norm() < 1e-12);
+    }
+}
