@@ -238,6 +238,147 @@ mod tests {
         assert!("1,nan".parse::<At>().is_err());
     }
 
+    /// A control socket in `dir` with edge `pi` connected, whose connection task is scripted:
+    /// each command is answered by `answer(seq, command)`'s frames.
+    fn scripted_edge(
+        dir: &std::path::Path,
+        answer: impl Fn(u64, &Command) -> Vec<scan3d_protocol::Body> + Send + 'static,
+    ) -> (tokio::runtime::Runtime, std::path::PathBuf) {
+        use crate::ingest::control::{ControlLimits, ControlSocket, EdgeControl, SentCommand};
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(1)
+            .enable_all()
+            .build()
+            .unwrap();
+        let control = EdgeControl::default();
+        let mut commands = control.register("pi");
+        let socket = runtime.block_on(async {
+            ControlSocket::bind(socket_path(dir), ControlLimits::default())
+                .await
+                .unwrap()
+        });
+        let path = socket.path().to_path_buf();
+        runtime.spawn(socket.serve(control.clone()));
+        runtime.spawn(async move {
+            let mut seq = 0;
+            while let Some(queued) = commands.recv().await {
+                if let Some(sent) = queued.sent {
+                    let _ = sent.send(SentCommand { session_id: 1, seq });
+                }
+                for (i, body) in answer(seq, &queued.command).into_iter().enumerate() {
+                    control.publish("pi", &scan3d_protocol::Frame::new(1, 100 + i as u64, body));
+                }
+                seq += 1;
+            }
+        });
+        (runtime, path)
+    }
+
+    fn run_cli(dir: &std::path::Path, args: &[&str]) -> (anyhow::Result<()>, String) {
+        use clap::Parser;
+        let dir = dir.to_str().unwrap();
+        let mut argv = vec!["scan3d", "scan", "--edge", "pi", "--data-dir", dir];
+        argv.extend_from_slice(args);
+        let cli = crate::cli::Cli::try_parse_from(argv).unwrap();
+        let mut out = Vec::new();
+        let result = crate::cli::execute(cli, &mut out);
+        (result, String::from_utf8(out).unwrap())
+    }
+
+    #[test]
+    fn wait_follows_the_scan_to_its_end_and_a_refusal_is_an_error_with_the_edges_reason() {
+        use scan3d_protocol::{
+            CommandOutcome, CommandReply, StaticScan, StaticScanEnd, StaticScanOutcome,
+            StaticScanYaws, YawRun,
+        };
+        let dir = tempfile::tempdir().unwrap();
+        let (_runtime, _socket) = scripted_edge(dir.path(), |seq, command| {
+            let reply = |outcome| {
+                CommandReply {
+                    command_seq: seq,
+                    t_ns: 1,
+                    outcome,
+                }
+                .into()
+            };
+            match command {
+                Command::StopStaticScan => vec![reply(CommandOutcome::Refused {
+                    reason: "no static scan is running".into(),
+                })],
+                _ => {
+                    let yaws = |yaw_deg| {
+                        StaticScan::Yaws(StaticScanYaws {
+                            scan_id: 0,
+                            revolution_t0_ns: 0,
+                            runs: vec![YawRun {
+                                first_index: 0,
+                                count: 1,
+                                yaw_deg,
+                            }],
+                        })
+                        .into()
+                    };
+                    vec![
+                        reply(CommandOutcome::Accepted { scan_id: Some(0) }),
+                        yaws(90.0),
+                        yaws(180.0),
+                        StaticScan::Finished(StaticScanEnd {
+                            scan_id: 0,
+                            t_ns: 2,
+                            outcome: StaticScanOutcome::Completed,
+                            yaw_deg: 180.0,
+                            revolutions: 2,
+                            tagged: 2,
+                            blocked: 0,
+                            untrusted: 0,
+                            late_steps: 0,
+                            failed_steps: 0,
+                        })
+                        .into(),
+                    ]
+                }
+            }
+        });
+        let (result, out) = run_cli(dir.path(), &["--at", "1,2", "--name", "door", "--wait"]);
+        result.unwrap();
+        let lines: Vec<&str> = out.lines().collect();
+        assert_eq!(
+            lines.last().copied(),
+            Some(
+                "static scan 0 at \"\": 2 revolutions, yaw 180.0° of 0.0°, 0 late steps, 0 failed steps — completed"
+            ),
+            "{out}"
+        );
+        assert!(lines.len() >= 2, "progress lines before the end: {out}");
+        let (result, out) = run_cli(dir.path(), &["--at", "1,2", "--json"]);
+        result.unwrap();
+        let status: serde_json::Value = serde_json::from_str(&out).unwrap();
+        assert_eq!(status["state"], "accepted");
+        assert_eq!(status["scan_id"], 0);
+        let (result, out) = run_cli(dir.path(), &["--stop"]);
+        assert_eq!(
+            result.unwrap_err().to_string(),
+            "edge pi refused: no static scan is running"
+        );
+        assert_eq!(out, "", "a refusal prints nothing on stdout");
+        let (result, out) = run_cli(dir.path(), &["--stop", "--json"]);
+        assert!(result.is_err());
+        let status: serde_json::Value = serde_json::from_str(&out).unwrap();
+        assert_eq!(
+            (status["state"].as_str(), status["ok"].as_bool()),
+            (Some("refused"), Some(false))
+        );
+        // An edge that never answers: bounded, with the reason.
+        std::fs::create_dir(dir.path().join("silent")).unwrap();
+        let (_silent_runtime, _) = scripted_edge(&dir.path().join("silent"), |_, _| Vec::new());
+        let (result, _) = run_cli(&dir.path().join("silent"), &["--stop", "--timeout", "0.5"]);
+        let err = result.unwrap_err().to_string();
+        assert!(
+            err.starts_with("edge pi did not answer: no answer within 0.5 s"),
+            "{err}"
+        );
+    }
+
     #[test]
     fn an_invalid_command_is_refused_before_the_server_is_asked() {
         use clap::Parser;

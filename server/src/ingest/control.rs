@@ -607,7 +607,7 @@ impl CommandFollower {
             self.reason = Some(match &self.lost {
                 Some((_, why)) => format!("the edge disconnected before it answered ({why})"),
                 None => format!(
-                    "no answer within {:.0} s (is the edge's scan3d-edge as new as this server?)",
+                    "no answer within {} s (is the edge's scan3d-edge as new as this server?)",
                     self.timing.reply_timeout.as_secs_f64()
                 ),
             });
@@ -617,7 +617,7 @@ impl CommandFollower {
             && now.duration_since(*since) >= self.timing.lost_grace
         {
             self.reason = Some(format!(
-                "the edge's connection ended ({why}) and did not come back within {:.0} s",
+                "the edge's connection ended ({why}) and did not come back within {} s",
                 self.timing.lost_grace.as_secs_f64()
             ));
             self.state = CommandState::Lost;
