@@ -68,12 +68,13 @@ const BAR_COLORS: [RGBColor; 4] = [
     RGBColor(44, 160, 44),
     RGBColor(214, 39, 40),
 ];
-const BAR_NAMES: [&str; 4] = [
+const BAR_NAMES: [&str; 3] = [
     "IoU (weighted, eq. M7)",
-    "log-odds error, mean (eq. M8)",
     "correlation (eq. M9)",
     "mean probability ± mean |p_ref − p_tar|",
 ];
+/// The colour of the similarity bars, in [`BAR_NAMES`] order.
+const SIMILARITY_COLORS: [RGBColor; 3] = [BAR_COLORS[0], BAR_COLORS[2], BAR_COLORS[3]];
 
 fn fig11<DB: DrawingBackend>(
     root: DrawingArea<DB, Shift>,
@@ -87,30 +88,31 @@ where
         return Err(PlotError::NoData);
     }
     root.fill(&WHITE).map_err(draw_err)?;
-    let bars = |g: &Fig11Group| {
-        [
-            Some(g.iou),
-            g.log_odds_mean,
-            g.correlation,
-            g.mean_probability,
-        ]
-    };
-    let top = groups
-        .iter()
-        .flat_map(|g| {
-            let mut v = bars(g).to_vec();
-            v.push(Some(
-                g.mean_probability.unwrap_or(0.0) + g.deviation.unwrap_or(0.0),
-            ));
-            v
-        })
-        .flatten()
-        .filter(|v| v.is_finite())
-        .fold(1.0f64, f64::max)
-        * 1.4;
+    let root = root
+        .titled("Fig. 11: metric scores against the reference", (FAMILY, 24))
+        .map_err(draw_err)?;
+    // The similarities share a 0–1 axis; the log-odds error (nats, 0 is ideal, unbounded) has
+    // its own panel and axis.
+    let (left, right) = root.split_horizontally((SIZE.0 as f64 * 0.70) as u32);
+    similarities(&left, groups)?;
+    log_odds_panel(&right, groups)?;
+    root.present().map_err(draw_err)
+}
+
+/// The 0–1 panel: IoU, correlation, mean probability with its deviation whisker.
+fn similarities<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    groups: &[Fig11Group],
+) -> Result<(), PlotError>
+where
+    DB::ErrorType: 'static,
+{
+    let bars = |g: &Fig11Group| [Some(g.iou), g.correlation, g.mean_probability];
+    // Room above 1 for the value labels and the legend.
+    let top = 1.45;
     let n = groups.len() as f64;
-    let mut chart = ChartBuilder::on(&root)
-        .caption("Fig. 11: metric scores against the reference", (FAMILY, 24))
+    let mut chart = ChartBuilder::on(area)
+        .caption("similarity (1 = identical)", (FAMILY, 17))
         .margin(15)
         .x_label_area_size(40)
         .y_label_area_size(55)
@@ -120,15 +122,24 @@ where
         .configure_mesh()
         .disable_x_mesh()
         .disable_x_axis()
-        .y_desc("score")
+        .y_desc("score (0–1)")
+        .y_labels(8)
+        .y_label_formatter(&|v| {
+            if *v <= 1.0 + 1e-9 {
+                format!("{v:.1}")
+            } else {
+                String::new()
+            }
+        })
         .label_style((FAMILY, 15))
         .draw()
         .map_err(draw_err)?;
-    let width = 0.18;
-    for (k, (color, name)) in BAR_COLORS.iter().zip(BAR_NAMES).enumerate() {
+    let width = 0.24;
+    let x_of = |i: usize, k: usize| i as f64 + 0.14 + k as f64 * width;
+    for (k, (color, name)) in SIMILARITY_COLORS.iter().zip(BAR_NAMES).enumerate() {
         let rects = groups.iter().enumerate().filter_map(move |(i, g)| {
             let v = bars(g)[k].filter(|v| v.is_finite())?;
-            let x0 = i as f64 + 0.14 + k as f64 * width;
+            let x0 = x_of(i, k);
             Some(Rectangle::new(
                 [(x0, 0.0), (x0 + width * 0.9, v)],
                 color.filled(),
@@ -148,7 +159,7 @@ where
         if !(p.is_finite() && d.is_finite()) {
             continue;
         }
-        let x = i as f64 + 0.14 + 3.45 * width;
+        let x = x_of(i, 2) + 0.45 * width;
         let (y0, y1) = ((p - d).max(0.0), p + d);
         let lines = [
             vec![(x, y0), (x, y1)],
@@ -168,9 +179,9 @@ where
     for (i, g) in groups.iter().enumerate() {
         for (k, v) in bars(g).iter().enumerate() {
             if let Some(v) = v.filter(|v| v.is_finite()) {
-                let x = i as f64 + 0.14 + (k as f64 + 0.45) * width;
+                let x = x_of(i, k) + 0.45 * width;
                 // The red bar's number goes above its whisker.
-                let above = if k == 3 {
+                let above = if k == 2 {
                     v + g.deviation.unwrap_or(0.0)
                 } else {
                     v
@@ -201,8 +212,65 @@ where
         .border_style(BLACK)
         .label_font((FAMILY, 14))
         .draw()
+        .map_err(draw_err)
+}
+
+/// The log-odds error panel: eq. M8's mean per common voxel, in nats, on its own axis.
+fn log_odds_panel<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    groups: &[Fig11Group],
+) -> Result<(), PlotError>
+where
+    DB::ErrorType: 'static,
+{
+    let highest = groups
+        .iter()
+        .filter_map(|g| g.log_odds_mean)
+        .filter(|v| v.is_finite())
+        .fold(0.0f64, f64::max);
+    let top = if highest > 0.0 { highest * 1.25 } else { 0.1 };
+    let n = groups.len() as f64;
+    let color = BAR_COLORS[1];
+    let mut chart = ChartBuilder::on(area)
+        .caption("log-odds error (eq. M8; 0 = identical)", (FAMILY, 17))
+        .margin(15)
+        .x_label_area_size(40)
+        .y_label_area_size(65)
+        .build_cartesian_2d(0.0..n, 0.0..top)
         .map_err(draw_err)?;
-    root.present().map_err(draw_err)
+    chart
+        .configure_mesh()
+        .disable_x_mesh()
+        .disable_x_axis()
+        .y_desc("nats per common voxel")
+        .label_style((FAMILY, 13))
+        .draw()
+        .map_err(draw_err)?;
+    let width = 0.5;
+    chart
+        .draw_series(groups.iter().enumerate().filter_map(|(i, g)| {
+            let v = g.log_odds_mean.filter(|v| v.is_finite())?;
+            let x0 = i as f64 + 0.25;
+            Some(Rectangle::new([(x0, 0.0), (x0 + width, v)], color.filled()))
+        }))
+        .map_err(draw_err)?;
+    let style = TextStyle::from((FAMILY, 12).into_font()).pos(Pos::new(HPos::Center, VPos::Bottom));
+    let label = TextStyle::from((FAMILY, 13).into_font()).pos(Pos::new(HPos::Center, VPos::Top));
+    for (i, g) in groups.iter().enumerate() {
+        let x = i as f64 + 0.5;
+        let text = g
+            .log_odds_mean
+            .filter(|v| v.is_finite())
+            .map_or_else(|| "-".to_string(), |v| format!("{v:.4}"));
+        let v = g.log_odds_mean.filter(|v| v.is_finite()).unwrap_or(0.0);
+        chart
+            .draw_series([
+                Text::new(text, (x, v + top * 0.01), style.clone()),
+                Text::new(g.label.clone(), (x, -top * 0.01), label.clone()),
+            ])
+            .map_err(draw_err)?;
+    }
+    Ok(())
 }
 
 /// Fig. 11 as an SVG document.
