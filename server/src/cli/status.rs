@@ -161,11 +161,12 @@ pub fn table(report: &Value) -> String {
                 .map(str::to_owned)
                 .to_vec(),
             ];
+            let mut reasons = vec![String::new()];
             for sensor in &sensors {
-                let mut state = sensor["state"].as_str().unwrap_or("?").to_owned();
-                if let Some(reason) = sensor["reason"].as_str() {
-                    state = format!("{state} ({reason})");
-                }
+                let state = sensor["state"].as_str().unwrap_or("?").to_owned();
+                // The reason goes last: it can be a long error chain, and trailing it keeps the
+                // numeric columns aligned and readable.
+                let reason = sensor["reason"].as_str().unwrap_or("").to_owned();
                 rows.push(vec![
                     sensor["kind"].as_str().unwrap_or("?").to_owned(),
                     sensor["model"].as_str().unwrap_or("").to_owned(),
@@ -176,9 +177,11 @@ pub fn table(report: &Value) -> String {
                         .as_f64()
                         .map_or("never".to_owned(), |a| format!("{a:.1} s ago")),
                 ]);
+                reasons.push(reason);
             }
-            for line in columns(&rows, 3).lines() {
-                let _ = writeln!(s, "  {line}");
+            // The header's reason is empty; each sensor's trails its row.
+            for (line, reason) in columns(&rows, 3).lines().zip(reasons) {
+                let _ = writeln!(s, "  {}", format!("{line}  {reason}").trim_end());
             }
         }
         let scans = edge["static_scans"].as_array().cloned().unwrap_or_default();
@@ -256,7 +259,14 @@ mod tests {
             lines[2].starts_with("a-much-longer-edge-name  gone "),
             "{table}"
         );
-        assert!(table.contains("sweep   Sweep  lost (unplugged)"), "{table}");
+        let sweep = table
+            .lines()
+            .find(|line| line.trim_start().starts_with("sweep"))
+            .expect("a sweep row");
+        assert!(
+            sweep.contains(" lost ") && sweep.ends_with("s ago  unplugged"),
+            "the reason trails the row: {table}"
+        );
         assert!(
             table.contains("4.2 s ago") || table.contains("4.3 s ago"),
             "{table}"
