@@ -255,43 +255,6 @@ fn a_command_sent_after_a_reconnect_is_recorded_not_taken_for_a_resend() {
     );
 }
 
-/// A 4 × 3 × 2.5 m room of six walls.
-const ROOM: &str = r#"
-[room]
-min = [0.0, 0.0, 0.0]
-max = [4.0, 3.0, 2.5]
-
-[[box]]
-name = "floor"
-min = [-0.1, -0.1, -0.1]
-max = [4.1, 3.1, 0.0]
-
-[[box]]
-name = "ceiling"
-min = [-0.1, -0.1, 2.5]
-max = [4.1, 3.1, 2.6]
-
-[[box]]
-name = "west"
-min = [-0.1, -0.1, 0.0]
-max = [0.0, 3.1, 2.5]
-
-[[box]]
-name = "east"
-min = [4.0, -0.1, 0.0]
-max = [4.1, 3.1, 2.5]
-
-[[box]]
-name = "south"
-min = [-0.1, -0.1, 0.0]
-max = [4.1, 0.0, 2.5]
-
-[[box]]
-name = "north"
-min = [-0.1, 3.0, 0.0]
-max = [4.1, 3.1, 2.5]
-"#;
-
 /// The real edge daemon on the emulated turntable head (Sweep on a pty, stepper and IMU on
 /// the emulated I2C bus), streaming to `server`.
 struct Head {
@@ -304,7 +267,7 @@ impl Head {
     /// `settle_ms`: the Sweep's motor settle time (simulated ms at 10× speed), so a scan asked
     /// for early finds the Sweep not streaming yet. `stepper`: whether edge.toml has one.
     fn start(site: &Site, settle_ms: u64, stepper: bool) -> Self {
-        let world = Arc::new(World::from_toml_str(ROOM).expect("room"));
+        let world = Arc::new(World::from_toml_str(scan3d_tests::BOX_ROOM).expect("room"));
         let start = Position {
             name: "a".into(),
             x_m: 2.0,

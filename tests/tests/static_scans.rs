@@ -15,43 +15,6 @@ use scan3d_map::cloud::assembly::{Position, StaticScanAssembler};
 use scan3d_protocol::{Body, SensorId, StaticScan};
 use scan3d_server::ingest::recorder::visit_session;
 
-/// A 4 × 3 × 2.5 m box room.
-const BOX_ROOM: &str = r#"
-[room]
-min = [0.0, 0.0, 0.0]
-max = [4.0, 3.0, 2.5]
-
-[[box]]
-name = "floor"
-min = [-0.1, -0.1, -0.1]
-max = [4.1, 3.1, 0.0]
-
-[[box]]
-name = "ceiling"
-min = [-0.1, -0.1, 2.5]
-max = [4.1, 3.1, 2.6]
-
-[[box]]
-name = "west"
-min = [-0.1, -0.1, 0.0]
-max = [0.0, 3.1, 2.5]
-
-[[box]]
-name = "east"
-min = [4.0, -0.1, 0.0]
-max = [4.1, 3.1, 2.5]
-
-[[box]]
-name = "south"
-min = [-0.1, -0.1, 0.0]
-max = [4.1, 0.0, 2.5]
-
-[[box]]
-name = "north"
-min = [-0.1, 3.0, 0.0]
-max = [4.1, 3.1, 2.5]
-"#;
-
 fn position(name: &str, x_m: f64, y_m: f64, heading_deg: f64) -> Position {
     Position {
         name: name.into(),
@@ -62,7 +25,7 @@ fn position(name: &str, x_m: f64, y_m: f64, heading_deg: f64) -> Position {
 }
 
 fn run(name: &'static str, positions: Vec<Position>, noise: RangeNoise) -> Vec<Check> {
-    let world = Arc::new(World::from_toml_str(BOX_ROOM).expect("box room"));
+    let world = Arc::new(World::from_toml_str(scan3d_tests::BOX_ROOM).expect("box room"));
     let truth = GroundTruth::new(&world);
     let dir = tempfile::tempdir().expect("temp dir");
     let clouds = dir.path().join("clouds");
