@@ -15,27 +15,23 @@
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use anyhow::Context;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
-use scan3d_edge::clock::{ScaledClock, SharedClock};
-use scan3d_edge::drivers::stepper::Port;
+use scan3d_edge::clock::ScaledClock;
 use scan3d_map::cloud::assembly::Position;
 
 use crate::faults::FaultConfig;
-use crate::i2c::I2cBus;
 use crate::i2c_socket::I2cSocketServer;
-use crate::imu::{ImuEmulator, StaticTruth};
 use crate::pty::{PtyDevice, PtyHandle, PtyOptions};
 use crate::rplidar::{RplidarEmulator, RplidarEmulatorConfig};
-use crate::stepper::Pca9685Emulator;
 use crate::sweep::{SweepEmulator, SweepEmulatorConfig};
 use crate::turntable::TurntableMount;
-use crate::turntable_head::DEMO_MOUNT;
+use crate::turntable_head::{DEMO_MOUNT, head_bus};
 use crate::world::World;
 
 /// The RPLidar's link in the rig's directory.
@@ -114,18 +110,7 @@ impl Rig {
         });
         let base = base_pose(at);
         let clock = ScaledClock::new(1.0);
-        let shared: SharedClock = Arc::new(clock);
-        let bus = I2cBus::with_clock(shared);
-        let hat = Arc::new(Mutex::new(Pca9685Emulator::motor_hat()));
-        let turntable = hat
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .turntable(Port::One);
-        bus.attach(hat);
-        bus.attach(Arc::new(Mutex::new(ImuEmulator::new(
-            Default::default(),
-            Arc::new(StaticTruth::default()),
-        ))));
+        let (bus, _hat, turntable) = head_bus(Arc::new(clock));
         let pty = |seed: u64| PtyOptions {
             time_scale: 1.0,
             faults: FaultConfig::default(),

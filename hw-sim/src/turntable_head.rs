@@ -28,7 +28,7 @@ use crate::imu::{ImuEmulator, StaticTruth};
 use crate::installation::EDGE_NAME;
 use crate::noise::RangeNoise;
 use crate::pty::{PtyDevice, PtyHandle, PtyOptions};
-use crate::stepper::Pca9685Emulator;
+use crate::stepper::{Pca9685Emulator, Turntable};
 use crate::sweep::{SweepEmulator, SweepEmulatorConfig};
 use crate::turntable::TurntableMount;
 use crate::world::{PoseSource, Scanner, World};
@@ -53,6 +53,23 @@ pub struct TurntableHeadOptions {
     pub sweep_settle_ms: u64,
     /// The Sweep's range noise.
     pub noise: RangeNoise,
+}
+
+/// The head's I2C bus on `clock`: the PCA9685 motor HAT (its port 1 turns the turntable) and
+/// the MPU-9250/AK8963 at rest. Returns the bus, the HAT and the turntable it drives.
+pub fn head_bus(clock: SharedClock) -> (I2cBus, Arc<Mutex<Pca9685Emulator>>, Turntable) {
+    let bus = I2cBus::with_clock(clock);
+    let hat = Arc::new(Mutex::new(Pca9685Emulator::motor_hat()));
+    let turntable = hat
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .turntable(Port::One);
+    bus.attach(hat.clone());
+    bus.attach(Arc::new(Mutex::new(ImuEmulator::new(
+        Default::default(),
+        Arc::new(StaticTruth::default()),
+    ))));
+    (bus, hat, turntable)
 }
 
 /// A movable [`TurntableMount`]: the operator may carry the head between scans.
@@ -89,18 +106,7 @@ impl TurntableHead {
         std::fs::create_dir_all(links_dir)
             .with_context(|| format!("cannot create {}", links_dir.display()))?;
         let world_clock = ScaledClock::new(options.time_scale);
-        let shared: SharedClock = Arc::new(world_clock);
-        let bus = I2cBus::with_clock(shared);
-        let hat = Arc::new(Mutex::new(Pca9685Emulator::motor_hat()));
-        let turntable = hat
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .turntable(Port::One);
-        bus.attach(hat.clone());
-        bus.attach(Arc::new(Mutex::new(ImuEmulator::new(
-            Default::default(),
-            Arc::new(StaticTruth::default()),
-        ))));
+        let (bus, hat, turntable) = head_bus(Arc::new(world_clock));
         let mount = CarriedMount(Arc::new(RwLock::new(TurntableMount::new(
             turntable, start, DEMO_MOUNT,
         ))));
