@@ -1169,13 +1169,7 @@ pub fn request_command(
     on_update: &mut dyn FnMut(&CommandStatus),
 ) -> anyhow::Result<CommandStatus> {
     use std::io::{BufRead, Write};
-    let mut stream = std::os::unix::net::UnixStream::connect(path).map_err(|e| {
-        anyhow::anyhow!(
-            "cannot reach the server's control socket {} ({e}); is `scan3d serve` running with this data_dir?",
-            path.display()
-        )
-    })?;
-    stream.set_read_timeout(Some(STATUS_LINE_TIMEOUT))?;
+    let mut stream = connect_control(path, STATUS_LINE_TIMEOUT)?;
     let mut value = serde_json::to_value(request)?;
     if let serde_json::Value::Object(object) = &mut value {
         object.insert("request".into(), "command".into());
@@ -1243,19 +1237,29 @@ pub fn request_snapshot(
     Ok(reply)
 }
 
-fn request_with(
+/// Connects to the server's control socket at `path`, reads timing out after `timeout`; a
+/// socket nobody listens on is one line asking whether `scan3d serve` runs.
+fn connect_control(
     path: &Path,
-    request: &impl Serialize,
     timeout: std::time::Duration,
-) -> anyhow::Result<ControlReply> {
-    use std::io::{BufRead, Write};
-    let mut stream = std::os::unix::net::UnixStream::connect(path).map_err(|e| {
+) -> anyhow::Result<std::os::unix::net::UnixStream> {
+    let stream = std::os::unix::net::UnixStream::connect(path).map_err(|e| {
         anyhow::anyhow!(
             "cannot reach the server's control socket {} ({e}); is `scan3d serve` running with this data_dir?",
             path.display()
         )
     })?;
     stream.set_read_timeout(Some(timeout))?;
+    Ok(stream)
+}
+
+fn request_with(
+    path: &Path,
+    request: &impl Serialize,
+    timeout: std::time::Duration,
+) -> anyhow::Result<ControlReply> {
+    use std::io::{BufRead, Write};
+    let mut stream = connect_control(path, timeout)?;
     let mut line = serde_json::to_string(request)?;
     line.push('\n');
     // A server that refuses a request before reading all of it (too long) answers and closes:
