@@ -37,6 +37,10 @@ pub struct ServerConfig {
     /// The sliding window (s) of exchanges the clock model (offset and skew) is fitted over.
     #[serde(deserialize_with = "positive_u64")]
     pub time_sync_window_s: u64,
+    /// The largest frequency error (ppm) of an edge clock against the server's that time sync
+    /// estimates; a fitted skew is held within it.
+    #[serde(deserialize_with = "skew_bound_ppm")]
+    pub time_sync_max_skew_ppm: f64,
     /// Edges connected at once; further connections are refused.
     #[serde(deserialize_with = "positive_usize")]
     pub max_connections: usize,
@@ -177,6 +181,18 @@ fn positive_f64<'de, D: Deserializer<'de>>(deserializer: D) -> Result<Option<f64
     Ok(Some(value))
 }
 
+/// Accepts a skew bound from 1 to 100 000 ppm (10 %: beyond any working clock).
+fn skew_bound_ppm<'de, D: Deserializer<'de>>(deserializer: D) -> Result<f64, D::Error> {
+    let value = f64::deserialize(deserializer)?;
+    if !(1.0..=100_000.0).contains(&value) {
+        return Err(serde::de::Error::invalid_value(
+            serde::de::Unexpected::Float(value),
+            &"a skew bound from 1 to 100000 ppm",
+        ));
+    }
+    Ok(value)
+}
+
 /// Accepts a probability strictly between 0 and 1.
 fn probability<'de, D: Deserializer<'de>>(deserializer: D) -> Result<f64, D::Error> {
     let value = f64::deserialize(deserializer)?;
@@ -259,6 +275,7 @@ impl Default for ServerConfig {
             commit_interval_ms: 100,
             time_sync_interval_ms: 1000,
             time_sync_window_s: 120,
+            time_sync_max_skew_ppm: 1000.0,
             max_connections: 16,
             max_handshakes: 64,
             retry_above_handshakes: 8,
@@ -338,6 +355,14 @@ impl ServerConfig {
     /// [`time_sync_window_s`](Self::time_sync_window_s) as a [`Duration`].
     pub fn time_sync_window(&self) -> Duration {
         Duration::from_secs(self.time_sync_window_s)
+    }
+
+    /// The time-sync estimator's settings these keys give.
+    pub fn time_sync(&self) -> crate::pose::timesync::TimeSyncConfig {
+        crate::pose::timesync::TimeSyncConfig {
+            max_skew_ppm: self.time_sync_max_skew_ppm,
+            ..crate::pose::timesync::TimeSyncConfig::with_window(self.time_sync_window())
+        }
     }
 
     /// The ingest limits these keys give.
@@ -580,6 +605,21 @@ mod tests {
             );
             assert!(message.contains("positive"), "{key}: {message}");
         }
+    }
+
+    #[test]
+    fn a_skew_bound_outside_1_to_100000_ppm_is_refused_with_its_line() {
+        for value in ["0.5", "-200.0", "nan", "1e9"] {
+            let text = format!("data_dir = \"/d\"\ntime_sync_max_skew_ppm = {value}\n");
+            let message = parse(&text).unwrap_err().to_string();
+            assert!(
+                message.starts_with("server.toml: line 2:"),
+                "{value}: {message}"
+            );
+            assert!(message.contains("skew bound"), "{value}: {message}");
+        }
+        let config = parse("time_sync_max_skew_ppm = 400.0\n").unwrap();
+        assert_eq!(config.time_sync().max_skew_ppm, 400.0);
     }
 
     #[test]

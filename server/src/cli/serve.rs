@@ -60,9 +60,8 @@ fn serve(config_path: &Path) -> anyhow::Result<()> {
             ),
             None => None,
         };
-        let mut server = IngestServer::bind(IngestConfig::from(&config))?.with_time_sync(
-            crate::pose::timesync::TimeSyncConfig::with_window(config.time_sync_window()),
-        );
+        let mut server =
+            IngestServer::bind(IngestConfig::from(&config))?.with_time_sync(config.time_sync());
         let mut socket =
             ControlSocket::bind(socket_path(&config.data_dir), ControlLimits::default()).await?;
         if let Some(live) = &live {

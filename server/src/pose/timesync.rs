@@ -1,6 +1,7 @@
-//! The edge clock's mapping to server time: NTP-style exchanges, min-delay filtering, and a
-//! weighted least-squares fit of offset **and skew** over a sliding window
-//! (RFC 5905 §8 and §10; `research/hardware.md` §5.2). Pure: exchanges in, [`ClockModel`]s out.
+//! The edge clock's mapping to server time: NTP-style exchanges (RFC 5905 §8 and §10),
+//! min-delay filtering, and a fit of offset **and skew** over a sliding window: the skew from
+//! the lower envelopes of the one-way differences, the offset a weighted mean of the fastest
+//! exchanges (not a least-squares line, see below). Pure: exchanges in, [`ClockModel`]s out.
 //!
 //! The server sends a ping stamped `t0` (server monotonic clock, [`ServerClock`]); the edge
 //! stamps its receipt `t1` and its reply `t2` (edge monotonic clock); the server stamps the
@@ -166,13 +167,16 @@ pub struct TimeSyncConfig {
     pub weight_floor_ns: u64,
     /// Fit a skew only when the fitted exchanges span at least this much edge time, ns.
     pub min_skew_span_ns: u64,
-    /// Largest frequency error a real clock has, ppm: bounds the skew error when the fit cannot.
+    /// Largest frequency error, ppm, of an edge clock against the server's: a fitted skew is
+    /// held within it, and it bounds the skew error when the fit cannot. A crystal's own error
+    /// (tens of ppm) plus the slew Linux applies while NTP corrects a clock (up to ±500 ppm on
+    /// either side) can pass 500 ppm, hence the default of 1000.
     pub max_skew_ppm: f64,
 }
 
 impl Default for TimeSyncConfig {
     /// 120 s window, at most 1024 exchanges, 0.5 ms / 25 % tolerance, 0.1 ms weight floor,
-    /// skew fitted over ≥ 2 s, clocks within ±200 ppm.
+    /// skew fitted over ≥ 2 s, clocks within ±1000 ppm.
     fn default() -> Self {
         Self {
             window_ns: 120_000_000_000,
@@ -181,7 +185,7 @@ impl Default for TimeSyncConfig {
             tolerance_fraction: 0.25,
             weight_floor_ns: 100_000,
             min_skew_span_ns: 2_000_000_000,
-            max_skew_ppm: 200.0,
+            max_skew_ppm: 1000.0,
         }
     }
 }
@@ -340,11 +344,17 @@ fn fit(
 /// One edge's estimator across its connections and sessions: exchanges of one session go into
 /// one fit, kept across reconnects; it starts over when the exchanges come from another
 /// session (another run of the edge) or the session's `Hello` names another clock
-/// (`Hello::clock_id`) than the one fitted.
+/// (`Hello::clock_id`) than the one fitted. A `Hello` of another session never discards the
+/// fit by itself: the edge resends an earlier session's unacknowledged frames, its `Hello`
+/// among them, after a later session has started, and only exchanges say which session's clock
+/// is live now.
 #[derive(Debug, Clone)]
 pub struct EdgeClock {
     session_id: u64,
     clock_id: Option<[u8; 16]>,
+    /// The clock a `Hello` named for a session other than the fitted one, adopted if that
+    /// session's exchanges come.
+    named_elsewhere: Option<(u64, [u8; 16])>,
     sync: TimeSync,
 }
 
@@ -354,6 +364,7 @@ impl EdgeClock {
         Self {
             session_id,
             clock_id: None,
+            named_elsewhere: None,
             sync: TimeSync::new(config),
         }
     }
@@ -368,11 +379,16 @@ impl EdgeClock {
         self.sync.model()
     }
 
-    /// A `Hello` of `session_id` named its clock; `true` when that discarded the fit.
+    /// A `Hello` of `session_id` named its clock; `true` when that discarded the fit, which
+    /// happens only when it names another clock for the fitted session.
     pub fn on_hello(&mut self, session_id: u64, clock_id: [u8; 16]) -> bool {
-        let same = self.session_id == session_id && self.clock_id.is_none_or(|c| c == clock_id);
+        if self.session_id != session_id {
+            self.named_elsewhere = Some((session_id, clock_id));
+            return false;
+        }
+        let same = self.clock_id.is_none_or(|c| c == clock_id);
         if !same {
-            self.start_over(session_id);
+            self.sync.reset();
         }
         self.clock_id = Some(clock_id);
         !same
@@ -382,13 +398,17 @@ impl EdgeClock {
     pub fn on_exchange(&mut self, session_id: u64, exchange: Exchange) -> Option<ClockModel> {
         if self.session_id != session_id {
             self.start_over(session_id);
-            self.clock_id = None;
         }
         self.sync.add(exchange)
     }
 
     fn start_over(&mut self, session_id: u64) {
         self.session_id = session_id;
+        self.clock_id = self
+            .named_elsewhere
+            .take()
+            .filter(|&(named, _)| named == session_id)
+            .map(|(_, clock_id)| clock_id);
         self.sync.reset();
     }
 }
@@ -658,6 +678,61 @@ mod tests {
         let model = clock.on_exchange(2, exchange(10_000_000_000, 40, 1_000, 1_000));
         assert_eq!(model.map(|m| (m.offset_ns, m.exchanges)), Some((40, 1)));
         assert_eq!(clock.session_id(), 2);
+    }
+
+    #[test]
+    fn a_resent_hello_of_an_earlier_session_keeps_the_live_fit() {
+        // Session 2 is live and fitted; the edge then resends session 1's unacknowledged
+        // frames, its Hello among them.
+        let mut clock = EdgeClock::new(2, TimeSyncConfig::default());
+        assert!(!clock.on_hello(2, [2; 16]));
+        clock.on_exchange(2, exchange(0, 5_000, 1_000, 1_000));
+        clock.on_exchange(2, exchange(1_000_000_000, 5_000, 1_000, 1_000));
+        assert!(!clock.on_hello(1, [1; 16]), "another session's Hello");
+        assert_eq!(clock.session_id(), 2);
+        assert_eq!(clock.model().map(|m| m.exchanges), Some(2));
+        let model = clock.on_exchange(2, exchange(2_000_000_000, 5_000, 1_000, 1_000));
+        assert_eq!(model.map(|m| m.exchanges), Some(3));
+        // A Hello that comes before its session's exchanges names that session's clock.
+        assert!(!clock.on_hello(3, [3; 16]));
+        clock.on_exchange(3, exchange(3_000_000_000, 9, 1_000, 1_000));
+        assert_eq!(clock.session_id(), 3);
+        assert!(!clock.on_hello(3, [3; 16]), "the clock it was named with");
+        assert!(
+            clock.on_hello(3, [4; 16]),
+            "another clock for the same session"
+        );
+    }
+
+    #[test]
+    fn a_skew_of_800_ppm_is_fitted_not_clamped() {
+        let skew = 800e-6;
+        let mut sync = TimeSync::new(TimeSyncConfig::default());
+        let mut model = None;
+        for i in 0..60u64 {
+            let t0 = i * 1_000_000_000;
+            let offset = 1_000_000 + (t0 as f64 * skew) as i64;
+            model = sync.add(exchange(t0, offset, 500_000, 500_000)).or(model);
+        }
+        let model = model.expect("a model");
+        // θ per ns of edge time: the edge's 800 ppm fast clock gains 800/1.0008 ns per µs of it.
+        let expected_ppm = skew / (1.0 + skew) * 1e6;
+        assert!((model.skew_ppm - expected_ppm).abs() < 0.05, "{model:?}");
+        let clamped = TimeSyncConfig {
+            max_skew_ppm: 300.0,
+            ..TimeSyncConfig::default()
+        };
+        let mut sync = TimeSync::new(clamped);
+        for i in 0..60u64 {
+            let t0 = i * 1_000_000_000;
+            let offset = 1_000_000 + (t0 as f64 * skew) as i64;
+            sync.add(exchange(t0, offset, 500_000, 500_000));
+        }
+        let held = sync.model().expect("a model").skew_ppm;
+        assert!(
+            (held - 300.0).abs() < 1e-6,
+            "held at the configured bound: {held}"
+        );
     }
 
     #[test]
