@@ -116,6 +116,10 @@ pub struct PipelineSection {
     /// up from the recording.
     #[serde(deserialize_with = "queue_frames")]
     pub queue_frames: usize,
+    /// A sensor stream that falls this far (ms of edge time) behind the session's others is no
+    /// longer waited for by the stages that merge them in sample-time order.
+    #[serde(deserialize_with = "positive_u64")]
+    pub lateness_ms: u64,
 }
 
 impl Default for PipelineSection {
@@ -133,6 +137,7 @@ impl Default for PipelineSection {
             reference: None,
             snapshot_every_s: None,
             queue_frames: 256,
+            lateness_ms: defaults.lateness_ms,
         }
     }
 }
@@ -153,6 +158,7 @@ impl PipelineSection {
             revolution_filters: self.filters.clone(),
             snapshot_filters: self.snapshot_filters.clone(),
             reference: self.reference.clone(),
+            lateness_ms: self.lateness_ms,
         }
     }
 }

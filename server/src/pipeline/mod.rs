@@ -1,41 +1,54 @@
-//! The server's mapping pipeline: per session, frames in sequence order go through stages
-//! (static-scan assembly by eq. 1, the Table II filters, octree insertion, metrics against a
-//! reference), and the products (cloud, octree, metrics) grow as the frames come in.
+//! The server's mapping pipeline: per session, frames merged by edge sample time go through
+//! stages (static-scan assembly by eq. 1, the Table II filters, octree insertion, metrics
+//! against a reference), and the products (cloud, octree, metrics) grow as the frames come in.
 //!
 //! One pipeline, three drivers: `scan3d serve` feeds it live from ingest (through a bounded
 //! queue; it catches up from the recording when it falls behind), `scan3d replay` and the
 //! offline `scan3d assemble` / `scan3d map` feed it a recorded session frame by frame
 //! ([`offline`]). So the live products and the replayed ones are the same bytes.
 //!
+//! # Sample-time order
+//!
+//! Frames come in the edge's sequence order, which is not the order of their samples: a Sweep
+//! revolution is sent at its end, after the RPLidar revolutions and IMU samples that overlap
+//! it. The stages run in **lanes**: a lane is an [`OrderedQueue`] over the streams its first
+//! stage names ([`Stage::streams`]) and the stages that follow it (which take what the stage
+//! before handed on in the [`StageContext`]). Each lane waits only for its own streams, behind
+//! watermarks, so a slow stream never holds a lane that does not take it; a stream silent for
+//! longer than [`PipelineSettings::lateness_ms`] of data time is released (logged, counted in
+//! [`SessionStatus::stream_releases`]) and the same frames always make the same decisions, live
+//! or replayed ([`order`]).
+//!
 //! # Stages
 //!
-//! A [`Stage`] takes frames and keeps its products. The stages of a [`SessionPipeline`] run in
-//! this order for every frame; a [`StageContext`] carries what one stage hands to the next:
+//! The stages are an ordered list; a [`StageContext`] carries what one stage hands to the next:
 //!
-//! | stage | takes | hands on / keeps |
+//! | stage | lane takes | hands on / keeps |
 //! | --- | --- | --- |
 //! | [`RevolutionStage`] (optional) | lidar revolutions | per-sensor 2D points, `scans/<lidar>.ply` |
-//! | [`AssemblyStage`] | every body (eq. 1 joins Sweep revolutions and static-scan messages) | the origin groups (one per half revolution) completed by this frame, in [`StageContext::rays`] |
-//! | [`FilterStage`] | [`StageContext::rays`] | the same groups through `revolution_filters` (voxel grid, pass-through) |
-//! | [`MapStage`] | [`StageContext::rays`] | one octree per session and per named position (OctoMap's `insertPointCloud`, `max_range` cut), the growing cloud |
+//! | [`AssemblyStage`] | Sweep revolutions, static-scan messages | the origin groups (one per half revolution) completed by this frame, in [`StageContext::rays`] |
+//! | [`FilterStage`] | (follows) | the same groups through `revolution_filters` (voxel grid, pass-through) |
+//! | [`MapStage`] | (follows) | one octree per session and per named position (OctoMap's `insertPointCloud`, `max_range` cut), the growing cloud |
+//! | [`MetricsStage`] | (follows) | voxel counts and the metrics against the reference, recomputed when the map grew and `status` asks, at most once per [`METRICS_INTERVAL`]; a snapshot's from the octree it wrote |
 //!
-//! Metrics against the reference are computed from the session's (or a position's) octree when
-//! [`SessionPipeline::status`] asks (at most once per [`METRICS_INTERVAL`]) and at every
-//! snapshot. The snapshot filters (SOR, Gaussian: they need neighbours across revolutions) only
-//! touch the cloud a snapshot writes, never the octree.
+//! [`SessionPipeline::add_stage`] puts a stage at the end: with streams of its own it opens a
+//! new lane, without it follows the last stage. Snapshots go through the stages
+//! ([`Stage::snapshot`]). The snapshot filters (SOR, Gaussian:
+//! they need neighbours across revolutions) only touch the cloud a snapshot writes.
 //!
 //! # Memory
 //!
-//! Bounded by the map, not the session: no frame is kept; the assembler forgets the static
-//! scans that have finished (their rays handed on) when the next one starts, unless
-//! [`Products::static_scans`] asks to keep them, as `scan3d assemble` does; the cloud holds the
-//! filtered points (turn it off with [`Products::cloud`] when only the octree is wanted, as
-//! `scan3d map` does).
+//! Bounded by the map, not the session: a lane holds at most the frames of its lateness (and
+//! [`MAX_QUEUED_FRAMES`]); the assembler forgets the static scans that are over when the next one
+//! starts, unless [`Products::static_scans`] asks to keep them, as `scan3d assemble` does; the
+//! cloud holds the filtered points (turn it off with [`Products::cloud`] when only the octree is
+//! wanted, as `scan3d map` does).
 
 pub mod edge_activity;
 pub mod live;
 mod metrics;
 pub mod offline;
+pub mod order;
 mod snapshot;
 mod stages;
 
@@ -52,8 +65,11 @@ use scan3d_map::octree::{OctreeError, Resolution, SensorModel};
 use scan3d_protocol::{Body, Frame};
 
 pub use metrics::{load_reference, write_metrics_table};
-pub use snapshot::Snapshot;
-pub use stages::{AssemblyStage, FilterStage, MapStage, PositionMap, RevolutionStage};
+pub use order::{OrderStats, OrderedQueue, Release, StreamId};
+pub use snapshot::{Snapshot, SnapshotWriter};
+pub use stages::{
+    AssemblyStage, FilterStage, MapStage, MetricsStage, PositionMap, RevolutionStage,
+};
 
 /// What the pipeline builds and how: the `[pipeline]` section of `server.toml`, or the offline
 /// commands' options.
@@ -73,6 +89,9 @@ pub struct PipelineSettings {
     pub snapshot_filters: Vec<Filter>,
     /// A reference map (`.bt` / `.ot`, same resolution) the metrics compare against.
     pub reference: Option<PathBuf>,
+    /// A stream that falls this far (ms of edge time) behind the newest one of its lane is no
+    /// longer waited for ([`order`]).
+    pub lateness_ms: u64,
 }
 
 impl Default for PipelineSettings {
@@ -84,6 +103,7 @@ impl Default for PipelineSettings {
             revolution_filters: Vec::new(),
             snapshot_filters: Vec::new(),
             reference: None,
+            lateness_ms: 1000,
         }
     }
 }
@@ -107,14 +127,28 @@ pub struct SessionStatus {
     /// Edge sequence numbers skipped over (a gap in the session: frames never received or lost
     /// from the recording); the frames after a gap are processed.
     pub missing_frames: u64,
-    /// Frames that arrived with a sequence number already passed (duplicates, late resends):
-    /// skipped.
+    /// Frames that arrived with a sequence number already taken (duplicates): skipped.
     pub stale_frames: u64,
+    /// Frames that arrived after a later one and filled its gap: taken (and no longer missing).
+    pub filled_frames: u64,
     /// Frames the server could not decode (e.g. a body of a newer protocol): skipped.
     pub undecodable_frames: u64,
     /// Static-scan samples that could not be placed (their scan start or revolution was never
     /// seen): skipped.
     pub orphan_samples: u64,
+    /// Static scans whose end message never came (lost): forgotten when the next one started.
+    pub abandoned_static_scans: u64,
+    /// Origin groups a revolution filter failed on (logged; their points are not mapped).
+    pub filter_failures: u64,
+    /// Points in those groups.
+    pub filtered_out_points: u64,
+    /// Frames that came after their lane had gone past their sample time (their stream had
+    /// been released): processed out of order.
+    pub late_frames: u64,
+    /// Times a stream fell further than the lateness behind and was no longer waited for.
+    pub stream_releases: u64,
+    /// Frames waiting in the lanes for a slower stream now.
+    pub queued_frames: u64,
     /// Points inserted into the session's octree (after the revolution filters).
     pub points: u64,
     /// Named static-scan positions seen, in first-seen order.
@@ -209,47 +243,153 @@ impl Default for Products {
     }
 }
 
-/// What a frame hands from one stage to the next.
+/// What a frame hands from one stage to the next within a lane.
 #[derive(Debug, Default)]
 pub struct StageContext {
+    /// The frame's key in its lane: its sample time (edge ns; see [`order`]).
+    pub key_ns: u64,
+    /// `true` when the frame left its lane out of order (its stream had been released).
+    pub late: bool,
     /// Origin groups (one per half revolution of a static scan, world frame) completed by the
     /// current frame, with their position; the assembly stage fills it, later stages transform
     /// or consume it. Emptied after each frame.
     pub rays: Vec<NewRays>,
+    /// Points the map stage inserted for the current frame (after filters and the range cut).
+    pub inserted_points: u64,
 }
 
-/// One stage: takes frames, keeps its products.
-pub trait Stage {
-    /// Takes one frame of the session (in sequence order) and what the earlier stages handed
-    /// on for it in `ctx`.
+/// One stage: takes frames in sample-time order, keeps its products.
+pub trait Stage: std::any::Any + Send {
+    /// The stage's name in logs and status.
+    fn name(&self) -> &'static str {
+        std::any::type_name::<Self>()
+    }
+    /// The streams it takes, in sample-time order: it opens a lane of its own. Empty (the
+    /// default): it follows the stage before it and takes what that one handed on.
+    fn streams(&self) -> &'static [StreamId] {
+        &[]
+    }
+    /// Takes one frame and what the earlier stages of its lane handed on for it in `ctx`.
     fn on_frame(&mut self, ctx: &mut StageContext, frame: &Frame);
     /// Called when the session's frames end (or before a snapshot): hand on what is pending.
     fn flush(&mut self, ctx: &mut StageContext) {
         let _ = ctx;
     }
+    /// Adds the stage's products to a snapshot being written (in `out.snapshot.dir`).
+    fn snapshot(&mut self, out: &mut SnapshotWriter) -> Result<(), PipelineError> {
+        let _ = out;
+        Ok(())
+    }
 }
 
-/// Where the edge's sequence numbers stand.
-#[derive(Debug, Default, Clone, Copy)]
+/// Frames a lane holds at most before it releases its slowest stream.
+pub const MAX_QUEUED_FRAMES: usize = 20_000;
+
+/// Where a frame goes in the sample-time order: its stream and time, or `None` for frames the
+/// stages never see (time pings, acks).
+fn stream_of(body: &Body) -> Option<(StreamId, Option<u64>)> {
+    use scan3d_protocol::{SensorId, StaticScan};
+    Some(match body {
+        Body::Revolution(rev) => {
+            let stream = match rev.sensor {
+                SensorId::RPLIDAR => StreamId::Rplidar,
+                SensorId::SWEEP => StreamId::Sweep,
+                _ => StreamId::OtherLidar,
+            };
+            (stream, Some(rev.t1_ns))
+        }
+        Body::Imu(sample) => (StreamId::Imu, Some(sample.t_ns)),
+        Body::Stepper(state) => (StreamId::Stepper, Some(state.t_ns)),
+        Body::StaticScan(message) => {
+            let t = match message {
+                StaticScan::Started(start) => start.t_ns,
+                StaticScan::Yaws(yaws) => yaws.revolution_t0_ns,
+                StaticScan::Warning(warning) => warning.t_ns,
+                StaticScan::Finished(end) => end.t_ns,
+            };
+            (StreamId::StaticScan, Some(t))
+        }
+        Body::Hello(_) | Body::Status(_) | Body::CommandReply(_) | Body::Command(_) => {
+            (StreamId::Edge, None)
+        }
+        Body::Heartbeat(_)
+        | Body::TimePing(_)
+        | Body::TimePong(_)
+        | Body::Ack(_)
+        | Body::ClockModel(_) => return None,
+    })
+}
+
+/// The continuous streams a `Hello`'s sensors promise.
+fn declared_streams(hello: &scan3d_protocol::Hello) -> Vec<StreamId> {
+    use scan3d_protocol::SensorId;
+    hello
+        .sensors
+        .iter()
+        .filter_map(|info| match info.sensor {
+            SensorId::RPLIDAR => Some(StreamId::Rplidar),
+            SensorId::SWEEP => Some(StreamId::Sweep),
+            SensorId::IMU => Some(StreamId::Imu),
+            _ => None,
+        })
+        .collect()
+}
+
+/// A lane: the stages after one that names streams, and the queue that orders its frames.
+struct Lane {
+    streams: &'static [StreamId],
+    queue: OrderedQueue<Arc<Frame>>,
+    /// Indices into [`SessionPipeline::stages`], in order.
+    stages: Vec<usize>,
+}
+
+impl Lane {
+    fn new(streams: &'static [StreamId], lateness_ns: u64) -> Self {
+        Lane {
+            streams,
+            queue: OrderedQueue::new(lateness_ns, MAX_QUEUED_FRAMES),
+            stages: Vec::new(),
+        }
+    }
+
+    fn takes(&self, stream: StreamId) -> bool {
+        // Untimed frames (hello, status) go to every lane, in their place among its frames.
+        stream == StreamId::Edge || self.streams.contains(&stream)
+    }
+}
+
+/// Where the edge's sequence numbers stand: the received set's newest, and the gaps below it
+/// (at most [`MAX_GAPS`] ranges, the oldest forgotten), so a frame that arrives after a later
+/// one fills its gap instead of being taken for a duplicate.
+#[derive(Debug, Default, Clone)]
 struct SeqTrack {
     /// The next edge sequence number expected (`None` before the first frame).
     next: Option<u64>,
+    /// Sequence numbers not received below `next`: start → end (exclusive).
+    gaps: std::collections::BTreeMap<u64, u64>,
     missing: u64,
     stale: u64,
     undecodable: u64,
+    filled: u64,
 }
 
+/// Gaps remembered at most (a hostile edge cannot grow them without bound).
+const MAX_GAPS: usize = 1024;
+
 impl SeqTrack {
-    /// Accounts for edge seq `seq`; `false` if it was already passed (to be skipped).
+    /// Accounts for edge seq `seq`; `false` if it was already taken (to be skipped).
     fn take(&mut self, seq: u64) -> bool {
         let next = self.next.unwrap_or(0);
         if self.next.is_some() && seq < next {
-            self.stale += 1;
-            return false;
+            return self.fill(seq);
         }
         if seq > next {
             let gap = seq - next;
             self.missing = self.missing.saturating_add(gap);
+            self.gaps.insert(next, seq);
+            if self.gaps.len() > MAX_GAPS {
+                self.gaps.pop_first();
+            }
             tracing::warn!(
                 from = next,
                 to = seq - 1,
@@ -260,17 +400,28 @@ impl SeqTrack {
         self.next = Some(seq.saturating_add(1));
         true
     }
-}
 
-/// Voxel counts and metrics as of the last refresh.
-#[derive(Debug, Default)]
-struct Refreshed {
-    at: Option<Instant>,
-    /// Points inserted when it was computed (nothing new since: no recompute).
-    points: u64,
-    occupied: u64,
-    free: u64,
-    metrics: Option<Metrics>,
+    /// A frame below `next`: taken if it fills a gap, else stale.
+    fn fill(&mut self, seq: u64) -> bool {
+        let Some((&start, &end)) = self.gaps.range(..=seq).next_back() else {
+            self.stale += 1;
+            return false;
+        };
+        if seq >= end {
+            self.stale += 1;
+            return false;
+        }
+        self.gaps.remove(&start);
+        if start < seq {
+            self.gaps.insert(start, seq);
+        }
+        if seq + 1 < end {
+            self.gaps.insert(seq + 1, end);
+        }
+        self.missing -= 1;
+        self.filled += 1;
+        true
+    }
 }
 
 /// One session's pipeline: feed its frames in sequence order with [`SessionPipeline::on_frame`],
@@ -280,18 +431,26 @@ pub struct SessionPipeline {
     settings: PipelineSettings,
     products: Products,
     reference: Option<Arc<LeafMap>>,
-    revolutions_2d: Option<RevolutionStage>,
-    assembly: AssemblyStage,
-    filters: FilterStage,
-    maps: MapStage,
-    /// Stages added with [`SessionPipeline::add_stage`], run after the built-in ones.
-    extra: Vec<Box<dyn Stage + Send>>,
+    /// Every stage, in order.
+    stages: Vec<Box<dyn Stage>>,
+    lanes: Vec<Lane>,
+    /// Indices of the built-in stages in `stages`.
+    builtin: Builtin,
     ctx: StageContext,
     seqs: SeqTrack,
     frames: u64,
     samples: u64,
     revolutions: u64,
-    refreshed: Refreshed,
+    released: Vec<Release>,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Builtin {
+    revolutions: Option<usize>,
+    assembly: usize,
+    filters: usize,
+    maps: usize,
+    metrics: usize,
 }
 
 impl std::fmt::Debug for SessionPipeline {
@@ -300,7 +459,10 @@ impl std::fmt::Debug for SessionPipeline {
             .field("settings", &self.settings)
             .field("products", &self.products)
             .field("frames", &self.frames)
-            .field("extra_stages", &self.extra.len())
+            .field(
+                "stages",
+                &self.stages.iter().map(|s| s.name()).collect::<Vec<_>>(),
+            )
             .finish_non_exhaustive()
     }
 }
@@ -318,11 +480,6 @@ impl SessionPipeline {
         products: Products,
     ) -> Result<Self, PipelineError> {
         let res = Resolution::new(settings.resolution_m)?;
-        if let Some(max) = settings.max_range_m
-            && (max.is_nan() || max <= 0.0)
-        {
-            return Err(PipelineError::MaxRange(max));
-        }
         let reference = match &settings.reference {
             Some(path) => Some(Arc::new(load_reference(path, &res)?)),
             None => None,
@@ -350,22 +507,39 @@ impl SessionPipeline {
                 .unwrap_or(Path::new("(shared)"));
             metrics::check_resolution(reference, &res, path)?;
         }
-        Ok(SessionPipeline {
+        let mut pipeline = SessionPipeline {
             settings: settings.clone(),
             products,
-            reference,
-            revolutions_2d: products.revolution_points.then(RevolutionStage::new),
-            assembly: AssemblyStage::new(products.static_scans),
-            filters: FilterStage::new(settings.revolution_filters.clone()),
-            maps: MapStage::new(res, settings, products),
-            extra: Vec::new(),
+            reference: reference.clone(),
+            stages: Vec::new(),
+            lanes: Vec::new(),
+            builtin: Builtin {
+                revolutions: None,
+                assembly: 0,
+                filters: 0,
+                maps: 0,
+                metrics: 0,
+            },
             ctx: StageContext::default(),
             seqs: SeqTrack::default(),
             frames: 0,
             samples: 0,
             revolutions: 0,
-            refreshed: Refreshed::default(),
-        })
+            released: Vec::new(),
+        };
+        if products.revolution_points {
+            pipeline.builtin.revolutions =
+                Some(pipeline.push_stage(Box::new(RevolutionStage::new())));
+        }
+        pipeline.builtin.assembly =
+            pipeline.push_stage(Box::new(AssemblyStage::new(products.static_scans)));
+        pipeline.builtin.filters = pipeline.push_stage(Box::new(FilterStage::new(
+            settings.revolution_filters.clone(),
+        )));
+        pipeline.builtin.maps =
+            pipeline.push_stage(Box::new(MapStage::new(res, settings, products)));
+        pipeline.builtin.metrics = pipeline.push_stage(Box::new(MetricsStage::new(reference)));
+        Ok(pipeline)
     }
 
     /// The settings it was built with.
@@ -373,16 +547,30 @@ impl SessionPipeline {
         &self.settings
     }
 
-    /// Adds a stage that runs after the built-in ones for every later frame.
-    pub fn add_stage(&mut self, stage: Box<dyn Stage + Send>) {
-        self.extra.push(stage);
+    /// Adds a stage after the others: with streams of its own ([`Stage::streams`]) it opens a
+    /// lane that takes them in sample-time order; without, it follows the last stage.
+    pub fn add_stage(&mut self, stage: Box<dyn Stage>) {
+        self.push_stage(stage);
     }
 
-    /// Takes the session's next frame. Frames must come in sequence order: one whose edge
-    /// sequence number was already passed is skipped and counted
+    fn push_stage(&mut self, stage: Box<dyn Stage>) -> usize {
+        let streams = stage.streams();
+        if !streams.is_empty() || self.lanes.is_empty() {
+            let lateness_ns = self.settings.lateness_ms.saturating_mul(1_000_000);
+            self.lanes.push(Lane::new(streams, lateness_ns));
+        }
+        let index = self.stages.len();
+        self.stages.push(stage);
+        self.lanes.last_mut().expect("a lane").stages.push(index);
+        index
+    }
+
+    /// Takes the session's next frame, in sequence order as the edge sent it. A frame whose edge
+    /// sequence number was already taken is skipped and counted
     /// ([`SessionStatus::stale_frames`]); a jump is a gap, counted
-    /// ([`SessionStatus::missing_frames`]) and logged, and the frame is processed. Frames the
-    /// server made (commands, clock models: their own numbering) are not processed.
+    /// ([`SessionStatus::missing_frames`]) and logged, and a frame that fills a gap later is
+    /// taken. Frames the server made (commands, clock models: their own numbering) are not
+    /// processed. Each lane that takes the frame's stream queues it and runs what can leave.
     pub fn on_frame(&mut self, frame: &Frame) {
         if frame.body.is_server_made() || !self.seqs.take(frame.seq) {
             return;
@@ -392,17 +580,77 @@ impl SessionPipeline {
             self.revolutions += 1;
             self.samples += rev.samples.len() as u64;
         }
-        let ctx = &mut self.ctx;
-        if let Some(stage) = &mut self.revolutions_2d {
-            stage.on_frame(ctx, frame);
+        if let Body::Hello(hello) = &frame.body {
+            for stream in declared_streams(hello) {
+                for lane in self
+                    .lanes
+                    .iter_mut()
+                    .filter(|l| l.streams.contains(&stream))
+                {
+                    lane.queue.declare(stream);
+                }
+            }
         }
-        self.assembly.on_frame(ctx, frame);
-        self.filters.on_frame(ctx, frame);
-        self.maps.on_frame(ctx, frame);
-        for stage in &mut self.extra {
-            stage.on_frame(ctx, frame);
+        let Some((stream, t_ns)) = stream_of(&frame.body) else {
+            if let Body::Heartbeat(heartbeat) = &frame.body {
+                for index in 0..self.lanes.len() {
+                    self.lanes[index].queue.observe(heartbeat.sent_ns);
+                    self.poll_lane(index);
+                }
+            }
+            return;
+        };
+        let frame = Arc::new(frame.clone());
+        for index in 0..self.lanes.len() {
+            if !self.lanes[index].takes(stream) {
+                continue;
+            }
+            let lane = &mut self.lanes[index];
+            // An untimed frame takes its place at the lane's newest time.
+            let t = t_ns.unwrap_or_else(|| lane_frontier(&lane.queue));
+            let mut out = Vec::new();
+            let mut releases = Vec::new();
+            lane.queue
+                .push(stream, t, Arc::clone(&frame), &mut out, &mut releases);
+            self.note_releases(index, releases);
+            self.run_lane(index, out);
         }
-        ctx.rays.clear();
+    }
+
+    fn poll_lane(&mut self, index: usize) {
+        let mut out = Vec::new();
+        let mut releases = Vec::new();
+        self.lanes[index].queue.poll(&mut out, &mut releases);
+        self.note_releases(index, releases);
+        self.run_lane(index, out);
+    }
+
+    fn note_releases(&mut self, lane: usize, releases: Vec<Release>) {
+        for release in releases {
+            tracing::warn!(
+                lane = self.stages[self.lanes[lane].stages[0]].name(),
+                stream = release.stream.name(),
+                watermark_ns = release.watermark_ns,
+                frontier_ns = release.frontier_ns,
+                cause = ?release.cause,
+                "a stream fell behind the others and is no longer waited for"
+            );
+            self.released.push(release);
+        }
+    }
+
+    /// Runs the lane's stages on the frames that left its queue.
+    fn run_lane(&mut self, index: usize, out: Vec<order::Ordered<Arc<Frame>>>) {
+        for ordered in out {
+            let ctx = &mut self.ctx;
+            ctx.key_ns = ordered.key_ns;
+            ctx.late = ordered.late;
+            for &stage in &self.lanes[index].stages {
+                self.stages[stage].on_frame(ctx, &ordered.item);
+            }
+            ctx.rays.clear();
+            ctx.inserted_points = 0;
+        }
     }
 
     /// Takes note of an edge frame the server recorded but could not decode (its seq counts as
@@ -413,20 +661,21 @@ impl SessionPipeline {
         }
     }
 
-    /// Hands on whatever the stages hold back (nothing today: every origin group is complete
-    /// once the body that made it was taken). Call at the end of a session.
+    /// Lets every queued frame through in sample-time order and hands on whatever the stages
+    /// hold back. Call at the end of a session (a snapshot of a live session does not: it shows
+    /// what has left the queues).
     pub fn flush(&mut self) {
-        let ctx = &mut self.ctx;
-        if let Some(stage) = &mut self.revolutions_2d {
-            stage.flush(ctx);
+        for index in 0..self.lanes.len() {
+            let mut out = Vec::new();
+            self.lanes[index].queue.flush(&mut out);
+            self.run_lane(index, out);
+            let ctx = &mut self.ctx;
+            for &stage in &self.lanes[index].stages {
+                self.stages[stage].flush(ctx);
+            }
+            ctx.rays.clear();
+            ctx.inserted_points = 0;
         }
-        self.assembly.flush(ctx);
-        self.filters.flush(ctx);
-        self.maps.flush(ctx);
-        for stage in &mut self.extra {
-            stage.flush(ctx);
-        }
-        ctx.rays.clear();
     }
 
     /// What the pipeline has done; voxel counts and metrics are recomputed when the map grew,
@@ -437,73 +686,117 @@ impl SessionPipeline {
 
     /// [`SessionPipeline::status`] with the caller's clock.
     pub fn status_at(&mut self, now: Instant) -> SessionStatus {
-        let due = self
-            .refreshed
-            .at
-            .is_none_or(|at| now.saturating_duration_since(at) >= METRICS_INTERVAL);
-        if due && self.refreshed.points != self.maps.points() {
-            self.refresh(now);
+        let (maps, metrics) = (self.builtin.maps, self.builtin.metrics);
+        let (low, high) = self.stages.split_at_mut(metrics);
+        let maps: &dyn std::any::Any = low[maps].as_ref();
+        let metrics: &mut dyn std::any::Any = high[0].as_mut();
+        if let (Some(maps), Some(metrics)) = (
+            maps.downcast_ref::<MapStage>(),
+            metrics.downcast_mut::<MetricsStage>(),
+        ) {
+            metrics.refresh(maps, now);
+        }
+        let metrics = self.metrics_stage();
+        let filters = self.filters_stage();
+        let mut order = OrderStats::default();
+        for lane in &self.lanes {
+            let stats = lane.queue.stats();
+            order.late += stats.late;
+            order.releases += stats.releases;
+            order.queued += stats.queued;
         }
         SessionStatus {
             frames: self.frames,
             samples: self.samples,
             revolutions: self.revolutions,
-            occupied_voxels: self.refreshed.occupied,
-            free_voxels: self.refreshed.free,
-            metrics: self.refreshed.metrics.clone(),
+            occupied_voxels: metrics.occupied_voxels(),
+            free_voxels: metrics.free_voxels(),
+            metrics: metrics.metrics().cloned(),
             missing_frames: self.seqs.missing,
             stale_frames: self.seqs.stale,
+            filled_frames: self.seqs.filled,
             undecodable_frames: self.seqs.undecodable,
-            orphan_samples: self.assembly.orphan_samples(),
-            points: self.maps.points(),
+            orphan_samples: self.assembly().orphan_samples(),
+            abandoned_static_scans: self.assembly().abandoned_scans(),
+            filter_failures: filters.failures(),
+            filtered_out_points: filters.dropped_points(),
+            points: self.maps().points(),
             positions: self.positions(),
+            late_frames: order.late,
+            stream_releases: order.releases,
+            queued_frames: order.queued,
         }
     }
 
-    fn refresh(&mut self, now: Instant) {
-        let leaves = metrics::leaf_map(&self.maps.session_map().to_octree());
-        self.refreshed.occupied = leaves.occupied_voxels();
-        self.refreshed.free = leaves.free_voxels();
-        self.refreshed.metrics = self.reference.as_ref().and_then(|reference| {
-            scan3d_map::eval::evaluate(reference, &leaves, None)
-                .inspect_err(|e| tracing::debug!("no metrics yet: {e}"))
-                .ok()
-        });
-        self.refreshed.points = self.maps.points();
-        self.refreshed.at = Some(now);
+    /// The streams released so far (a stream fell too far behind), in order.
+    pub fn releases(&self) -> &[Release] {
+        &self.released
     }
 
     /// Named static-scan positions seen, in first-seen order.
     pub fn positions(&self) -> Vec<String> {
-        self.maps.positions().to_vec()
+        self.maps().positions().to_vec()
     }
 
     /// Writes the current products into `dir` (created if missing): `map.bt`, `map.ot`,
     /// `cloud.ply` (the cloud through the snapshot filters) and, with a reference, `metrics.json`
-    /// and `metrics.txt`; of the whole session, or of one `position`. With no 3D data yet the
-    /// `.bt`/`.ot` are valid empty trees and the PLY has no vertex (no metrics then). Each file
-    /// is written under a temporary name and renamed, so a reader never sees half a file.
+    /// and `metrics.txt`; of the whole session, or of one `position`; then what each added
+    /// stage writes ([`Stage::snapshot`]). With no 3D data yet the `.bt`/`.ot` are valid empty
+    /// trees and the PLY has no vertex (no metrics then). Each file is written under a
+    /// temporary name and renamed, so a reader never sees half a file.
     pub fn write_snapshot(
         &mut self,
         dir: &Path,
         position: Option<&str>,
     ) -> Result<Snapshot, PipelineError> {
-        snapshot::write(self, dir, position)
+        let maps = self.maps();
+        if let Some(name) = position
+            && maps.position(name).is_none()
+        {
+            return Err(PipelineError::UnknownPosition {
+                name: name.to_string(),
+                known: maps.positions().join(", "),
+            });
+        }
+        std::fs::create_dir_all(dir).map_err(|source| PipelineError::Write {
+            path: dir.to_path_buf(),
+            source,
+        })?;
+        let mut writer = SnapshotWriter::new(dir, position);
+        for stage in &mut self.stages {
+            stage.snapshot(&mut writer)?;
+        }
+        Ok(writer.snapshot)
+    }
+
+    fn stage<T: 'static>(&self, index: usize) -> &T {
+        let stage: &dyn std::any::Any = self.stages[index].as_ref();
+        stage
+            .downcast_ref::<T>()
+            .expect("a built-in stage at its index")
     }
 
     /// The session's octree stage (its maps and cloud).
     pub fn maps(&self) -> &MapStage {
-        &self.maps
+        self.stage(self.builtin.maps)
     }
 
     /// The assembly stage (its static scans, when [`Products::static_scans`] keeps them).
     pub fn assembly(&self) -> &AssemblyStage {
-        &self.assembly
+        self.stage(self.builtin.assembly)
+    }
+
+    fn filters_stage(&self) -> &FilterStage {
+        self.stage(self.builtin.filters)
+    }
+
+    fn metrics_stage(&self) -> &MetricsStage {
+        self.stage(self.builtin.metrics)
     }
 
     /// The 2D revolution collector, when [`Products::revolution_points`] is on.
     pub fn revolution_points(&self) -> Option<&RevolutionStage> {
-        self.revolutions_2d.as_ref()
+        self.builtin.revolutions.map(|index| self.stage(index))
     }
 
     /// The reference map, when one is configured.
@@ -512,9 +805,18 @@ impl SessionPipeline {
     }
 
     /// Takes the assembly stage's static scans (with [`Products::static_scans`]), in start order.
-    pub fn into_static_scans(self) -> Vec<scan3d_map::cloud::assembly::AssembledScan> {
-        self.assembly.into_bundles()
+    pub fn into_static_scans(mut self) -> Vec<scan3d_map::cloud::assembly::AssembledScan> {
+        let assembly: &mut dyn std::any::Any = self.stages[self.builtin.assembly].as_mut();
+        let assembly = assembly
+            .downcast_mut::<AssemblyStage>()
+            .expect("the assembly stage at its index");
+        std::mem::replace(assembly, AssemblyStage::new(false)).into_bundles()
     }
+}
+
+/// The newest key a lane's queue has seen (where an untimed frame takes its place).
+fn lane_frontier<T>(queue: &OrderedQueue<T>) -> u64 {
+    queue.frontier_ns().unwrap_or(0)
 }
 
 // The daemon runs each session's pipeline on a worker thread.
@@ -527,6 +829,7 @@ const _: fn() = || {
 mod tests {
     use super::*;
     use scan3d_protocol::{Command, Heartbeat, LidarRevolution, SensorId};
+    use std::sync::Arc;
 
     fn heartbeat(seq: u64) -> Frame {
         Frame::new(1, seq, Heartbeat { sent_ns: seq })
@@ -538,7 +841,8 @@ mod tests {
         p.on_frame(&heartbeat(0));
         p.on_frame(&heartbeat(1));
         p.on_frame(&heartbeat(5)); // 2, 3, 4 missing
-        p.on_frame(&heartbeat(3)); // late: skipped
+        p.on_frame(&heartbeat(3)); // after a later one: fills its gap
+        p.on_frame(&heartbeat(3)); // now a duplicate: skipped
         p.on_undecodable(6);
         p.on_frame(&heartbeat(7));
         p.on_frame(&heartbeat(7)); // duplicate: skipped
@@ -547,10 +851,115 @@ mod tests {
             (
                 s.frames,
                 s.missing_frames,
+                s.filled_frames,
                 s.stale_frames,
                 s.undecodable_frames
             ),
-            (4, 3, 2, 1)
+            (5, 2, 1, 2, 1)
+        );
+    }
+
+    /// Sample times of the revolutions handed to [`Order`], and whether each came late.
+    type Seen = Arc<std::sync::Mutex<Vec<(u64, bool)>>>;
+
+    /// Records the sample times of the revolutions it is handed, in its own lane.
+    struct Order(Seen);
+
+    impl Stage for Order {
+        fn name(&self) -> &'static str {
+            "order"
+        }
+
+        fn streams(&self) -> &'static [StreamId] {
+            &[StreamId::Rplidar, StreamId::Sweep]
+        }
+
+        fn on_frame(&mut self, ctx: &mut StageContext, frame: &Frame) {
+            if let Body::Revolution(rev) = &frame.body {
+                self.0.lock().unwrap().push((rev.t1_ns, ctx.late));
+            }
+        }
+    }
+
+    fn revolution(seq: u64, sensor: SensorId, t1_ms: u64) -> Frame {
+        let t1 = t1_ms * 1_000_000;
+        let mut rev = LidarRevolution::new(sensor, t1 - 100_000_000, t1);
+        rev.push(0.0, 1.0, 10, t1 - 50_000_000).unwrap();
+        Frame::new(1, seq, rev)
+    }
+
+    fn ordered_pipeline() -> (SessionPipeline, Seen) {
+        let seen = Arc::new(std::sync::Mutex::new(Vec::new()));
+        let mut p = SessionPipeline::new(&PipelineSettings::default()).unwrap();
+        p.add_stage(Box::new(Order(Arc::clone(&seen))));
+        (p, seen)
+    }
+
+    #[test]
+    fn a_stage_sees_the_streams_it_takes_in_sample_time_order_not_arrival_order() {
+        let (mut p, seen) = ordered_pipeline();
+        // The Sweep revolution ending at 250 ms is sent after the RPLidar one ending at 300 ms.
+        p.on_frame(&revolution(0, SensorId::RPLIDAR, 100));
+        p.on_frame(&revolution(1, SensorId::SWEEP, 150));
+        p.on_frame(&revolution(2, SensorId::RPLIDAR, 200));
+        p.on_frame(&revolution(3, SensorId::RPLIDAR, 300));
+        p.on_frame(&revolution(4, SensorId::SWEEP, 250));
+        p.on_frame(&revolution(5, SensorId::SWEEP, 450));
+        let times: Vec<u64> = seen
+            .lock()
+            .unwrap()
+            .iter()
+            .map(|(t, _)| t / 1_000_000)
+            .collect();
+        assert_eq!(
+            times,
+            [100, 150, 200, 250, 300],
+            "450 waits for the RPLidar"
+        );
+        p.flush();
+        assert_eq!(seen.lock().unwrap().len(), 6);
+        assert_eq!(p.status().queued_frames, 0);
+    }
+
+    #[test]
+    fn a_stream_that_stops_is_released_after_the_lateness_and_the_others_go_on() {
+        let (mut p, seen) = ordered_pipeline();
+        p.on_frame(&revolution(0, SensorId::SWEEP, 100));
+        for i in 1..=20u64 {
+            p.on_frame(&revolution(i, SensorId::RPLIDAR, 100 + 100 * i));
+        }
+        // Released once 1000 ms (the default lateness) behind: the RPLidar up to then is through.
+        let status = p.status();
+        assert_eq!(status.stream_releases, 1);
+        assert!(
+            seen.lock().unwrap().len() >= 19,
+            "{:?}",
+            seen.lock().unwrap()
+        );
+        // The Sweep comes back with an old revolution: handed on at once, marked late.
+        p.on_frame(&revolution(21, SensorId::SWEEP, 600));
+        assert_eq!(seen.lock().unwrap().last(), Some(&(600_000_000, true)));
+        assert_eq!(p.status().late_frames, 1);
+        assert_eq!(p.releases().len(), 1);
+    }
+
+    #[test]
+    fn a_lost_frame_that_arrives_after_a_later_one_is_mapped_not_dropped() {
+        let products = Products {
+            revolution_points: true,
+            ..Products::default()
+        };
+        let mut p = SessionPipeline::with_products(&PipelineSettings::default(), products).unwrap();
+        p.on_frame(&revolution(0, SensorId::RPLIDAR, 100));
+        p.on_frame(&revolution(2, SensorId::RPLIDAR, 300));
+        p.on_frame(&revolution(1, SensorId::RPLIDAR, 200));
+        p.flush();
+        let totals = p.revolution_points().unwrap().totals()[&SensorId::RPLIDAR];
+        assert_eq!(totals.revolutions, 3);
+        let s = p.status();
+        assert_eq!(
+            (s.missing_frames, s.filled_frames, s.stale_frames),
+            (0, 1, 0)
         );
     }
 

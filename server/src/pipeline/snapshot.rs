@@ -1,16 +1,13 @@
-//! Writing a session's (or one position's) products into a directory.
+//! Writing a session's (or one position's) products into a directory: each stage writes its
+//! own files through a [`SnapshotWriter`].
 
 use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 
-use scan3d_map::cloud::filter::apply_all;
-use scan3d_map::cloud::io::Encoding;
-use scan3d_map::cloud::ply::write_ply_bundles;
-use scan3d_map::eval::{self, Metrics};
-use scan3d_map::octree::{Octree, VoxelMap};
+use scan3d_map::eval::{LeafMap, Metrics};
 
-use super::{PipelineError, SessionPipeline, metrics};
+use super::PipelineError;
 
 /// What [`SessionPipeline::write_snapshot`] wrote.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -34,78 +31,40 @@ pub struct Snapshot {
     pub metrics: Option<Metrics>,
 }
 
-pub(super) fn write(
-    pipeline: &mut SessionPipeline,
-    dir: &Path,
-    position: Option<&str>,
-) -> Result<Snapshot, PipelineError> {
-    let maps = pipeline.maps();
-    let map: Option<&VoxelMap> = match position {
-        None => Some(maps.session_map()),
-        Some(name) => match maps.position(name) {
-            Some(p) => p.map.as_ref(),
-            None => {
-                return Err(PipelineError::UnknownPosition {
-                    name: name.to_string(),
-                    known: maps.positions().join(", "),
-                });
-            }
-        },
-    };
-    let res = *maps.resolution();
-    let model = pipeline.settings().sensor;
-    let tree = map.map_or_else(|| Octree::empty(res, model), VoxelMap::to_octree);
-    let bt = tree.to_bt_bytes();
-    let leaves = metrics::leaf_map_of_bt(&tree, &bt);
-    let mut cloud = maps.cloud(position);
-    if !pipeline.settings().snapshot_filters.is_empty() && !cloud.is_empty() {
-        cloud = apply_all(&pipeline.settings().snapshot_filters, cloud)?;
-    }
-    let mut ply = Vec::new();
-    write_ply_bundles(&mut ply, &cloud, Encoding::Binary).map_err(|source| {
-        PipelineError::Write {
-            path: dir.join("cloud.ply"),
-            source,
+/// A snapshot being written: each stage adds its files ([`super::Stage::snapshot`]).
+pub struct SnapshotWriter {
+    /// What has been written so far.
+    pub snapshot: Snapshot,
+    /// The octree's leaves as its `.bt` holds them, once the map stage wrote it (for the
+    /// metrics stage).
+    pub leaves: Option<LeafMap>,
+}
+
+impl SnapshotWriter {
+    /// A snapshot of the session (`position` `None`) or of one position, into `dir` (which
+    /// exists).
+    pub fn new(dir: &Path, position: Option<&str>) -> Self {
+        SnapshotWriter {
+            snapshot: Snapshot {
+                dir: dir.to_path_buf(),
+                position: position.map(str::to_string),
+                files: Vec::new(),
+                nodes: 0,
+                occupied_voxels: 0,
+                free_voxels: 0,
+                points: 0,
+                metrics: None,
+            },
+            leaves: None,
         }
-    })?;
-    let metrics = match pipeline.reference() {
-        Some(reference) if leaves.num_leaves() > 0 => {
-            Some(eval::evaluate(reference, &leaves, None)?)
-        }
-        _ => None,
-    };
-    std::fs::create_dir_all(dir).map_err(|source| PipelineError::Write {
-        path: dir.to_path_buf(),
-        source,
-    })?;
-    let mut files = Vec::new();
-    write_file(dir, "map.bt", &bt, &mut files)?;
-    write_file(dir, "map.ot", &tree.to_ot_bytes(), &mut files)?;
-    write_file(dir, "cloud.ply", &ply, &mut files)?;
-    if let Some(m) = &metrics {
-        let mut json = serde_json::to_vec_pretty(m).map_err(|e| PipelineError::Write {
-            path: dir.join("metrics.json"),
-            source: e.into(),
-        })?;
-        json.push(b'\n');
-        write_file(dir, "metrics.json", &json, &mut files)?;
-        let mut text = Vec::new();
-        metrics::write_metrics_table(m, &mut text).map_err(|source| PipelineError::Write {
-            path: dir.join("metrics.txt"),
-            source,
-        })?;
-        write_file(dir, "metrics.txt", &text, &mut files)?;
     }
-    Ok(Snapshot {
-        dir: dir.to_path_buf(),
-        position: position.map(str::to_string),
-        files,
-        nodes: tree.num_nodes() as u64,
-        occupied_voxels: leaves.occupied_voxels(),
-        free_voxels: leaves.free_voxels(),
-        points: cloud.iter().map(|c| c.points.len() as u64).sum(),
-        metrics,
-    })
+
+    /// Writes `name` in the snapshot's directory (through a temporary file and a rename) and
+    /// lists it.
+    pub fn write_file(&mut self, name: &str, bytes: &[u8]) -> Result<(), PipelineError> {
+        let dir = self.snapshot.dir.clone();
+        write_file(&dir, name, bytes, &mut self.snapshot.files)
+    }
 }
 
 /// Writes `dir/name` through a temporary file and a rename, so readers never see half of it.

@@ -1,15 +1,26 @@
 //! The built-in stages of a [`super::SessionPipeline`], in the order they run.
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
 
 use scan3d_map::cloud::RayBundle;
 use scan3d_map::cloud::assembly::{AssembledScan, StaticScanAssembler, cut_range};
+use scan3d_map::cloud::filter::apply_all as apply_filters;
 use scan3d_map::cloud::filter::{Filter, apply_all};
+use scan3d_map::cloud::io::Encoding;
+use scan3d_map::cloud::ply::write_ply_bundles;
 use scan3d_map::cloud::scans::{RevolutionCollector, SensorTotals};
+use scan3d_map::eval::{self, LeafMap, Metrics};
+use scan3d_map::octree::Octree;
 use scan3d_map::octree::{InsertStats, Resolution, VoxelMap};
 use scan3d_protocol::{Body, Frame, SensorId, StaticScan};
 
-use super::{PipelineSettings, Products, Stage, StageContext};
+use super::order::StreamId;
+use super::snapshot::SnapshotWriter;
+use super::{
+    METRICS_INTERVAL, PipelineError, PipelineSettings, Products, Stage, StageContext, metrics,
+};
 
 /// The 2D revolution collector as a stage: every lidar revolution's samples as points in the
 /// sensor's own scan plane, per sensor (`scan3d replay --out`'s `scans/<lidar>.ply`).
@@ -36,6 +47,14 @@ impl RevolutionStage {
 }
 
 impl Stage for RevolutionStage {
+    fn name(&self) -> &'static str {
+        "revolutions"
+    }
+
+    fn streams(&self) -> &'static [StreamId] {
+        &[StreamId::Rplidar, StreamId::Sweep, StreamId::OtherLidar]
+    }
+
     fn on_frame(&mut self, _ctx: &mut StageContext, frame: &Frame) {
         self.collector.on_frame(frame);
     }
@@ -44,17 +63,20 @@ impl Stage for RevolutionStage {
 /// Static-scan assembly by eq. 1: every body goes to the assembler, and the origin groups it
 /// completes go on in [`StageContext::rays`].
 ///
-/// Unless asked to keep them, static scans are forgotten once they have finished and their
-/// groups were handed on: when the next scan starts and every scan held has ended, the
-/// assembler starts afresh, so its memory is bounded by one static scan, not the session.
+/// Unless asked to keep them, static scans are forgotten when the next one starts: the frames
+/// come in sample-time order and the edge runs one scan at a time, so everything of the earlier
+/// scans has come by then; one whose end message was lost is counted as abandoned (its points
+/// were mapped as they came). The assembler's memory is bounded by one static scan.
 #[derive(Debug)]
 pub struct AssemblyStage {
     assembler: StaticScanAssembler,
     keep: bool,
     /// Orphan samples counted by assemblers already forgotten.
     forgotten_orphans: u64,
-    /// Static scans finished and forgotten.
+    /// Static scans forgotten.
     forgotten_scans: u64,
+    /// Static scans forgotten without their end message.
+    abandoned_scans: u64,
 }
 
 impl AssemblyStage {
@@ -65,12 +87,18 @@ impl AssemblyStage {
             keep,
             forgotten_orphans: 0,
             forgotten_scans: 0,
+            abandoned_scans: 0,
         }
     }
 
     /// Static-scan samples that could not be placed (their start or revolution never seen).
     pub fn orphan_samples(&self) -> u64 {
         self.forgotten_orphans + self.assembler.orphan_samples()
+    }
+
+    /// Static scans forgotten without their end message (it was lost): a later scan started.
+    pub fn abandoned_scans(&self) -> u64 {
+        self.abandoned_scans
     }
 
     /// Static scans started so far.
@@ -90,12 +118,29 @@ impl AssemblyStage {
 }
 
 impl Stage for AssemblyStage {
+    fn name(&self) -> &'static str {
+        "assembly"
+    }
+
+    fn streams(&self) -> &'static [StreamId] {
+        &[StreamId::Sweep, StreamId::StaticScan]
+    }
+
     fn on_frame(&mut self, ctx: &mut StageContext, frame: &Frame) {
-        // Forget the finished scans when the next one starts, not when they finish: the last
+        // Forget the earlier scans when the next one starts, not when they finish: the last
         // revolution of a scan and its yaws may still come after its end message.
         let starts = matches!(frame.body, Body::StaticScan(StaticScan::Started(_)));
-        if !self.keep && starts && self.assembler.scans().iter().all(|s| s.outcome.is_some()) {
+        if !self.keep && starts && !self.assembler.scans().is_empty() {
             let done = std::mem::take(&mut self.assembler);
+            for scan in done.scans().iter().filter(|s| s.outcome.is_none()) {
+                self.abandoned_scans += 1;
+                tracing::warn!(
+                    scan_id = scan.scan_id,
+                    position = %scan.position.name,
+                    "a static scan never reported its end (the message was lost); its points \
+                     were mapped as they came and it is forgotten now that another one started"
+                );
+            }
             self.forgotten_orphans += done.orphan_samples();
             self.forgotten_scans += done.scans().len() as u64;
         }
@@ -110,6 +155,7 @@ impl Stage for AssemblyStage {
 pub struct FilterStage {
     filters: Vec<Filter>,
     failures: u64,
+    dropped_points: u64,
 }
 
 impl FilterStage {
@@ -118,6 +164,7 @@ impl FilterStage {
         FilterStage {
             filters,
             failures: 0,
+            dropped_points: 0,
         }
     }
 
@@ -125,9 +172,18 @@ impl FilterStage {
     pub fn failures(&self) -> u64 {
         self.failures
     }
+
+    /// Points in the groups a filter failed on (not mapped).
+    pub fn dropped_points(&self) -> u64 {
+        self.dropped_points
+    }
 }
 
 impl Stage for FilterStage {
+    fn name(&self) -> &'static str {
+        "filters"
+    }
+
     fn on_frame(&mut self, ctx: &mut StageContext, frame: &Frame) {
         if self.filters.is_empty() || ctx.rays.is_empty() {
             return;
@@ -137,6 +193,7 @@ impl Stage for FilterStage {
             .iter_mut()
             .map(|r| take_rays(&mut r.rays))
             .collect();
+        let dropped: u64 = groups.iter().map(|g| g.points.len() as u64).sum();
         match apply_all(&self.filters, groups) {
             Ok(filtered) => {
                 for (new, rays) in ctx.rays.iter_mut().zip(filtered) {
@@ -145,6 +202,8 @@ impl Stage for FilterStage {
             }
             Err(e) => {
                 self.failures += ctx.rays.len() as u64;
+                // The points were moved out above; count what the groups held.
+                self.dropped_points += dropped;
                 tracing::warn!(
                     seq = frame.seq,
                     groups = ctx.rays.len(),
@@ -250,6 +309,44 @@ impl MapStage {
 }
 
 impl Stage for MapStage {
+    fn name(&self) -> &'static str {
+        "map"
+    }
+
+    fn snapshot(&mut self, out: &mut SnapshotWriter) -> Result<(), PipelineError> {
+        let position = out.snapshot.position.clone();
+        let map = match position.as_deref() {
+            None => Some(&self.session),
+            Some(name) => self.position(name).and_then(|p| p.map.as_ref()),
+        };
+        let tree = map.map_or_else(
+            || Octree::empty(self.res, self.settings.sensor),
+            |m| m.to_octree(),
+        );
+        let bt = tree.to_bt_bytes();
+        let leaves = metrics::leaf_map_of_bt(&tree, &bt);
+        let mut cloud = self.cloud(position.as_deref());
+        if !self.settings.snapshot_filters.is_empty() && !cloud.is_empty() {
+            cloud = apply_filters(&self.settings.snapshot_filters, cloud)?;
+        }
+        let mut ply = Vec::new();
+        write_ply_bundles(&mut ply, &cloud, Encoding::Binary).map_err(|source| {
+            PipelineError::Write {
+                path: out.snapshot.dir.join("cloud.ply"),
+                source,
+            }
+        })?;
+        out.write_file("map.bt", &bt)?;
+        out.write_file("map.ot", &tree.to_ot_bytes())?;
+        out.write_file("cloud.ply", &ply)?;
+        out.snapshot.nodes = tree.num_nodes() as u64;
+        out.snapshot.occupied_voxels = leaves.occupied_voxels();
+        out.snapshot.free_voxels = leaves.free_voxels();
+        out.snapshot.points = cloud.iter().map(|c| c.points.len() as u64).sum();
+        out.leaves = Some(leaves);
+        Ok(())
+    }
+
     fn on_frame(&mut self, ctx: &mut StageContext, _frame: &Frame) {
         let max_range = self.max_range();
         for new in &ctx.rays {
@@ -267,6 +364,7 @@ impl Stage for MapStage {
             };
             let n = new.rays.points.len() as u64;
             self.points += n;
+            ctx.inserted_points += n;
             let position = &mut self.positions[index];
             position.points += n;
             if self.products.octrees {
@@ -283,5 +381,113 @@ impl Stage for MapStage {
                 self.cloud.push((index, rays));
             }
         }
+    }
+}
+
+/// Voxel counts and the metrics against the reference: recomputed from the session's octree
+/// when the map grew, at most once per [`METRICS_INTERVAL`]; a snapshot's metrics come from the
+/// octree it wrote.
+#[derive(Debug)]
+pub struct MetricsStage {
+    reference: Option<Arc<LeafMap>>,
+    /// When last computed.
+    at: Option<Instant>,
+    /// Points inserted when it was computed (nothing new since: no recompute).
+    points: u64,
+    /// Points inserted so far (from [`StageContext::inserted_points`]).
+    inserted: u64,
+    occupied: u64,
+    free: u64,
+    metrics: Option<Metrics>,
+}
+
+impl MetricsStage {
+    /// A stage comparing against `reference`, if any.
+    pub fn new(reference: Option<Arc<LeafMap>>) -> Self {
+        MetricsStage {
+            reference,
+            at: None,
+            points: 0,
+            inserted: 0,
+            occupied: 0,
+            free: 0,
+            metrics: None,
+        }
+    }
+
+    /// Occupied voxels (depth 16) of the session's octree as last computed.
+    pub fn occupied_voxels(&self) -> u64 {
+        self.occupied
+    }
+
+    /// Free voxels of the session's octree as last computed.
+    pub fn free_voxels(&self) -> u64 {
+        self.free
+    }
+
+    /// The metrics as last computed (a reference is configured and there is a map).
+    pub fn metrics(&self) -> Option<&Metrics> {
+        self.metrics.as_ref()
+    }
+
+    /// Recomputes from `maps` if the map grew and the last computation is [`METRICS_INTERVAL`]
+    /// old at `now`.
+    pub fn refresh(&mut self, maps: &MapStage, now: Instant) {
+        let due = self
+            .at
+            .is_none_or(|at| now.saturating_duration_since(at) >= METRICS_INTERVAL);
+        if !due || self.points == self.inserted {
+            return;
+        }
+        let leaves = metrics::leaf_map(&maps.session_map().to_octree());
+        self.occupied = leaves.occupied_voxels();
+        self.free = leaves.free_voxels();
+        self.metrics = self.evaluate(&leaves);
+        self.points = self.inserted;
+        self.at = Some(now);
+    }
+
+    fn evaluate(&self, leaves: &LeafMap) -> Option<Metrics> {
+        let reference = self.reference.as_ref()?;
+        eval::evaluate(reference, leaves, None)
+            .inspect_err(|e| tracing::debug!("no metrics yet: {e}"))
+            .ok()
+    }
+}
+
+impl Stage for MetricsStage {
+    fn name(&self) -> &'static str {
+        "metrics"
+    }
+
+    fn on_frame(&mut self, ctx: &mut StageContext, _frame: &Frame) {
+        self.inserted += ctx.inserted_points;
+    }
+
+    fn snapshot(&mut self, out: &mut SnapshotWriter) -> Result<(), PipelineError> {
+        let Some(leaves) = &out.leaves else {
+            return Ok(());
+        };
+        let Some(reference) = &self.reference else {
+            return Ok(());
+        };
+        if leaves.num_leaves() == 0 {
+            return Ok(());
+        }
+        let m = eval::evaluate(reference, leaves, None)?;
+        let mut json = serde_json::to_vec_pretty(&m).map_err(|e| PipelineError::Write {
+            path: out.snapshot.dir.join("metrics.json"),
+            source: e.into(),
+        })?;
+        json.push(b'\n');
+        out.write_file("metrics.json", &json)?;
+        let mut text = Vec::new();
+        metrics::write_metrics_table(&m, &mut text).map_err(|source| PipelineError::Write {
+            path: out.snapshot.dir.join("metrics.txt"),
+            source,
+        })?;
+        out.write_file("metrics.txt", &text)?;
+        out.snapshot.metrics = Some(m);
+        Ok(())
     }
 }
