@@ -13,7 +13,7 @@ use std::thread::JoinHandle;
 use std::time::Duration;
 
 use crate::clock::SharedClock;
-use crate::lidar::{DriverStats, LidarDriver, LidarEvent};
+use crate::lidar::{DriverStats, LidarDriver, LidarEvent, LidarKind};
 use crate::serial::{self, SerialError, SerialEvent, SerialOptions};
 use crate::timing::{Revolution, RevolutionAssembler, StampedSample, TimingConfig};
 
@@ -26,10 +26,12 @@ pub enum AcquisitionEvent {
     Lost(String),
     /// A full revolution with per-sample times.
     Revolution(Revolution),
-    /// One sample as soon as it arrived, with the measurement time and revolution position it
-    /// has in its [`AcquisitionEvent::Revolution`] (one time per sample); only when the thread
-    /// was spawned with `forward_samples` (the static-scan controller acts within a revolution).
-    Sample(StampedSample),
+    /// The samples of one serial read as soon as it returned, each with the measurement time
+    /// and revolution position it has in its [`AcquisitionEvent::Revolution`] (one time per
+    /// sample); only when the thread was spawned with `forward_samples` (the static-scan
+    /// controller acts within a revolution). One event per read, not per sample: the receiver
+    /// wakes once for a batch.
+    Samples(Vec<StampedSample>),
     /// Any other driver event: info, health, scanning, warnings, and `Failed` (after which the
     /// thread restarts the handshake following a pause). Samples never come this way: they
     /// arrive assembled as [`AcquisitionEvent::Revolution`]s.
@@ -50,6 +52,8 @@ pub struct AcquisitionSummary {
 /// A running acquisition thread.
 pub struct Acquisition {
     shutdown: Arc<AtomicBool>,
+    /// Whether samples are forwarded ([`Acquisition::forward_samples`]).
+    forwarding: Arc<AtomicBool>,
     thread: Option<JoinHandle<Result<AcquisitionSummary, SerialError>>>,
 }
 
@@ -57,8 +61,10 @@ pub struct Acquisition {
 const RESTART_PAUSE: Duration = Duration::from_secs(1);
 
 impl Acquisition {
-    /// Starts reading `driver` on the port described by `options`. With `forward_samples`,
-    /// every sample is also sent on its own, timed, as it arrives ([`AcquisitionEvent::Sample`]).
+    /// Starts reading `driver` on the port described by `options`, on a thread named after
+    /// the device family (`rplidar`, `sweep`). With `forward_samples`, every sample is also
+    /// sent, timed, as its read returns ([`AcquisitionEvent::Samples`]); that can be turned on
+    /// and off later with [`Acquisition::forward_samples`].
     pub fn spawn(
         mut driver: Box<dyn LidarDriver + Send>,
         options: SerialOptions,
@@ -69,14 +75,30 @@ impl Acquisition {
         let (tx, rx) = mpsc::channel();
         let shutdown = Arc::new(AtomicBool::new(false));
         let stop = shutdown.clone();
+        let forwarding = Arc::new(AtomicBool::new(forward_samples));
+        let wanted = forwarding.clone();
+        let name = match driver.kind() {
+            LidarKind::Rplidar => "rplidar",
+            LidarKind::Sweep => "sweep",
+        };
         let thread = std::thread::Builder::new()
-            .name(format!("lidar {}", options.path.display()))
+            .name(name.into())
             .spawn(move || {
                 let mut assembler = RevolutionAssembler::new(timing);
+                let mut forwarding = forward_samples.then(Vec::new);
                 while !stop.load(Ordering::Relaxed) {
                     let mut failed = false;
                     serial::run(driver.as_mut(), &options, clock.as_ref(), &stop, |event| {
-                        forward(event, &mut assembler, &tx, &mut failed, forward_samples)
+                        let drained = event == SerialEvent::Drained;
+                        let flow =
+                            forward(event, &mut assembler, &tx, &mut failed, &mut forwarding);
+                        // A read's batch went out: the next read follows the current wish, so
+                        // a batch is forwarded whole or not at all.
+                        let on = wanted.load(Ordering::Relaxed);
+                        if drained && on != forwarding.is_some() {
+                            forwarding = on.then(Vec::new);
+                        }
+                        flow
                     })?;
                     if failed {
                         std::thread::sleep(RESTART_PAUSE);
@@ -99,7 +121,21 @@ impl Acquisition {
                 None
             }
         };
-        (Self { shutdown, thread }, rx)
+        (
+            Self {
+                shutdown,
+                forwarding,
+                thread,
+            },
+            rx,
+        )
+    }
+
+    /// Turns forwarding every sample ([`AcquisitionEvent::Samples`]) on or off, from the next
+    /// read on. Off, the receiver is woken only by revolutions and the device's other events
+    /// (the Sweep worker needs the samples only while a static scan runs or waits).
+    pub fn forward_samples(&self, on: bool) {
+        self.forwarding.store(on, Ordering::Relaxed);
     }
 
     /// Stops the thread (the driver sends its stop command) and returns its summary.
@@ -125,16 +161,47 @@ impl Drop for Acquisition {
     }
 }
 
+/// Sends the samples gathered since the last batch, if any; `false` when the receiver is gone.
+fn send_samples(
+    forwarding: &mut Option<Vec<StampedSample>>,
+    tx: &Sender<AcquisitionEvent>,
+) -> bool {
+    match forwarding {
+        Some(batch) if !batch.is_empty() => tx
+            .send(AcquisitionEvent::Samples(std::mem::take(batch)))
+            .is_ok(),
+        _ => true,
+    }
+}
+
 /// Turns shell events into acquisition events; `Break` when the driver failed (to restart it)
-/// or the receiver is gone.
+/// or the receiver is gone. With `forwarding` (`Some`), stamped samples gather there and go out
+/// as one [`AcquisitionEvent::Samples`] per read, always before any later event.
 fn forward(
     event: SerialEvent,
     assembler: &mut RevolutionAssembler,
     tx: &Sender<AcquisitionEvent>,
     failed: &mut bool,
-    forward_samples: bool,
+    forwarding: &mut Option<Vec<StampedSample>>,
 ) -> ControlFlow<()> {
     let out = match event {
+        SerialEvent::Driver(LidarEvent::Sample(sample)) => {
+            let stamped = assembler.stamp(sample);
+            if let Some(batch) = forwarding.as_mut() {
+                batch.push(stamped.sample);
+            }
+            match stamped.finished {
+                Some(rev) => AcquisitionEvent::Revolution(rev),
+                None => return ControlFlow::Continue(()),
+            }
+        }
+        SerialEvent::Drained => {
+            return if send_samples(forwarding, tx) {
+                ControlFlow::Continue(())
+            } else {
+                ControlFlow::Break(())
+            };
+        }
         SerialEvent::Opened => {
             assembler.reset();
             AcquisitionEvent::Opened
@@ -143,28 +210,21 @@ fn forward(
             assembler.reset();
             AcquisitionEvent::Lost(reason)
         }
-        SerialEvent::Driver(LidarEvent::Sample(sample)) => {
-            let stamped = assembler.stamp(sample);
-            if forward_samples && tx.send(AcquisitionEvent::Sample(stamped.sample)).is_err() {
-                return ControlFlow::Break(());
-            }
-            match stamped.finished {
-                Some(rev) => AcquisitionEvent::Revolution(rev),
-                None => return ControlFlow::Continue(()),
-            }
-        }
         SerialEvent::Driver(failure @ LidarEvent::Failed(_)) => {
             assembler.reset();
             *failed = true;
-            let _ = tx.send(AcquisitionEvent::Driver(failure));
+            if send_samples(forwarding, tx) {
+                let _ = tx.send(AcquisitionEvent::Driver(failure));
+            }
             return ControlFlow::Break(());
         }
         SerialEvent::Driver(other) => AcquisitionEvent::Driver(other),
     };
-    if tx.send(out).is_err() {
-        ControlFlow::Break(())
-    } else {
+    // The samples gathered so far go first: the receiver sees events in the device's order.
+    if send_samples(forwarding, tx) && tx.send(out).is_ok() {
         ControlFlow::Continue(())
+    } else {
+        ControlFlow::Break(())
     }
 }
 

@@ -414,8 +414,12 @@ fn run_probe(
 /// `scan3d-edge --config edge.toml`: runs the daemon until SIGTERM or SIGINT.
 fn run_daemon(config_path: &std::path::Path) -> anyhow::Result<()> {
     let config = EdgeConfig::load(config_path)?;
+    // One worker: the async side is the uplink (QUIC, acks, pongs) and a few control tasks,
+    // all light; a second worker only added wake-ups handing tasks between the two threads.
+    // Named for `top -H` and the edge_daemon benchmark's per-thread table.
     let runtime = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
+        .worker_threads(1)
+        .thread_name("uplink")
         .enable_all()
         .build()?;
     runtime.block_on(async {

@@ -108,6 +108,15 @@ impl Context {
         }
     }
 
+    /// Sends a small, frequent frame (IMU readings) in the uplink's next batch
+    /// ([`UplinkHandle::submit_deferred`]).
+    fn submit_deferred(&self, body: impl Into<Body>) -> Result<(), SubmitError> {
+        match &self.uplink {
+            Some(uplink) => uplink.submit_deferred(body).map(|_| ()),
+            None => Ok(()),
+        }
+    }
+
     fn has_room(&self) -> bool {
         self.uplink.as_ref().is_none_or(UplinkHandle::has_room)
     }
@@ -258,7 +267,13 @@ where
                 clock.clone(),
                 move |event| {
                     let body: Body = match event {
-                        ImuEvent::Sample(sample) => sample.into(),
+                        ImuEvent::Sample(sample) => {
+                            // 200 a second: they go out in the uplink's batches.
+                            if let Err(e) = context.submit_deferred(sample) {
+                                tracing::debug!(error = %e, "IMU frame not queued");
+                            }
+                            return;
+                        }
                         ImuEvent::Ready(ids) => {
                             tracing::info!(model = "MPU-9250", who_am_i = ids.who_am_i, wia = ?ids.wia, "IMU ready");
                             context.inventory_insert(SensorInfo {
@@ -339,6 +354,9 @@ where
     if let Some(section) = &config.rplidar {
         let driver_config = section.driver.clone();
         let serial = SerialOptions::new(&section.path, section.driver.baud);
+        // Nothing waits on the RPLidar within a revolution: half the reads of the Sweep's pace
+        // (which the static-scan controller needs), the timing fit is the same.
+        serial.read_coalesce.set(RPLIDAR_READ_PACE);
         let make: DriverFactory =
             Box::new(move || Ok(Box::new(Rplidar::new(driver_config.clone())) as Box<_>));
         workers.push((
@@ -350,6 +368,8 @@ where
         let driver_config = section.driver.clone();
         Sweep::new(driver_config.clone())?; // refuse a bad config at start-up, loudly
         let serial = SerialOptions::new(&section.path, 115_200);
+        // Faster only while a static scan runs or waits (the Sweep worker sets it).
+        serial.read_coalesce.set(SWEEP_IDLE_READ_PACE);
         let make: DriverFactory =
             Box::new(move || Ok(Box::new(Sweep::new(driver_config.clone())?) as Box<_>));
         workers.push((
@@ -400,6 +420,15 @@ where
     watchdog.abort();
     Ok(report)
 }
+
+/// How long the RPLidar's reads let bytes gather ([`SerialOptions::read_coalesce`]), and the
+/// Sweep's while no static scan runs or waits.
+const RPLIDAR_READ_PACE: Duration = Duration::from_millis(20);
+const SWEEP_IDLE_READ_PACE: Duration = Duration::from_millis(20);
+
+/// The Sweep's read pace while a static scan runs or waits: the controller decides each
+/// step on samples that are at most this old (an FTDI adapter's latency timer is 16 ms).
+const SWEEP_SCAN_READ_PACE: Duration = Duration::from_millis(10);
 
 /// Makes a fresh driver for each acquisition run (after a pause the handshake starts over).
 type DriverFactory = Box<dyn Fn() -> anyhow::Result<Box<dyn LidarDriver + Send>> + Send>;
@@ -528,6 +557,20 @@ impl ScanHooks {
             last_sample_ns: None,
             started: 0,
         }
+    }
+
+    /// Whether the Sweep worker needs every sample as it arrives: while a scan runs or waits
+    /// for the Sweep. Otherwise the revolutions are enough ([`ScanHooks::on_revolution`]) and
+    /// the Sweep's thread does not wake the worker for each read.
+    fn wants_samples(&self) -> bool {
+        self.session.is_some() || self.pending.is_some()
+    }
+
+    /// A Sweep revolution: the Sweep streams (when samples are not forwarded, this is how the
+    /// worker knows).
+    fn on_revolution(&mut self, rev: &Revolution) {
+        let last = rev.samples.last().map_or(rev.t1_ns, |s| s.t_ns);
+        self.last_sample_ns = Some(self.last_sample_ns.map_or(last, |t| t.max(last)));
     }
 
     /// Whether the Sweep sent a sample within [`SWEEP_STREAMING_NS`] of `now_ns`.
@@ -839,7 +882,7 @@ fn lidar_worker(
             serial.clone(),
             context.clock.clone(),
             TimingConfig::default(),
-            scan.is_some(),
+            scan.as_ref().is_some_and(ScanHooks::wants_samples),
         );
         let mut pause: Option<PauseCause> = None;
         let mut bodies: Vec<Body> = Vec::new();
@@ -855,13 +898,18 @@ fn lidar_worker(
             let body: Option<Body> = match event {
                 None => None,
                 Some(event) => match event {
-                    AcquisitionEvent::Sample(sample) => {
+                    AcquisitionEvent::Samples(samples) => {
                         if let Some(hooks) = scan.as_mut() {
-                            hooks.on_sample(&sample, &mut bodies);
+                            for sample in &samples {
+                                hooks.on_sample(sample, &mut bodies);
+                            }
                         }
                         None
                     }
                     AcquisitionEvent::Revolution(rev) => {
+                        if let Some(hooks) = scan.as_mut() {
+                            hooks.on_revolution(&rev);
+                        }
                         report.revolutions += 1;
                         report.samples += rev.samples.len() as u64;
                         Some(revolution_frame(sensor, &rev).into())
@@ -924,9 +972,18 @@ fn lidar_worker(
                 },
             };
             bodies.extend(body);
+            if let Some(hooks) = scan.as_ref() {
+                let wanted = hooks.wants_samples();
+                acquisition.forward_samples(wanted);
+                serial.read_coalesce.set(if wanted {
+                    SWEEP_SCAN_READ_PACE
+                } else {
+                    SWEEP_IDLE_READ_PACE
+                });
+            }
             pause = submit_in_order(
                 sensor,
-                &mut |body| context.submit(body),
+                &mut |body| submit_frame(context, sensor, body),
                 &mut refused,
                 &mut bodies,
             );
@@ -990,6 +1047,18 @@ fn lidar_worker(
     report
 }
 
+/// Submits a lidar worker's frame. The RPLidar's revolutions ride with the uplink's next batch
+/// ([`UplinkHandle::submit_deferred`]: nothing on the server waits on them within 100 ms);
+/// the Sweep's go at once (the live map of a static scan is built from them), and so do
+/// status, hello and static-scan frames.
+fn submit_frame(context: &Context, sensor: SensorId, body: Body) -> Result<(), SubmitError> {
+    if sensor == SensorId::RPLIDAR && matches!(body, Body::Revolution(_)) {
+        context.submit_deferred(body)
+    } else {
+        context.submit(body)
+    }
+}
+
 fn status_body(
     context: &Context,
     sensor: SensorId,
@@ -1031,6 +1100,7 @@ mod tests {
 
     use super::*;
     use crate::clock::Clock;
+    use crate::uplink::client::unused_client_config;
     use crate::uplink::spool::{SpoolConfig, StorageFaults};
 
     /// A clock the test moves by hand.
@@ -1041,19 +1111,6 @@ mod tests {
         fn now_ns(&self) -> u64 {
             self.0.load(Ordering::Relaxed)
         }
-    }
-
-    /// A quinn client configuration that is never used to connect.
-    fn unused_client_config() -> quinn::ClientConfig {
-        let provider = Arc::new(rustls::crypto::ring::default_provider());
-        let tls = rustls::ClientConfig::builder_with_provider(provider)
-            .with_protocol_versions(&[&rustls::version::TLS13])
-            .unwrap()
-            .with_root_certificates(rustls::RootCertStore::empty())
-            .with_no_client_auth();
-        quinn::ClientConfig::new(Arc::new(
-            quinn::crypto::rustls::QuicClientConfig::try_from(tls).unwrap(),
-        ))
     }
 
     fn heartbeat(n: u64) -> Body {

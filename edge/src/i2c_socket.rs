@@ -655,22 +655,36 @@ impl SocketI2c {
     }
 }
 
-/// Reads one response message (the buffer is reused).
+/// Reads one response message (the buffer is reused): as many bytes as the socket has per
+/// read, so a response costs one `recv`, not one for the prefix and one for the body.
 fn read_response(
     stream: &mut UnixStream,
     buf: &mut Vec<u8>,
 ) -> io::Result<Result<Response, FrameError>> {
-    let mut prefix = [0; LEN_PREFIX];
-    stream.read_exact(&mut prefix)?;
-    let len = usize::from(u16::from_le_bytes(prefix));
-    if len > MAX_BODY_LEN {
-        return Ok(Err(FrameError::BodyTooLong { len }));
-    }
     buf.clear();
-    buf.extend_from_slice(&prefix);
-    buf.resize(LEN_PREFIX + len, 0);
-    stream.read_exact(&mut buf[LEN_PREFIX..])?;
-    Ok(Response::decode(buf).map(|r| r.expect("a whole message").0))
+    let mut chunk = [0u8; 512];
+    loop {
+        match Response::decode(buf) {
+            // One request, one response: nothing may follow it.
+            Ok(Some((response, used))) if used == buf.len() => return Ok(Ok(response)),
+            Ok(Some((_, used))) => {
+                return Err(io::Error::new(
+                    io::ErrorKind::InvalidData,
+                    format!(
+                        "{} bytes after the response (framing lost)",
+                        buf.len() - used
+                    ),
+                ));
+            }
+            Ok(None) => {}
+            Err(e) => return Ok(Err(e)),
+        }
+        let n = stream.read(&mut chunk)?;
+        if n == 0 {
+            return Err(io::ErrorKind::UnexpectedEof.into());
+        }
+        buf.extend_from_slice(&chunk[..n]);
+    }
 }
 
 /// An I/O error as a reason: end of file and timeouts in words, not errno text.

@@ -132,6 +132,7 @@ impl Probe {
     pub fn on_event(&mut self, event: SerialEvent, out: &mut Vec<ProbeLine>) -> ControlFlow<()> {
         match event {
             SerialEvent::Opened | SerialEvent::Lost(_) => self.assembler.reset(),
+            SerialEvent::Drained => {}
             SerialEvent::Driver(LidarEvent::Info(info)) => {
                 self.got_info = true;
                 out.push(info.into());

@@ -8,7 +8,8 @@
 use std::io::{ErrorKind, Read, Write};
 use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use serialport::{ClearBuffer, SerialPort, TTYPort};
@@ -25,11 +26,14 @@ pub struct SerialOptions {
     pub baud: u32,
     /// Longest single blocking read, real time. Bounds how late shutdown is noticed.
     pub max_read_wait: Duration,
-    /// After a read that returned only a little data, wait this long (edge-clock time) before
-    /// reading again, so bytes arrive in batches as a USB adapter's latency timer delivers them.
-    /// This roughly halves the edge's system calls at full sensor rate; the added delay is the
-    /// same for every read, so [`crate::timing`]'s lower-envelope fit absorbs it.
-    pub read_coalesce: Duration,
+    /// Reads are paced: after a read that returned only a little data, the next one waits
+    /// until this long (edge-clock time) has passed since it, so bytes arrive in batches as a
+    /// USB adapter's latency timer (16 ms on an FTDI) delivers them anyway. At 10 ms a lidar
+    /// streaming at full rate costs about 100 reads a second instead of one per few bytes;
+    /// [`crate::timing`]'s lower-envelope fit takes the measurement times back from the
+    /// least-delayed sample of each batch, and a sample reaches the static-scan controller at
+    /// most this much later. Shared: the owner may change it while the port runs.
+    pub read_coalesce: ReadPace,
     /// Reopen the port after it disappears (daemon). When `false`, the first failure to open or
     /// a lost device ends [`run`] with an error (one-shot tools such as `probe`).
     pub reconnect: bool,
@@ -40,17 +44,43 @@ pub struct SerialOptions {
 }
 
 impl SerialOptions {
-    /// Defaults for a device at `path` and `baud`: reconnect with 100 ms … 2 s backoff.
+    /// Defaults for a device at `path` and `baud`: reads paced at 10 ms, reconnect with
+    /// 100 ms … 2 s backoff.
     pub fn new(path: impl Into<PathBuf>, baud: u32) -> Self {
         Self {
             path: path.into(),
             baud,
             max_read_wait: Duration::from_millis(50),
-            read_coalesce: Duration::from_millis(2),
+            read_coalesce: ReadPace::new(Duration::from_millis(10)),
             reconnect: true,
             initial_backoff: Duration::from_millis(100),
             max_backoff: Duration::from_secs(2),
         }
+    }
+}
+
+/// How long reads let bytes gather ([`SerialOptions::read_coalesce`]); clones share the value,
+/// so a worker can read faster while something waits on the samples and slower otherwise.
+#[derive(Debug, Clone, Default)]
+pub struct ReadPace(Arc<AtomicU64>);
+
+impl ReadPace {
+    /// A pace of `pace` (edge-clock time).
+    pub fn new(pace: Duration) -> Self {
+        let shared = Self::default();
+        shared.set(pace);
+        shared
+    }
+
+    /// Changes the pace, from the next read on.
+    pub fn set(&self, pace: Duration) {
+        let ns = u64::try_from(pace.as_nanos()).unwrap_or(u64::MAX);
+        self.0.store(ns, Ordering::Relaxed);
+    }
+
+    /// The pace, nanoseconds of edge-clock time.
+    pub fn ns(&self) -> u64 {
+        self.0.load(Ordering::Relaxed)
     }
 }
 
@@ -63,6 +93,9 @@ pub enum SerialEvent {
     Lost(String),
     /// An event from the driver.
     Driver(LidarEvent),
+    /// Every event of the bytes read so far was delivered; the shell waits for more input
+    /// (a caller that batches events sends its batch now).
+    Drained,
 }
 
 /// Why [`run`] stopped with an error.
@@ -162,12 +195,19 @@ fn session<D: LidarDriver + ?Sized>(
 ) -> Result<(), String> {
     let mut buf = vec![0u8; 4096];
     let mut dtr_warning = DtrWarning::default();
+    // Edge-clock time before which the next read waits (pacing; see `read_coalesce`).
+    let mut next_read_ns: Option<u64> = None;
     loop {
         flush_transmits(driver, port, &mut dtr_warning)?;
+        let mut delivered = false;
         while let Some(event) = driver.poll_event() {
+            delivered = true;
             if on_event(SerialEvent::Driver(event)).is_break() {
                 return Ok(());
             }
+        }
+        if delivered && on_event(SerialEvent::Drained).is_break() {
+            return Ok(());
         }
         if shutdown.load(Ordering::Relaxed) {
             return Ok(());
@@ -178,6 +218,16 @@ fn session<D: LidarDriver + ?Sized>(
             driver.handle_timeout(now);
             continue;
         }
+        if let Some(at) = next_read_ns {
+            if at > now {
+                // Pacing: let the bytes gather, but never past the driver's next deadline
+                // (already in the future here) or the longest wait (shutdown).
+                let until = deadline.map_or(at, |deadline| deadline.min(at));
+                std::thread::sleep(clock.real_duration(until - now).min(options.max_read_wait));
+                continue;
+            }
+            next_read_ns = None;
+        }
         let wait = deadline
             .map(|deadline| clock.real_duration(deadline.saturating_sub(now)))
             .unwrap_or(options.max_read_wait)
@@ -187,11 +237,11 @@ fn session<D: LidarDriver + ?Sized>(
             // A pty whose master closed, or a USB adapter that vanished, reads as EOF.
             Ok(0) => return Err("end of file (device disconnected)".into()),
             Ok(n) => {
-                driver.handle_input(clock.now_ns(), &buf[..n]);
-                if n < buf.len() / 4 && !options.read_coalesce.is_zero() {
-                    let coalesce_ns =
-                        u64::try_from(options.read_coalesce.as_nanos()).unwrap_or(u64::MAX);
-                    std::thread::sleep(clock.real_duration(coalesce_ns));
+                let read_ns = clock.now_ns();
+                driver.handle_input(read_ns, &buf[..n]);
+                let coalesce_ns = options.read_coalesce.ns();
+                if n < buf.len() / 4 && coalesce_ns > 0 {
+                    next_read_ns = Some(read_ns.saturating_add(coalesce_ns));
                 }
             }
             Err(e) if matches!(e.kind(), ErrorKind::TimedOut | ErrorKind::WouldBlock) => {}

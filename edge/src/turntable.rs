@@ -88,7 +88,7 @@ impl Turntable {
         let (jobs, job_rx) = mpsc::channel::<TurntableJob>();
         let (report_tx, reports) = mpsc::channel();
         let thread = std::thread::Builder::new()
-            .name("turntable".into())
+            .name("stepper".into())
             .spawn(move || {
                 let state = |stepper: &Stepper, t_ns: u64| StepperState {
                     t_ns,

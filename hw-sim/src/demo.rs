@@ -32,9 +32,9 @@ use scan3d_edge::clock::{ScaledClock, SharedClock};
 use scan3d_edge::daemon::DaemonReport;
 use scan3d_map::cloud::scans::RevolutionCollector;
 use scan3d_protocol::{Body, SensorId};
-use scan3d_server::ingest::recorder::{session_dir, topic};
 use scan3d_server::ingest::server::{IngestEvent, IngestStats};
 use scan3d_server::pose::timesync::ClockModel;
+use scan3d_server::recording::{session_dir, topic};
 use scan3d_server::report::{RESOLUTION_SWEEP_M, ReportOptions, opt, write_resolution_sweep};
 
 use scan3d_map::cloud::RayBundle;

@@ -16,9 +16,9 @@ use scan3d_edge::drivers::sweep::SweepConfig;
 use scan3d_protocol::{Body, SensorId};
 use scan3d_server::ingest::control::{ControlLimits, ControlSocket, EdgeControl, socket_path};
 use scan3d_server::ingest::pki::{self, PairRequest};
-use scan3d_server::ingest::recorder::read_session;
 use scan3d_server::ingest::server::{IngestConfig, IngestEvent, IngestServer, IngestStats};
 use scan3d_server::pipeline::live::{LivePipelines, LiveSettings};
+use scan3d_server::recording::read_session;
 use tokio::sync::{mpsc, oneshot, watch};
 
 use crate::faults::{FaultConfig, SentSample};

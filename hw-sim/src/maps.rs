@@ -29,11 +29,11 @@ use scan3d_protocol::{Body, Command, StaticScan, StaticScanOutcome};
 use scan3d_server::ingest::control::{
     ControlRequest, ProductRequest, request, request_products, request_snapshot, socket_path,
 };
-use scan3d_server::ingest::recorder::session_dir;
 use scan3d_server::ingest::server::IngestEvent;
 use scan3d_server::pipeline::PipelineSettings;
 use scan3d_server::pipeline::live::LiveSettings;
 use scan3d_server::pipeline::offline::assemble_session;
+use scan3d_server::recording::session_dir;
 use scan3d_server::report::MetricBox;
 
 use crate::installation::{self, EDGE_NAME, EdgeThread, ServerThread};

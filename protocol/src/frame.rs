@@ -70,7 +70,7 @@ pub enum Direction {
 /// | 8 | [`Body::Status`] | edge → server |
 /// | 9 | [`Body::Command`] | server → edge |
 /// | 10 | [`Body::StaticScan`] | edge → server |
-/// | 11 | [`Body::ClockModel`] | server only (recorded, never sent) |
+/// | 11 | [`Body::ClockModel`] | none: legacy, only read from older recordings |
 /// | 12 | [`Body::CommandReply`] | edge → server |
 ///
 /// `TimePing` and `TimePong` travel in QUIC datagrams, not on the stream (see [`Frame`]).
@@ -98,7 +98,11 @@ pub enum Body {
     Command(Command),
     /// Static 3D scan: start, the yaws of each Sweep revolution's samples, warnings, end.
     StaticScan(StaticScan),
-    /// The server's mapping of the edge clock, recorded in the session when it changes.
+    /// Legacy: the server's mapping of the edge clock as recordings of protocol 2 held it
+    /// before the server recorded it as a record type of its own (the server's
+    /// `recording::ServerRecord`). The tag stays so those recordings decode; nothing sends
+    /// this body or writes it any more (the server's recorder refuses it), and a server that
+    /// receives one treats it as a misdirected frame.
     ClockModel(ClockModel),
     /// The edge's answer to a [`Body::Command`]: accepted, waiting or refused with the reason.
     CommandReply(CommandReply),

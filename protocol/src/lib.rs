@@ -48,7 +48,7 @@
 //! | 8 | [`DeviceStatus`] | edge → server | sensor lost / back, acquisition paused / resumed, with a reason |
 //! | 9 | [`Command`] | server → edge | start static scan at a named position, stop it, set a motor speed |
 //! | 10 | [`StaticScan`] | edge → server | static 3D scan: start (position, step, mount), the yaws of each Sweep revolution's samples as runs of sample indices, warnings, end |
-//! | 11 | [`ClockModel`] | server only (recorded) | edge → server clock mapping: offset, skew, error bound, reference point |
+//! | 11 | [`ClockModel`] | none (legacy: only in older recordings) | edge → server clock mapping; kept so recordings made before the server recorded it as its own record type still decode; never sent, never written |
 //! | 12 | [`CommandReply`] | edge → server | the answer to a [`Command`] (by its frame's `seq`): accepted (with the static scan's id), waiting (for the Sweep, say), or refused with the reason |
 //!
 //! **One sample timeline.** Every lidar sample travels once, in its [`LidarRevolution`], with

@@ -264,7 +264,9 @@ pub struct TimePong {
 
 /// How an edge's clock maps to the server's: the server's time-sync estimate, recorded in the
 /// session (topic `/scan3d/timesync`) each time it changes so that a replay maps sample times
-/// exactly as the live server did. Made by the server only; never sent to an edge.
+/// exactly as the live server did. Made by the server only; never sent to an edge. The server
+/// records it as a record type of its own, not as a wire frame
+/// ([`Body::ClockModel`](crate::Body::ClockModel) is the legacy form older recordings hold).
 ///
 /// The offset θ (edge − server, NTP's sign) is linear in edge time:
 /// `θ(t) = offset_ns + skew_ppm · 10⁻⁶ · (t − ref_edge_ns)`, and `server = t − θ(t)`

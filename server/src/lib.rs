@@ -1,7 +1,9 @@
 //! The scan3d server: ingest, pose, 3D assembly, occupancy octree and map metrics.
 //!
 //! Stages follow the data flow, one module each (see `ARCHITECTURE.md`); today:
-//! - [`ingest`]: QUIC server with mutual TLS, durable MCAP session recordings.
+//! - [`recording`]: durable MCAP session recordings (writer, reader, index, server-made
+//!   records), beneath ingest, pose and pipeline.
+//! - [`ingest`]: QUIC server with mutual TLS; records through [`recording`].
 //! - [`pose`]: the edge clock's mapping to server time (time sync); scan matching comes here.
 //! - [`pipeline`]: per session, frames through assembly, filters, octree and metrics.
 //! - the octree, clouds and metrics are the pure `scan3d-map` crate, used here.
@@ -15,4 +17,5 @@ pub mod config;
 pub mod ingest;
 pub mod pipeline;
 pub mod pose;
+pub mod recording;
 pub mod report;

@@ -493,7 +493,7 @@ fn hostile_mcap_length_prefixes_are_refused_within_the_bytes_present() {
         file.extend_from_slice(&record);
         std::fs::write(dir.path().join("0000.mcap"), &file).unwrap();
         let (result, peak) = peak_of(|| {
-            scan3d_server::ingest::recorder::read_session_report(dir.path()).map(|r| r.0.len())
+            scan3d_server::recording::read_session_report(dir.path()).map(|r| r.0.len())
         });
         assert!(
             peak < (1 << 20) + 64 * file.len(),

@@ -13,9 +13,9 @@ use pipeline_support::{SessionBuilder, break_chunk, position};
 use scan3d_map::cloud::io;
 use scan3d_map::cloud::scans::RevolutionCollector;
 use scan3d_map::octree::{Octree, SensorModel};
-use scan3d_server::ingest::recorder::read_session;
 use scan3d_server::pipeline::offline::{MAP_ONLY, run_session};
 use scan3d_server::pipeline::{PipelineError, PipelineSettings, Products, SessionPipeline};
+use scan3d_server::recording::read_session;
 
 fn two_position_session() -> SessionBuilder {
     let mut s = SessionBuilder::new(0x5eed);

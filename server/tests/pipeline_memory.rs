@@ -8,9 +8,9 @@ use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 use pipeline_support::{SessionBuilder, position};
-use scan3d_server::ingest::recorder::read_session;
 use scan3d_server::pipeline::PipelineSettings;
 use scan3d_server::pipeline::offline::{MAP_ONLY, run_session};
+use scan3d_server::recording::read_session;
 
 /// The system allocator, counting bytes in use and their peak.
 struct Counting;

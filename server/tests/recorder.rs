@@ -9,7 +9,7 @@ use scan3d_protocol::{
     Ack, Command, DeviceStatus, Frame, Heartbeat, Hello, ImuSample, LidarRevolution, SensorId,
     SensorInfo, StatusEvent, StepperState, TimePong, encode,
 };
-use scan3d_server::ingest::recorder::{
+use scan3d_server::recording::{
     Appended, CHUNKS_PER_FILE, RecorderError, SessionRecorder, list_sessions, read_session,
     visit_session,
 };
@@ -646,8 +646,7 @@ fn a_flipped_bit_in_one_chunk_loses_exactly_that_chunk_and_the_rest_is_read() {
     flip_bit(&path, start + chunk_len / 2, 3);
 
     let dir = session_path(tmp.path());
-    let (frames, report) =
-        scan3d_server::ingest::recorder::read_session_report(&dir).expect("read");
+    let (frames, report) = scan3d_server::recording::read_session_report(&dir).expect("read");
     let lost = damaged as u64 * PER_CHUNK..=damaged as u64 * PER_CHUNK + PER_CHUNK - 1;
     let expected: Vec<u64> = (0..12 * PER_CHUNK).filter(|s| !lost.contains(s)).collect();
     assert_eq!(
@@ -714,8 +713,7 @@ fn a_corrupt_chunk_length_is_skipped_up_to_the_next_chunk_that_validates() {
     // Bit 44 of the record length (its 6th byte): far past the end of the file.
     flip_bit(&path, start + 1 + 5, 4);
     let dir = session_path(tmp.path());
-    let (frames, report) =
-        scan3d_server::ingest::recorder::read_session_report(&dir).expect("read");
+    let (frames, report) = scan3d_server::recording::read_session_report(&dir).expect("read");
     let expected: Vec<u64> = (0..8 * PER_CHUNK)
         .filter(|s| !(2 * PER_CHUNK..3 * PER_CHUNK).contains(s))
         .collect();
@@ -744,8 +742,7 @@ fn a_torn_tail_is_a_crash_not_a_loss() {
     let (path, chunks) = chunked_session(tmp.path(), 4, 0);
     let (start, len) = chunks[3];
     let (copy, dir) = truncated_copy(&path, start + len / 2);
-    let (frames, report) =
-        scan3d_server::ingest::recorder::read_session_report(&dir).expect("read");
+    let (frames, report) = scan3d_server::recording::read_session_report(&dir).expect("read");
     assert_eq!(frames.len() as u64, 3 * PER_CHUNK);
     assert!(report.losses.is_empty(), "{:?}", report.losses);
     assert_eq!(report.incomplete_files, 1);

@@ -4,7 +4,7 @@
 //! compression libraries' allocations) is process-wide.
 
 use scan3d_protocol::{Frame, Heartbeat, LidarRevolution, SensorId, encode};
-use scan3d_server::ingest::recorder::SessionRecorder;
+use scan3d_server::recording::SessionRecorder;
 
 /// Bytes allocated from the C heap, including blocks served by `mmap`.
 fn heap_in_use() -> usize {

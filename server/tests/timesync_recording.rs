@@ -1,11 +1,13 @@
-//! Clock models in a session recording: numbered with the server's commands, not counted as
-//! edge frames, read back by `SessionClock` so a replay maps edge times exactly as live.
+//! Clock models in a session recording: server-made records (no wire frame, no sequence
+//! number of either side), read back by `SessionClock` so a replay maps edge times exactly as
+//! live.
 
-use scan3d_protocol::{ClockModel, Command, Frame, Heartbeat, encode};
-use scan3d_server::ingest::recorder::{
-    Appended, RecorderError, SessionRecorder, read_session_report,
-};
+use scan3d_protocol::{Body, ClockModel, Command, Frame, Heartbeat, encode};
 use scan3d_server::pose::timesync::{Exchange, SessionClock, TimeSync};
+use scan3d_server::recording::{
+    Appended, RecorderError, ServerRecord, SessionReader, SessionRecord, SessionRecorder,
+    read_session_report,
+};
 
 const EDGE: &str = "trolley-pi";
 const SESSION: u64 = 0xc10c;
@@ -37,7 +39,6 @@ fn recorded_clock_models_map_edge_times_exactly_as_the_live_ones_and_leave_no_ed
     let models = models();
     let mut live = SessionClock::new();
     let mut rec = SessionRecorder::open(tmp.path(), EDGE, SESSION).expect("open");
-    let mut server_seq = 0;
     for (edge_seq, model) in models.iter().enumerate() {
         let heartbeat = Frame::new(SESSION, edge_seq as u64, Heartbeat { sent_ns: 1 });
         let raw = encode(&heartbeat).unwrap();
@@ -45,42 +46,58 @@ fn recorded_clock_models_map_edge_times_exactly_as_the_live_ones_and_leave_no_ed
             rec.append(&raw, &heartbeat, LOG_NS).unwrap(),
             Appended::Buffered
         );
-        let record = Frame::new(SESSION, server_seq, *model);
-        let raw = encode(&record).unwrap();
-        assert_eq!(
-            rec.append_clock_model(&raw, &record, LOG_NS).unwrap(),
-            Appended::Buffered
-        );
-        assert_eq!(
-            rec.append_clock_model(&raw, &record, LOG_NS).unwrap(),
-            Appended::Duplicate
-        );
+        rec.append_record(&ServerRecord::ClockModel(*model), LOG_NS)
+            .unwrap();
         live.push(*model);
-        server_seq += 1;
     }
-    // Commands continue the server's numbering above the models.
-    assert_eq!(rec.next_command_seq(), server_seq);
-    let command = Frame::new(SESSION, server_seq, Command::StopStaticScan);
+    // The models take no server seq: commands are numbered from 0.
+    assert_eq!(rec.next_command_seq(), 0);
+    // A clock model is never a wire frame the server records.
+    let as_frame = Frame::new(SESSION, 0, models[0]);
     assert!(matches!(
-        rec.append_clock_model(&encode(&command).unwrap(), &command, LOG_NS),
+        rec.append_command(&encode(&as_frame).unwrap(), &as_frame, LOG_NS),
         Err(RecorderError::Misdirected { .. })
     ));
+    assert!(matches!(
+        rec.append(&encode(&as_frame).unwrap(), &as_frame, LOG_NS),
+        Err(RecorderError::Misdirected { .. })
+    ));
+    let command = Frame::new(SESSION, 0, Command::StopStaticScan);
     rec.append_command(&encode(&command).unwrap(), &command, LOG_NS)
         .unwrap();
     // Every edge frame is durable; the models are no edge seqs.
     assert_eq!(rec.commit().unwrap(), Some(models.len() as u64 - 1));
     rec.close().unwrap();
 
-    let dir = scan3d_server::ingest::recorder::session_dir(tmp.path(), EDGE, SESSION);
+    let dir = scan3d_server::recording::session_dir(tmp.path(), EDGE, SESSION);
     let (frames, report) = read_session_report(&dir).expect("read");
     assert!(report.missing_seqs.is_empty(), "{report:?}");
-    let on_topic = frames
-        .iter()
-        .filter(|f| f.topic == "/scan3d/timesync")
-        .count();
-    assert_eq!(on_topic, models.len());
+    assert_eq!(frames.len(), models.len() + 1, "heartbeats and the command");
+    assert!(
+        !frames
+            .iter()
+            .any(|f| f.topic == "/scan3d/timesync" || matches!(f.frame.body, Body::ClockModel(_)))
+    );
+    let mut on_topic = Vec::new();
+    let _report = SessionReader::new(&dir)
+        .visit(|record| {
+            if let SessionRecord::Server(server) = record {
+                assert_eq!(server.topic, "/scan3d/timesync");
+                assert_eq!(server.log_time_ns, LOG_NS);
+                on_topic.push(server.record);
+            }
+            Ok(())
+        })
+        .expect("records");
+    assert_eq!(
+        on_topic,
+        models
+            .iter()
+            .map(|m| ServerRecord::ClockModel(*m))
+            .collect::<Vec<_>>()
+    );
     let reopened = SessionRecorder::open(tmp.path(), EDGE, SESSION).expect("reopen");
-    assert_eq!(reopened.next_command_seq(), server_seq + 1);
+    assert_eq!(reopened.next_command_seq(), 1);
     drop(reopened);
 
     let replayed = SessionClock::from_session(&dir).expect("models");

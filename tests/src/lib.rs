@@ -2,9 +2,12 @@
 //!
 //! - [`relay`]: a UDP relay between edge and server that a test can cut and restore, to
 //!   simulate a network outage on the QUIC path.
+//! - [`operator`]: the operator's flow with the real binaries (pair, serve, `scan3d-sim rig`,
+//!   the real `scan3d-edge`), for the rig's end-to-end test and the edge daemon's benchmark.
 //! - [`BOX_ROOM`]: a small world of six walls for the static-scan tests.
 #![warn(missing_docs)]
 
+pub mod operator;
 pub mod relay;
 
 /// A 4 × 3 × 2.5 m room of six walls and nothing else (a hw-sim world file): static scans in

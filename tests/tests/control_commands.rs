@@ -238,9 +238,11 @@ fn a_command_sent_after_a_reconnect_is_recorded_not_taken_for_a_resend() {
         }
     });
     server.stop();
-    let recorded = scan3d_server::ingest::recorder::read_session(
-        &scan3d_server::ingest::recorder::session_dir(&data, installation::EDGE_NAME, SESSION),
-    )
+    let recorded = scan3d_server::recording::read_session(&scan3d_server::recording::session_dir(
+        &data,
+        installation::EDGE_NAME,
+        SESSION,
+    ))
     .expect("the session reads");
     let commands: Vec<String> = recorded
         .iter()
@@ -471,13 +473,11 @@ fn scans_through_the_real_edge_daemon_are_answered_followed_and_refused_with_rea
     head.stop();
     site.server.stop();
     // Every reply is in the recording, answering its command by seq.
-    let recorded = scan3d_server::ingest::recorder::read_session(
-        &scan3d_server::ingest::recorder::session_dir(
-            &site.data,
-            installation::EDGE_NAME,
-            session_id,
-        ),
-    )
+    let recorded = scan3d_server::recording::read_session(&scan3d_server::recording::session_dir(
+        &site.data,
+        installation::EDGE_NAME,
+        session_id,
+    ))
     .expect("the session reads");
     let commands: Vec<u64> = recorded
         .iter()

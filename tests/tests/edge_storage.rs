@@ -19,7 +19,7 @@ use scan3d_edge::uplink::spool::SpoolConfig;
 use scan3d_edge::uplink::tls;
 use scan3d_hw_sim::installation::{self, ServerThread};
 use scan3d_protocol::{Body, DeviceStatus, SensorId, StatusEvent};
-use scan3d_server::ingest::recorder::{read_session, session_dir};
+use scan3d_server::recording::{read_session, session_dir};
 
 /// A tmpfs mounted for the test's lifetime.
 struct Tmpfs<'a>(&'a Path);

@@ -32,11 +32,11 @@ use scan3d_protocol::{
 use scan3d_server::ingest::control::{
     ProductRequest, request_products, request_snapshot, socket_path,
 };
-use scan3d_server::ingest::recorder::{session_dir, summarize_session};
 use scan3d_server::ingest::server::{IngestConfig, close_code};
 use scan3d_server::pipeline::PipelineSettings;
 use scan3d_server::pipeline::live::LiveSettings;
 use scan3d_server::pipeline::offline::run_session;
+use scan3d_server::recording::{session_dir, summarize_session};
 
 struct Client {
     _endpoint: quinn::Endpoint,
@@ -454,7 +454,7 @@ fn a_reconnecting_edge_replaces_its_old_connection_once_that_is_silent() {
         installation::EDGE_NAME,
         session,
     );
-    let frames = scan3d_server::ingest::recorder::read_session(&dir).expect("recording");
+    let frames = scan3d_server::recording::read_session(&dir).expect("recording");
     assert_eq!(
         frames.iter().map(|f| f.frame.seq).collect::<Vec<_>>(),
         vec![0, 1]
@@ -531,7 +531,7 @@ fn an_idle_session_is_closed_and_reopened_when_its_frames_come_back() {
         installation::EDGE_NAME,
         session,
     );
-    let frames = scan3d_server::ingest::recorder::read_session(&dir).expect("recording");
+    let frames = scan3d_server::recording::read_session(&dir).expect("recording");
     assert_eq!(
         frames.iter().map(|f| f.frame.seq).collect::<Vec<_>>(),
         vec![0, 1]

@@ -12,8 +12,8 @@ use std::time::Duration;
 use scan3d_edge::uplink::tls::client_config;
 use scan3d_hw_sim::installation::{self, ServerThread};
 use scan3d_protocol::{Ack, Body, Frame, FrameReader, Heartbeat, encode};
-use scan3d_server::ingest::recorder::list_sessions;
 use scan3d_server::ingest::server::IngestLimits;
+use scan3d_server::recording::list_sessions;
 
 const SESSIONS: u64 = 1500;
 

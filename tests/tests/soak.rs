@@ -38,7 +38,7 @@ use anyhow::{Context, bail};
 use scan3d_edge::uplink::spool::{Spool, SpoolConfig};
 use scan3d_hw_sim::fleet::{self, EdgeHandle, EdgeIdentity, LidarStream, Producers, SimEdge};
 use scan3d_hw_sim::world::World;
-use scan3d_server::ingest::recorder::{read_session, session_dir};
+use scan3d_server::recording::{read_session, session_dir};
 use scan3d_tests::relay::{Impairment, UdpRelay};
 
 /// Environment variable that turns this test binary into the server child.

@@ -13,7 +13,7 @@ use scan3d_hw_sim::truth::GroundTruth;
 use scan3d_hw_sim::world::World;
 use scan3d_map::cloud::assembly::{Position, StaticScanAssembler};
 use scan3d_protocol::{Body, SensorId, StaticScan};
-use scan3d_server::ingest::recorder::visit_session;
+use scan3d_server::recording::visit_session;
 
 fn position(name: &str, x_m: f64, y_m: f64, heading_deg: f64) -> Position {
     Position {

@@ -11,9 +11,9 @@ use scan3d_edge::uplink::client::{Uplink, UplinkConfig};
 use scan3d_edge::uplink::tls::client_config;
 use scan3d_hw_sim::installation::{self, EDGE_NAME, ServerThread};
 use scan3d_protocol::{Body, DeviceStatus, Hello, SensorId, StatusEvent};
-use scan3d_server::ingest::recorder::{read_session, session_dir};
 use scan3d_server::ingest::server::IngestEvent;
 use scan3d_server::pose::timesync::{MonotonicServerClock, ServerClock, SessionClock};
+use scan3d_server::recording::{SessionReader, SessionRecord, read_session, session_dir};
 
 const SESSION: u64 = 0x71_3e_5a_c0;
 
@@ -125,10 +125,15 @@ fn the_clock_model_arrives_is_recorded_and_replays_identically_and_pongs_never_t
         MonotonicClock::new().clock_id(),
         "the boot id"
     );
-    let recorded = frames
-        .iter()
-        .filter(|f| f.topic == "/scan3d/timesync")
-        .count();
+    let mut recorded = 0;
+    let _report = SessionReader::new(&session_dir(&data, EDGE_NAME, SESSION))
+        .visit(|record| {
+            if let SessionRecord::Server(server) = record {
+                recorded += usize::from(server.topic == "/scan3d/timesync");
+            }
+            Ok(())
+        })
+        .expect("records");
     assert!(
         recorded >= models,
         "{recorded} models recorded, {models} reported"

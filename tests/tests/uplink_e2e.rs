@@ -11,7 +11,7 @@ use scan3d_edge::config::UplinkSection;
 use scan3d_hw_sim::installation::{
     self, Delivery, EdgeThread, LidarOptions, ServerThread, SimLidars, account,
 };
-use scan3d_server::ingest::recorder::session_dir;
+use scan3d_server::recording::session_dir;
 
 const TIME_SCALE: f64 = 10.0;
 
@@ -307,7 +307,7 @@ fn with_the_server_down_frames_spill_to_disk_pause_acquisition_and_all_arrive_la
         );
     }
     let session = site.session(session_id);
-    let frames = scan3d_server::ingest::recorder::read_session(&session).expect("recording");
+    let frames = scan3d_server::recording::read_session(&session).expect("recording");
     let events: Vec<StatusEvent> = frames
         .iter()
         .filter_map(|f| match &f.frame.body {

@@ -6,6 +6,16 @@
 //! the spool only when the server acknowledges them (after they are on its disk). After a
 //! reconnect everything unacknowledged is sent again; the server ignores what it already has.
 //!
+//! Frames go out in batches, to keep the edge's wake-ups and packets few at full sensor rate:
+//! each time the task wakes it writes every unsent frame (up to [`MAX_BATCH_BYTES`]) in one
+//! stream write. A frame submitted with [`UplinkHandle::submit`] wakes it at once (revolutions,
+//! status, replies); one submitted with [`UplinkHandle::submit_deferred`] (the IMU's 200
+//! readings a second) rides with the next write, which comes at the latest
+//! [`UplinkConfig::batch_delay`] after the previous one: while frames flow, a timer set at each
+//! write covers the deferred frames, and only the first deferred frame after a quiet spell wakes
+//! the task. A deferred frame is in the spool from the moment it is submitted, so batching
+//! changes when it is sent, never whether.
+//!
 //! Time-sync pings arrive as QUIC datagrams and are answered with a pong datagram at once
 //! ([`super::timesync::answer_ping`]): pongs never enter the spool, so a backlog cannot delay
 //! them and a reconnect never resends a stale one.
@@ -19,6 +29,7 @@
 //! with a long backoff (the operator may be fixing the pairing), never silently.
 
 use std::net::SocketAddr;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
@@ -47,10 +58,17 @@ pub struct UplinkConfig {
     pub auth_backoff: Duration,
     /// On shutdown, how long to keep sending before leaving the rest in the on-disk spool.
     pub drain_timeout: Duration,
+    /// Longest time a frame from [`UplinkHandle::submit_deferred`] waits for company before
+    /// it is sent.
+    pub batch_delay: Duration,
 }
 
+/// Most bytes of frames written to the stream in one write.
+pub const MAX_BATCH_BYTES: usize = 256 * 1024;
+
 impl UplinkConfig {
-    /// Defaults: 200 ms … 5 s backoff, 30 s after an authentication failure, 3 s drain.
+    /// Defaults: 200 ms … 5 s backoff, 30 s after an authentication failure, 3 s drain,
+    /// deferred frames sent within 100 ms.
     pub fn new(
         server: String,
         server_name: String,
@@ -66,6 +84,7 @@ impl UplinkConfig {
             max_backoff: Duration::from_secs(5),
             auth_backoff: Duration::from_secs(30),
             drain_timeout: Duration::from_secs(3),
+            batch_delay: Duration::from_millis(100),
         }
     }
 }
@@ -125,7 +144,13 @@ pub enum SubmitError {
 struct Inner {
     spool: Mutex<Spool>,
     next_seq: Mutex<u64>,
+    /// A frame that must go now.
     wake: Notify,
+    /// A deferred frame was submitted while no timer covered deferred frames.
+    deferred: Notify,
+    /// Deferred frames are covered: the task's flush timer is set (or [`Inner::deferred`] was
+    /// notified). Cleared by the task when its timer found nothing to send.
+    deferred_covered: AtomicBool,
     session_id: u64,
     clock: SharedClock,
     stats: Mutex<UplinkStats>,
@@ -135,6 +160,22 @@ struct Inner {
 impl Inner {
     fn spool(&self) -> MutexGuard<'_, Spool> {
         self.spool.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Puts the unsent frames, in order, into `batch` (cleared first) until it holds
+    /// [`MAX_BATCH_BYTES`] or more; returns how many.
+    fn next_batch(&self, batch: &mut Vec<u8>) -> u64 {
+        batch.clear();
+        let mut spool = self.spool();
+        let mut frames = 0;
+        while batch.len() < MAX_BATCH_BYTES {
+            let Some(frame) = spool.next_unsent() else {
+                break;
+            };
+            batch.extend_from_slice(&frame.bytes);
+            frames += 1;
+        }
+        frames
     }
 
     fn stats(&self) -> MutexGuard<'_, UplinkStats> {
@@ -164,9 +205,27 @@ pub struct UplinkHandle {
 }
 
 impl UplinkHandle {
-    /// Queues a frame for the server; returns its sequence number.
+    /// Queues a frame for the server and wakes the uplink to send it now; returns its
+    /// sequence number.
     pub fn submit(&self, body: impl Into<Body>) -> Result<u64, SubmitError> {
-        let body = body.into();
+        let seq = self.push(body.into())?;
+        self.inner.wake.notify_one();
+        Ok(seq)
+    }
+
+    /// Queues a frame that may wait up to [`UplinkConfig::batch_delay`] to go out with others
+    /// (small frequent frames: IMU readings); returns its sequence number. Durability and
+    /// order are those of [`UplinkHandle::submit`]: it is in the spool when this returns.
+    pub fn submit_deferred(&self, body: impl Into<Body>) -> Result<u64, SubmitError> {
+        let seq = self.push(body.into())?;
+        if !self.inner.deferred_covered.swap(true, Ordering::AcqRel) {
+            self.inner.deferred.notify_one();
+        }
+        Ok(seq)
+    }
+
+    /// Encodes `body` with the next sequence number into the spool.
+    fn push(&self, body: Body) -> Result<u64, SubmitError> {
         let mut next_seq = self
             .inner
             .next_seq
@@ -189,7 +248,6 @@ impl UplinkHandle {
         *next_seq += 1;
         drop(next_seq);
         self.inner.stats().submitted += 1;
-        self.inner.wake.notify_one();
         Ok(seq)
     }
 
@@ -351,6 +409,8 @@ impl Uplink {
             spool: Mutex::new(spool),
             next_seq: Mutex::new(0),
             wake: Notify::new(),
+            deferred: Notify::new(),
+            deferred_covered: AtomicBool::new(false),
             session_id,
             clock,
             stats: Mutex::new(UplinkStats::default()),
@@ -485,14 +545,19 @@ impl Uplink {
         let reader = tokio::spawn(read_from_server(recv, self.inner.clone()));
         let pongs = tokio::spawn(answer_pings(connection.clone(), self.inner.clone()));
         let mut drain_until: Option<tokio::time::Instant> = None;
+        let mut batch: Vec<u8> = Vec::new();
+        // When the deferred frames submitted since the last write go out at the latest.
+        let mut flush_at: Option<tokio::time::Instant> = None;
+        // No timer yet: the first deferred frame wakes the task.
+        self.inner.deferred_covered.store(false, Ordering::Release);
         let end = loop {
-            // Send everything not yet sent on this connection, in order.
-            let next = self.inner.spool().next_unsent();
-            if let Some(frame) = next {
+            // Send everything not yet sent on this connection, in order, in one write.
+            let frames = self.inner.next_batch(&mut batch);
+            if frames > 0 {
                 // A write blocked by flow or congestion control must not hold shutdown past the
                 // drain deadline. The write is never cancelled half way (the stream would carry
-                // a torn frame) except by closing the connection: the frame stays spooled.
-                let mut write = std::pin::pin!(send.write_all(&frame.bytes));
+                // a torn frame) except by closing the connection: the frames stay spooled.
+                let mut write = std::pin::pin!(send.write_all(&batch));
                 let outcome = loop {
                     tokio::select! {
                         written = &mut write => break WriteOutcome::Written(written),
@@ -504,7 +569,13 @@ impl Uplink {
                     }
                 };
                 match outcome {
-                    WriteOutcome::Written(Ok(())) => self.inner.stats().frames_sent += 1,
+                    WriteOutcome::Written(Ok(())) => {
+                        self.inner.stats().frames_sent += frames;
+                        // Deferred frames from now on ride with the next write, at the latest
+                        // at this timer.
+                        flush_at = Some(tokio::time::Instant::now() + self.config.batch_delay);
+                        self.inner.deferred_covered.store(true, Ordering::Release);
+                    }
                     WriteOutcome::Written(Err(e)) => {
                         break lost_or_refused(&connection, format!("write failed: {e}"));
                     }
@@ -540,6 +611,17 @@ impl Uplink {
             };
             tokio::select! {
                 () = self.inner.wake.notified() => {}
+                () = self.inner.deferred.notified() => {
+                    // The first deferred frame after a quiet spell: it waits for company.
+                    flush_at.get_or_insert(tokio::time::Instant::now() + self.config.batch_delay);
+                }
+                () = sleep_until_deadline(flush_at) => {
+                    // The top of the loop sends what came. Were nothing to come, the timer
+                    // stops and the next deferred frame wakes the task: the flag is cleared
+                    // before that read, so a frame submitted after it notifies.
+                    flush_at = None;
+                    self.inner.deferred_covered.store(false, Ordering::Release);
+                }
                 () = wait_drain => {}
                 _ = shutdown.changed(), if drain_until.is_none() => {
                     drain_until = Some(tokio::time::Instant::now() + self.config.drain_timeout);
@@ -643,5 +725,105 @@ fn lost_or_refused(connection: &quinn::Connection, fallback: String) -> SessionE
     match connection.close_reason() {
         Some(e) => SessionEnd::Failed(classify(&e)),
         None => SessionEnd::lost(fallback),
+    }
+}
+
+/// A quinn client configuration that is never used to connect (tests of the spool side).
+#[cfg(test)]
+pub(crate) fn unused_client_config() -> quinn::ClientConfig {
+    let provider = Arc::new(rustls::crypto::ring::default_provider());
+    let tls = rustls::ClientConfig::builder_with_provider(provider)
+        .with_protocol_versions(&[&rustls::version::TLS13])
+        .expect("TLS 1.3")
+        .with_root_certificates(rustls::RootCertStore::empty())
+        .with_no_client_auth();
+    quinn::ClientConfig::new(Arc::new(
+        quinn::crypto::rustls::QuicClientConfig::try_from(tls).expect("a QUIC TLS config"),
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use scan3d_protocol::{Heartbeat, decode};
+
+    use super::*;
+    use crate::clock::MonotonicClock;
+
+    fn uplink(dir: &std::path::Path) -> (Uplink, UplinkHandle) {
+        let config = UplinkConfig::new(
+            "localhost:1".into(),
+            "localhost".into(),
+            unused_client_config(),
+            SpoolConfig::new(dir),
+        );
+        let (uplink, handle, _commands) =
+            Uplink::new(config, Arc::new(MonotonicClock::new()), 7).unwrap();
+        (uplink, handle)
+    }
+
+    fn seqs_of(batch: &[u8]) -> Vec<u64> {
+        let mut rest = batch;
+        let mut seqs = Vec::new();
+        while !rest.is_empty() {
+            let (frame, used): (Frame, usize) = decode(rest).unwrap();
+            seqs.push(frame.seq);
+            rest = &rest[used..];
+        }
+        seqs
+    }
+
+    #[test]
+    fn deferred_and_immediate_frames_go_out_in_one_write_in_submission_order() {
+        let dir = tempfile::tempdir().unwrap();
+        let (uplink, handle) = uplink(dir.path());
+        let beat = |n| Body::from(Heartbeat { sent_ns: n });
+        assert_eq!(handle.submit_deferred(beat(0)).unwrap(), 0);
+        assert!(
+            uplink.inner.deferred_covered.load(Ordering::Acquire),
+            "the first deferred frame asks for a flush"
+        );
+        assert_eq!(handle.submit_deferred(beat(1)).unwrap(), 1);
+        assert_eq!(handle.submit(beat(2)).unwrap(), 2);
+        assert_eq!(handle.submit_deferred(beat(3)).unwrap(), 3);
+        let mut batch = Vec::new();
+        assert_eq!(uplink.inner.next_batch(&mut batch), 4);
+        assert_eq!(seqs_of(&batch), [0, 1, 2, 3]);
+        // Sent, not acknowledged: still spooled, and nothing more to send.
+        assert_eq!(handle.pending(), 4);
+        assert_eq!(uplink.inner.next_batch(&mut batch), 0);
+        assert!(batch.is_empty());
+    }
+
+    #[test]
+    fn a_batch_stops_once_it_holds_the_most_bytes_of_one_write() {
+        let dir = tempfile::tempdir().unwrap();
+        let (uplink, handle) = uplink(dir.path());
+        // Status frames of about 40 kB each: a batch takes frames until it holds 256 KiB.
+        let big = |n: u64| {
+            Body::from(scan3d_protocol::DeviceStatus {
+                t_ns: n,
+                sensor: scan3d_protocol::SensorId::IMU,
+                event: scan3d_protocol::StatusEvent::SensorLost,
+                reason: "x".repeat(40_000),
+            })
+        };
+        for n in 0..10 {
+            handle.submit_deferred(big(n)).unwrap();
+        }
+        let mut batch = Vec::new();
+        let first = uplink.inner.next_batch(&mut batch);
+        assert!(batch.len() >= MAX_BATCH_BYTES, "{} bytes", batch.len());
+        assert!(
+            batch.len() < MAX_BATCH_BYTES + 41_000,
+            "{} bytes",
+            batch.len()
+        );
+        let first_seqs = seqs_of(&batch);
+        assert_eq!(first_seqs.len() as u64, first);
+        let second = uplink.inner.next_batch(&mut batch);
+        assert_eq!(first + second, 10);
+        let mut all = first_seqs;
+        all.extend(seqs_of(&batch));
+        assert_eq!(all, (0..10).collect::<Vec<u64>>());
     }
 }

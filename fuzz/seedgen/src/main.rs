@@ -34,7 +34,7 @@ use scan3d_protocol::{
     Ack, Body, Command, DeviceStatus, Frame, Heartbeat, Hello, ImuSample, LidarRevolution, MountInfo, SensorId, SensorInfo, StaticScan, StaticScanEnd, StaticScanOutcome, StaticScanProblem, StaticScanStart, StaticScanWarning, StaticScanYaws, StatusEvent, StepperState, TimePing, TimePong, YawRun, encode, ClockModel, CommandOutcome, CommandReply,
 };
 use scan3d_server::ingest::control::ControlRequest;
-use scan3d_server::ingest::recorder::SessionRecorder;
+use scan3d_server::recording::SessionRecorder;
 
 type Result<T> = std::result::Result<T, Box<dyn Error>>;
 

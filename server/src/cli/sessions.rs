@@ -6,7 +6,7 @@ use std::io::Write;
 use anyhow::Context;
 
 use super::DataDirArgs;
-use crate::ingest::recorder::{SessionReport, SessionSummary, list_sessions};
+use crate::recording::{SessionReport, SessionSummary, list_sessions};
 
 /// Options of `scan3d sessions`.
 #[derive(Debug, clap::Args)]
@@ -193,7 +193,7 @@ mod tests {
     use std::path::PathBuf;
 
     use super::*;
-    use crate::ingest::recorder::SessionRecorder;
+    use crate::recording::SessionRecorder;
     use scan3d_protocol::{Frame, Hello, LidarRevolution, SensorId, encode};
 
     fn record(data_dir: &std::path::Path) {

@@ -15,85 +15,11 @@
 //! frees its segments); what is left is sent on the next commit, so everything durable is
 //! eventually acknowledged, at a bounded cost per commit.
 
-use std::collections::BTreeMap;
 use std::ops::RangeInclusive;
 
 use scan3d_protocol::Ack;
 
-/// A set of sequence numbers as sorted, disjoint, non-adjacent inclusive ranges.
-#[derive(Debug, Clone, Default, PartialEq, Eq)]
-pub struct SeqRanges {
-    /// `first -> last` of each range.
-    ranges: BTreeMap<u64, u64>,
-}
-
-impl SeqRanges {
-    /// An empty set.
-    pub fn new() -> Self {
-        Self::default()
-    }
-
-    /// Adds `first..=last` (nothing if `first > last`), merging with overlapping or adjacent
-    /// ranges.
-    pub fn insert(&mut self, first: u64, last: u64) {
-        if first > last {
-            return;
-        }
-        let (mut first, mut last) = (first, last);
-        // A range starting at or before `first` that reaches it (or ends right before it).
-        if let Some((&start, &end)) = self.ranges.range(..=first).next_back()
-            && end.saturating_add(1) >= first
-        {
-            first = start;
-            last = last.max(end);
-            self.ranges.remove(&start);
-        }
-        // Ranges starting inside `first..=last + 1` are swallowed.
-        while let Some((&start, &end)) = self.ranges.range(first..=last.saturating_add(1)).next() {
-            last = last.max(end);
-            self.ranges.remove(&start);
-        }
-        self.ranges.insert(first, last);
-    }
-
-    /// Whether `seq` is in the set.
-    pub fn contains(&self, seq: u64) -> bool {
-        self.ranges
-            .range(..=seq)
-            .next_back()
-            .is_some_and(|(_, &end)| seq <= end)
-    }
-
-    /// The parts of `first..=last` that are not in the set, in order.
-    pub fn missing_in(&self, first: u64, last: u64) -> Vec<RangeInclusive<u64>> {
-        let mut out = Vec::new();
-        if first > last {
-            return out;
-        }
-        let mut cursor = first;
-        let before = self.ranges.range(..first).next_back();
-        let inside = self.ranges.range(first..=last);
-        for (&start, &end) in before.into_iter().chain(inside) {
-            if end < cursor {
-                continue;
-            }
-            if start > cursor {
-                out.push(cursor..=start - 1);
-            }
-            match end.checked_add(1) {
-                Some(next) if next <= last => cursor = next,
-                _ => return out,
-            }
-        }
-        out.push(cursor..=last);
-        out
-    }
-
-    /// Number of ranges (what the set costs in memory).
-    pub fn range_count(&self) -> usize {
-        self.ranges.len()
-    }
-}
+use crate::recording::SeqRanges;
 
 /// What one connection has acknowledged of one session, and what to acknowledge next.
 #[derive(Debug, Clone, Default)]
@@ -125,7 +51,7 @@ impl AckPlan {
                 }
                 // One UpTo covers the whole prefix, whatever part of it is new.
                 acks.push(Ack::UpTo { seq: last });
-                self.acked.insert(0, last);
+                self.acked.insert_range(0, last);
                 continue;
             }
             for part in missing {
@@ -136,7 +62,7 @@ impl AckPlan {
                     first: *part.start(),
                     last: *part.end(),
                 });
-                self.acked.insert(*part.start(), *part.end());
+                self.acked.insert_range(*part.start(), *part.end());
             }
         }
         acks
@@ -146,48 +72,6 @@ impl AckPlan {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn set(ranges: &[(u64, u64)]) -> SeqRanges {
-        let mut s = SeqRanges::new();
-        for &(a, b) in ranges {
-            s.insert(a, b);
-        }
-        s
-    }
-
-    fn as_pairs(s: &SeqRanges) -> Vec<(u64, u64)> {
-        s.ranges.iter().map(|(&a, &b)| (a, b)).collect()
-    }
-
-    #[test]
-    fn ranges_merge_when_they_overlap_or_touch() {
-        assert_eq!(as_pairs(&set(&[(5, 7), (1, 2), (3, 4)])), vec![(1, 7)]);
-        assert_eq!(as_pairs(&set(&[(1, 2), (4, 5)])), vec![(1, 2), (4, 5)]);
-        assert_eq!(as_pairs(&set(&[(1, 2), (4, 5), (0, 10)])), vec![(0, 10)]);
-        assert_eq!(as_pairs(&set(&[(10, 20), (15, 30)])), vec![(10, 30)]);
-        assert_eq!(
-            as_pairs(&set(&[(u64::MAX - 1, u64::MAX), (0, 0)])),
-            vec![(0, 0), (u64::MAX - 1, u64::MAX)]
-        );
-        assert_eq!(as_pairs(&set(&[(3, 2)])), vec![]);
-        let s = set(&[(2, 4), (8, 8)]);
-        assert!(s.contains(2) && s.contains(4) && s.contains(8));
-        assert!(!s.contains(1) && !s.contains(5) && !s.contains(9));
-    }
-
-    #[test]
-    fn missing_parts_are_the_holes_in_the_asked_range() {
-        let s = set(&[(2, 4), (8, 9)]);
-        assert_eq!(s.missing_in(0, 10), vec![0..=1, 5..=7, 10..=10]);
-        assert_eq!(s.missing_in(3, 8), vec![5..=7]);
-        assert_eq!(s.missing_in(2, 4), Vec::<RangeInclusive<u64>>::new());
-        assert_eq!(s.missing_in(5, 5), vec![5..=5]);
-        assert_eq!(
-            set(&[(0, u64::MAX)]).missing_in(7, u64::MAX),
-            Vec::<RangeInclusive<u64>>::new()
-        );
-        assert_eq!(SeqRanges::new().missing_in(1, 3), vec![1..=3]);
-    }
 
     #[test]
     fn a_gap_does_not_stop_acknowledgements() {

@@ -1,8 +1,8 @@
-//! Ingest: the QUIC server that edges stream to, and the durable session recordings.
+//! Ingest: the QUIC server that edges stream to. It records every frame through the
+//! [`recording`](crate::recording) layer beneath it and acknowledges what is durable.
 //!
 //! - [`pki`]: the private CA, server certificate and edge bundles (`scan3d pair`).
 //! - [`tls`]: rustls/quinn configuration for mutual TLS, and the edge's identity.
-//! - [`recorder`]: MCAP session recordings, acknowledged only once durable.
 //! - [`server`]: the endpoint, one task per edge connection.
 //! - [`acks`]: which acknowledgements to send, from what is durable and what was acknowledged.
 //! - [`control`]: operator commands to connected edges, and the local control socket.
@@ -11,7 +11,6 @@
 pub mod acks;
 pub mod control;
 pub mod pki;
-pub mod recorder;
 pub mod scan_progress;
 pub mod server;
 pub mod tls;

@@ -61,11 +61,11 @@ use tokio::task::JoinSet;
 
 use super::acks::AckPlan;
 use super::control::{EdgeControl, QueuedCommand, SentCommand};
-use super::recorder::{Appended, SessionRecorder, body_name};
 use super::tls;
 use crate::pose::timesync::{
     ClockModel, EdgeClock, MonotonicServerClock, Pinger, ServerClock, TimeSyncConfig,
 };
+use crate::recording::{Appended, ServerRecord, SessionRecorder, body_name};
 
 /// QUIC application close codes the server uses.
 pub mod close_code {
@@ -1060,9 +1060,9 @@ impl EdgeConnection {
 
     /// A server-originated frame of `session_id` with the next server sequence number.
     fn server_frame(&mut self, session_id: u64, body: impl Into<Body>) -> Result<Frame, String> {
-        // A new connection numbers its frames from 0, but the session may hold commands (and
-        // clock models) of earlier connections: go on above them, or the recorder takes this
-        // one for a resend.
+        // A new connection numbers its frames from 0, but the session may hold commands of
+        // earlier connections (and, in recordings made before server-made records, clock
+        // models): go on above them, or the recorder takes this one for a resend.
         let floor = self.session(session_id)?.recorder.next_command_seq();
         let counter = self.sent_seq.entry(session_id).or_insert(0);
         *counter = (*counter).max(floor);
@@ -1119,11 +1119,9 @@ impl EdgeConnection {
         };
         tracing::debug!(edge = %self.edge, offset_ns = model.offset_ns, skew_ppm = model.skew_ppm,
             error_bound_ns = model.error_bound_ns, rtt_ns = exchange.delay_ns(), "time sync");
-        let record = self.server_frame(session_id, model)?;
-        let raw = encode(&record).map_err(|e| format!("cannot encode a clock model: {e}"))?;
         self.session(session_id)?
             .recorder
-            .append_clock_model(&raw, &record, unix_now_ns())
+            .append_record(&ServerRecord::ClockModel(model), unix_now_ns())
             .map_err(|e| format!("cannot record a clock model: {e}"))?;
         self.shared.emit(IngestEvent::TimeSync {
             edge: self.edge.clone(),

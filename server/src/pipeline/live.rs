@@ -27,9 +27,9 @@ use serde::Serialize;
 use super::edge_activity::{EdgeActivity, SensorStatus};
 use super::{PipelineError, PipelineSettings, SessionPipeline, SessionStatus, Snapshot};
 use crate::ingest::control::{ControlReply, LiveProducts, ProductRequest};
-use crate::ingest::recorder::{SeqSet, SessionItem, session_dir, visit_session_items};
 use crate::ingest::scan_progress::ScanProgress;
 use crate::ingest::server::{IngestEvent, IngestSink, unix_now_ns};
+use crate::recording::{SeqRanges, SessionItem, session_dir, visit_session_items};
 use scan3d_protocol::ClockModel;
 
 /// How the live driver runs: the `[pipeline]` section of `server.toml` beyond the pipeline's
@@ -93,7 +93,7 @@ pub enum Offer {
 /// the pipeline in the recording's order whatever the queue did.
 #[derive(Debug, Clone, Default)]
 pub struct Sequencer {
-    done: SeqSet,
+    done: SeqRanges,
     owed: BTreeSet<u64>,
 }
 

@@ -11,7 +11,7 @@ use std::path::Path;
 use scan3d_map::cloud::assembly::AssembledScan;
 
 use super::{PipelineError, PipelineSettings, Products, SessionPipeline};
-use crate::ingest::recorder::{
+use crate::recording::{
     RecordedFrame, RecorderError, SessionItem, SessionReport, check_losses, visit_session_items,
 };
 

@@ -18,7 +18,7 @@ use scan3d_slam::pose::Pose2;
 use scan3d_slam::relations::{Trajectory, TrajectoryPose};
 use scan3d_slam::text::Timestamp;
 
-use crate::ingest::recorder::{RecorderError, SessionReport, check_losses, visit_session};
+use crate::recording::{RecorderError, SessionReport, check_losses, visit_session};
 
 /// The mapper's scan for one lidar revolution: endpoints within `limits` in the sensor frame
 /// (x forward at angle 0, counter-clockwise), each with its time relative to the revolution's

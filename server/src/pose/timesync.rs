@@ -41,7 +41,9 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 pub use scan3d_protocol::ClockModel;
 use scan3d_protocol::{Body, Frame, TimePing, TimePong};
 
-use crate::ingest::recorder::{RecorderError, visit_session};
+use crate::recording::{
+    RecordedServerRecord, RecorderError, ServerRecord, SessionReader, SessionRecord,
+};
 
 /// The server's monotonic clock, injected so tests and the simulator choose the time.
 pub trait ServerClock: Send + Sync {
@@ -495,14 +497,20 @@ impl SessionClock {
         Self::default()
     }
 
-    /// The models recorded in a session directory (its `/scan3d/timesync` frames), streaming
-    /// through [`visit_session`].
+    /// The models recorded in a session directory (its `/scan3d/timesync` records, server-made
+    /// records or, from older servers, wire frames), streaming through [`SessionReader`].
     pub fn from_session(session_dir: &Path) -> Result<Self, RecorderError> {
         let mut clock = Self::new();
         // Damage is the readers' business (the report); a lost model only widens the gap to
         // the previous one.
-        let _report = visit_session(session_dir, |recorded| {
-            clock.on_frame(&recorded.frame);
+        let _report = SessionReader::new(session_dir).visit(|record| {
+            if let SessionRecord::Server(RecordedServerRecord {
+                record: ServerRecord::ClockModel(model),
+                ..
+            }) = record
+            {
+                clock.push(model);
+            }
             Ok(())
         })?;
         Ok(clock)

@@ -11,7 +11,7 @@ use scan3d_protocol::{
     Body, Frame, LidarRevolution, MountInfo, SensorId, StaticScan, StaticScanEnd,
     StaticScanOutcome, StaticScanStart, StaticScanYaws, YawRun, encode,
 };
-use scan3d_server::ingest::recorder::{SessionRecorder, session_dir};
+use scan3d_server::recording::{SessionRecorder, session_dir};
 
 /// The default room: an axis-aligned box, metres.
 pub const ROOM: ([f64; 3], [f64; 3]) = ([0.0, 0.0, 0.0], [4.0, 3.0, 2.5]);

@@ -9,8 +9,10 @@
 //!
 //! - [`Mpu9250::init`]: reset and init sequence (§1.4), AK8963 fuse-ROM sensitivity adjustment,
 //!   continuous mode, then the gyro bias estimated at rest.
-//! - [`Mpu9250::read`]: one 14-byte burst (accel, temperature, gyro) and one 8-byte AK8963 read
-//!   (ST1, data, ST2), converted to SI units in the accel/gyro frame, calibrated.
+//! - [`Mpu9250::read`]: one 14-byte burst (accel, temperature, gyro) and, when a new field is
+//!   due, one 8-byte AK8963 read (ST1, data, ST2), converted to SI units in the accel/gyro frame,
+//!   calibrated. The field comes at 100 Hz (or 8 Hz), so at 200 Hz every other read skips the
+//!   AK8963: 1.5 bus transactions a sample instead of 2.
 //! - Every bus transaction is retried [`ImuConfig::retries`] times before an [`Error`] that
 //!   names the chip and the address.
 
@@ -79,6 +81,16 @@ pub struct ImuStats {
     pub mag_overruns: u64,
 }
 
+/// What one AK8963 read found.
+enum MagRead {
+    /// No new field yet (ST1.DRDY clear).
+    NotReady,
+    /// A new field that overflowed (ST2.HOFL): dropped.
+    Overflow,
+    /// A new field, µT in the accel/gyro frame, calibrated.
+    Field([f32; 3]),
+}
+
 /// MPU-9250 + AK8963 driver owning the bus `I2C`.
 #[derive(Debug)]
 pub struct Mpu9250<I2C> {
@@ -88,6 +100,8 @@ pub struct Mpu9250<I2C> {
     asa_factor: [f32; 3],
     gyro_bias_rad_s: [f32; 3],
     stats: ImuStats,
+    /// Reads of [`Mpu9250::read`] to skip the AK8963 before its next field is due.
+    mag_skip: u32,
 }
 
 impl<I2C: I2c> Mpu9250<I2C> {
@@ -99,6 +113,7 @@ impl<I2C: I2c> Mpu9250<I2C> {
             asa_factor: [1.0; 3],
             gyro_bias_rad_s: [0.0; 3],
             stats: ImuStats::default(),
+            mag_skip: 0,
         }
     }
 
@@ -178,6 +193,7 @@ impl<I2C: I2c> Mpu9250<I2C> {
         if self.config.gyro_bias_samples > 0 {
             self.estimate_gyro_bias(delay, self.config.gyro_bias_samples)?;
         }
+        self.mag_skip = 0;
         Ok(ChipIds { who_am_i, wia, asa })
     }
 
@@ -242,13 +258,28 @@ impl<I2C: I2c> Mpu9250<I2C> {
     }
 
     /// Reads one sample: accel, temperature and gyro always; the magnetic field when the
-    /// AK8963 has a new one (call at the accel/gyro rate; the field comes at 100 Hz).
+    /// AK8963 has a new one (call at the accel/gyro rate; the field comes at 100 Hz). After a
+    /// field was read, the AK8963 is not asked again until its next one is due (every other
+    /// read at 200 Hz); when it had none yet, it is asked again at the next read.
     pub fn read(&mut self) -> Result<ImuReading, Error<I2C::Error>> {
         let raw = self.read_mpu_raw()?;
         let mag_ut = if self.config.mag_mode == MagMode::Off {
             None
+        } else if self.mag_skip > 0 {
+            self.mag_skip -= 1;
+            None
         } else {
-            self.read_mag()?
+            match self.read_mag()? {
+                MagRead::NotReady => None,
+                MagRead::Overflow => {
+                    self.mag_skip = self.reads_per_field().saturating_sub(1);
+                    None
+                }
+                MagRead::Field(field) => {
+                    self.mag_skip = self.reads_per_field().saturating_sub(1);
+                    Some(field)
+                }
+            }
         };
         self.stats.samples += 1;
         let accel_scale = STANDARD_GRAVITY / self.config.accel_range.lsb_per_g();
@@ -305,21 +336,31 @@ impl<I2C: I2c> Mpu9250<I2C> {
         })
     }
 
+    /// Accel/gyro reads per magnetometer field: the whole reads that fit in one field period
+    /// (2 at 200 Hz with the field at 100 Hz; at least 1).
+    fn reads_per_field(&self) -> u32 {
+        let field_hz = match self.config.mag_mode {
+            MagMode::Continuous8Hz => 8.0,
+            _ => 100.0,
+        };
+        ((self.config.effective_sample_rate_hz() / field_hz).floor() as u32).max(1)
+    }
+
     /// One 8-byte read from ST1 (ST1, HXL..HZH little-endian, ST2). Reading ST2 releases the
     /// AK8963's data protection, so this is also the "end of read" the chip waits for.
-    fn read_mag(&mut self) -> Result<Option<[f32; 3]>, Error<I2C::Error>> {
+    fn read_mag(&mut self) -> Result<MagRead, Error<I2C::Error>> {
         let mut b = [0u8; 8];
         self.read_regs(Chip::Ak8963, ak::ST1, &mut b)?;
         let [st1, xl, xh, yl, yh, zl, zh, st2] = b;
         if st1 & ak::ST1_DRDY == 0 {
-            return Ok(None);
+            return Ok(MagRead::NotReady);
         }
         if st1 & ak::ST1_DOR != 0 {
             self.stats.mag_overruns += 1;
         }
         if st2 & ak::ST2_HOFL != 0 {
             self.stats.mag_overflows += 1;
-            return Ok(None);
+            return Ok(MagRead::Overflow);
         }
         self.stats.mag_samples += 1;
         let chip = [
@@ -335,7 +376,7 @@ impl<I2C: I2c> Mpu9250<I2C> {
         let [hx, hy, hz] = h;
         // Chip axes to the accel/gyro frame: x ← Hy, y ← Hx, z ← −Hz (§1.7).
         let aligned = [hy, hx, -hz];
-        Ok(Some(self.calibrate_mag(aligned)))
+        Ok(MagRead::Field(self.calibrate_mag(aligned)))
     }
 
     /// m = S · (m_raw − hard_iron).

@@ -252,11 +252,14 @@ fn no_new_field_overflow_and_overrun() {
             mpu_burst([0; 14]),
             // DRDY with HOFL: dropped and counted.
             mag_block([0x01, 0xFF, 0x7F, 0, 0, 0, 0, 0x18]),
+            // The chip's next field is 10 ms away: at 200 Hz this read skips the AK8963.
+            mpu_burst([0; 14]),
             mpu_burst([0; 14]),
             // DRDY with DOR: kept, overrun counted.
             mag_block([0x03, 0xC8, 0x00, 0, 0, 0, 0, 0x10]),
         ],
     );
+    assert_eq!(imu.read().unwrap().mag_ut, None);
     assert_eq!(imu.read().unwrap().mag_ut, None);
     assert_eq!(imu.read().unwrap().mag_ut, None);
     assert_close(
@@ -272,8 +275,40 @@ fn no_new_field_overflow_and_overrun() {
             stats.mag_overflows,
             stats.mag_overruns
         ),
-        (3, 1, 1, 1)
+        (4, 1, 1, 1)
     );
+    finish(imu);
+}
+
+#[test]
+fn at_200_hz_the_ak8963_is_read_every_other_sample_once_it_delivered_a_field() {
+    let field = mag_block(MAG_200_M100_400);
+    let mut imu = initialised(
+        no_bias_config(),
+        vec![
+            // A field: the next one is due in 10 ms, two samples on.
+            mpu_burst([0; 14]),
+            field.clone(),
+            mpu_burst([0; 14]),
+            mpu_burst([0; 14]),
+            // Not there yet (DRDY clear): asked again at the next sample.
+            mag_block([0x00, 0, 0, 0, 0, 0, 0, 0x10]),
+            mpu_burst([0; 14]),
+            field,
+            mpu_burst([0; 14]),
+        ],
+    );
+    let before = imu.stats().transactions;
+    let fields: Vec<bool> = (0..5)
+        .map(|_| imu.read().unwrap().mag_ut.is_some())
+        .collect();
+    assert_eq!(fields, [true, false, false, true, false]);
+    assert_eq!(
+        imu.stats().transactions - before,
+        8,
+        "5 bursts and 3 AK8963 reads"
+    );
+    assert_eq!(imu.stats().mag_samples, 2);
     finish(imu);
 }
 
