@@ -14,6 +14,7 @@
 //! - [`pair`]: a driver wired straight to an emulator in memory (deterministic tests, benches).
 //! - [`pty`]: runs an emulator on a Linux pty behind a symlink, paced at the wire rate.
 //! - [`rig`]: `scan3d-sim rig`, the whole sensor head in real time for the real edge daemon.
+//! - [`trolley`]: the rig's pushed trolley: a path through the room and its exact kinematics.
 //! - [`installation`]: a whole installation in-process (lidars, certificates, server, edge daemon)
 //!   for the demo and tests.
 //! - [`turntable_head`]: the paper's scanner in-process: Sweep on the turntable, IMU and motor HAT
@@ -41,6 +42,7 @@ pub mod rig;
 pub mod rplidar;
 pub mod stepper;
 pub mod sweep;
+pub mod trolley;
 pub mod truth;
 pub mod turntable;
 pub mod turntable_head;

@@ -14,9 +14,10 @@ use scan3d_hw_sim::device::Device;
 use scan3d_hw_sim::faults::FaultConfig;
 use scan3d_hw_sim::mounts;
 use scan3d_hw_sim::pty::{PtyDevice, PtyOptions};
-use scan3d_hw_sim::rig::{Rig, RigOptions};
+use scan3d_hw_sim::rig::{Head, Rig, RigOptions};
 use scan3d_hw_sim::rplidar::{RplidarEmulator, RplidarEmulatorConfig, RplidarModel};
 use scan3d_hw_sim::sweep::{SweepEmulator, SweepEmulatorConfig};
+use scan3d_hw_sim::trolley::TrolleyPath;
 use scan3d_hw_sim::world::World;
 
 /// Simulated scan3d hardware.
@@ -56,10 +57,16 @@ struct RigArgs {
     dir: PathBuf,
     /// Where the head stands in the room: X,Y in metres and the heading of its yaw 0 in
     /// degrees (default: the room's centre, heading 0).
-    #[arg(long, value_name = "X,Y,HEADING", value_parser = parse_at)]
+    #[arg(long, value_name = "X,Y,HEADING", value_parser = parse_at, conflicts_with = "trolley")]
     at: Option<[f64; 3]>,
+    /// Put the head on a pushed trolley following the path in PATH.toml (default: a loop
+    /// around the demo room's table): at rest for 20 s, then moving, then at rest at the end
+    /// of its path. The path's start replaces --at. Format: docs/simulator.md.
+    #[arg(long, value_name = "PATH.toml", num_args = 0..=1)]
+    trolley: Option<Option<PathBuf>>,
     /// Write the true trajectory of the head's base to FILE: TUM lines `t x y z qx qy qz qw`
-    /// (UNIX seconds, room frame) at 50 Hz, each flushed.
+    /// (UNIX seconds, room frame) at 50 Hz, each flushed; with --trolley, a last line
+    /// `# end of path` once the trolley rests at the end of its path.
     #[arg(long, value_name = "FILE")]
     truth: Option<PathBuf>,
     /// Seed of the range noise.
@@ -217,11 +224,16 @@ fn serve(common: &CommonArgs, device: Box<dyn Device>) -> anyhow::Result<()> {
 fn run_rig(args: &RigArgs) -> anyhow::Result<()> {
     install_signal_handlers()?;
     let world = load_world(args.world.as_ref())?;
+    let head = match &args.trolley {
+        None => Head::Static { at: args.at },
+        Some(None) => Head::Trolley(Arc::new(TrolleyPath::demo_room())),
+        Some(Some(path)) => Head::Trolley(Arc::new(TrolleyPath::load(path)?)),
+    };
     let rig = Rig::start(
         world,
         &RigOptions {
             dir: args.dir.clone(),
-            at: args.at,
+            head,
             truth: args.truth.clone(),
             seed: args.seed,
         },
@@ -360,6 +372,27 @@ mod tests {
         ));
         assert!(
             Cli::try_parse_from(["scan3d-sim", "rig", "--dir", "/tmp/r", "--at", "1.5,3"]).is_err()
+        );
+        let trolley = |args: &[&str]| {
+            let mut all = vec!["scan3d-sim", "rig", "--dir", "/tmp/r"];
+            all.extend(args);
+            match Cli::try_parse_from(all) {
+                Ok(Cli {
+                    command: Command::Rig(args),
+                }) => Ok(args.trolley),
+                Ok(other) => panic!("{other:?}"),
+                Err(e) => Err(e.kind()),
+            }
+        };
+        assert_eq!(trolley(&[]), Ok(None));
+        assert_eq!(trolley(&["--trolley"]), Ok(Some(None)));
+        assert_eq!(
+            trolley(&["--trolley", "p.toml", "--truth", "t.tum"]),
+            Ok(Some(Some(PathBuf::from("p.toml"))))
+        );
+        assert_eq!(
+            trolley(&["--trolley", "--at", "1,2,3"]),
+            Err(clap::error::ErrorKind::ArgumentConflict)
         );
         for bad in [
             [

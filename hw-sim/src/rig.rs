@@ -5,13 +5,27 @@
 //! `i2c.sock` ([`crate::i2c_socket`]), and `edge.toml` with the edge's sensor sections for this
 //! head ([`edge_toml`]). Everything runs on one clock at time scale 1.
 //!
-//! Frames: `room` is the map; `base` is the turntable's frame on the floor (origin on the
-//! turntable axis, z up, x along turntable yaw 0), standing at `--at X,Y,HEADING` in `room`;
-//! each sensor's mount pose in `base` is written to `edge.toml` (`[rplidar.mount]`,
-//! `[sweep.mount]`, `[imu.mount]`). The static head: the Sweep on the turntable, turned when
-//! the edge steps the stepper; the RPLidar horizontal on the base.
+//! Frames: `room` is the map; `base` is the head's frame on the floor, z up; each sensor's
+//! mount pose in `base` is written to `edge.toml` (`[rplidar.mount]`, `[sweep.mount]`,
+//! `[imu.mount]`). Two heads:
 //!
-//! `--truth FILE` writes the pose of `base` in `room` as TUM lines ([`TumWriter`]).
+//! - the static head ([`Head::Static`]): `base` is the turntable's frame (origin on its axis,
+//!   x along turntable yaw 0) standing at `--at X,Y,HEADING`; the Sweep on the turntable,
+//!   turned when the edge steps the stepper; the RPLidar horizontal on the base;
+//! - the trolley ([`Head::Trolley`], `--trolley [PATH.toml]`): `base` is the trolley's frame
+//!   (origin at its reference point, x forwards) following a [`TrolleyPath`]; the RPLidar
+//!   horizontal at its mount height, the Sweep in the vertical plane across the direction of
+//!   travel (spin axis along base −x), no turntable: the trolley's `edge.toml` has no
+//!   `[stepper]` (the edge refuses static scans) and no `[static_scan]`.
+//!
+//! Both lidars cast each ray from the pose of `base` at that sample's time
+//! ([`crate::trolley::OnBase`]); the IMU, level on the base, measures the base's true motion
+//! ([`MountedImuTruth`]: rates, gravity plus acceleration, the field with magnetic north at
+//! [`ROOM_MAGNETIC_NORTH_DEG`]) with the emulator's noise and bias.
+//!
+//! `--truth FILE` writes the pose of `base` in `room` as TUM lines ([`TumWriter`]) at
+//! [`TRUTH_HZ`], t in UNIX seconds; the trolley's ends with `# end of path` once it rests at
+//! the end of its path (it stays at the last pose written).
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -27,9 +41,11 @@ use scan3d_map::cloud::assembly::Position;
 
 use crate::faults::FaultConfig;
 use crate::i2c_socket::I2cSocketServer;
+use crate::imu::{EarthField, MountedImuTruth};
 use crate::pty::{PtyDevice, PtyHandle, PtyOptions};
 use crate::rplidar::{RplidarEmulator, RplidarEmulatorConfig};
 use crate::sweep::{SweepEmulator, SweepEmulatorConfig};
+use crate::trolley::{BaseTrajectory, OnBase, TROLLEY_CLEARANCE_M, TrolleyPath};
 use crate::turntable::TurntableMount;
 use crate::turntable_head::{DEMO_MOUNT, head_bus};
 use crate::world::World;
@@ -45,8 +61,18 @@ pub const EDGE_TOML: &str = "edge.toml";
 
 /// The RPLidar's mount in `base`: horizontal, 0.4 m up, 0.15 m behind the turntable axis.
 pub const RPLIDAR_MOUNT: [f64; 6] = [-0.15, 0.0, 0.4, 0.0, 0.0, 0.0];
-/// The IMU's mount in `base`: level on the base, 0.1 m up, chip axes = base axes.
+/// The IMU's mount in `base`: level on the base, 0.1 m up, chip axes = base axes (both heads).
 pub const IMU_MOUNT: [f64; 6] = [0.0, -0.1, 0.1, 0.0, 0.0, 0.0];
+/// The RPLidar's mount on the trolley: horizontal, 0.4 m up, 0.2 m ahead of the reference
+/// point.
+pub const TROLLEY_RPLIDAR_MOUNT: [f64; 6] = [0.2, 0.0, 0.4, 0.0, 0.0, 0.0];
+/// The Sweep's mount on the trolley: on a mast 0.2 m behind the reference point, optical
+/// centre 1 m up, its scan plane the base's y–z plane (across the direction of travel), spin
+/// axis along base −x and azimuth 0 up, as on the turntable.
+pub const TROLLEY_SWEEP_MOUNT: [f64; 6] = [-0.2, 0.0, 1.0, 0.0, -90.0, 0.0];
+/// Where magnetic north lies in the room, degrees counter-clockwise from room x (not 0, so
+/// that nothing can assume the map's x points north).
+pub const ROOM_MAGNETIC_NORTH_DEG: f64 = 20.0;
 /// The Sweep's rotation rate the rig's `edge.toml` asks for, Hz: with 3.6° per revolution a
 /// 180° static scan takes 50 revolutions, 10 s, and the two steps (20 ms at 100 steps/s) fit
 /// in the 60° blind sector (33 ms at 5 Hz).
@@ -61,17 +87,31 @@ pub const TRUTH_HZ: f64 = 50.0;
 pub struct RigOptions {
     /// Directory of the links, the socket and `edge.toml` (created if missing).
     pub dir: PathBuf,
-    /// Where `base` stands in `room`: x, y (m) and the heading of its x axis (deg); `None` =
-    /// the room's centre, heading 0.
-    pub at: Option<[f64; 3]>,
+    /// The head: static or on a trolley.
+    pub head: Head,
     /// Where to write the true trajectory of `base` (TUM lines).
     pub truth: Option<PathBuf>,
     /// Seed of the range noise.
     pub seed: u64,
 }
 
+/// Which sensor head the rig emulates.
+#[derive(Debug, Clone)]
+pub enum Head {
+    /// The Sweep on the turntable, standing at x, y (m) with the heading of its yaw 0 (deg);
+    /// `None` = the room's centre, heading 0.
+    Static {
+        /// Where `base` stands.
+        at: Option<[f64; 3]>,
+    },
+    /// The head on a trolley pushed along a path.
+    Trolley(Arc<TrolleyPath>),
+}
+
 /// A running rig; [`Rig::shutdown`] (or drop) stops it and removes its links and socket.
 pub struct Rig {
+    clock: ScaledClock,
+    base: Arc<dyn BaseTrajectory>,
     rplidar: Option<PtyHandle>,
     sweep: Option<PtyHandle>,
     i2c: Option<I2cSocketServer>,
@@ -96,47 +136,88 @@ pub fn mount_pose(m: [f64; 6]) -> Isometry3<f64> {
 }
 
 impl Rig {
-    /// Starts every device in `world` and writes `edge.toml`.
+    /// Starts every device in `world` and writes `edge.toml`. A trolley path that comes
+    /// closer than [`TROLLEY_CLEARANCE_M`] to the room's walls or furniture is refused.
     pub fn start(world: Arc<World>, options: &RigOptions) -> anyhow::Result<Self> {
         let dir = &options.dir;
+        let (base, at): (Arc<dyn BaseTrajectory>, [f64; 3]) = match &options.head {
+            Head::Static { at } => {
+                let at = at.unwrap_or_else(|| {
+                    let room = world.room();
+                    [
+                        (room.min.x + room.max.x) / 2.0,
+                        (room.min.y + room.max.y) / 2.0,
+                        0.0,
+                    ]
+                });
+                (Arc::new(base_pose(at)), at)
+            }
+            Head::Trolley(path) => {
+                let clearance = path.clearance(&world);
+                if clearance.distance_m < TROLLEY_CLEARANCE_M {
+                    anyhow::bail!(
+                        "the trolley's path passes {:.2} m from {} at ({:.2}, {:.2}): the \
+                         trolley needs {TROLLEY_CLEARANCE_M} m (see docs/simulator.md for the \
+                         path file)",
+                        clearance.distance_m,
+                        clearance.what,
+                        clearance.at[0],
+                        clearance.at[1]
+                    );
+                }
+                (path.clone(), path.start_pose())
+            }
+        };
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-        let at = options.at.unwrap_or_else(|| {
-            let room = world.room();
-            [
-                (room.min.x + room.max.x) / 2.0,
-                (room.min.y + room.max.y) / 2.0,
-                0.0,
-            ]
-        });
-        let base = base_pose(at);
         let clock = ScaledClock::new(1.0);
-        let (bus, _hat, turntable) = head_bus(Arc::new(clock));
+        let imu = MountedImuTruth {
+            base: base.clone(),
+            mount: mount_pose(IMU_MOUNT),
+            field: EarthField::default(),
+            north_heading_rad: ROOM_MAGNETIC_NORTH_DEG.to_radians(),
+        };
+        let (bus, _hat, turntable) = head_bus(Arc::new(clock), Arc::new(imu));
         let pty = |seed: u64| PtyOptions {
             time_scale: 1.0,
             faults: FaultConfig::default(),
             seed,
             epoch: Some(clock.epoch()),
         };
+        let on_base = |mount: [f64; 6]| OnBase {
+            base: base.clone(),
+            mount: mount_pose(mount),
+        };
+        let trolley = matches!(options.head, Head::Trolley(_));
+        let rplidar_mount = if trolley {
+            TROLLEY_RPLIDAR_MOUNT
+        } else {
+            RPLIDAR_MOUNT
+        };
         let rplidar = RplidarEmulator::new(
             RplidarEmulatorConfig::default(),
-            RplidarEmulator::default_scanner(world.clone(), base * mount_pose(RPLIDAR_MOUNT)),
+            RplidarEmulator::default_scanner(world.clone(), Isometry3::identity()),
             options.seed,
-        );
+        )
+        .with_pose_source(on_base(rplidar_mount));
         let rplidar =
             PtyDevice::spawn(dir.join(RPLIDAR_LINK), Box::new(rplidar), pty(options.seed))
                 .context("cannot start the emulated RPLidar")?;
-        let position = Position {
-            name: "rig".into(),
-            x_m: at[0],
-            y_m: at[1],
-            heading_deg: at[2],
-        };
         let sweep = SweepEmulator::new(
             SweepEmulatorConfig::default(),
             SweepEmulator::default_scanner(world, crate::mounts::sweep()),
             options.seed.wrapping_add(1),
-        )
-        .with_pose_source(TurntableMount::new(turntable, position, DEMO_MOUNT));
+        );
+        let sweep = if trolley {
+            sweep.with_pose_source(on_base(TROLLEY_SWEEP_MOUNT))
+        } else {
+            let position = Position {
+                name: "rig".into(),
+                x_m: at[0],
+                y_m: at[1],
+                heading_deg: at[2],
+            };
+            sweep.with_pose_source(TurntableMount::new(turntable, position, DEMO_MOUNT))
+        };
         let sweep = PtyDevice::spawn(
             dir.join(SWEEP_LINK),
             Box::new(sweep),
@@ -145,27 +226,60 @@ impl Rig {
         .context("cannot start the emulated Sweep")?;
         let i2c = I2cSocketServer::start(&dir.join(I2C_SOCKET), bus)?;
         let edge_toml = dir.join(EDGE_TOML);
-        let text = edge_toml_text(rplidar.link(), sweep.link(), i2c.path());
+        let text = if trolley {
+            trolley_edge_toml_text(rplidar.link(), sweep.link(), i2c.path())
+        } else {
+            edge_toml_text(rplidar.link(), sweep.link(), i2c.path())
+        };
         std::fs::write(&edge_toml, text)
             .with_context(|| format!("cannot write {}", edge_toml.display()))?;
+        let end_of_path_s = match &options.head {
+            Head::Trolley(path) => Some(path.end_of_path_s()),
+            Head::Static { .. } => None,
+        };
         let truth = match &options.truth {
-            Some(path) => Some(start_truth(path, base)?),
+            Some(path) => Some(start_truth(path, clock, base.clone(), end_of_path_s)?),
             None => None,
         };
-        tracing::info!(
-            rplidar = %rplidar.link().display(),
-            sweep = %sweep.link().display(),
-            i2c = %i2c.path().display(),
-            x = at[0], y = at[1], heading_deg = at[2],
-            "rig running: static head"
-        );
+        match &options.head {
+            Head::Static { .. } => tracing::info!(
+                rplidar = %rplidar.link().display(),
+                sweep = %sweep.link().display(),
+                i2c = %i2c.path().display(),
+                x = at[0], y = at[1], heading_deg = at[2],
+                "rig running: static head"
+            ),
+            Head::Trolley(path) => tracing::info!(
+                rplidar = %rplidar.link().display(),
+                sweep = %sweep.link().display(),
+                i2c = %i2c.path().display(),
+                x = at[0], y = at[1], heading_deg = at[2],
+                rest_s = path.rest_s(),
+                motion_s = format_args!("{:.1}", path.motion_s()),
+                length_m = format_args!("{:.2}", path.length_m()),
+                "rig running: trolley (at rest until rest_s, then moving for motion_s)"
+            ),
+        }
         Ok(Self {
+            clock,
+            base,
             rplidar: Some(rplidar),
             sweep: Some(sweep),
             i2c: Some(i2c),
             edge_toml,
             truth,
         })
+    }
+
+    /// The rig's clock: every emulator's time base (its `now_ns` is the time since the rig's
+    /// start, the `t` of [`TrolleyPath::state_at`] in nanoseconds).
+    pub fn clock(&self) -> ScaledClock {
+        self.clock
+    }
+
+    /// The true pose of `base` in `room` at `t_ns` on [`Rig::clock`].
+    pub fn base_pose_at(&self, t_ns: u64) -> Isometry3<f64> {
+        self.base.motion_at(t_ns).pose
     }
 
     /// The paths the rig created: the two links, the socket, `edge.toml`.
@@ -209,12 +323,7 @@ impl Drop for Rig {
 /// The edge's sensor sections for the static head whose devices are at these paths. An
 /// operator prepends `device_name` and `state_dir` and appends `[uplink]`.
 pub fn edge_toml_text(rplidar: &Path, sweep: &Path, i2c_socket: &Path) -> String {
-    let mount = |m: [f64; 6]| {
-        format!(
-            "x = {:?}\ny = {:?}\nz = {:?}\nroll = {:?}\npitch = {:?}\nyaw = {:?}\n",
-            m[0], m[1], m[2], m[3], m[4], m[5]
-        )
-    };
+    let mount = mount_text;
     // The Sweep on the turntable as eq. (1) has it: spin axis along base -x, azimuth 0 up.
     let sweep_mount = [
         DEMO_MOUNT.axis_offset_m,
@@ -239,6 +348,36 @@ pub fn edge_toml_text(rplidar: &Path, sweep: &Path, i2c_socket: &Path) -> String
         rplidar_mount = mount(RPLIDAR_MOUNT),
         sweep_mount = mount(sweep_mount),
         imu_mount = mount(IMU_MOUNT),
+    )
+}
+
+/// The edge's sensor sections for the trolley whose devices are at these paths: the lidars and
+/// the IMU with their mounts on the trolley, no `[stepper]` (no turntable: the edge refuses
+/// static scans) and no `[static_scan]`. An operator prepends `device_name` and `state_dir` and
+/// appends `[uplink]`.
+pub fn trolley_edge_toml_text(rplidar: &Path, sweep: &Path, i2c_socket: &Path) -> String {
+    format!(
+        "# The sensor head of `scan3d-sim rig --trolley` (generated): the head on a pushed\n\
+         # trolley, no turntable (so no [stepper] and no [static_scan]: the edge refuses static\n\
+         # scans). Prepend device_name and state_dir, append [uplink].\n\n\
+         [rplidar]\npath = {rplidar:?}\n\n[rplidar.mount]\n{rplidar_mount}\n\
+         [sweep]\npath = {sweep:?}\nmotor_hz = {SWEEP_MOTOR_HZ}\n\n[sweep.mount]\n{sweep_mount}\n\
+         [i2c]\nsocket = {i2c_socket:?}\n\n\
+         [imu]\n\n[imu.mount]\n{imu_mount}",
+        rplidar = rplidar.display().to_string(),
+        sweep = sweep.display().to_string(),
+        i2c_socket = i2c_socket.display().to_string(),
+        rplidar_mount = mount_text(TROLLEY_RPLIDAR_MOUNT),
+        sweep_mount = mount_text(TROLLEY_SWEEP_MOUNT),
+        imu_mount = mount_text(IMU_MOUNT),
+    )
+}
+
+/// A `[*.mount]` section's keys.
+fn mount_text(m: [f64; 6]) -> String {
+    format!(
+        "x = {:?}\ny = {:?}\nz = {:?}\nroll = {:?}\npitch = {:?}\nyaw = {:?}\n",
+        m[0], m[1], m[2], m[3], m[4], m[5]
     )
 }
 
@@ -279,10 +418,14 @@ fn unix_now_s() -> f64 {
         .unwrap_or(0.0)
 }
 
-/// The static head's truth: its constant pose at [`TRUTH_HZ`] until stopped.
+/// The truth of `base`: its pose at [`TRUTH_HZ`] (t: UNIX time now, pose: at the rig clock's
+/// now) until stopped or, when `end_of_path_s` is given, until the rig clock passes it: then
+/// `# end of path` and the thread ends.
 fn start_truth(
     path: &Path,
-    base: Isometry3<f64>,
+    clock: ScaledClock,
+    base: Arc<dyn BaseTrajectory>,
+    end_of_path_s: Option<f64>,
 ) -> anyhow::Result<(Arc<AtomicBool>, JoinHandle<()>)> {
     let file = std::fs::File::create(path)
         .with_context(|| format!("cannot create the truth file {}", path.display()))?;
@@ -296,8 +439,17 @@ fn start_truth(
             let period = Duration::from_secs_f64(1.0 / TRUTH_HZ);
             let mut next = std::time::Instant::now();
             while !flag.load(Ordering::SeqCst) {
-                if let Err(e) = writer.pose(unix_now_s(), &base) {
+                let t_ns = scan3d_edge::clock::Clock::now_ns(&clock);
+                let ended = end_of_path_s.is_some_and(|end| t_ns as f64 * 1e-9 >= end);
+                let written = writer
+                    .pose(unix_now_s(), &base.motion_at(t_ns).pose)
+                    .and_then(|()| if ended { writer.end_of_path() } else { Ok(()) });
+                if let Err(e) = written {
                     tracing::error!(path = %path.display(), "cannot write the truth: {e}");
+                    return;
+                }
+                if ended {
+                    tracing::info!(path = %path.display(), "the trolley rests at the end of its path");
                     return;
                 }
                 next += period;
@@ -335,6 +487,35 @@ mod tests {
             assert!((got - want).abs() < 1e-8, "{v:?}");
         }
         assert_eq!(lines[1], "# end of path");
+    }
+
+    #[test]
+    fn the_trolley_s_edge_toml_has_its_mounts_and_no_turntable() {
+        let text = trolley_edge_toml_text(Path::new("/r"), Path::new("/s"), Path::new("/i"));
+        let table: toml::Table = text.parse().unwrap();
+        assert!(!table.contains_key("stepper"), "{text}");
+        assert!(!table.contains_key("static_scan"), "{text}");
+        assert_eq!(table["imu"]["mount"]["z"].as_float(), Some(IMU_MOUNT[2]));
+        assert_eq!(table["rplidar"]["mount"]["z"].as_float(), Some(0.4));
+        let m = &table["sweep"]["mount"];
+        let get = |k: &str| m[k].as_float().unwrap();
+        let mount = mount_pose([
+            get("x"),
+            get("y"),
+            get("z"),
+            get("roll"),
+            get("pitch"),
+            get("yaw"),
+        ]);
+        // Spin axis along the direction of travel, so the scan plane is across it.
+        let spin = mount.rotation * Vector3::z();
+        assert!((spin + Vector3::x()).norm() < 1e-12, "{spin}");
+        let config = scan3d_edge::config::EdgeConfig::from_toml_str(
+            &format!("device_name = \"t\"\n{text}"),
+            Path::new("edge.toml"),
+        )
+        .expect("the edge accepts it");
+        assert!(config.stepper.is_none() && config.imu.is_some());
     }
 
     #[test]

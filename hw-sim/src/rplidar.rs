@@ -28,7 +28,7 @@ use tracing::debug;
 
 use crate::device::{Device, WireUnit};
 use crate::noise::RangeNoise;
-use crate::world::{Scanner, World};
+use crate::world::{PoseSource, Scanner, World};
 
 /// Which RPLidar the emulator pretends to be.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize)]
@@ -219,6 +219,8 @@ struct Stream {
 pub struct RplidarEmulator {
     config: RplidarEmulatorConfig,
     scanner: Scanner,
+    /// Where the sensor is at each sample's time; `None`: fixed at `scanner.pose`.
+    pose_source: Option<Arc<dyn PoseSource>>,
     rng: ChaCha8Rng,
     rx: Vec<u8>,
     rx_started_ns: u64,
@@ -238,6 +240,7 @@ impl RplidarEmulator {
         Self {
             config,
             scanner,
+            pose_source: None,
             rng: ChaCha8Rng::seed_from_u64(seed),
             rx: Vec::new(),
             rx_started_ns: 0,
@@ -246,6 +249,14 @@ impl RplidarEmulator {
             stream: None,
             deaf_until_ns: 0,
         }
+    }
+
+    /// The same RPLidar, but measuring from `source.pose_at(t)` for a sample taken at simulated
+    /// time `t` (e.g. on a moving trolley: [`crate::trolley::OnBase`]); `scanner.pose` is then
+    /// unused. `source` must run on this emulator's time base (ns since power-on).
+    pub fn with_pose_source(mut self, source: impl PoseSource + 'static) -> Self {
+        self.pose_source = Some(Arc::new(source));
+        self
     }
 
     /// A [`Scanner`] with RPLidar defaults: [`RangeNoise::RPLIDAR`], [`MIN_RANGE_M`]–[`MAX_RANGE_M`].
@@ -300,9 +311,15 @@ impl RplidarEmulator {
         ((self.rotor_angle_deg(motor_on_ns, t_ns) * 64.0).round() as u32) % FULL_Q6
     }
 
-    /// Measures at the device angle `theta_deg` (clockwise): range in metres, or `None`.
-    fn measure(&mut self, theta_deg: f64) -> Option<f64> {
-        self.scanner.measure(-theta_deg.to_radians(), &mut self.rng)
+    /// Measures at the device angle `theta_deg` (clockwise) at simulated time `t_ns`: range in
+    /// metres, or `None`.
+    fn measure(&mut self, theta_deg: f64, t_ns: u64) -> Option<f64> {
+        let pose = match &self.pose_source {
+            Some(source) => source.pose_at(t_ns),
+            None => self.scanner.pose,
+        };
+        self.scanner
+            .measure_from(&pose, -theta_deg.to_radians(), &mut self.rng)
     }
 
     fn start_stream(&mut self, now_ns: u64, kind: StreamKind, wait_for_spinup: bool) {
@@ -361,7 +378,7 @@ impl RplidarEmulator {
     fn standard_node(&mut self, stream: &mut Stream, motor_on: u64, t_ns: u64) -> WireUnit {
         let angle_q6 = self.rotor_angle_q6(motor_on, t_ns);
         let angle = f64::from(angle_q6) / 64.0;
-        let range = self.measure(angle);
+        let range = self.measure(angle, t_ns);
         let dist_q2 = range.map_or(0, |r| (r * 4000.0).round().clamp(0.0, 65535.0) as u16);
         let quality = if dist_q2 == 0 {
             0
@@ -431,8 +448,9 @@ impl RplidarEmulator {
             let dtheta = stream.dtheta;
             let theta =
                 (omega + diff * k as f64 / 32.0 - f64::from(dtheta) / 8.0).rem_euclid(360.0);
+            let t_k = t_start + span * k as u64 / CAPSULE_SAMPLES;
             let dist_mm = self
-                .measure(theta)
+                .measure(theta, t_k)
                 .map_or(0u16, |r| (r * 1000.0).round().clamp(0.0, 16383.0) as u16);
             let start = stream.prev_angle.is_some_and(|p| theta < p);
             stream.prev_angle = Some(theta);

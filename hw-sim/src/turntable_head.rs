@@ -24,7 +24,7 @@ use scan3d_map::cloud::assembly::{MountGeometry, Position};
 
 use crate::faults::FaultConfig;
 use crate::i2c::{BusStats, I2cBus};
-use crate::imu::{ImuEmulator, StaticTruth};
+use crate::imu::{ImuEmulator, ImuTruth, StaticTruth};
 use crate::installation::EDGE_NAME;
 use crate::noise::RangeNoise;
 use crate::pty::{PtyDevice, PtyHandle, PtyOptions};
@@ -56,8 +56,11 @@ pub struct TurntableHeadOptions {
 }
 
 /// The head's I2C bus on `clock`: the PCA9685 motor HAT (its port 1 turns the turntable) and
-/// the MPU-9250/AK8963 at rest. Returns the bus, the HAT and the turntable it drives.
-pub fn head_bus(clock: SharedClock) -> (I2cBus, Arc<Mutex<Pca9685Emulator>>, Turntable) {
+/// the MPU-9250/AK8963 measuring `imu`. Returns the bus, the HAT and the turntable it drives.
+pub fn head_bus(
+    clock: SharedClock,
+    imu: Arc<dyn ImuTruth>,
+) -> (I2cBus, Arc<Mutex<Pca9685Emulator>>, Turntable) {
     let bus = I2cBus::with_clock(clock);
     let hat = Arc::new(Mutex::new(Pca9685Emulator::motor_hat()));
     let turntable = hat
@@ -67,7 +70,7 @@ pub fn head_bus(clock: SharedClock) -> (I2cBus, Arc<Mutex<Pca9685Emulator>>, Tur
     bus.attach(hat.clone());
     bus.attach(Arc::new(Mutex::new(ImuEmulator::new(
         Default::default(),
-        Arc::new(StaticTruth::default()),
+        imu,
     ))));
     (bus, hat, turntable)
 }
@@ -106,7 +109,8 @@ impl TurntableHead {
         std::fs::create_dir_all(links_dir)
             .with_context(|| format!("cannot create {}", links_dir.display()))?;
         let world_clock = ScaledClock::new(options.time_scale);
-        let (bus, hat, turntable) = head_bus(Arc::new(world_clock));
+        let (bus, hat, turntable) =
+            head_bus(Arc::new(world_clock), Arc::new(StaticTruth::default()));
         let mount = CarriedMount(Arc::new(RwLock::new(TurntableMount::new(
             turntable, start, DEMO_MOUNT,
         ))));

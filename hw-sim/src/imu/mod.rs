@@ -24,7 +24,9 @@ use std::sync::Arc;
 
 pub use ak8963::{Ak8963Emulator, AkEmulatorConfig};
 pub use mpu9250::{Mpu9250Emulator, MpuEmulatorConfig};
-pub use truth::{EarthField, ImuTruth, STANDARD_GRAVITY, StaticTruth, TrueImu, YawRateTruth};
+pub use truth::{
+    EarthField, ImuTruth, MountedImuTruth, STANDARD_GRAVITY, StaticTruth, TrueImu, YawRateTruth,
+};
 
 use crate::i2c::{I2cDevice, Nack};
 
