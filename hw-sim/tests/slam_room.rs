@@ -87,6 +87,13 @@ impl Drive {
         Self { keyframes }
     }
 
+    /// Standing still for `seconds`.
+    fn standing(seconds: f64) -> Self {
+        Self {
+            keyframes: vec![(0.0, 0.0, 0.0), (seconds, 0.0, 0.0)],
+        }
+    }
+
     fn duration(&self) -> f64 {
         self.keyframes.last().map_or(0.0, |k| k.0)
     }
@@ -148,11 +155,23 @@ enum Deskew {
     Truth,
 }
 
+/// Where the trolley goes.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Path {
+    /// [`Drive::around_the_table`] at the run's turn rate.
+    AroundTheTable,
+    /// [`Drive::standing`] for this many seconds.
+    Standing(f64),
+}
+
 /// One simulated run: what the lidar and the trolley are like, and how the mapper is fed.
 #[derive(Debug, Clone, Copy)]
 struct Run {
     noise: RangeNoise,
+    path: Path,
     turn_rate: f64,
+    /// The lidar's revolutions per second.
+    rotation_hz: f64,
     stamp: Stamp,
     deskew: Deskew,
     /// Wheel odometry with drift and noise (`None`: no odometry, constant-velocity prior).
@@ -169,7 +188,9 @@ impl Run {
     fn trolley(noise: RangeNoise) -> Self {
         Self {
             noise,
+            path: Path::AroundTheTable,
             turn_rate: 0.5,
+            rotation_hz: RplidarEmulatorConfig::default().rotation_hz,
             stamp: Stamp::RevolutionEnd,
             deskew: Deskew::Mapper,
             odometry: None,
@@ -316,6 +337,7 @@ fn revolutions(
             hit_times,
             odometry,
             sensor_offset: SENSOR_OFFSET,
+            rotation: None,
         });
     }
     out
@@ -371,7 +393,10 @@ impl std::fmt::Display for Errors {
 fn simulate(run: &Run) -> Simulated {
     let lidar = RplidarEmulatorConfig::default();
     let period = f64::from(lidar.standard_sample_us) * 1e-6;
-    let drive = Drive::around_the_table(run.turn_rate);
+    let drive = match run.path {
+        Path::AroundTheTable => Drive::around_the_table(run.turn_rate),
+        Path::Standing(seconds) => Drive::standing(seconds),
+    };
     let truth = drive.poses(run.start, period);
     let scanner = Scanner {
         world: Arc::new(World::conference_room()),
@@ -381,7 +406,7 @@ fn simulate(run: &Run) -> Simulated {
         max_range_m: MAX_RANGE_M,
     };
     let mut rng = ChaCha8Rng::seed_from_u64(run.seed);
-    let revolutions = revolutions(&truth, period, lidar.rotation_hz, &scanner, run, &mut rng);
+    let revolutions = revolutions(&truth, period, run.rotation_hz, &scanner, run, &mut rng);
     assert!(revolutions.len() > 200, "{} revolutions", revolutions.len());
     Simulated {
         revolutions,
@@ -568,4 +593,250 @@ fn the_mappers_de_skew_places_the_trolley_within_a_few_millimetres_of_a_perfect_
         mapper.rms_rotation <= perfect.rms_rotation + 0.15f64.to_radians(),
         "{mapper} vs {perfect}"
     );
+}
+
+/// How a run's reported covariances compare with its errors: the normalised estimation error
+/// squared eᵀ C⁻¹ e of each revolution's pose against the truth (3 degrees of freedom: its mean
+/// is 3 when the covariance is right), averaged over the run, and per component eᵢ² / Cᵢᵢ.
+#[derive(Debug, Clone, Copy)]
+struct Nees {
+    scans: usize,
+    mean: f64,
+    x: f64,
+    y: f64,
+    theta: f64,
+    rms_translation: f64,
+    rms_rotation: f64,
+    /// What the covariances say those RMS should be: √(mean of Cxx + Cyy) and √(mean Cθθ).
+    sigma_translation: f64,
+    sigma_rotation: f64,
+}
+
+impl std::fmt::Display for Nees {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} scans: NEES {:.2} (x {:.2}, y {:.2}, θ {:.2}); error RMS {:.1} mm, {:.3}°, \
+             reported {:.1} mm, {:.3}°",
+            self.scans,
+            self.mean,
+            self.x,
+            self.y,
+            self.theta,
+            self.rms_translation * 1e3,
+            self.rms_rotation.to_degrees(),
+            self.sigma_translation * 1e3,
+            self.sigma_rotation.to_degrees()
+        )
+    }
+}
+
+/// The inverse of a symmetric positive definite 3×3 matrix.
+fn inverse(m: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
+    let m = nalgebra::Matrix3::from_fn(|i, j| m[i][j]);
+    let inv = m.try_inverse().expect("a positive definite covariance");
+    [0, 1, 2].map(|i| [0, 1, 2].map(|j| inv[(i, j)]))
+}
+
+/// Localises `run`'s revolutions in a map built from the true poses, so that the error of each
+/// pose is its match's alone (no drift), and scores the reported covariances against it.
+///
+/// The map: the same path with another draw of the noise, each revolution de-skewed with the
+/// true motion and integrated at its true pose whenever the trolley has moved 10 cm or turned
+/// 0.1 rad since the last one (the trolley's rule, so the map is as dense as a live one). Then a
+/// mapper that does not integrate starts at the true pose of `run`'s first revolution and matches
+/// every following one as it would live (de-skewed by itself, constant-velocity prior); its
+/// frame is the room's.
+fn nees(run: &Run) -> Nees {
+    let config = MapperConfig {
+        map_update_distance: f64::INFINITY,
+        map_update_angle: f64::INFINITY,
+        ..run.config
+    };
+    let mut mapper = Mapper::new(config);
+    let drawn = simulate(&Run {
+        deskew: Deskew::Truth,
+        seed: run.seed ^ 0x5eed_0fa9,
+        ..*run
+    });
+    let mut integrated: Option<Pose2> = None;
+    for revolution in &drawn.revolutions {
+        let truth = drawn.truth_at(revolution.time);
+        let due = integrated.is_none_or(|at| {
+            (truth.x - at.x).hypot(truth.y - at.y) >= run.config.map_update_distance
+                || wrap_angle(truth.theta - at.theta).abs() >= run.config.map_update_angle
+        });
+        if due {
+            assert!(mapper.integrate_at(revolution, &truth));
+            integrated = Some(truth);
+        }
+    }
+
+    let simulated = simulate(run);
+    let (first, rest) = simulated.revolutions.split_first().expect("revolutions");
+    let time = first.reference_time();
+    mapper.start_at(time, simulated.truth_at(time), [[0.0; 3]; 3]);
+    let (mut sum, mut sx, mut sy, mut st) = (0.0, 0.0, 0.0, 0.0);
+    let (mut sum_t, mut sum_r) = (0.0, 0.0);
+    let (mut var_t, mut var_r) = (0.0, 0.0);
+    for revolution in rest {
+        let result = mapper.add_scan(revolution);
+        let truth = simulated.truth_at(result.time);
+        let e = [
+            result.pose.x - truth.x,
+            result.pose.y - truth.y,
+            wrap_angle(result.pose.theta - truth.theta),
+        ];
+        let c = &result.covariance;
+        let information = inverse(c);
+        sum += (0..3)
+            .map(|i| (0..3).map(|j| e[i] * information[i][j] * e[j]).sum::<f64>())
+            .sum::<f64>();
+        sx += e[0] * e[0] / c[0][0];
+        sy += e[1] * e[1] / c[1][1];
+        st += e[2] * e[2] / c[2][2];
+        sum_t += e[0] * e[0] + e[1] * e[1];
+        sum_r += e[2] * e[2];
+        var_t += c[0][0] + c[1][1];
+        var_r += c[2][2];
+    }
+    let n = rest.len() as f64;
+    Nees {
+        scans: rest.len(),
+        mean: sum / n,
+        x: sx / n,
+        y: sy / n,
+        theta: st / n,
+        rms_translation: (sum_t / n).sqrt(),
+        rms_rotation: (sum_r / n).sqrt(),
+        sigma_translation: (var_t / n).sqrt(),
+        sigma_rotation: (var_r / n).sqrt(),
+    }
+}
+
+/// The runs the calibration is checked on: the trolley around the table, and a head standing at
+/// three places (by the start, east of the table, west by the glass wall), each with a few
+/// draws of the RPLidar's noise.
+fn calibration_runs() -> Vec<(String, Run)> {
+    let mut runs = Vec::new();
+    for seed in [1, 2, 3] {
+        let mut run = Run::trolley(RangeNoise::RPLIDAR);
+        run.seed = seed;
+        runs.push((format!("around the table, seed {seed}"), run));
+    }
+    let places = [
+        START,
+        Pose2 {
+            x: 6.31,
+            y: 4.27,
+            theta: 2.2,
+        },
+        Pose2 {
+            x: 1.27,
+            y: 4.9,
+            theta: -1.0,
+        },
+    ];
+    for (k, place) in places.into_iter().enumerate() {
+        for seed in [1, 2] {
+            let mut run = Run::trolley(RangeNoise::RPLIDAR);
+            run.path = Path::Standing(25.0);
+            run.rotation_hz = 10.0;
+            run.start = place;
+            run.seed = seed + 10 * k as u64;
+            runs.push((format!("standing at place {k}, seed {}", run.seed), run));
+        }
+    }
+    runs
+}
+
+#[test]
+fn the_reported_covariance_matches_the_error_of_a_match_against_a_true_map() {
+    // Issue 20: averaged over a run, the normalised estimation error squared lies in
+    // [1.5, 4.5] for the 3 degrees of freedom (3 when the covariance is exactly right).
+    let mut means = Vec::new();
+    for (name, run) in calibration_runs() {
+        let nees = nees(&run);
+        println!("{name}: {nees}");
+        means.push((nees.mean, name));
+    }
+    means.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let median = means[means.len() / 2].0;
+    let (lowest, highest) = (&means[0], &means[means.len() - 1]);
+    println!(
+        "NEES over {} runs: median {median:.2}, lowest {:.2} ({}), highest {:.2} ({})",
+        means.len(),
+        lowest.0,
+        lowest.1,
+        highest.0,
+        highest.1
+    );
+    // All runs together (the figure the issue bounds), and each run alone with a margin: the
+    // runs differ in how their map is wrong (a standing head's map is one revolution).
+    let pooled = means.iter().map(|m| m.0).sum::<f64>() / means.len() as f64;
+    println!("NEES over all runs: {pooled:.2}");
+    assert!((1.5..=4.5).contains(&pooled), "pooled NEES {pooled:.2}");
+    assert!((1.5..=4.5).contains(&median), "median NEES {median:.2}");
+    for (mean, name) in &means {
+        assert!((1.0..=6.0).contains(mean), "{name}: NEES {mean:.2}");
+    }
+}
+
+/// How far a standing head's live poses are from its first over `seconds` of revolutions at
+/// 10 Hz (the mapper as live: from the identity, the trolley's configuration, RPLidar noise):
+/// the largest distance and heading difference, and as the last line of `println!`, their RMS.
+fn standing_drift(seconds: f64) -> (f64, f64, usize) {
+    let mut run = Run::trolley(RangeNoise::RPLIDAR);
+    run.path = Path::Standing(seconds);
+    run.rotation_hz = 10.0;
+    let simulated = simulate(&run);
+    let mut mapper = Mapper::new(run.config);
+    let (mut translation, mut rotation) = (0.0f64, 0.0f64);
+    let (mut sum_t, mut sum_r) = (0.0, 0.0);
+    for revolution in &simulated.revolutions {
+        let pose = mapper.add_scan(revolution).pose;
+        let (t, r) = (pose.x.hypot(pose.y), wrap_angle(pose.theta).abs());
+        translation = translation.max(t);
+        rotation = rotation.max(r);
+        sum_t += t * t;
+        sum_r += r * r;
+    }
+    let n = simulated.revolutions.len() as f64;
+    println!(
+        "standing {seconds} s: RMS distance from the first pose {:.2} mm, {:.3}°",
+        (sum_t / n).sqrt() * 1e3,
+        (sum_r / n).sqrt().to_degrees()
+    );
+    (translation, rotation, simulated.revolutions.len())
+}
+
+#[test]
+fn a_standing_heads_pose_stays_within_its_revolution_noise_over_a_minute() {
+    // Issue 20 asks for < 1 cm and < 0.2° over ten minutes (the ignored test below). Not met
+    // yet: each revolution is matched on its own, and under the RPLidar's noise (1 % of range,
+    // 8 cm at the far walls) one revolution pins the pose to about 5 mm and 0.25° RMS against a
+    // one-revolution map, so the largest excursion over 600 revolutions is 16 mm and 1.0°. What
+    // the pose does not do is drift: this bound guards that, with margin over the measured.
+    let (translation, rotation, scans) = standing_drift(60.0);
+    println!(
+        "standing 60 s, {scans} revolutions: moved at most {:.2} mm and {:.3}°",
+        translation * 1e3,
+        rotation.to_degrees()
+    );
+    assert!(scans >= 590, "{scans} revolutions");
+    assert!(translation < 0.025 && rotation < 1.5f64.to_radians());
+}
+
+#[test]
+#[ignore = "ten minutes of revolutions, and the issue's goal is not met yet (see the test above): \
+            cargo test -p scan3d-hw-sim --test slam_room -- --ignored"]
+fn a_standing_heads_pose_moves_less_than_1_cm_and_0_2_degrees_over_ten_minutes() {
+    let (translation, rotation, scans) = standing_drift(600.0);
+    println!(
+        "standing 600 s, {scans} revolutions: moved at most {:.2} mm and {:.3}°",
+        translation * 1e3,
+        rotation.to_degrees()
+    );
+    assert!(scans >= 5990, "{scans} revolutions");
+    assert!(translation < 0.01 && rotation < 0.2f64.to_radians());
 }

@@ -243,6 +243,64 @@ fn slam_of_a_recorded_session_follows_the_rplidar_through_a_room() {
 }
 
 #[test]
+fn a_mounted_lidar_gives_the_trajectory_of_the_base() {
+    use scan3d_server::pose::scan_matching::map_session;
+    use scan3d_slam::mapper::MapperConfig;
+    use scan3d_slam::offline::RangeLimits;
+    use scan3d_slam::pose::{Pose2, wrap_angle};
+
+    // The lidar sits 0.3 m ahead of and 0.1 m left of the base's origin, turned 0.2 rad; it
+    // stands 1 s, then moves and turns at 0.3 rad/s, its path swinging about the base's.
+    let mount = Pose2::new(0.3, 0.1, 0.2);
+    let dir = tempfile::tempdir().unwrap();
+    let mut session = pipeline_support::SessionBuilder::new(0x3a7);
+    let start = [1.4, 1.3, 0.1];
+    let mut lidar = session.rplidar_moving(6, 720, start, [0.0; 3]);
+    lidar.extend(session.rplidar_moving(24, 720, start, [0.2, 0.05, 0.3]));
+    let session_dir = session.record(dir.path(), "mounted");
+    let base: Vec<Pose2> = lidar
+        .iter()
+        .map(|&[x, y, heading]| Pose2::new(x, y, heading).compose(&mount.inverse()))
+        .collect();
+    let config = MapperConfig {
+        map_update_distance: 0.1,
+        map_update_angle: 0.1,
+        ..MapperConfig::default()
+    };
+    let limits = RangeLimits {
+        min_range: 0.1,
+        max_range: None,
+        no_return: None,
+    };
+    // The trajectory starts at the identity: compare each pose with the base's motion since its
+    // first pose.
+    let worst = |mount: &Pose2| {
+        let (run, _) = map_session(&session_dir, &config, &limits, mount, false, |_| {})
+            .expect("the session is matched");
+        assert_eq!(run.trajectory.poses.len(), base.len());
+        run.trajectory
+            .poses
+            .iter()
+            .zip(&base)
+            .map(|(found, truth)| {
+                let want = base[0].between(truth);
+                let p = found.pose;
+                (
+                    (p.x - want.x).hypot(p.y - want.y),
+                    wrap_angle(p.theta - want.theta).abs().to_degrees(),
+                )
+            })
+            .fold((0.0f64, 0.0f64), |a, e| (a.0.max(e.0), a.1.max(e.1)))
+    };
+    let mounted = worst(&mount);
+    let unmounted = worst(&Pose2::default());
+    eprintln!("worst (m, deg): with the mount {mounted:?}, without {unmounted:?}");
+    assert!(mounted.0 < 0.002 && mounted.1 < 0.05, "{mounted:?}");
+    // Without its mount the lidar's own path is reported: centimetres off the base's.
+    assert!(unmounted.0 > 0.05, "{unmounted:?}");
+}
+
+#[test]
 fn slam_of_a_damaged_session_fails_unless_lenient_and_counts_undecodable_frames() {
     let dir = tempfile::tempdir().unwrap();
     let mut session = pipeline_support::SessionBuilder::new(0x5d);

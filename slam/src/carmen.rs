@@ -181,9 +181,7 @@ impl OdometryTrack {
         if t1 <= t0 {
             return b;
         }
-        let u = (t - t0) / (t1 - t0);
-        let d = a.between(&b);
-        a.compose(&Pose2::new(u * d.x, u * d.y, u * d.theta))
+        a.interpolate(&b, (t - t0) / (t1 - t0))
     }
 }
 

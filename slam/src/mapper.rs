@@ -6,11 +6,60 @@
 //! times, match it coarse to fine with the prediction as a Gaussian prior, and update the map
 //! by Hector's distance/angle rule. The grid pyramid and the per-scan poses and covariances are
 //! what a pose-graph layer (submaps, loop closure) will build on.
+//!
+//! Each pose comes with its covariance ([`ScanResult::covariance`]): the uncertainty of the
+//! reported pose itself, relative to the map, from what the scan says (its fit, scaled by its
+//! measured residuals, plus a floor for the errors its endpoints share) combined with what the
+//! prediction said (the previous pose's covariance carried forward plus the motion model's), as
+//! the match weighed them. It does not include the map's drift from the world: without loop
+//! closure that grows with the distance travelled and is nobody's measurement.
 
 use crate::grid::{GridPyramid, UpdateModel};
-use crate::matcher::{Match, MatchConfig, Matrix3, Prior, SearchWindow, match_scan, search};
-use crate::pose::{Pose2, wrap_angle};
-use crate::surface::{RefineConfig, Surfaces, Sweep, refine};
+use crate::matcher::{Fit, Match, MatchConfig, Matrix3, Prior, SearchWindow, match_scan, search};
+use crate::pose::{Pose2, Velocity2, wrap_angle};
+use crate::surface::{RefineConfig, Refinement, Surfaces, Sweep, refine};
+
+/// What a scan's fit does not see in a pose's uncertainty. The fit counts every endpoint as an
+/// independent measurement, so its covariance shrinks as one over their number; but neighbouring
+/// endpoints are matched against the same cells and share those cells' errors, and some errors
+/// are shared by all of them (the map's cell means, the grid's quantisation, the de-skew's
+/// velocity). So the fit's covariance is inflated by a factor and a floor is added to it.
+/// Calibrated in the simulated room with the RPLidar's noise (`hw-sim/tests/slam_room.rs`, a map
+/// built from the true poses): the normalised estimation error squared averages 2.6 over the 3
+/// degrees of freedom (per run 1.5–4.3; `docs/slam.md`).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CovarianceConfig {
+    /// The scan fit's covariance is multiplied by this (≥ 1): its endpoints are not independent
+    /// measurements, neighbours are matched against the same map cells and share those cells'
+    /// errors (a map made from one revolution has cells as noisy as the scan).
+    pub fit_factor: f64,
+    /// Standard deviation added along x and along y (m).
+    pub translation_floor: f64,
+    /// Standard deviation added to the heading (rad).
+    pub rotation_floor: f64,
+}
+
+impl Default for CovarianceConfig {
+    fn default() -> Self {
+        Self {
+            fit_factor: 4.0,
+            translation_floor: 0.004,
+            rotation_floor: 0.002,
+        }
+    }
+}
+
+impl CovarianceConfig {
+    /// The floor as a covariance over (x, y, ψ).
+    fn matrix(&self) -> Matrix3 {
+        let (t, r) = (
+            self.translation_floor * self.translation_floor,
+            self.rotation_floor * self.rotation_floor,
+        );
+        [[t, 0.0, 0.0], [0.0, t, 0.0], [0.0, 0.0, r]]
+    }
+}
 
 /// How the pose is predicted before matching, and how much the prediction is trusted.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -82,6 +131,8 @@ pub struct MapperConfig {
     /// A match whose mean endpoint occupancy is below this is not trusted: the scan takes the
     /// predicted pose and is not integrated.
     pub min_score: f64,
+    /// What the reported covariance adds for the errors a scan's endpoints share.
+    pub covariance: CovarianceConfig,
 }
 
 impl Default for MapperConfig {
@@ -96,6 +147,7 @@ impl Default for MapperConfig {
             map_update_distance: 0.4,
             map_update_angle: 0.9,
             min_score: 0.0,
+            covariance: CovarianceConfig::default(),
         }
     }
 }
@@ -117,6 +169,37 @@ pub struct Scan {
     pub odometry: Option<Pose2>,
     /// The sensor's pose on the robot.
     pub sensor_offset: Pose2,
+    /// A measured heading change since the previous scan (a gyro's), which then replaces the
+    /// motion model's rotation in the prior.
+    pub rotation: Option<RotationPrior>,
+}
+
+impl Scan {
+    /// The time the scan's pose will be for ([`ScanResult::time`]): the middle of its beams'
+    /// times when it has one per endpoint, else its stamp.
+    pub fn reference_time(&self) -> f64 {
+        if self.is_timed() {
+            self.time + middle_of(&self.hit_times)
+        } else {
+            self.time
+        }
+    }
+
+    fn is_timed(&self) -> bool {
+        !self.hit_times.is_empty() && self.hit_times.len() == self.hits.len()
+    }
+}
+
+/// A heading change measured between two scans by another sensor (a gyro's yaw increment), for
+/// the mapper's motion prior: the prediction turns by it, with its variance, instead of by the
+/// odometry's or the constant-velocity model's rotation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RotationPrior {
+    /// The heading change (rad, counter-clockwise) from the previous scan's reference time
+    /// ([`ScanResult::time`]) to this scan's ([`Scan::reference_time`]).
+    pub increment: f64,
+    /// Its variance (rad²).
+    pub variance: f64,
 }
 
 /// What the mapper did with one scan.
@@ -129,9 +212,17 @@ pub struct ScanResult {
     pub pose: Pose2,
     /// The pose the motion model predicted.
     pub predicted: Pose2,
-    /// Covariance of the matched sensor pose from the scan alone (`None` for the first scan
-    /// and for scans whose match was not trusted).
-    pub covariance: Option<Matrix3>,
+    /// The robot's velocity at `time`, in the map frame: for a revolution the one its
+    /// refinement found with the pose, else the mean since the previous scan (0 for the first).
+    pub velocity: Velocity2,
+    /// Covariance of `pose` over (x, y, θ) in the map frame (m², m·rad, rad²): what the scan
+    /// says and what the prediction said, combined as the match weighed them (see the module
+    /// doc). Relative to the map, drift not included; 0 for the first scan, which defines the
+    /// map frame; for a match not trusted, the prediction's.
+    pub covariance: Matrix3,
+    /// Covariance of the robot pose from the scan alone (its fit and the floor, no prior), for
+    /// fusing with a source the prior did not already use; `None` when not matched.
+    pub scan_covariance: Option<Matrix3>,
     /// Mean endpoint occupancy of the match on the finest grid (0 when not matched).
     pub score: f64,
     /// Whether the scan was integrated into the map.
@@ -166,6 +257,8 @@ struct Last {
     /// Motion over the previous interval, in the frame of its start, and that interval (s).
     motion: Pose2,
     interval: f64,
+    velocity: Velocity2,
+    covariance: Matrix3,
 }
 
 impl Mapper {
@@ -206,14 +299,10 @@ impl Mapper {
     /// the opposite sign one revolution later (the de-skew uses the motion from the last pose,
     /// error included), and the pose at the stamp is an extrapolation half a revolution long.
     pub fn add_scan(&mut self, scan: &Scan) -> ScanResult {
-        let timed = !scan.hit_times.is_empty() && scan.hit_times.len() == scan.hits.len();
+        let timed = scan.is_timed();
         // The reference time within the scan, relative to its stamp.
-        let middle = if timed {
-            middle_of(&scan.hit_times)
-        } else {
-            0.0
-        };
-        let reference = scan.time + middle;
+        let reference = scan.reference_time();
+        let middle = reference - scan.time;
         let relative: Vec<f64> = if timed {
             scan.hit_times.iter().map(|t| t - middle).collect()
         } else {
@@ -231,12 +320,16 @@ impl Mapper {
                 odometry: scan.odometry,
                 motion: Pose2::default(),
                 interval: 0.0,
+                velocity: Velocity2::default(),
+                covariance: [[0.0; 3]; 3],
             });
             return ScanResult {
                 time: reference,
                 pose,
                 predicted: pose,
-                covariance: None,
+                velocity: Velocity2::default(),
+                covariance: [[0.0; 3]; 3],
+                scan_covariance: None,
                 score: 0.0,
                 integrated: true,
             };
@@ -255,6 +348,12 @@ impl Mapper {
             pose: start,
             information,
         };
+        // The prediction's covariance over the sensor pose: the last pose's carried along the
+        // predicted motion, and the motion model's (the prior's information, inverted).
+        let prior_covariance = add(
+            &carry(&last.covariance, &last.pose, &start),
+            &inverse_of_diagonal(&information),
+        );
         let mut matched: Match =
             match_scan(&self.map, &hits, start, Some(&prior), &self.config.matcher);
         if !from_odometry && matched.score < self.config.motion.velocity_search_below {
@@ -287,8 +386,10 @@ impl Mapper {
             pose = matched.pose.compose(&scan.sensor_offset.inverse());
         }
         let trusted = matched.score >= self.config.min_score;
-        if !trusted {
+        // The sensor pose reported, what the scan says about it, and its velocity if found.
+        let (sensor, fit, sensor_velocity) = if !trusted {
             pose = predicted;
+            (start, None, None)
         } else if self.config.refine.enabled {
             let timing = (timed && dt > 0.0).then(|| Timing {
                 offsets: &relative,
@@ -296,11 +397,36 @@ impl Mapper {
                 interval: dt,
             });
             let (refined, placed) = self.refine_match(scan, &hits, &matched.pose, timing, &prior);
-            pose = refined.compose(&scan.sensor_offset.inverse());
+            pose = refined.pose.compose(&scan.sensor_offset.inverse());
             if let Some(placed) = placed {
                 hits = placed;
             }
-        }
+            match refined.fit {
+                Some(fit) => (refined.pose, Some(fit), refined.velocity),
+                None => (matched.pose, Some(matched.fit), None),
+            }
+        } else {
+            (matched.pose, Some(matched.fit), None)
+        };
+        let floor = self.config.covariance.matrix();
+        let fit = fit.map(|fit| Fit {
+            scale: fit.scale * self.config.covariance.fit_factor.max(1.0),
+            ..fit
+        });
+        let sensor_covariance = fit.map_or(prior_covariance, |fit| {
+            weighed(&fit, &floor, &information, &prior_covariance)
+        });
+        let covariance = carry(&sensor_covariance, &sensor, &pose);
+        let scan_covariance = fit.map(|fit| carry(&add(&fit.covariance(), &floor), &sensor, &pose));
+        let velocity = match sensor_velocity {
+            Some(v) => robot_velocity(&v, &sensor, &pose),
+            None if dt > 0.0 => Velocity2 {
+                x: (pose.x - last.pose.x) / dt,
+                y: (pose.y - last.pose.y) / dt,
+                theta: wrap_angle(pose.theta - last.pose.theta) / dt,
+            },
+            None => last.velocity,
+        };
         let integrated = trusted && self.due(&pose) && self.integrate(scan, &pose, &hits);
         let found = last.pose.between(&pose);
         self.last = Some(Last {
@@ -309,21 +435,48 @@ impl Mapper {
             odometry: scan.odometry,
             motion: found,
             interval: dt,
+            velocity,
+            covariance,
         });
         ScanResult {
             time: reference,
             pose,
             predicted,
-            covariance: trusted.then_some(matched.covariance),
+            velocity,
+            covariance,
+            scan_covariance,
             score: if trusted { matched.score } else { 0.0 },
             integrated,
         }
     }
 
+    /// Integrates a scan taken at a known robot `pose` (mapping with known poses, or a map
+    /// prepared before localising in it), its endpoints as given (`hit_times` are not used: a
+    /// revolution is integrated as if instantaneous at `pose`). Does not move the mapper's own
+    /// pose. Returns whether it was integrated (see [`Mapper::refused_integrations`]).
+    pub fn integrate_at(&mut self, scan: &Scan, pose: &Pose2) -> bool {
+        self.integrate(scan, pose, &scan.hits)
+    }
+
+    /// Sets the robot's pose at `time` (a reference time, as [`ScanResult::time`]) to a known
+    /// one with its `covariance`, standing still: the next scan is predicted from it. Used to
+    /// localise in a prepared map, or to place a session's start.
+    pub fn start_at(&mut self, time: f64, pose: Pose2, covariance: Matrix3) {
+        self.last = Some(Last {
+            time,
+            pose,
+            odometry: None,
+            motion: Pose2::default(),
+            interval: 0.0,
+            velocity: Velocity2::default(),
+            covariance,
+        });
+    }
+
     /// The sub-cell refinement of a trusted grid match (`matched`, a sensor pose): of the
     /// de-skewed `hits` for an instantaneous scan, or for a revolution of its endpoints as
-    /// measured, each seen along a velocity found with the pose. Returns the refined sensor pose
-    /// and, for a revolution whose refinement was taken, its endpoints placed with that velocity.
+    /// measured, each seen along a velocity found with the pose. Returns the refinement and,
+    /// for a revolution whose refinement was taken, its endpoints placed with its velocity.
     fn refine_match(
         &self,
         scan: &Scan,
@@ -331,11 +484,11 @@ impl Mapper {
         matched: &Pose2,
         timing: Option<Timing>,
         prior: &Prior,
-    ) -> (Pose2, Option<Vec<(f64, f64)>>) {
+    ) -> (Refinement, Option<Vec<(f64, f64)>>) {
         let config = &self.config.refine;
         let Some(timing) = timing else {
             let refined = refine(&self.surfaces, hits, *matched, None, Some(prior), config);
-            return (refined.pose, None);
+            return (refined, None);
         };
         // The sensor's velocity from the last pose to this grid match, in the map frame.
         let (from, dt) = (timing.from, timing.interval);
@@ -368,7 +521,7 @@ impl Mapper {
             (true, Some(velocity)) => Some(sweep.place(&scan.hits, &refined.pose, &velocity)),
             _ => None,
         };
-        (refined.pose, placed)
+        (refined, placed)
     }
 
     /// The predicted motion since the last scan (in its frame) and the prior's information
@@ -408,7 +561,14 @@ impl Mapper {
             }
         };
         let sigma_t = sigma_t.max(m.min_translation_sigma);
-        let sigma_r = sigma_r.max(m.min_rotation_sigma);
+        let mut sigma_r = sigma_r.max(m.min_rotation_sigma);
+        let mut motion = motion;
+        if let Some(rotation) = scan.rotation {
+            // A measured turn replaces the model's, with its own variance (kept above a
+            // microradian so that the information stays finite).
+            motion.theta = wrap_angle(rotation.increment);
+            sigma_r = rotation.variance.max(0.0).sqrt().max(1e-6);
+        }
         let information = [
             [1.0 / (sigma_t * sigma_t), 0.0, 0.0],
             [0.0, 1.0 / (sigma_t * sigma_t), 0.0],
@@ -436,6 +596,75 @@ impl Mapper {
             self.refused += 1;
             false
         }
+    }
+}
+
+/// `a + b`.
+fn add(a: &Matrix3, b: &Matrix3) -> Matrix3 {
+    [0, 1, 2].map(|i| [0, 1, 2].map(|j| a[i][j] + b[i][j]))
+}
+
+/// The inverse of a diagonal information matrix (the motion prior's).
+fn inverse_of_diagonal(information: &Matrix3) -> Matrix3 {
+    let mut out = [[0.0; 3]; 3];
+    for (k, row) in out.iter_mut().enumerate() {
+        row[k] = 1.0 / information[k][k];
+    }
+    out
+}
+
+/// The covariance of a pose `from` carried rigidly to `to`: `to` is `from` composed with a
+/// fixed transform, so an error in `from`'s heading swings `to` about `from`
+/// (`F C Fᵀ`, F = ∂to/∂from in map coordinates). Carries a robot pose's covariance to its
+/// sensor's, and back.
+fn carry(covariance: &Matrix3, from: &Pose2, to: &Pose2) -> Matrix3 {
+    let (dx, dy) = (to.x - from.x, to.y - from.y);
+    let f = nalgebra::Matrix3::new(1.0, 0.0, -dy, 0.0, 1.0, dx, 0.0, 0.0, 1.0);
+    let c = nalgebra::Matrix3::from_fn(|i, j| covariance[i][j]);
+    let out = f * c * f.transpose();
+    [0, 1, 2].map(|i| [0, 1, 2].map(|j| out[(i, j)]))
+}
+
+/// The covariance of the pose a match reports, which minimised the scan's cost plus the prior's:
+/// to first order that pose is `(A + B)⁻¹ (A x_s + B x_p)`, A the scan's information as the match
+/// weighed it, x_s what the scan alone would say (covariance `scale · A⁻¹ + floor`), B the
+/// prior's information and x_p its mean (covariance `prior_covariance`, which may exceed B⁻¹:
+/// the prior weighs only the motion model, the previous pose's error comes on top). So
+/// `C = M (scale · A + A · floor · A + B · P · B) M`, M = (A + B)⁻¹; with an exact scale, no
+/// floor and P = B⁻¹ it is the Gauss–Newton (A + B)⁻¹.
+fn weighed(
+    fit: &Fit,
+    floor: &Matrix3,
+    information: &Matrix3,
+    prior_covariance: &Matrix3,
+) -> Matrix3 {
+    let m3 = |m: &Matrix3| nalgebra::Matrix3::from_fn(|i, j| m[i][j]);
+    let (a, f, b, p) = (
+        m3(&fit.information),
+        m3(floor),
+        m3(information),
+        m3(prior_covariance),
+    );
+    let Some(m) = (a + b).try_inverse() else {
+        return *prior_covariance;
+    };
+    let middle = a * fit.scale + a * f * a + b * p * b;
+    let c = m * middle * m;
+    // Symmetric by construction; rounding is not.
+    let c = (c + c.transpose()) * 0.5;
+    [0, 1, 2].map(|i| [0, 1, 2].map(|j| c[(i, j)]))
+}
+
+/// The robot's velocity from its sensor's (`sensor_velocity`: x, y, ψ rates in the map frame),
+/// the sensor at `sensor` and the robot at `robot`: the sensor's lever arm turns with the robot,
+/// so its speed has an extra `ω × arm` the robot's has not.
+fn robot_velocity(sensor_velocity: &[f64; 3], sensor: &Pose2, robot: &Pose2) -> Velocity2 {
+    let [vx, vy, w] = *sensor_velocity;
+    let (ax, ay) = (sensor.x - robot.x, sensor.y - robot.y);
+    Velocity2 {
+        x: vx + w * ay,
+        y: vy - w * ax,
+        theta: w,
     }
 }
 
@@ -484,6 +713,153 @@ fn deskew(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::testing::{Segment, cast, rectangle};
+
+    /// A 6 m × 4 m room with a pillar.
+    fn room() -> Vec<Segment> {
+        let mut walls = rectangle((-3.0167, -2.0333), (2.9833, 1.9667)).to_vec();
+        walls.extend(rectangle((1.0167, 0.5167), (1.4167, 0.9167)));
+        walls
+    }
+
+    /// Instantaneous scans of the room from `poses`, 0.1 s apart.
+    fn scans(poses: &[Pose2]) -> Vec<Scan> {
+        poses
+            .iter()
+            .enumerate()
+            .map(|(k, pose)| Scan {
+                time: 0.1 * k as f64,
+                hits: cast(&room(), pose, 720),
+                ..Scan::default()
+            })
+            .collect()
+    }
+
+    fn close(a: &Matrix3, b: &Matrix3, tolerance: f64) -> bool {
+        (0..3).all(|i| (0..3).all(|j| (a[i][j] - b[i][j]).abs() <= tolerance))
+    }
+
+    #[test]
+    fn the_covariance_of_a_weighed_match_is_the_inverse_of_the_summed_information() {
+        let fit = Fit {
+            information: [[4e4, 1e3, 0.0], [1e3, 2e4, 5e2], [0.0, 5e2, 9e4]],
+            scale: 1.0,
+            endpoints: 300,
+        };
+        let b = [[1e4, 0.0, 0.0], [0.0, 1e4, 0.0], [0.0, 0.0, 4e4]];
+        let p = inverse_of_diagonal(&b);
+        let zero = [[0.0; 3]; 3];
+        // The prior's covariance as its information says, an exact scale, no floor: (A + B)⁻¹.
+        let want = crate::matcher::invert(&add(&fit.information, &b)).expect("invertible");
+        assert!(close(&weighed(&fit, &zero, &b, &p), &want, 1e-12));
+        // A prior that knows nothing: the scan's own, scaled, plus the floor.
+        let nothing = [[1e-12, 0.0, 0.0], [0.0, 1e-12, 0.0], [0.0, 0.0, 1e-12]];
+        let floor = [[1e-5, 0.0, 0.0], [0.0, 1e-5, 0.0], [0.0, 0.0, 4e-6]];
+        let scaled = Fit { scale: 4.0, ..fit };
+        let alone = weighed(&scaled, &floor, &nothing, &inverse_of_diagonal(&nothing));
+        let want = add(&scaled.covariance(), &floor);
+        assert!(close(&alone, &want, 1e-9), "{alone:?} vs {want:?}");
+        // A prior less sure than its information (the previous pose's error on top) widens it.
+        let wider = weighed(&fit, &zero, &b, &p.map(|row| row.map(|v| 4.0 * v)));
+        assert!((0..3).all(|k| wider[k][k] > want_diagonal(&fit, &b)[k]));
+    }
+
+    fn want_diagonal(fit: &Fit, b: &Matrix3) -> [f64; 3] {
+        let c = crate::matcher::invert(&add(&fit.information, b)).expect("invertible");
+        [c[0][0], c[1][1], c[2][2]]
+    }
+
+    #[test]
+    fn a_heading_error_swings_a_pose_carried_along_a_lever() {
+        // 0.01 rad of heading error at the origin, carried 2 m along x: 2 cm across, along y.
+        let c = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1e-4]];
+        let carried = carry(&c, &Pose2::default(), &Pose2::new(2.0, 0.0, 0.3));
+        assert!((carried[1][1] - 4e-4).abs() < 1e-15 && carried[0][0] == 0.0);
+        assert!((carried[1][2] - 2e-4).abs() < 1e-15 && (carried[2][2] - 1e-4).abs() < 1e-15);
+    }
+
+    #[test]
+    fn a_lidar_ahead_of_the_turning_axis_moves_sideways_when_the_robot_turns_in_place() {
+        // Turning in place at 1 rad/s, the lidar 0.1 m ahead (facing +x) moves at 0.1 m/s along
+        // +y; the robot does not move.
+        let robot = Pose2::default();
+        let sensor = robot.compose(&Pose2::new(0.1, 0.0, 0.0));
+        let v = robot_velocity(&[0.0, 0.1, 1.0], &sensor, &robot);
+        assert!(
+            v.x.abs() < 1e-15 && v.y.abs() < 1e-15 && v.theta == 1.0,
+            "{v:?}"
+        );
+    }
+
+    #[test]
+    fn the_mapper_reports_the_velocity_and_a_covariance_that_the_prior_and_the_scan_share() {
+        // Driving along x at 0.2 m/s, a scan every 0.1 s.
+        let poses: Vec<Pose2> = (0..8)
+            .map(|k| Pose2::new(-0.5 + 0.02 * f64::from(k), 0.1, 0.05))
+            .collect();
+        let mut config = MapperConfig::default();
+        config.motion.use_odometry = false;
+        let mut mapper = Mapper::new(config);
+        let results: Vec<ScanResult> = scans(&poses).iter().map(|s| mapper.add_scan(s)).collect();
+        assert_eq!(
+            results[0].covariance, [[0.0; 3]; 3],
+            "the first pose is the frame"
+        );
+        let last = results.last().expect("results");
+        // The map frame is the first pose's: the motion is along its x.
+        assert!(
+            (last.velocity.x - 0.2).abs() < 0.02
+                && last.velocity.y.abs() < 0.02
+                && last.velocity.theta.abs() < 0.05,
+            "{:?}",
+            last.velocity
+        );
+        let (c, scan) = (last.covariance, last.scan_covariance.expect("matched"));
+        // The reported pose is surer than the scan alone says, and no surer than the floor.
+        let floor = config.covariance;
+        for k in 0..3 {
+            assert!(c[k][k] > 0.0 && c[k][k] < scan[k][k], "{c:?} vs {scan:?}");
+        }
+        assert!(scan[0][0] >= floor.translation_floor.powi(2));
+        assert!(scan[2][2] >= floor.rotation_floor.powi(2));
+    }
+
+    #[test]
+    fn a_rotation_prior_turns_the_prediction_and_narrows_the_heading() {
+        let poses = [
+            Pose2::new(0.0, 0.0, 0.0),
+            Pose2::new(0.0, 0.0, 0.0),
+            Pose2::new(0.0, 0.0, 0.12),
+        ];
+        let scans = scans(&poses);
+        let mut config = MapperConfig::default();
+        config.motion.use_odometry = false;
+        let run = |rotation: Option<RotationPrior>| {
+            let mut mapper = Mapper::new(config);
+            mapper.add_scan(&scans[0]);
+            mapper.add_scan(&scans[1]);
+            mapper.add_scan(&Scan {
+                rotation,
+                ..scans[2].clone()
+            })
+        };
+        let without = run(None);
+        let gyro = RotationPrior {
+            increment: 0.12,
+            variance: 1e-6,
+        };
+        let with = run(Some(gyro));
+        // Standing still, the constant-velocity model predicts no turn; the gyro says 0.12 rad.
+        assert!(without.predicted.theta.abs() < 0.002, "{without:?}");
+        assert!((with.predicted.theta - 0.12).abs() < 0.002, "{with:?}");
+        assert!((with.pose.theta - 0.12).abs() < 0.002, "{with:?}");
+        assert!(
+            with.covariance[2][2] < without.covariance[2][2],
+            "{:?} vs {:?}",
+            with.covariance,
+            without.covariance
+        );
+    }
 
     #[test]
     fn a_timed_scans_pose_is_for_the_middle_of_its_beams_and_an_instant_scans_for_its_stamp() {

@@ -6,7 +6,8 @@
 //! occupied; ρ is the robust loss, σ the spread of a residual and (ξₚ, Λ) the motion prior.
 //! Each level of the pyramid, coarsest first, refines the pose the previous one found: the
 //! coarse grids are smooth enough to pull a pose in from a few cells away, the fine one is
-//! precise. The inverse of the scan term's Hessian is the pose covariance.
+//! precise. The scan term's Hessian at the pose found, scaled by the spread its residuals were
+//! measured at, is what the scan says about the pose ([`Fit`]).
 
 // 3×3 algebra reads best with explicit indices.
 #![allow(clippy::needless_range_loop)]
@@ -70,7 +71,8 @@ pub struct MatchConfig {
     /// Robust loss on each endpoint's residual.
     pub loss: Loss,
     /// Standard deviation of one endpoint's residual 1 − M (occupancy units): weighs the scan
-    /// against the prior and scales the covariance.
+    /// against the prior. (The covariance does not depend on it: its scale is measured from the
+    /// residuals, see [`Fit`].)
     pub residual_sigma: f64,
     /// Stop a level's iterations when a step moves less than this (m, and rad).
     pub converged_step: f64,
@@ -129,14 +131,41 @@ impl Prior {
     }
 }
 
+/// What a scan says about the pose a match found: the scan term's Gauss–Newton Hessian there, as
+/// the match weighed its endpoints, and how far the residuals' measured spread is from the one
+/// assumed. The scan alone then puts the pose's covariance at `scale · information⁻¹`
+/// ([`Fit::covariance`]): the nonlinear least-squares estimate, independent of the assumed
+/// spread. It counts every endpoint as an independent measurement, so it shrinks as one over
+/// their number; errors shared by many endpoints (the map's own) are not in it, the mapper adds
+/// a floor for them ([`crate::mapper::CovarianceConfig`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Fit {
+    /// The scan term's Hessian over the sensor's (x, y, ψ), in the match's own units.
+    pub information: Matrix3,
+    /// Measured over assumed residual variance: Σ wᵢ rᵢ² / (degrees of freedom), rᵢ in the
+    /// assumed spreads.
+    pub scale: f64,
+    /// Endpoints that took part.
+    pub endpoints: usize,
+}
+
+impl Fit {
+    /// The pose covariance from the scan alone, `scale · information⁻¹`, regularised so that a
+    /// direction the scan does not constrain (a corridor's axis) gets a huge variance.
+    pub fn covariance(&self) -> Matrix3 {
+        covariance_of(&self.information).map(|row| row.map(|v| v * self.scale))
+    }
+}
+
 /// What a match found.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Match {
     /// The sensor pose that best explains the scan.
     pub pose: Pose2,
-    /// Covariance of `pose` from the scan alone (the inverse Hessian of the scan term at the
-    /// finest level), for fusing with other pose sources; very large along directions the scan
-    /// does not constrain (a corridor's axis).
+    /// What the scan alone says about `pose`, on the finest grid.
+    pub fit: Fit,
+    /// Covariance of `pose` from the scan alone ([`Fit::covariance`]), for fusing with other pose
+    /// sources; very large along directions the scan does not constrain (a corridor's axis).
     pub covariance: Matrix3,
     /// Mean occupancy at the endpoints on the finest grid, in [0, 1]: 1 is a perfect fit.
     pub score: f64,
@@ -191,11 +220,11 @@ pub fn match_scan(
         }
     }
     let finest = &levels[0];
-    let scan_only = normal_equations(finest, points, &pose, None, config);
-    let covariance = covariance_of(&scan_only.hessian);
+    let fit = grid_fit(finest, points, &pose, config);
     Match {
         pose,
-        covariance,
+        fit,
+        covariance: fit.covariance(),
         score: score(finest, points, &pose),
         iterations,
     }
@@ -278,6 +307,37 @@ pub fn score(grid: &Grid, points: &[(f64, f64)], pose: &Pose2) -> f64 {
     sum / points.len() as f64
 }
 
+/// The scan term's [`Fit`] at `pose` on `grid`.
+fn grid_fit(grid: &Grid, points: &[(f64, f64)], pose: &Pose2, config: &MatchConfig) -> Fit {
+    let scan_only = normal_equations(grid, points, pose, None, config);
+    let scale = 1.0 / (config.residual_sigma * config.residual_sigma);
+    let weighted: f64 = points
+        .iter()
+        .map(|&(x, y)| {
+            let (mx, my) = pose.transform_point(x, y);
+            let r = 1.0 - grid.interpolate(mx, my).value;
+            config.loss.weight(r) * r * r * scale
+        })
+        .sum();
+    Fit {
+        information: scan_only.hessian,
+        scale: residual_scale(weighted, points.len() as f64, 3.0),
+        endpoints: points.len(),
+    }
+}
+
+/// The measured over assumed residual variance of a fit: `weighted` (Σ wᵢ rᵢ², rᵢ in assumed
+/// spreads) over the degrees of freedom, `observations` minus the `unknowns`; 1 (the assumed
+/// spread) when there are too few observations to say.
+pub(crate) fn residual_scale(weighted: f64, observations: f64, unknowns: f64) -> f64 {
+    let dof = observations - unknowns;
+    if dof < 1.0 || !weighted.is_finite() {
+        1.0
+    } else {
+        weighted / dof
+    }
+}
+
 struct Normal {
     hessian: Matrix3,
     /// Right-hand side: the step solves hessian · step = gradient.
@@ -353,7 +413,7 @@ fn cost(
 
 /// The inverse of a scan Hessian, regularised so that a direction the scan does not constrain
 /// (a corridor's axis, an empty scan) gets a huge variance instead of no answer.
-fn covariance_of(hessian: &Matrix3) -> Matrix3 {
+pub(crate) fn covariance_of(hessian: &Matrix3) -> Matrix3 {
     let largest = (0..3).map(|a| hessian[a][a]).fold(0.0f64, f64::max);
     let lambda = (1e-9 * largest).max(1e-12);
     let mut regularised = *hessian;

@@ -96,6 +96,7 @@ pub fn map_log(
             hit_times: Vec::new(),
             odometry: Some(*odometry),
             sensor_offset: laser.laser_offset,
+            rotation: None,
         };
         results.push(mapper.add_scan(&scan));
         progress(done + 1);

@@ -9,20 +9,117 @@ use std::io::{self, BufRead, Write};
 use serde::{Deserialize, Serialize};
 
 use crate::carmen::LaserScan;
-use crate::pose::{Pose2, wrap_angle};
+use crate::mapper::ScanResult;
+use crate::matcher::Matrix3;
+use crate::pose::{Pose2, Velocity2, wrap_angle};
 use crate::text::{LineError, LineReader, NextLine, Timestamp, parse_finite};
 
-/// One pose of a trajectory, at the time of the scan it belongs to.
+/// One pose of a trajectory, at the time of the scan it belongs to; the mapper's also carry the
+/// velocity and covariance it found (a trajectory read from a file has neither).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TrajectoryPose {
     pub timestamp: Timestamp,
     pub pose: Pose2,
+    /// The velocity at `timestamp`, in the trajectory's frame.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub velocity: Option<Velocity2>,
+    /// The covariance of `pose` over (x, y, θ) (m², m·rad, rad²), as
+    /// [`ScanResult::covariance`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub covariance: Option<Matrix3>,
 }
 
-/// Poses in file order (the metric sorts by time itself).
+impl TrajectoryPose {
+    /// A pose at `timestamp`, without velocity or covariance.
+    pub fn new(timestamp: Timestamp, pose: Pose2) -> Self {
+        Self {
+            timestamp,
+            pose,
+            velocity: None,
+            covariance: None,
+        }
+    }
+
+    /// What the mapper found for one scan: its pose at the scan's reference time, with its
+    /// velocity and covariance.
+    pub fn of(result: &ScanResult) -> Self {
+        Self {
+            timestamp: Timestamp::from_seconds(result.time),
+            pose: result.pose,
+            velocity: Some(result.velocity),
+            covariance: Some(result.covariance),
+        }
+    }
+}
+
+/// Poses in file order (the metric sorts by time itself; [`Trajectory::at`] needs time order,
+/// which is how the mapper gives them).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct Trajectory {
     pub poses: Vec<TrajectoryPose>,
+}
+
+impl Trajectory {
+    /// The pose and its covariance at `t` (s, the timestamps' clock), between the two poses
+    /// around it: see [`Trajectory::pose_at`] for the pose; the covariance is theirs blended
+    /// linearly in time. `None` outside the poses' span, or when a pose around `t` has no
+    /// covariance (a trajectory read from a file: ask [`Trajectory::pose_at`]).
+    pub fn at(&self, t: f64) -> Option<(Pose2, Matrix3)> {
+        let (a, b, u) = self.around(t)?;
+        let (ca, cb) = (a.covariance?, b.covariance?);
+        let covariance = [0, 1, 2].map(|i| [0, 1, 2].map(|j| (1.0 - u) * ca[i][j] + u * cb[i][j]));
+        Some((pose_between(a, b, u), covariance))
+    }
+
+    /// The pose at `t` (s) between the two poses around it: when both have a velocity, the cubic
+    /// Hermite curve through them with those velocities (x, y and the unwrapped heading; a
+    /// turning trolley's path is an arc, not the chord), else [`Pose2::interpolate`]. A pose's
+    /// own time gives that pose; `None` outside the poses' span (no extrapolation).
+    pub fn pose_at(&self, t: f64) -> Option<Pose2> {
+        let (a, b, u) = self.around(t)?;
+        Some(pose_between(a, b, u))
+    }
+
+    /// The poses around `t` (time order assumed) and how far `t` is from the first to the
+    /// second, in [0, 1].
+    fn around(&self, t: f64) -> Option<(&TrajectoryPose, &TrajectoryPose, f64)> {
+        let poses = &self.poses;
+        if !t.is_finite() {
+            return None;
+        }
+        let i = poses.partition_point(|p| p.timestamp.seconds < t);
+        let b = poses.get(i)?;
+        if b.timestamp.seconds == t {
+            return Some((b, b, 0.0));
+        }
+        let a = poses.get(i.checked_sub(1)?)?;
+        let span = b.timestamp.seconds - a.timestamp.seconds;
+        if span.is_nan() || span <= 0.0 {
+            return Some((b, b, 0.0));
+        }
+        Some((a, b, ((t - a.timestamp.seconds) / span).clamp(0.0, 1.0)))
+    }
+}
+
+/// The pose a fraction `u` of the way from `a` to `b`: Hermite with both velocities, else the
+/// SE(2) interpolation.
+fn pose_between(a: &TrajectoryPose, b: &TrajectoryPose, u: f64) -> Pose2 {
+    let (Some(va), Some(vb)) = (a.velocity, b.velocity) else {
+        return a.pose.interpolate(&b.pose, u);
+    };
+    let span = b.timestamp.seconds - a.timestamp.seconds;
+    let (u2, u3) = (u * u, u * u * u);
+    let (h10, h01, h11) = (u3 - 2.0 * u2 + u, -2.0 * u3 + 3.0 * u2, u3 - u2);
+    let h00 = 1.0 - h01;
+    let curve = |p0: f64, v0: f64, p1: f64, v1: f64| {
+        h00 * p0 + h10 * span * v0 + h01 * p1 + h11 * span * v1
+    };
+    let turn = wrap_angle(b.pose.theta - a.pose.theta);
+    Pose2::new(
+        curve(a.pose.x, va.x, b.pose.x, vb.x),
+        curve(a.pose.y, va.y, b.pose.y, vb.y),
+        a.pose.theta + curve(0.0, va.theta, turn, vb.theta),
+    )
 }
 
 impl Trajectory {
@@ -36,10 +133,7 @@ impl Trajectory {
             poses: scans
                 .iter()
                 .zip(poses)
-                .map(|(scan, &pose)| TrajectoryPose {
-                    timestamp: scan.timestamp.clone(),
-                    pose,
-                })
+                .map(|(scan, &pose)| TrajectoryPose::new(scan.timestamp.clone(), pose))
                 .collect(),
         }
     }
@@ -69,14 +163,14 @@ pub fn read_trajectory(reader: impl BufRead) -> Result<Trajectory, LineError> {
                     fields.len()
                 ));
             }
-            Ok(TrajectoryPose {
-                timestamp: Timestamp::parse(fields[0], "the timestamp")?,
-                pose: Pose2::new(
+            Ok(TrajectoryPose::new(
+                Timestamp::parse(fields[0], "the timestamp")?,
+                Pose2::new(
                     parse_finite(fields[1], "x")?,
                     parse_finite(fields[2], "y")?,
                     parse_finite(fields[3], "theta")?,
                 ),
-            })
+            ))
         };
         poses.push(parse().map_err(|what| LineError { line, what })?);
     }
@@ -406,9 +500,7 @@ fn interpolated(poses: &[(f64, Pose2)], t: f64) -> Option<(f64, Pose2)> {
         return nearest(poses, t);
     }
     let ((t0, a), (t1, b)) = (poses[i - 1], poses[i]);
-    let u = (t - t0) / (t1 - t0);
-    let d = a.between(&b);
-    let p = a.compose(&Pose2::new(u * d.x, u * d.y, u * d.theta));
+    let p = a.interpolate(&b, (t - t0) / (t1 - t0));
     Some(((t - t0).min(t1 - t), p))
 }
 
@@ -484,10 +576,69 @@ mod tests {
     use super::*;
 
     fn pose_at(t: f64, x: f64, y: f64, theta: f64) -> TrajectoryPose {
-        TrajectoryPose {
-            timestamp: Timestamp::from_seconds(t),
-            pose: Pose2::new(x, y, theta),
-        }
+        TrajectoryPose::new(Timestamp::from_seconds(t), Pose2::new(x, y, theta))
+    }
+
+    /// Driving a circle of radius 2 m at 1 m/s (0.5 rad/s) counter-clockwise from (2, 0) facing
+    /// +y: the pose and velocity at `t`.
+    fn on_circle(t: f64) -> (Pose2, Velocity2) {
+        let a = 0.5 * t;
+        (
+            Pose2::new(
+                2.0 * a.cos(),
+                2.0 * a.sin(),
+                a + std::f64::consts::FRAC_PI_2,
+            ),
+            Velocity2 {
+                x: -a.sin(),
+                y: a.cos(),
+                theta: 0.5,
+            },
+        )
+    }
+
+    #[test]
+    fn a_trajectory_is_asked_between_its_poses_along_their_velocities() {
+        let diagonal = |v: f64| [[v, 0.0, 0.0], [0.0, v, 0.0], [0.0, 0.0, v]];
+        let poses = [0.0, 1.0, 2.0]
+            .map(|t| {
+                let (pose, velocity) = on_circle(t);
+                TrajectoryPose {
+                    timestamp: Timestamp::from_seconds(10.0 + t),
+                    pose,
+                    velocity: Some(velocity),
+                    covariance: Some(diagonal(1e-4 * (1.0 + t))),
+                }
+            })
+            .to_vec();
+        let trajectory = Trajectory { poses };
+        // A pose's own time gives it exactly.
+        let (pose, covariance) = trajectory.at(11.0).expect("inside");
+        assert_eq!(pose, on_circle(1.0).0);
+        assert_eq!(covariance, diagonal(2e-4));
+        // Between poses the curve follows the arc (the chord misses it by 6 cm halfway).
+        let (pose, covariance) = trajectory.at(11.5).expect("inside");
+        let truth = on_circle(1.5).0;
+        assert!(
+            (pose.x - truth.x).hypot(pose.y - truth.y) < 1e-3
+                && wrap_angle(pose.theta - truth.theta).abs() < 1e-3,
+            "{pose:?} vs {truth:?}"
+        );
+        assert!((covariance[0][0] - 2.5e-4).abs() < 1e-15);
+        let chord = trajectory.poses[1]
+            .pose
+            .interpolate(&trajectory.poses[2].pose, 0.5);
+        assert!((chord.x - truth.x).hypot(chord.y - truth.y) > 0.05);
+        // Nothing outside the span, nor at a time that is not a number.
+        assert!(trajectory.at(9.999).is_none() && trajectory.at(12.001).is_none());
+        assert!(trajectory.at(f64::NAN).is_none());
+        // Read from a file, a trajectory has poses but no covariance.
+        let mut text = Vec::new();
+        write_trajectory(&trajectory, &mut text).expect("written");
+        let read = read_trajectory(&text[..]).expect("read");
+        assert!(read.at(11.5).is_none());
+        let plain = read.pose_at(11.5).expect("inside");
+        assert!((plain.x - chord.x).abs() < 1e-6 && (plain.y - chord.y).abs() < 1e-6);
     }
 
     fn relation(t1: f64, t2: f64, motion: Pose2) -> Relation {
@@ -505,10 +656,10 @@ mod tests {
         let mut poses = Vec::new();
         let mut p = Pose2::default();
         for i in 0..16 {
-            poses.push(TrajectoryPose {
-                timestamp: Timestamp::from_seconds(100.0 + i as f64),
-                pose: p,
-            });
+            poses.push(TrajectoryPose::new(
+                Timestamp::from_seconds(100.0 + i as f64),
+                p,
+            ));
             let turn = if i % 4 == 3 { FRAC_PI_2 } else { 0.0 };
             p = p.compose(&Pose2::new(1.0, 0.0, turn));
         }
@@ -542,10 +693,7 @@ mod tests {
             poses: truth
                 .poses
                 .iter()
-                .map(|p| TrajectoryPose {
-                    timestamp: p.timestamp.clone(),
-                    pose: g.compose(&p.pose),
-                })
+                .map(|p| TrajectoryPose::new(p.timestamp.clone(), g.compose(&p.pose)))
                 .collect(),
         };
         let report = evaluate(&moved, &rels, &EvalOptions::default());

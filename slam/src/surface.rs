@@ -24,7 +24,7 @@ use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
 
 use crate::grid::cell_containing;
-use crate::matcher::{Loss, Matrix3, Prior, fill_lower, solve};
+use crate::matcher::{Fit, Loss, Matrix3, Prior, fill_lower, residual_scale, solve};
 use crate::pose::Pose2;
 
 /// How the grid match is refined against the cells' endpoint statistics.
@@ -351,12 +351,17 @@ pub struct Refinement {
     pub iterations: usize,
     /// Whether the refinement was taken.
     pub taken: bool,
+    /// What the endpoints alone say about the refined pose (with a sweep, its velocity
+    /// marginalised out); `None` when the refinement was not taken.
+    pub fit: Option<Fit>,
 }
 
 /// The robust cost, Gauss–Newton Hessian and right-hand side at one pose (and velocity): the
 /// unknowns are x, y, ψ, then with a sweep the three velocity components.
 struct Linearised {
     cost: f64,
+    /// Σ wᵢ dᵢ² over the endpoints: their robust-weighted squared Mahalanobis distances.
+    weighted: f64,
     hessian: [[f64; 6]; 6],
     gradient: [f64; 6],
     matched: usize,
@@ -375,6 +380,7 @@ fn linearise(
     let mut h = [[0.0; 6]; 6];
     let mut g = [0.0; 6];
     let mut cost = 0.0;
+    let mut weighted = 0.0;
     let mut matched = 0;
     for (i, &(px, py)) in points.iter().enumerate() {
         let (seen, t) = sweep.map_or((*pose, 0.0), |sweep| sweep.seen_from(i, pose, velocity));
@@ -387,6 +393,7 @@ fn linearise(
         let d = d2.sqrt();
         cost += loss.cost(d);
         let w = loss.weight(d);
+        weighted += w * d2;
         let l = &normal.information;
         let e = [normal.mean.0 - mx, normal.mean.1 - my];
         // ∂m/∂ξ, columns x, y, ψ, then the velocity's (the same, times the endpoint's offset).
@@ -421,6 +428,7 @@ fn linearise(
     fill_lower(&mut h);
     Linearised {
         cost,
+        weighted,
         hessian: h,
         gradient: g,
         matched,
@@ -474,6 +482,7 @@ pub fn refine(
         matched,
         iterations,
         taken: false,
+        fit: None,
     };
     if at.matched < enough {
         return refused(at.matched, 0);
@@ -511,12 +520,52 @@ pub fn refine(
     if moved.x.hypot(moved.y) > config.max_translation || moved.theta.abs() > config.max_rotation {
         return refused(at.matched, iterations);
     }
+    let scan_only = linearise(
+        surfaces,
+        points,
+        &pose,
+        sweep,
+        &velocity,
+        None,
+        &config.loss,
+    );
     Refinement {
         pose,
         velocity: sweep.map(|_| velocity),
         matched: at.matched,
         iterations,
         taken: true,
+        fit: Some(fit_of(&scan_only, sweep)),
+    }
+}
+
+/// The [`Fit`] of a refinement from its scan-only linearisation: with a sweep, the velocity
+/// (under its own prior, which is part of the model) is marginalised out of the Hessian, the
+/// Schur complement Hₚₚ − Hₚᵥ Hᵥᵥ⁻¹ Hᵥₚ. Each endpoint is two observations (its Mahalanobis
+/// distance is over x and y).
+fn fit_of(scan_only: &Linearised, sweep: Option<&Sweep>) -> Fit {
+    let h = &scan_only.hessian;
+    let pose_block: Matrix3 = [0, 1, 2].map(|a| [h[a][0], h[a][1], h[a][2]]);
+    let information = match sweep {
+        None => pose_block,
+        Some(_) => {
+            let hpp = nalgebra::Matrix3::from_fn(|a, b| h[a][b]);
+            let hpv = nalgebra::Matrix3::from_fn(|a, b| h[a][3 + b]);
+            let hvv = nalgebra::Matrix3::from_fn(|a, b| h[3 + a][3 + b]);
+            match hvv.try_inverse() {
+                Some(inverse) => {
+                    let m = hpp - hpv * inverse * hpv.transpose();
+                    [0, 1, 2].map(|a| [m[(a, 0)], m[(a, 1)], m[(a, 2)]])
+                }
+                None => pose_block,
+            }
+        }
+    };
+    let unknowns = if sweep.is_some() { 6.0 } else { 3.0 };
+    Fit {
+        information,
+        scale: residual_scale(scan_only.weighted, 2.0 * scan_only.matched as f64, unknowns),
+        endpoints: scan_only.matched,
     }
 }
 

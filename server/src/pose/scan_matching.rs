@@ -7,6 +7,11 @@
 //! trajectory gives it. Times are the edge's monotonic clock: one clock for the whole session
 //! is what matching needs. The trajectory's timestamps are those times in seconds, with six
 //! decimals.
+//!
+//! The trajectory is of `base`: each revolution is matched with the lidar's mount (its pose in
+//! `base`: x, y and yaw of the 2D part) as the sensor offset, so a lidar mounted off the
+//! turning axis gives the base's path, not its own swing. Each pose carries the mapper's
+//! velocity and covariance ([`TrajectoryPose::of`]).
 
 use std::path::Path;
 
@@ -16,16 +21,16 @@ use scan3d_slam::mapper::{Mapper, MapperConfig, Scan};
 use scan3d_slam::offline::{MapperRun, RangeLimits};
 use scan3d_slam::pose::Pose2;
 use scan3d_slam::relations::{Trajectory, TrajectoryPose};
-use scan3d_slam::text::Timestamp;
 
 use crate::recording::{RecorderError, SessionReport, check_losses, visit_session};
 
 /// The mapper's scan for one lidar revolution: endpoints within `limits` in the sensor frame
 /// (x forward at angle 0, counter-clockwise), each with its time relative to the revolution's
-/// end.
+/// end; the lidar sits at `mount` in `base` (x, y, yaw; the identity when the lidar is `base`).
 pub fn revolution_scan(
     revolution: &scan3d_protocol::LidarRevolution,
     limits: &RangeLimits,
+    mount: &Pose2,
 ) -> Scan {
     let end = revolution.t1_ns;
     let mut hits = Vec::with_capacity(revolution.samples.len());
@@ -49,13 +54,15 @@ pub fn revolution_scan(
         hits,
         hit_times,
         odometry: None,
-        sensor_offset: Pose2::default(),
+        sensor_offset: *mount,
+        rotation: None,
     }
 }
 
 /// Matches every RPLidar revolution of a recorded session, in recording order, streaming the
-/// recording (memory: the map, not the session); each pose of the trajectory is stamped with
-/// the time it is for, the middle of its revolution's beams (edge clock, s). A damaged recording fails with
+/// recording (memory: the map, not the session), the lidar at `mount` in `base`
+/// ([`Pose2::default`] when it is `base`); each pose of the trajectory is the base's, stamped
+/// with the time it is for, the middle of its revolution's beams (edge clock, s). A damaged recording fails with
 /// [`RecorderError::Damaged`] unless `lenient` (then the readable rest is mapped, with a
 /// warning); frames the server could not decode are counted in the returned report, not
 /// fatal. `progress` gets the revolutions done.
@@ -63,6 +70,7 @@ pub fn map_session(
     session_dir: &Path,
     config: &MapperConfig,
     limits: &RangeLimits,
+    mount: &Pose2,
     lenient: bool,
     mut progress: impl FnMut(usize),
 ) -> Result<(MapperRun, SessionReport), RecorderError> {
@@ -73,12 +81,9 @@ pub fn map_session(
         if let Body::Revolution(revolution) = &recorded.frame.body
             && revolution.sensor == SensorId::RPLIDAR
         {
-            let scan = revolution_scan(revolution, limits);
+            let scan = revolution_scan(revolution, limits, mount);
             let result = mapper.add_scan(&scan);
-            poses.push(TrajectoryPose {
-                timestamp: Timestamp::from_seconds(result.time),
-                pose: result.pose,
-            });
+            poses.push(TrajectoryPose::of(&result));
             results.push(result);
             progress(results.len());
         }
@@ -110,7 +115,7 @@ mod tests {
             max_range: Some(6.0),
             no_return: None,
         };
-        let scan = revolution_scan(&rev, &limits);
+        let scan = revolution_scan(&rev, &limits, &Pose2::default());
         assert_eq!(scan.hits.len(), 1, "no return and beyond 6 m dropped");
         assert!(scan.hits[0].0.abs() < 1e-6 && (scan.hits[0].1 + 2.0).abs() < 1e-6);
         assert!((scan.hit_times[0] + 0.15).abs() < 1e-12);
