@@ -51,9 +51,10 @@ pub struct SessionSummary {
     pub files_being_written: usize,
     /// Total size of the files in bytes.
     pub bytes: u64,
-    /// Damaged stretches skipped, and the seqs they probably held (see [`SessionReport`]).
+    /// Damaged stretches skipped, and the seqs they probably held (see
+    /// [`SessionReport`](super::SessionReport)).
     pub losses: Vec<Loss>,
-    /// See [`SessionReport::missing_seqs`].
+    /// See [`SessionReport::missing_seqs`](super::SessionReport::missing_seqs).
     pub missing_seqs: Vec<RangeInclusive<u64>>,
 }
 /// Whether a recording file is being written now: a live server holds an exclusive lock on

@@ -17,7 +17,7 @@
 //! | [`undecodable`] | the format of frames kept raw ([`UndecodableFrame`]) |
 //! | [`server_record`] | server-made records ([`ServerRecord`]): their kinds, schemas and versions |
 //! | `walker` | one MCAP file record by record, damaged chunks skipped and reported |
-//! | [`reader`] | a session's files in order, deduplicated, from a sequence number ([`SessionReader`]) |
+//! | [`reader`] | a session's files in order, deduplicated, from a sequence number or from where the last read ended ([`SessionReader`], [`ReadPosition`]) |
 //! | `index` | `recorded.idx`: what each file holds, so opening and reading skip files |
 //! | [`writer`] | [`SessionRecorder`]: appends, commits, file rotation, recovery at open |
 //! | [`listing`] | `scan3d sessions`: [`list_sessions`], [`summarize_session`] |
@@ -160,8 +160,9 @@ use scan3d_protocol::{Body, Frame, PROTOCOL_VERSION};
 
 pub use listing::{SessionSummary, is_being_written, list_sessions, summarize_session};
 pub use reader::{
-    Loss, RecordedFrame, SessionItem, SessionReader, SessionRecord, SessionReport, check_losses,
-    read_session, read_session_checked, read_session_report, visit_session, visit_session_items,
+    Loss, ReadPosition, RecordedFrame, SessionItem, SessionReader, SessionRecord, SessionReport,
+    check_losses, read_session, read_session_checked, read_session_report, visit_session,
+    visit_session_items,
 };
 pub use schema::{MESSAGE_ENCODING, PROFILE, SESSION_METADATA, body_name, topic};
 pub use seq_ranges::SeqRanges;

@@ -16,7 +16,7 @@ use super::index::read_index;
 use super::seq_ranges::SeqRanges;
 use super::server_record::{RecordedServerRecord, ServerRecord};
 use super::undecodable::UndecodableFrame;
-use super::walker::{Item, scan_file};
+use super::walker::{ChannelInfo, Item, scan_file};
 use super::{RecorderError, session_files};
 
 /// Deduplication key of a recorded frame: edge frames and server-originated ones number
@@ -86,9 +86,10 @@ impl std::fmt::Display for Loss {
 pub struct SessionReport {
     /// Number of MCAP files in the directory.
     pub files: usize,
-    /// Files not read because the session index shows they hold only edge seqs below the
-    /// one the read started at ([`SessionReader::from_seq`]); the other fields describe the
-    /// files read.
+    /// Files not read: before the position the read resumed at
+    /// ([`SessionReader::resume_at`]), or shown by the session index to hold only edge seqs
+    /// below the one it started at ([`SessionReader::from_seq`]). The other fields describe
+    /// the files read.
     pub files_skipped: usize,
     /// Files that end early (a crash cut them short; read up to their last complete chunk).
     pub incomplete_files: usize,
@@ -103,6 +104,10 @@ pub struct SessionReport {
     /// Damaged stretches skipped (empty when everything recorded was read). A file cut short
     /// by a crash is not a loss: what it lacks was never acknowledged.
     pub losses: Vec<Loss>,
+    /// Where the read ended, to resume there later ([`SessionReader::resume_at`]); `None`
+    /// when there was no file to read.
+    #[serde(skip)]
+    pub end: Option<ReadPosition>,
     /// Edge sequence numbers below the highest one read (and not below the one the read
     /// started at) that are in no file read, as ranges. With
     /// losses, these are the frames the damaged stretches probably held (an edge numbers its
@@ -142,6 +147,34 @@ impl SessionReport {
     }
 }
 
+/// Where a read of a session ended: the last file read and the offset in it where the next
+/// read resumes (past its last complete chunk), or past it when it was finished. Recordings
+/// only grow, so a read resumed here ([`SessionReader::resume_at`]) hands on exactly what was
+/// recorded since, reading nothing twice.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ReadPosition {
+    /// The file's number.
+    file: u64,
+    /// Where in it to resume (0: from its start).
+    offset: u64,
+    /// The file was finished (summary and end magic): resume with the next one.
+    finished: bool,
+    /// The channels the file declared before `offset`.
+    channels: HashMap<u16, ChannelInfo>,
+}
+
+impl ReadPosition {
+    /// The number of the file the read ended in.
+    pub fn file(&self) -> u64 {
+        self.file
+    }
+
+    /// The offset in it where the next read starts (its length when it was finished).
+    pub fn offset(&self) -> u64 {
+        self.offset
+    }
+}
+
 /// Results of [`visit_files`].
 pub(crate) struct DirScan {
     pub(crate) report: SessionReport,
@@ -152,10 +185,12 @@ pub(crate) struct DirScan {
 /// Visits every item of the given files, each frame `(session, direction, seq)` and each
 /// undecodable seq once, with the number of the file it is in. Edge items (edge frames and
 /// undecodable frames) with a seq below `from_seq` are read but not visited, and the report's
-/// missing seqs start at `from_seq`.
+/// missing seqs start at `from_seq`. `resume`: where in the first file to start (a position an
+/// earlier read ended at, in that file).
 pub(crate) fn visit_files(
     files: &[(u64, PathBuf)],
     from_seq: u64,
+    resume: Option<&ReadPosition>,
     visit: &mut dyn FnMut(u64, Item) -> Result<(), RecorderError>,
 ) -> Result<DirScan, RecorderError> {
     let mut seen: HashMap<(u64, bool), SeqRanges> = HashMap::new();
@@ -168,8 +203,11 @@ pub(crate) fn visit_files(
         },
         lengths: Vec::with_capacity(files.len()),
     };
-    for (index, path) in files {
-        let scan = scan_file(path, &mut |item| {
+    for (position, (index, path)) in files.iter().enumerate() {
+        let start = resume
+            .filter(|at| position == 0 && at.file == *index && !at.finished)
+            .map(|at| (at.offset, at.channels.clone()));
+        let scan = scan_file(path, start, &mut |item| {
             let first = match &item {
                 Item::Frame(recorded) => seen
                     .entry(dedup_key(&recorded.frame))
@@ -202,6 +240,12 @@ pub(crate) fn visit_files(
         report.skipped_messages += scan.skipped;
         report.losses.extend(scan.losses);
         out.lengths.push((*index, scan.len));
+        report.end = Some(ReadPosition {
+            file: *index,
+            offset: scan.end,
+            finished: scan.complete,
+            channels: scan.channels,
+        });
     }
     out.report.undecodable_frames = undecodable_seen.len();
     out.report.missing_seqs = match edge_seqs.last() {
@@ -236,10 +280,17 @@ pub enum SessionRecord {
 /// at all (nor their commands and server-made records), and in the files read, edge frames and
 /// undecodable frames below it are not handed on. So a reader catching up from the seq it is
 /// owed costs what the files from that seq on cost, not what the whole session does.
+///
+/// [`resume_at`](Self::resume_at) starts where an earlier read ended
+/// ([`SessionReport::end`]): nothing before that point is read again, so a reader that
+/// follows a recording as it grows (a live worker catching up) reads each byte once. Records
+/// recorded before the position are not handed on again; a duplicate recorded after it (which
+/// the recorder does not write) would be.
 #[derive(Debug, Clone)]
 pub struct SessionReader {
     dir: PathBuf,
     from_seq: u64,
+    resume: Option<ReadPosition>,
 }
 
 impl SessionReader {
@@ -248,7 +299,15 @@ impl SessionReader {
         SessionReader {
             dir: session_dir.to_path_buf(),
             from_seq: 0,
+            resume: None,
         }
+    }
+
+    /// Starts the read where an earlier read of this session ended (see the type's
+    /// documentation).
+    pub fn resume_at(mut self, position: ReadPosition) -> Self {
+        self.resume = Some(position);
+        self
     }
 
     /// Starts the read at edge sequence number `seq` (see the type's documentation).
@@ -262,11 +321,21 @@ impl SessionReader {
         &self.dir
     }
 
-    /// The files to read, and how many leading files the index lets the read skip.
+    /// The files to read, and how many leading files are skipped (before the resume
+    /// position, or shown by the index to lie before `from_seq`).
     fn files(&self) -> Result<(Vec<(u64, PathBuf)>, usize), RecorderError> {
         let mut files = session_files(&self.dir)?;
+        let mut skipped = 0;
+        if let Some(at) = &self.resume {
+            let before = files
+                .iter()
+                .take_while(|(number, _)| *number < at.file || (*number == at.file && at.finished))
+                .count();
+            files.drain(..before);
+            skipped += before;
+        }
         if self.from_seq == 0 {
-            return Ok((files, 0));
+            return Ok((files, skipped));
         }
         let Some(index) = read_index(&self.dir) else {
             return Ok((files, 0));
@@ -291,7 +360,7 @@ impl SessionReader {
             skip += 1;
         }
         files.drain(..skip);
-        Ok((files, skip))
+        Ok((files, skipped + skip))
     }
 
     /// Calls `visit` for every record (see the type's documentation).
@@ -300,7 +369,8 @@ impl SessionReader {
         mut visit: impl FnMut(SessionRecord) -> Result<(), RecorderError>,
     ) -> Result<SessionReport, RecorderError> {
         let (files, skipped) = self.files()?;
-        let scan = visit_files(&files, self.from_seq, &mut |_, item| match item {
+        let resume = self.resume.as_ref();
+        let scan = visit_files(&files, self.from_seq, resume, &mut |_, item| match item {
             Item::Frame(recorded) => match recorded.frame.body {
                 // A clock model an older server recorded as a wire frame.
                 Body::ClockModel(model) => visit(SessionRecord::Server(RecordedServerRecord {
@@ -321,6 +391,10 @@ impl SessionReader {
         let mut report = scan.report;
         report.files += skipped;
         report.files_skipped = skipped;
+        // Nothing read: the position stays where it was.
+        if report.end.is_none() {
+            report.end = self.resume.clone();
+        }
         Ok(report)
     }
 }
@@ -691,5 +765,59 @@ mod tests {
         std::io::Write::write_all(&mut file0, b"x").unwrap();
         let (_, report) = trace(&SessionReader::new(&dir).from_seq(12));
         assert_eq!(report.files_skipped, 0, "file 0 is no longer as indexed");
+    }
+
+    #[test]
+    fn a_read_resumed_where_the_last_one_ended_hands_on_only_what_was_recorded_since() {
+        let tmp = tempfile::tempdir().expect("tempdir");
+        let id = 0xfeed;
+        let dir = session_dir(tmp.path(), "pi", id);
+        let mut rec = SessionRecorder::open(tmp.path(), "pi", id).unwrap();
+        for seq in 0..5 {
+            heartbeat(&mut rec, seq);
+        }
+        rec.append_record(&model(100_000), T0).unwrap();
+        rec.commit().unwrap();
+        // A live reader follows the file being written.
+        let (seen, report) = trace(&SessionReader::new(&dir));
+        assert_eq!(seen, ["E0", "E1", "E2", "E3", "E4", "R100000"]);
+        let at = report.end.expect("a position");
+        assert_eq!(at.file(), 0);
+        assert_eq!(
+            at.offset(),
+            fs::metadata(dir.join("0000.mcap")).unwrap().len(),
+            "past the last complete chunk"
+        );
+        // Nothing new: nothing handed on, the position stays.
+        let (seen, report) = trace(&SessionReader::new(&dir).resume_at(at.clone()));
+        assert!(seen.is_empty(), "{seen:?}");
+        assert_eq!(report.end.as_ref(), Some(&at));
+        for seq in 5..8 {
+            heartbeat(&mut rec, seq);
+        }
+        rec.commit().unwrap();
+        let (seen, report) = trace(&SessionReader::new(&dir).resume_at(at));
+        assert_eq!(seen, ["E5", "E6", "E7"], "only what was recorded since");
+        // Frames recorded in the same file (its channels declared before the position) and,
+        // after a close, in the next file.
+        rec.close().unwrap();
+        let at = report.end.expect("a position");
+        let (seen, report) = trace(&SessionReader::new(&dir).resume_at(at));
+        assert!(seen.is_empty(), "the close adds no record: {seen:?}");
+        let at = report.end.expect("a position");
+        let mut rec = SessionRecorder::open(tmp.path(), "pi", id).unwrap();
+        for seq in 8..10 {
+            heartbeat(&mut rec, seq);
+        }
+        rec.append_record(&model(200_000), T0).unwrap();
+        rec.close().unwrap();
+        let (seen, report) = trace(&SessionReader::new(&dir).resume_at(at));
+        assert_eq!(seen, ["E8", "E9", "R200000"]);
+        assert_eq!((report.files, report.files_skipped), (2, 1));
+        let end = report.end.expect("a position");
+        assert_eq!(end.file(), 1);
+        // The whole read hands on the same records in the same order.
+        let (all, _) = trace(&SessionReader::new(&dir));
+        assert_eq!(all.len(), 5 + 1 + 3 + 2 + 1);
     }
 }

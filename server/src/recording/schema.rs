@@ -3,7 +3,8 @@
 
 use scan3d_protocol::{Body, StaticScan};
 
-/// The MCAP message encoding of every channel: S3DP header + postcard [`Frame`].
+/// The MCAP message encoding of wire frames: S3DP header + postcard
+/// [`Frame`](scan3d_protocol::Frame).
 pub const MESSAGE_ENCODING: &str = "scan3d-frame";
 
 /// The MCAP profile written in the file header.

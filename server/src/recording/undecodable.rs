@@ -1,7 +1,8 @@
 //! The undecodable-frame format: an edge frame the server could not decode, kept raw so that its
 //! sequence number counts as recorded (layout in the [module documentation](super)).
 
-/// Topic of frames recorded with [`SessionRecorder::append_undecodable`].
+/// Topic of frames recorded with
+/// [`SessionRecorder::append_undecodable`](super::SessionRecorder::append_undecodable).
 pub const UNDECODABLE_TOPIC: &str = "/scan3d/undecodable";
 
 /// Message encoding of [`UNDECODABLE_TOPIC`] (layout in the module documentation).
@@ -50,7 +51,9 @@ pub(crate) fn parse_undecodable(log_time_ns: u64, data: &[u8]) -> Option<Undecod
     })
 }
 
-/// A frame recorded with [`SessionRecorder::append_undecodable`], read back.
+/// A frame recorded with
+/// [`SessionRecorder::append_undecodable`](super::SessionRecorder::append_undecodable), read
+/// back.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct UndecodableFrame {
     /// Server receive time, ns since the UNIX epoch.

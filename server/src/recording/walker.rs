@@ -36,6 +36,11 @@ pub(crate) struct FileScan {
     pub(crate) len: u64,
     /// Damaged stretches skipped.
     pub(crate) losses: Vec<Loss>,
+    /// Where a later read of this file resumes: the start of its torn tail (a chunk still
+    /// being written), or its length. Meaningless when `complete`.
+    pub(crate) end: u64,
+    /// The channels the file declared up to `end` (a resumed read needs them).
+    pub(crate) channels: HashMap<u16, ChannelInfo>,
 }
 
 /// Length of an MCAP record's opcode and length prefix.
@@ -422,12 +427,31 @@ fn message_item(
 /// Reads every message of one file that lies in a CRC-checked chunk. A damaged chunk or record
 /// is skipped and reported ([`FileScan::losses`]): reading resumes after it (at its declared
 /// end when a record starts there, otherwise at the next chunk that validates). A record that
-/// runs past the end of the file with nothing valid after it is the torn tail a crash leaves:
-/// the file is incomplete, nothing is lost.
+/// runs past the end of the file with nothing valid after it is the torn tail a crash leaves
+/// (or a chunk being written): the file is incomplete, nothing is lost, and
+/// [`FileScan::end`] says where a later read resumes. `start`: the offset of a record to start
+/// at (where an earlier scan ended) and the channels declared before it; `None` reads the whole
+/// file.
 pub(crate) fn scan_file(
     path: &Path,
+    start: Option<(u64, HashMap<u16, ChannelInfo>)>,
     visit: &mut dyn FnMut(Item) -> Result<(), RecorderError>,
 ) -> Result<FileScan, RecorderError> {
+    let (mut scan, channels) = walk(path, start, visit)?;
+    scan.channels = channels;
+    if scan.complete {
+        scan.end = scan.len;
+    }
+    Ok(scan)
+}
+
+/// The walk itself: the scan and the channels known at its end.
+fn walk(
+    path: &Path,
+    start: Option<(u64, HashMap<u16, ChannelInfo>)>,
+    visit: &mut dyn FnMut(Item) -> Result<(), RecorderError>,
+) -> Result<(FileScan, HashMap<u16, ChannelInfo>), RecorderError> {
+    let (start_at, channels) = start.unwrap_or_default();
     use mcap::records::op;
     let file = File::open(path).map_err(RecorderError::io(path))?;
     let len = file.metadata().map_err(RecorderError::io(path))?.len();
@@ -435,23 +459,27 @@ pub(crate) fn scan_file(
         path,
         file,
         len,
-        channels: HashMap::new(),
+        channels,
     };
     let mut scan = FileScan {
         len,
         ..FileScan::default()
     };
     let magic_len = mcap::MAGIC.len() as u64;
-    if len < magic_len {
-        // Empty or cut inside the magic: a file a crash left right after creating it.
-        return Ok(scan);
+    if start_at == 0 && len < magic_len {
+        // Empty or cut inside the magic: a file a crash left right after creating it (or one
+        // just created).
+        return Ok((scan, walker.channels));
     }
     let mut pos = magic_len;
-    if walker.read_at(0, mcap::MAGIC.len())? != mcap::MAGIC {
-        pos = 0;
-    }
     // The start and reason of a damaged stretch being skipped.
-    let mut damage: Option<(u64, String)> = (pos == 0).then(|| (0, "bad magic".to_string()));
+    let mut damage: Option<(u64, String)> = None;
+    if start_at > 0 {
+        pos = start_at.min(len);
+    } else if walker.read_at(0, mcap::MAGIC.len())? != mcap::MAGIC {
+        pos = 0;
+        damage = Some((0, "bad magic".to_string()));
+    }
     loop {
         if let Some((start, reason)) = damage.take() {
             // Whether the stretch starts with what claims to be a chunk.
@@ -469,8 +497,9 @@ pub(crate) fn scan_file(
                     pos = resume;
                 }
                 None if walker.record_at(start)?.is_none() && start != 0 => {
-                    tracing::info!(path = %path.display(), offset = start, "recording ends early (cut short?); read up to its last complete chunk");
-                    return Ok(scan);
+                    tracing::debug!(path = %path.display(), offset = start, "recording ends early (cut short, or being written); read up to its last complete chunk");
+                    scan.end = start;
+                    return Ok((scan, walker.channels));
                 }
                 None => {
                     scan.losses.push(Loss {
@@ -481,13 +510,16 @@ pub(crate) fn scan_file(
                         messages: None,
                         reason,
                     });
-                    return Ok(scan);
+                    scan.end = len;
+                    return Ok((scan, walker.channels));
                 }
             }
         }
         if pos == len {
-            // The data section ends without data-end record and summary: a crash.
-            return Ok(scan);
+            // The data section ends without data-end record and summary: a crash, or a file
+            // being written.
+            scan.end = len;
+            return Ok((scan, walker.channels));
         }
         let Some((opcode, body_len)) = walker.record_at(pos)? else {
             damage = Some((pos, "record runs past the end of the file".into()));
@@ -538,7 +570,7 @@ pub(crate) fn scan_file(
             }
             op::DATA_END | op::FOOTER => {
                 scan.complete = walker.ends_with_magic()?;
-                return Ok(scan);
+                return Ok((scan, walker.channels));
             }
             _ => {}
         }

@@ -180,7 +180,7 @@ fn recover(dir: &Path, session_id: u64) -> Result<Recovered, RecorderError> {
     if !unread.is_empty() {
         let (edge, commands) = (&mut index.edge, &mut index.commands);
         let mut per_file: BTreeMap<u64, SeqRanges> = BTreeMap::new();
-        let scan = visit_files(&unread, 0, &mut |file, item| {
+        let scan = visit_files(&unread, 0, None, &mut |file, item| {
             let edge_seq = match item {
                 Item::Frame(recorded) if recorded.frame.session_id == session_id => {
                     if server_originated(&recorded.frame.body) {
@@ -239,7 +239,7 @@ fn recover(dir: &Path, session_id: u64) -> Result<Recovered, RecorderError> {
 impl SessionRecorder {
     /// Opens the recording of `edge`'s session `session_id` under `data_dir`: creates the
     /// directory, learns which frames are already durable (from the session index, reading
-    /// only the files it does not cover; see [`recover`]) and starts the next-numbered file.
+    /// only the files it does not cover) and starts the next-numbered file.
     /// Its cost does not grow with the number or size of the files a clean [`close`](Self::close)
     /// indexed. On failure nothing is left behind (no empty file); storage failures (a full
     /// disk) are [`RecorderError::is_storage`].
@@ -445,11 +445,12 @@ impl SessionRecorder {
 
     /// Records an edge → server frame that cannot be decoded (or must not be recorded as what
     /// it claims, e.g. a misdirected body) under the edge sequence number `seq`: `raw` are the
-    /// bytes as received, `reason` says why (cut to [`UNDECODABLE_REASON_LIMIT`] bytes),
-    /// `log_time_ns` is the server's receive time. It is written on [`UNDECODABLE_TOPIC`] and
-    /// `seq` counts as recorded: durable (acknowledgeable) after the next commit, and a later
-    /// frame with the same seq is a [`Appended::Duplicate`]. Returns `Duplicate` (and writes
-    /// nothing) if `seq` is already recorded.
+    /// bytes as received, `reason` says why (cut to
+    /// [`UNDECODABLE_REASON_LIMIT`](super::UNDECODABLE_REASON_LIMIT) bytes), `log_time_ns` is the
+    /// server's receive time. It is written on [`UNDECODABLE_TOPIC`] and `seq` counts as recorded:
+    /// durable (acknowledgeable) after the next commit, and a later frame with the same seq is a
+    /// [`Appended::Duplicate`]. Returns `Duplicate` (and writes nothing) if `seq` is already
+    /// recorded.
     pub fn append_undecodable(
         &mut self,
         seq: u64,
