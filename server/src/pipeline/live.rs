@@ -375,6 +375,8 @@ struct WorkerShared {
     overflowed: AtomicU64,
     /// Their seqs, for the worker to read back.
     missed: Mutex<Vec<u64>>,
+    /// When each frame now in the queue was accepted, oldest first (the lag is the front's age).
+    waiting: Mutex<std::collections::VecDeque<Instant>>,
     pipeline: Mutex<Slot>,
     progress: Mutex<Progress>,
     /// The session's latest edge → server clock model (time sync).
@@ -400,8 +402,6 @@ struct Progress {
     received: u64,
     owed: u64,
     behind_since: Option<Instant>,
-    /// How long the last frame from the queue waited in it.
-    queue_delay: Duration,
     max_lag_frames: u64,
     max_lag_ms: u64,
     catch_ups: u64,
@@ -426,10 +426,14 @@ impl WorkerShared {
         let behind = progress
             .behind_since
             .map_or(Duration::ZERO, |since| since.elapsed());
+        drop(progress);
+        let oldest_waiting = lock(&self.waiting)
+            .front()
+            .map_or(Duration::ZERO, Instant::elapsed);
         let ms = if frames == 0 {
             0
         } else {
-            behind.max(progress.queue_delay).as_millis() as u64
+            behind.max(oldest_waiting).as_millis() as u64
         };
         (frames, ms)
     }
@@ -523,11 +527,15 @@ impl LivePipelines {
         let Some(queue) = queue else { return };
         shared.accepted.fetch_add(1, Ordering::AcqRel);
         let seq = frame.seq;
-        let queued = Queued {
-            frame,
-            accepted_at: Instant::now(),
-        };
-        match queue.try_send(queued) {
+        let accepted_at = Instant::now();
+        let queued = Queued { frame, accepted_at };
+        // Listed before the send, so the worker never takes a frame that is not listed.
+        lock(&shared.waiting).push_back(accepted_at);
+        let sent = queue.try_send(queued);
+        if sent.is_err() {
+            lock(&shared.waiting).pop_back();
+        }
+        match sent {
             Ok(()) => {}
             // The worker is gone (its pipeline could not be built, logged): recording only.
             Err(TrySendError::Disconnected(_)) => {
@@ -549,6 +557,7 @@ impl LivePipelines {
             accepted: AtomicU64::new(0),
             overflowed: AtomicU64::new(0),
             missed: Mutex::new(Vec::new()),
+            waiting: Mutex::new(std::collections::VecDeque::new()),
             pipeline: Mutex::new(Slot::Starting),
             progress: Mutex::new(Progress::default()),
             clock: Mutex::new(None),
@@ -926,9 +935,8 @@ impl WorkerRun {
     /// A frame from the queue.
     fn take(&mut self, queued: Queued) {
         {
-            let mut progress = lock(&self.shared.progress);
-            progress.received += 1;
-            progress.queue_delay = queued.accepted_at.elapsed();
+            lock(&self.shared.waiting).pop_front();
+            lock(&self.shared.progress).received += 1;
         }
         match self.sequencer.offer(queued.frame.seq) {
             Offer::Process => self.process(&queued.frame, Some(queued.accepted_at)),
@@ -1083,6 +1091,35 @@ mod tests {
             one.to_string(),
             "no live session 00000000000000ab of edge \"pi-01\" (known: none)"
         );
+    }
+
+    #[test]
+    fn the_lag_is_the_age_of_the_oldest_frame_still_waiting() {
+        let now = Instant::now();
+        let ago = |s| now.checked_sub(Duration::from_secs(s)).expect("uptime");
+        // Three frames accepted, one taken at once (it waited 0 ms); two wait, since 3 s and 1 s.
+        let shared = WorkerShared {
+            edge: "e".into(),
+            session_id: 1,
+            accepted: AtomicU64::new(3),
+            overflowed: AtomicU64::new(0),
+            missed: Mutex::new(Vec::new()),
+            waiting: Mutex::new([ago(3), ago(1)].into()),
+            pipeline: Mutex::new(Slot::Starting),
+            progress: Mutex::new(Progress {
+                received: 1,
+                ..Progress::default()
+            }),
+            clock: Mutex::new(None),
+            latencies: Mutex::new(std::collections::VecDeque::new()),
+            server_latencies: Mutex::new(std::collections::VecDeque::new()),
+        };
+        let (frames, ms) = shared.lag();
+        assert_eq!(frames, 2);
+        assert!((3_000..60_000).contains(&ms), "{ms} ms");
+        lock(&shared.waiting).clear();
+        shared.progress.lock().unwrap().received = 3;
+        assert_eq!(shared.lag(), (0, 0));
     }
 
     #[test]
