@@ -25,8 +25,8 @@ use crate::surface::{RefineConfig, Refinement, Surfaces, Sweep, refine};
 /// are shared by all of them (the map's cell means, the grid's quantisation, the de-skew's
 /// velocity). So the fit's covariance is inflated by a factor and a floor is added to it.
 /// Calibrated in the simulated room with the RPLidar's noise (`hw-sim/tests/slam_room.rs`, a map
-/// built from the true poses): the normalised estimation error squared averages 2.6 over the 3
-/// degrees of freedom (per run 1.5–4.3; `docs/slam.md`).
+/// built from the true poses): the normalised estimation error squared averages 2.7 over the 3
+/// degrees of freedom (per run 1.49–4.32; `docs/slam.md`).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct CovarianceConfig {
