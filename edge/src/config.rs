@@ -11,6 +11,7 @@
 
 use std::path::{Path, PathBuf};
 
+use scan3d_protocol::SensorId;
 use serde::Deserialize;
 
 use crate::drivers::imu::ImuConfig;
@@ -646,6 +647,37 @@ impl EdgeConfig {
     }
 }
 
+impl EdgeConfig {
+    /// The configured mounts as the edge sends them after its `Hello` (`Body::Mounts`): one
+    /// entry per `[rplidar.mount]`, `[sweep.mount]`, `[imu.mount]` given, in that order.
+    pub fn sensor_mounts(&self) -> scan3d_protocol::SensorMounts {
+        let mounts = [
+            (
+                SensorId::RPLIDAR,
+                self.rplidar.as_ref().and_then(|s| s.mount),
+            ),
+            (SensorId::SWEEP, self.sweep.as_ref().and_then(|s| s.mount)),
+            (SensorId::IMU, self.imu.as_ref().and_then(|s| s.mount)),
+        ];
+        scan3d_protocol::SensorMounts {
+            sensors: mounts
+                .into_iter()
+                .filter_map(|(sensor, mount)| {
+                    mount.map(|m| scan3d_protocol::SensorMount {
+                        sensor,
+                        x_m: m.x,
+                        y_m: m.y,
+                        z_m: m.z,
+                        roll_deg: m.roll,
+                        pitch_deg: m.pitch,
+                        yaw_deg: m.yaw,
+                    })
+                })
+                .collect(),
+        }
+    }
+}
+
 fn validate_sweep(config: &SweepConfig) -> Result<(), InvalidSetting> {
     crate::drivers::sweep::Sweep::new(config.clone())
         .map_err(|e| InvalidSetting::new("sweep", e, "see deploy/edge.toml"))?;
@@ -1053,6 +1085,45 @@ mod tests {
             message.starts_with("e: line 7: `static_scan.azimuth_zero_deg`"),
             "{message}"
         );
+    }
+
+    #[test]
+    fn a_non_finite_mount_value_is_refused_at_load_with_its_line() {
+        let rplidar = "[rplidar]\npath = \"/dev/rplidar\"\n[rplidar.mount]\nz = 0.4\nyaw = nan\n";
+        let message = parse(rplidar).unwrap_err();
+        assert!(
+            message.starts_with("e: line 6: `rplidar.mount.yaw` = NaN"),
+            "{message}"
+        );
+        let imu = "[imu]\n[imu.mount]\nx = 0.1\nroll = -inf\n";
+        let message = parse(imu).unwrap_err();
+        assert!(
+            message.starts_with("e: line 5: `imu.mount.roll` = -inf"),
+            "{message}"
+        );
+    }
+
+    #[test]
+    fn the_configured_mounts_go_on_the_wire_in_sensor_order() {
+        let text = format!(
+            "[imu]\n[imu.mount]\nx = -0.1\nroll = 180.0\n\
+             [rplidar]\npath = \"/dev/rplidar\"\n[rplidar.mount]\nz = 0.4\nyaw = 90.0\n{SWEEP}"
+        );
+        let mounts = parse(&text).unwrap().sensor_mounts();
+        assert_eq!(mounts.validate(), Ok(()));
+        let sensors: Vec<_> = mounts
+            .sensors
+            .iter()
+            .map(|m| (m.sensor, m.x_m, m.z_m, m.roll_deg, m.yaw_deg))
+            .collect();
+        assert_eq!(
+            sensors,
+            [
+                (SensorId::RPLIDAR, 0.0, 0.4, 0.0, 90.0),
+                (SensorId::IMU, -0.1, 0.0, 180.0, 0.0)
+            ]
+        );
+        assert!(parse("").unwrap().sensor_mounts().sensors.is_empty());
     }
 
     #[test]

@@ -47,6 +47,7 @@ use crate::scan_session::{ScanAction, ScanPosition, ScanSession};
 use crate::serial::SerialOptions;
 use crate::static_scan::StaticScanConfig;
 use crate::timing::{Revolution, TimingConfig};
+use crate::trolley_pass::Passes;
 use crate::turntable::{Turntable, TurntableJob, TurntableReport};
 use crate::uplink::client::{
     ReceivedCommand, SubmitError, Uplink, UplinkConfig, UplinkHandle, UplinkStats,
@@ -97,6 +98,9 @@ struct Context {
     device_name: String,
     inventory: Mutex<BTreeMap<SensorId, SensorInfo>>,
     stop: AtomicBool,
+    /// The configured mounts, sent once per session right after a `Hello` is queued.
+    mounts: scan3d_protocol::SensorMounts,
+    mounts_sent: AtomicBool,
 }
 
 impl Context {
@@ -127,8 +131,28 @@ impl Context {
             .lock()
             .unwrap_or_else(|e| e.into_inner())
             .insert(info.sensor, info);
+        self.submit_hello();
+    }
+
+    /// Queues a `Hello` and, the first time one is queued in this session, the mounts after
+    /// it.
+    fn submit_hello(&self) {
         if let Err(e) = self.submit(self.hello()) {
             tracing::warn!(error = %e, "hello not queued");
+            return;
+        }
+        self.submit_mounts_once();
+    }
+
+    /// Queues the mounts unless they already were (a refused submit is retried after the
+    /// next `Hello`).
+    fn submit_mounts_once(&self) {
+        if self.mounts_sent.load(Ordering::Acquire) {
+            return;
+        }
+        match self.submit(self.mounts.clone()) {
+            Ok(()) => self.mounts_sent.store(true, Ordering::Release),
+            Err(e) => tracing::warn!(error = %e, "mounts not queued"),
         }
     }
 
@@ -225,6 +249,7 @@ where
             tokio::spawn(route_commands(
                 commands,
                 scan_route_rx,
+                Passes::new(config.rplidar.is_some()),
                 handle.clone(),
                 clock.clone(),
             ));
@@ -241,12 +266,12 @@ where
         device_name: config.device_name.clone(),
         inventory: Mutex::new(BTreeMap::new()),
         stop: AtomicBool::new(false),
+        mounts: config.sensor_mounts(),
+        mounts_sent: AtomicBool::new(false),
     });
     // A spool left full by an earlier run refuses this too; the lidars' Info events send the
-    // hello again once there is room.
-    if let Err(e) = context.submit(context.hello()) {
-        tracing::warn!(error = %e, "hello not queued");
-    }
+    // hello (and the mounts after it) again once there is room.
+    context.submit_hello();
 
     // The IMU and the motor HAT share the bus; embedded-hal-bus's MutexDevice needs the mutex
     // to outlive both threads, so it lives for the rest of the process (one per daemon run).
@@ -468,6 +493,8 @@ fn route_refusal(command: &Command, route: &ScanRoute) -> Option<String> {
         (Command::SetMotorSpeed { .. }, _) => {
             Some("SetMotorSpeed is not supported: set motor_hz in edge.toml".to_owned())
         }
+        // The router answers these itself (`Passes`) before asking for a route.
+        (Command::StartPass { .. } | Command::StopPass, _) => None,
         (_, ScanRoute::Worker(_)) => None,
         (Command::StopStaticScan, ScanRoute::Off(why)) => Some(format!(
             "no static scan is running (static scans are off: {why})"
@@ -483,6 +510,7 @@ fn route_refusal(command: &Command, route: &ScanRoute) -> Option<String> {
 async fn route_commands(
     mut commands: tokio::sync::mpsc::UnboundedReceiver<ReceivedCommand>,
     route: tokio::sync::oneshot::Receiver<ScanRoute>,
+    mut passes: Passes,
     uplink: UplinkHandle,
     clock: SharedClock,
 ) {
@@ -490,6 +518,16 @@ async fn route_commands(
         .await
         .unwrap_or_else(|_| ScanRoute::Off("the edge daemon is stopping".to_owned()));
     while let Some(received) = commands.recv().await {
+        // Trolley passes are the router's own: a reply and a pass marker on the edge's clock.
+        if let Some(bodies) = passes.on_command(received.seq, &received.command, clock.now_ns()) {
+            tracing::info!(command = ?received.command, running = ?passes.running(), "trolley pass command");
+            for body in bodies {
+                if let Err(e) = uplink.submit(body) {
+                    tracing::warn!(error = %e, "trolley pass frame not queued");
+                }
+            }
+            continue;
+        }
         let refusal = match route_refusal(&received.command, &route) {
             Some(reason) => Some(reason),
             None => match &route {
@@ -701,6 +739,10 @@ impl ScanHooks {
                 }
                 Command::SetMotorSpeed { .. } => actions.push(refuse(
                     "SetMotorSpeed is not supported: set motor_hz in edge.toml".to_owned(),
+                )),
+                // The router keeps trolley passes (`Passes`); none reach the Sweep worker.
+                Command::StartPass { .. } | Command::StopPass => actions.push(refuse(
+                    "not a static-scan command: trolley passes are the router's".to_owned(),
                 )),
             }
         }

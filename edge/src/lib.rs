@@ -10,6 +10,7 @@
 //! - [`static_scan`]: static-scan controller: a step per revolution while blocked, φ per sample.
 //! - [`scan_session`]: one static scan as protocol messages and stepper jobs (sans-I/O).
 //! - [`i2c_socket`]: I2C over a Unix socket (the simulator's emulated bus), an embedded-hal `I2c`.
+//! - [`trolley_pass`]: trolley pass commands as pass markers on the edge's clock (sans-I/O).
 //! - [`turntable`], [`imu_worker`]: the stepper and IMU threads on the shared I2C bus.
 //! - [`daemon`]: the `scan3d-edge` service: lidar workers, IMU, turntable, uplink.
 #![warn(missing_docs)]
@@ -30,5 +31,6 @@ pub mod scan_session;
 pub mod serial;
 pub mod static_scan;
 pub mod timing;
+pub mod trolley_pass;
 pub mod turntable;
 pub mod uplink;

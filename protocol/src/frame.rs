@@ -4,7 +4,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::types::{
     Ack, ClockModel, Command, CommandReply, DeviceStatus, Heartbeat, Hello, ImuSample,
-    LidarRevolution, StaticScan, StepperState, TimePing, TimePong,
+    LidarRevolution, PassMarker, SensorMounts, StaticScan, StepperState, TimePing, TimePong,
 };
 
 /// One message with its session and sequence number.
@@ -72,6 +72,8 @@ pub enum Direction {
 /// | 10 | [`Body::StaticScan`] | edge → server |
 /// | 11 | [`Body::ClockModel`] | none: legacy, only read from older recordings |
 /// | 12 | [`Body::CommandReply`] | edge → server |
+/// | 13 | [`Body::Mounts`] | edge → server |
+/// | 14 | [`Body::Pass`] | edge → server |
 ///
 /// `TimePing` and `TimePong` travel in QUIC datagrams, not on the stream (see [`Frame`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -106,6 +108,10 @@ pub enum Body {
     ClockModel(ClockModel),
     /// The edge's answer to a [`Body::Command`]: accepted, waiting or refused with the reason.
     CommandReply(CommandReply),
+    /// The sensors' poses in `base` from the edge's config; once per session after `Hello`.
+    Mounts(SensorMounts),
+    /// A trolley pass starting or stopping, stamped on the edge's clock.
+    Pass(PassMarker),
 }
 
 impl Body {
@@ -125,6 +131,8 @@ impl Body {
             Body::StaticScan(_) => "StaticScan",
             Body::ClockModel(_) => "ClockModel",
             Body::CommandReply(_) => "CommandReply",
+            Body::Mounts(_) => "Mounts",
+            Body::Pass(_) => "Pass",
         }
     }
 
@@ -144,7 +152,9 @@ impl Body {
             | Body::TimePong(_)
             | Body::Status(_)
             | Body::StaticScan(_)
-            | Body::CommandReply(_) => Direction::EdgeToServer,
+            | Body::CommandReply(_)
+            | Body::Mounts(_)
+            | Body::Pass(_) => Direction::EdgeToServer,
             // A clock model originates at the server (it is recorded, not sent): an edge that
             // sends one is misdirected like one sending a command.
             Body::TimePing(_) | Body::Command(_) | Body::ClockModel(_) => Direction::ServerToEdge,
@@ -179,4 +189,6 @@ body_from! {
     StaticScan => StaticScan,
     ClockModel => ClockModel,
     CommandReply => CommandReply,
+    SensorMounts => Mounts,
+    PassMarker => Pass,
 }

@@ -46,10 +46,12 @@
 //! | 6 | [`Ack`] | both | highest contiguous sequence number, or a range |
 //! | 7 | [`Heartbeat`] | both | sender's clock |
 //! | 8 | [`DeviceStatus`] | edge → server | sensor lost / back, acquisition paused / resumed, with a reason |
-//! | 9 | [`Command`] | server → edge | start static scan at a named position, stop it, set a motor speed |
+//! | 9 | [`Command`] | server → edge | start static scan at a named position, stop it, set a motor speed, start / stop a trolley pass |
 //! | 10 | [`StaticScan`] | edge → server | static 3D scan: start (position, step, mount), the yaws of each Sweep revolution's samples as runs of sample indices, warnings, end |
 //! | 11 | [`ClockModel`] | none (legacy: only in older recordings) | edge → server clock mapping; kept so recordings made before the server recorded it as its own record type still decode; never sent, never written |
 //! | 12 | [`CommandReply`] | edge → server | the answer to a [`Command`] (by its frame's `seq`): accepted (with the static scan's id), waiting (for the Sweep, say), or refused with the reason |
+//! | 13 | [`SensorMounts`] | edge → server | each configured sensor's pose in `base` ([`SensorMount`]: x, y, z in m; roll, pitch, yaw in degrees); once per session right after the first `Hello` |
+//! | 14 | [`PassMarker`] | edge → server | a trolley pass started (name, x, y, heading in the room frame) or stopped, at an edge time ([`PassEvent`]) |
 //!
 //! **One sample timeline.** Every lidar sample travels once, in its [`LidarRevolution`], with
 //! the one measurement time the edge estimated for it. During a static scan the edge adds, per
@@ -97,8 +99,9 @@ pub use codec::{
 pub use frame::{Body, Direction, Frame};
 pub use types::{
     Ack, ClockModel, Command, CommandOutcome, CommandReply, DeviceStatus, Heartbeat, Hello,
-    ImuSample, InvalidCommand, LidarRevolution, MAX_MOTOR_SPEED_HZ, MAX_POSITION_NAME_LEN,
-    MountInfo, RevolutionSample, SampleTimeError, SensorId, SensorInfo, StaticScan, StaticScanEnd,
+    ImuSample, InvalidCommand, InvalidMounts, LidarRevolution, MAX_MOTOR_SPEED_HZ,
+    MAX_POSITION_NAME_LEN, MAX_SENSOR_MOUNTS, MountInfo, PassEvent, PassMarker, RevolutionSample,
+    SampleTimeError, SensorId, SensorInfo, SensorMount, SensorMounts, StaticScan, StaticScanEnd,
     StaticScanOutcome, StaticScanProblem, StaticScanStart, StaticScanWarning, StaticScanYaws,
     StatusEvent, StepperState, TimePing, TimePong, YawRun, theta_deg,
 };

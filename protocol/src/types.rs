@@ -403,7 +403,7 @@ pub struct DeviceStatus {
 /// An order from the server to the edge.
 ///
 /// Variant order is part of the wire: `StartStaticScan` = 0, `StopStaticScan` = 1,
-/// `SetMotorSpeed` = 2.
+/// `SetMotorSpeed` = 2, `StartPass` = 3, `StopPass` = 4.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub enum Command {
     /// Start a static 3D scan (the stepper turns the Sweep) at a named, known position.
@@ -426,6 +426,21 @@ pub enum Command {
         /// Target rotation rate in revolutions per second (Hz).
         hz: f32,
     },
+    /// Open a trolley pass: the head stands at a known place of the room now (anchoring the
+    /// session's trajectory there); the edge answers with a [`PassMarker`] stamped on its clock.
+    StartPass {
+        /// The pass's name (1 to [`MAX_POSITION_NAME_LEN`] bytes, no control characters);
+        /// `None`: the edge names it `pass-N`, N counting from 1 in its session.
+        name: Option<String>,
+        /// Where `base` stands: x in metres in the room frame.
+        x_m: f64,
+        /// y in metres in the room frame.
+        y_m: f64,
+        /// Heading of `base` in degrees in the room frame (0 when the operator gave none).
+        heading_deg: f64,
+    },
+    /// Close the running trolley pass (the edge answers with a [`PassMarker`]).
+    StopPass,
 }
 
 /// The edge's answer to one [`Command`] (`Body::CommandReply`, edge → server, tag 12): which
@@ -519,11 +534,23 @@ pub enum InvalidCommand {
 
 impl Command {
     /// Checks that the command is one an edge can act on and that its frame can be encoded, so
-    /// nothing invalid ever reaches a connection: a position name of 1 to
+    /// nothing invalid ever reaches a connection: a position (or pass) name of 1 to
     /// [`MAX_POSITION_NAME_LEN`] bytes without control characters, finite coordinates and
     /// heading, a motor speed in `(0, MAX_MOTOR_SPEED_HZ]`, and a frame (with the largest
     /// session id and sequence number) within [`crate::MAX_FRAME_LEN`].
     pub fn validate(&self) -> Result<(), InvalidCommand> {
+        let check_name = |name: &String| {
+            if name.is_empty() || name.len() > MAX_POSITION_NAME_LEN {
+                return Err(InvalidCommand::PositionNameLength {
+                    len: name.len(),
+                    max: MAX_POSITION_NAME_LEN,
+                });
+            }
+            if name.chars().any(char::is_control) {
+                return Err(InvalidCommand::PositionNameControl { name: name.clone() });
+            }
+            Ok(())
+        };
         let finite = |field: &'static str, value: f64| {
             if value.is_finite() {
                 Ok(())
@@ -538,24 +565,27 @@ impl Command {
                 y_m,
                 heading_deg,
             } => {
-                if position.is_empty() || position.len() > MAX_POSITION_NAME_LEN {
-                    return Err(InvalidCommand::PositionNameLength {
-                        len: position.len(),
-                        max: MAX_POSITION_NAME_LEN,
-                    });
-                }
-                if position.chars().any(char::is_control) {
-                    return Err(InvalidCommand::PositionNameControl {
-                        name: position.clone(),
-                    });
-                }
+                check_name(position)?;
                 finite("x_m", *x_m)?;
                 finite("y_m", *y_m)?;
                 if let Some(heading) = heading_deg {
                     finite("heading_deg", *heading)?;
                 }
             }
-            Command::StopStaticScan => {}
+            Command::StartPass {
+                name,
+                x_m,
+                y_m,
+                heading_deg,
+            } => {
+                if let Some(name) = name {
+                    check_name(name)?;
+                }
+                finite("x_m", *x_m)?;
+                finite("y_m", *y_m)?;
+                finite("heading_deg", *heading_deg)?;
+            }
+            Command::StopStaticScan | Command::StopPass => {}
             Command::SetMotorSpeed { hz, .. } => {
                 if !(hz.is_finite() && *hz > 0.0 && *hz <= MAX_MOTOR_SPEED_HZ) {
                     return Err(InvalidCommand::MotorSpeed {
@@ -759,6 +789,157 @@ pub struct StaticScanEnd {
     pub late_steps: u64,
     /// Failed steps.
     pub failed_steps: u64,
+}
+
+/// Most entries a [`SensorMounts`] may hold: one per [`SensorId`] (a one-byte id).
+pub const MAX_SENSOR_MOUNTS: usize = 256;
+
+/// One sensor's pose in the head's `base` frame, as configured on the edge
+/// (`[rplidar.mount]`, `[sweep.mount]`, `[imu.mount]`): a translation, then a rotation by
+/// roll about x, pitch about y and yaw about z (`R = Rz(yaw) · Ry(pitch) · Rx(roll)`), taking
+/// the sensor's own axes to `base`'s.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SensorMount {
+    /// The sensor.
+    pub sensor: SensorId,
+    /// Position of the sensor's origin in `base`, x, metres.
+    pub x_m: f64,
+    /// y, metres.
+    pub y_m: f64,
+    /// z, metres.
+    pub z_m: f64,
+    /// Rotation about x, degrees.
+    pub roll_deg: f64,
+    /// Rotation about y, degrees.
+    pub pitch_deg: f64,
+    /// Rotation about z, degrees.
+    pub yaw_deg: f64,
+}
+
+/// The edge's sensor mounts (`Body::Mounts`, edge → server, tag 13), sent once per session
+/// right after its first [`Hello`] (and recorded like it), so the server knows where each
+/// sensor sits on the head. A sensor with no mount section is absent (the server takes it at
+/// the origin of `base`). Kept out of [`Hello`] so recordings made before it still decode.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SensorMounts {
+    /// One entry per configured mount, each sensor at most once.
+    pub sensors: Vec<SensorMount>,
+}
+
+/// Why a [`SensorMounts`] cannot be used.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum InvalidMounts {
+    /// More than [`MAX_SENSOR_MOUNTS`] entries.
+    #[error("{count} sensor mounts: at most {max}")]
+    TooMany {
+        /// The number of entries.
+        count: usize,
+        /// [`MAX_SENSOR_MOUNTS`].
+        max: usize,
+    },
+    /// A sensor has two entries.
+    #[error("the {sensor} mount is given twice")]
+    Duplicate {
+        /// The sensor.
+        sensor: SensorId,
+    },
+    /// A coordinate or angle is NaN or infinite.
+    #[error("the {sensor} mount's {field} = {value} is not a finite number")]
+    NotFinite {
+        /// The sensor.
+        sensor: SensorId,
+        /// Which field.
+        field: &'static str,
+        /// Its value.
+        value: f64,
+    },
+}
+
+impl SensorMounts {
+    /// The mount of `sensor`, if the edge sent one.
+    pub fn get(&self, sensor: SensorId) -> Option<&SensorMount> {
+        self.sensors.iter().find(|m| m.sensor == sensor)
+    }
+
+    /// Checks what a receiver relies on: at most [`MAX_SENSOR_MOUNTS`] entries, each sensor
+    /// once, every value finite.
+    pub fn validate(&self) -> Result<(), InvalidMounts> {
+        if self.sensors.len() > MAX_SENSOR_MOUNTS {
+            return Err(InvalidMounts::TooMany {
+                count: self.sensors.len(),
+                max: MAX_SENSOR_MOUNTS,
+            });
+        }
+        let mut seen = [false; MAX_SENSOR_MOUNTS];
+        for mount in &self.sensors {
+            let slot = &mut seen[usize::from(mount.sensor.0)];
+            if std::mem::replace(slot, true) {
+                return Err(InvalidMounts::Duplicate {
+                    sensor: mount.sensor,
+                });
+            }
+            for (field, value) in [
+                ("x_m", mount.x_m),
+                ("y_m", mount.y_m),
+                ("z_m", mount.z_m),
+                ("roll_deg", mount.roll_deg),
+                ("pitch_deg", mount.pitch_deg),
+                ("yaw_deg", mount.yaw_deg),
+            ] {
+                if !value.is_finite() {
+                    return Err(InvalidMounts::NotFinite {
+                        sensor: mount.sensor,
+                        field,
+                        value,
+                    });
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A trolley pass beginning or ending (`Body::Pass`, edge → server, tag 14): the edge's answer
+/// to [`Command::StartPass`] / [`Command::StopPass`], stamped on the edge's clock so the pass
+/// begins and ends at an edge sample time, live and in replay alike.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PassMarker {
+    /// Edge monotonic clock (ns) when the edge acted on the command.
+    pub t_ns: u64,
+    /// What happened.
+    pub event: PassEvent,
+}
+
+/// What a [`PassMarker`] marks.
+///
+/// Variant order is part of the wire: `Started` = 0, `Stopped` = 1.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum PassEvent {
+    /// A pass opened with `base` at this pose in the room frame.
+    Started {
+        /// The pass's name (the operator's, or `pass-N`).
+        name: String,
+        /// x of `base` in the room frame, metres.
+        x_m: f64,
+        /// y of `base` in the room frame, metres.
+        y_m: f64,
+        /// Heading of `base` in the room frame, degrees.
+        heading_deg: f64,
+    },
+    /// The pass of this name closed.
+    Stopped {
+        /// The pass's name.
+        name: String,
+    },
+}
+
+impl PassEvent {
+    /// The pass's name.
+    pub fn name(&self) -> &str {
+        match self {
+            PassEvent::Started { name, .. } | PassEvent::Stopped { name } => name,
+        }
+    }
 }
 
 #[cfg(test)]

@@ -5,10 +5,10 @@
 use proptest::prelude::*;
 use scan3d_protocol::{
     Ack, Body, ClockModel, Command, CommandOutcome, CommandReply, DecodeError, DeviceStatus, Frame,
-    FrameReader, HEADER_LEN, Heartbeat, Hello, ImuSample, LidarRevolution, MountInfo,
-    RevolutionSample, SensorId, SensorInfo, StaticScan, StaticScanEnd, StaticScanOutcome,
-    StaticScanProblem, StaticScanStart, StaticScanWarning, StaticScanYaws, StatusEvent,
-    StepperState, TimePing, TimePong, YawRun, decode, encode,
+    FrameReader, HEADER_LEN, Heartbeat, Hello, ImuSample, LidarRevolution, MountInfo, PassEvent,
+    PassMarker, RevolutionSample, SensorId, SensorInfo, SensorMount, SensorMounts, StaticScan,
+    StaticScanEnd, StaticScanOutcome, StaticScanProblem, StaticScanStart, StaticScanWarning,
+    StaticScanYaws, StatusEvent, StepperState, TimePing, TimePong, YawRun, decode, encode,
 };
 
 /// `S3DP` + version 1 LE: the only start a decodable frame can have.
@@ -152,6 +152,15 @@ fn command() -> impl Strategy<Value = Command> {
         ),
         Just(Command::StopStaticScan),
         (sensor(), f32s()).prop_map(|(sensor, hz)| Command::SetMotorSpeed { sensor, hz }),
+        (prop::option::of(text()), f64s(), f64s(), f64s()).prop_map(
+            |(name, x_m, y_m, heading_deg)| Command::StartPass {
+                name,
+                x_m,
+                y_m,
+                heading_deg,
+            }
+        ),
+        Just(Command::StopPass),
     ]
 }
 
@@ -276,7 +285,39 @@ fn body() -> impl Strategy<Value = Body> {
         static_scan().prop_map(Body::StaticScan),
         clock_model().prop_map(Body::ClockModel),
         command_reply().prop_map(Body::CommandReply),
+        mounts().prop_map(Body::Mounts),
+        pass().prop_map(Body::Pass),
     ]
+}
+
+fn mounts() -> impl Strategy<Value = SensorMounts> {
+    let mount = (sensor(), (f64s(), f64s(), f64s()), (f64s(), f64s(), f64s())).prop_map(
+        |(sensor, (x_m, y_m, z_m), (roll_deg, pitch_deg, yaw_deg))| SensorMount {
+            sensor,
+            x_m,
+            y_m,
+            z_m,
+            roll_deg,
+            pitch_deg,
+            yaw_deg,
+        },
+    );
+    prop::collection::vec(mount, 0..5).prop_map(|sensors| SensorMounts { sensors })
+}
+
+fn pass() -> impl Strategy<Value = PassMarker> {
+    let event = prop_oneof![
+        (text(), f64s(), f64s(), f64s()).prop_map(|(name, x_m, y_m, heading_deg)| {
+            PassEvent::Started {
+                name,
+                x_m,
+                y_m,
+                heading_deg,
+            }
+        }),
+        text().prop_map(|name| PassEvent::Stopped { name }),
+    ];
+    (any::<u64>(), event).prop_map(|(t_ns, event)| PassMarker { t_ns, event })
 }
 
 fn command_reply() -> impl Strategy<Value = CommandReply> {

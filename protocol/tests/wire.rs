@@ -4,9 +4,10 @@
 use scan3d_protocol::{
     Ack, Body, ClockModel, Command, CommandOutcome, CommandReply, DecodeError, DeviceStatus,
     Direction, EncodeError, Frame, FrameHeader, FrameReader, HEADER_LEN, Heartbeat, Hello,
-    ImuSample, LidarRevolution, MAX_FRAME_LEN, PROTOCOL_VERSION, RevolutionSample, SensorId,
-    SensorInfo, StaticScan, StaticScanProblem, StaticScanWarning, StaticScanYaws, StatusEvent,
-    StepperState, TimePing, TimePong, YawRun, decode, decode_header, encode,
+    ImuSample, InvalidMounts, LidarRevolution, MAX_FRAME_LEN, PROTOCOL_VERSION, PassEvent,
+    PassMarker, RevolutionSample, SensorId, SensorInfo, SensorMount, SensorMounts, StaticScan,
+    StaticScanProblem, StaticScanWarning, StaticScanYaws, StatusEvent, StepperState, TimePing,
+    TimePong, YawRun, decode, decode_header, encode,
 };
 
 /// `S3DP`, version 1 LE.
@@ -363,6 +364,193 @@ fn command_reply_exact_bytes() {
         ),
         &[0x01, 0x06, 0x0C, 0x03, 0x09, 0x01, 0x01, b'w'],
     );
+}
+
+#[test]
+fn mounts_exact_bytes_and_direction() {
+    let mounts = SensorMounts {
+        sensors: vec![SensorMount {
+            sensor: SensorId::IMU,
+            x_m: 1.0,
+            y_m: 0.0,
+            z_m: -2.0,
+            roll_deg: 0.0,
+            pitch_deg: 0.0,
+            yaw_deg: 1.0,
+        }],
+    };
+    assert_eq!(Body::from(mounts.clone()).name(), "Mounts");
+    assert_eq!(
+        Body::from(mounts.clone()).direction(),
+        Direction::EdgeToServer
+    );
+    let mut payload = vec![
+        0x01, 0x02, 0x0D, // session, seq, tag 13 = Mounts
+        0x01, // one mount
+        0x02, // sensor imu
+    ];
+    for v in [1.0f64, 0.0, -2.0, 0.0, 0.0, 1.0] {
+        payload.extend_from_slice(&v.to_le_bytes());
+    }
+    assert_wire(Frame::new(1, 2, mounts), &payload);
+    assert_wire(
+        Frame::new(1, 2, SensorMounts { sensors: vec![] }),
+        &[0x01, 0x02, 0x0D, 0x00],
+    );
+}
+
+#[test]
+fn pass_markers_exact_bytes_and_direction() {
+    let started = PassMarker {
+        t_ns: 5,
+        event: PassEvent::Started {
+            name: "p".into(),
+            x_m: 1.0,
+            y_m: -2.0,
+            heading_deg: 0.0,
+        },
+    };
+    assert_eq!(Body::from(started.clone()).name(), "Pass");
+    assert_eq!(
+        Body::from(started.clone()).direction(),
+        Direction::EdgeToServer
+    );
+    let mut payload = vec![
+        0x01, 0x03, 0x0E, // session, seq, tag 14 = Pass
+        0x05, // t_ns
+        0x00, 0x01, b'p', // Started, name "p"
+    ];
+    for v in [1.0f64, -2.0, 0.0] {
+        payload.extend_from_slice(&v.to_le_bytes());
+    }
+    assert_wire(Frame::new(1, 3, started), &payload);
+    assert_wire(
+        Frame::new(
+            1,
+            4,
+            PassMarker {
+                t_ns: 6,
+                event: PassEvent::Stopped { name: "p".into() },
+            },
+        ),
+        &[0x01, 0x04, 0x0E, 0x06, 0x01, 0x01, b'p'],
+    );
+}
+
+#[test]
+fn pass_commands_exact_bytes_and_validation() {
+    let start = Command::StartPass {
+        name: None,
+        x_m: 0.0,
+        y_m: 0.0,
+        heading_deg: 0.0,
+    };
+    assert_eq!(start.validate(), Ok(()));
+    let mut payload = vec![0x01, 0x00, 0x09, 0x03, 0x00]; // Command, StartPass, no name
+    payload.extend_from_slice(&[0; 24]);
+    assert_wire(Frame::new(1, 0, start), &payload);
+    assert_wire(
+        Frame::new(1, 0, Command::StopPass),
+        &[0x01, 0x00, 0x09, 0x04],
+    );
+    let named = |name: &str, heading_deg: f64| Command::StartPass {
+        name: Some(name.into()),
+        x_m: 1.0,
+        y_m: 2.0,
+        heading_deg,
+    };
+    assert_eq!(named("hall", 90.0).validate(), Ok(()));
+    assert!(named("", 0.0).validate().is_err());
+    assert!(named("a\nb", 0.0).validate().is_err());
+    assert!(named(&"x".repeat(5 << 20), 0.0).validate().is_err());
+    assert_eq!(
+        named("a", f64::NAN).validate().unwrap_err().to_string(),
+        "heading_deg = NaN is not a finite number"
+    );
+}
+
+#[test]
+fn hostile_counts_in_the_new_bodies_are_malformed_not_allocated() {
+    let cases: &[(&str, &[u8])] = &[
+        (
+            "mounts count u32::MAX with no entries",
+            &[0x01, 0x02, 0x0D, 0xFF, 0xFF, 0xFF, 0xFF, 0x0F],
+        ),
+        (
+            "mounts count 2 with one byte",
+            &[0x01, 0x02, 0x0D, 0x02, 0x00],
+        ),
+        (
+            "mounts count past u64",
+            &[
+                0x01, 0x02, 0x0D, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0x01,
+            ],
+        ),
+        (
+            "pass name of u32::MAX bytes",
+            &[
+                0x01, 0x03, 0x0E, 0x05, 0x01, 0xFF, 0xFF, 0xFF, 0xFF, 0x0F, b'p',
+            ],
+        ),
+        (
+            "unknown pass event 2",
+            &[0x01, 0x03, 0x0E, 0x05, 0x02, 0x00],
+        ),
+        ("unknown body tag 15", &[0x01, 0x03, 0x0F, 0x00]),
+        ("unknown command 5", &[0x01, 0x03, 0x09, 0x05]),
+    ];
+    for (what, payload) in cases {
+        let mut bytes = header(payload.len() as u8);
+        bytes.extend_from_slice(payload);
+        match decode(&bytes) {
+            Err(e @ DecodeError::Malformed(_)) => assert!(!e.is_fatal(), "{what}"),
+            other => panic!("{what}: expected Malformed, got {other:?}"),
+        }
+    }
+}
+
+#[test]
+fn mounts_validate_counts_duplicates_and_finiteness() {
+    let mount = |sensor, x_m| SensorMount {
+        sensor,
+        x_m,
+        y_m: 0.0,
+        z_m: 0.0,
+        roll_deg: 0.0,
+        pitch_deg: 0.0,
+        yaw_deg: 0.0,
+    };
+    let ok = SensorMounts {
+        sensors: vec![mount(SensorId::RPLIDAR, 0.1), mount(SensorId::IMU, 0.0)],
+    };
+    assert_eq!(ok.validate(), Ok(()));
+    assert_eq!(ok.get(SensorId::RPLIDAR).map(|m| m.x_m), Some(0.1));
+    assert_eq!(ok.get(SensorId::SWEEP), None);
+    let twice = SensorMounts {
+        sensors: vec![mount(SensorId::IMU, 0.0), mount(SensorId::IMU, 1.0)],
+    };
+    assert_eq!(
+        twice.validate(),
+        Err(InvalidMounts::Duplicate {
+            sensor: SensorId::IMU
+        })
+    );
+    let nan = SensorMounts {
+        sensors: vec![mount(SensorId::SWEEP, f64::INFINITY)],
+    };
+    assert_eq!(
+        nan.validate().unwrap_err().to_string(),
+        "the sweep mount's x_m = inf is not a finite number"
+    );
+    let many = SensorMounts {
+        sensors: (0..=256u32)
+            .map(|i| mount(SensorId(i as u8), 0.0))
+            .collect(),
+    };
+    assert!(matches!(
+        many.validate(),
+        Err(InvalidMounts::TooMany { count: 257, .. })
+    ));
 }
 
 #[test]

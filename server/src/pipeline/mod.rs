@@ -309,7 +309,12 @@ fn stream_of(body: &Body) -> Option<(StreamId, Option<u64>)> {
             };
             (StreamId::StaticScan, Some(t))
         }
-        Body::Hello(_) | Body::Status(_) | Body::CommandReply(_) | Body::Command(_) => {
+        Body::Hello(_)
+        | Body::Status(_)
+        | Body::CommandReply(_)
+        | Body::Command(_)
+        | Body::Mounts(_)
+        | Body::Pass(_) => {
             (StreamId::Edge, None)
         }
         Body::Heartbeat(_)

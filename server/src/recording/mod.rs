@@ -112,6 +112,8 @@
 //! | `/scan3d/ack` | [`Body::Ack`] from the edge (it takes an edge sequence number too) | log time |
 //! | `/scan3d/command` | [`Body::Command`] the server sent ([`SessionRecorder::append_command`]) | log time |
 //! | `/scan3d/command_reply` | [`Body::CommandReply`]: the edge's answer to a command (accepted, waiting, refused with the reason) | `t_ns` |
+//! | `/scan3d/mounts` | [`Body::Mounts`]: each configured sensor's pose in `base`, once per session after `Hello` | log time |
+//! | `/scan3d/pass` | [`Body::Pass`]: a trolley pass started (name, pose in the room frame) or stopped | `t_ns` |
 //! | `/scan3d/static_scan` | [`Body::StaticScan`]: start (position, step, mount), the yaws of a Sweep revolution's samples, warnings, end | `t_ns` (yaws: the revolution's `t0_ns`) |
 //! | `/scan3d/undecodable` | a frame the server could not decode ([`SessionRecorder::append_undecodable`]); encoding `scan3d-undecodable`, see below | log time |
 //!

@@ -38,6 +38,8 @@ pub fn topic(body: &Body) -> String {
         Body::StaticScan(_) => "/scan3d/static_scan".into(),
         Body::ClockModel(_) => "/scan3d/timesync".into(),
         Body::CommandReply(_) => "/scan3d/command_reply".into(),
+        Body::Mounts(_) => "/scan3d/mounts".into(),
+        Body::Pass(_) => "/scan3d/pass".into(),
     }
 }
 
@@ -58,7 +60,10 @@ pub(crate) fn edge_time_ns(body: &Body) -> Option<u64> {
         }),
         Body::ClockModel(model) => Some(model.valid_from_edge_ns),
         Body::CommandReply(reply) => Some(reply.t_ns),
-        Body::Hello(_) | Body::TimePing(_) | Body::Ack(_) | Body::Command(_) => None,
+        Body::Pass(marker) => Some(marker.t_ns),
+        Body::Hello(_) | Body::TimePing(_) | Body::Ack(_) | Body::Command(_) | Body::Mounts(_) => {
+            None
+        }
     }
 }
 
@@ -130,6 +135,18 @@ mod tests {
             (Heartbeat { sent_ns: 1 }.into(), "/scan3d/heartbeat"),
             (Ack::UpTo { seq: 1 }.into(), "/scan3d/ack"),
             (Command::StopStaticScan.into(), "/scan3d/command"),
+            (
+                scan3d_protocol::SensorMounts { sensors: vec![] }.into(),
+                "/scan3d/mounts",
+            ),
+            (
+                scan3d_protocol::PassMarker {
+                    t_ns: 1,
+                    event: scan3d_protocol::PassEvent::Stopped { name: "a".into() },
+                }
+                .into(),
+                "/scan3d/pass",
+            ),
         ];
         for (body, expected) in cases {
             assert_eq!(topic(&body), expected, "{body:?}");
