@@ -34,7 +34,7 @@ use scan3d_protocol::{
     Ack, Body, Command, DeviceStatus, Frame, Heartbeat, Hello, ImuSample, LidarRevolution, MountInfo, SensorId, SensorInfo, StaticScan, StaticScanEnd, StaticScanOutcome, StaticScanProblem, StaticScanStart, StaticScanWarning, StaticScanYaws, StatusEvent, StepperState, TimePing, TimePong, YawRun, encode, ClockModel, CommandOutcome, CommandReply,
 };
 use scan3d_server::ingest::control::ControlRequest;
-use scan3d_server::recording::SessionRecorder;
+use scan3d_server::recording::{ServerRecord, SessionRecorder};
 
 type Result<T> = std::result::Result<T, Box<dyn Error>>;
 
@@ -467,8 +467,8 @@ fn cloud_seeds(c: &Corpus) -> Result<()> {
     Ok(())
 }
 
-/// A recorded mini session: the MCAP file `SessionRecorder` writes for a few frames and a
-/// command, committed in two chunks and closed.
+/// A recorded mini session: the MCAP file `SessionRecorder` writes for a few frames, a
+/// command and a server-made record (a clock model), committed in two chunks and closed.
 fn session_seeds(c: &Corpus) -> Result<()> {
     let tmp = std::env::temp_dir().join(format!("scan3d-seedgen-{}", std::process::id()));
     let _ = fs::remove_dir_all(&tmp);
@@ -480,6 +480,9 @@ fn session_seeds(c: &Corpus) -> Result<()> {
         let raw = encode(&frame)?;
         if matches!(frame.body, Body::Command(_)) {
             rec.append_command(&raw, &frame, 1_000 + frame.seq)?;
+        } else if let Body::ClockModel(model) = frame.body {
+            // A server-made record, on its own channel and schema as the server writes it.
+            rec.append_record(&ServerRecord::ClockModel(model), 1_000 + frame.seq)?;
         } else if frame.body.direction() != scan3d_protocol::Direction::ServerToEdge {
             rec.append(&raw, &frame, 1_000 + frame.seq)?;
         }
