@@ -41,8 +41,8 @@ impl Passes {
     }
 
     /// Acts on the command of server frame `seq` at edge time `now_ns`: for a pass command,
-    /// the bodies to send (a [`CommandReply`], then the [`PassMarker`] when accepted); `None`
-    /// for any other command.
+    /// the bodies to send (the [`PassMarker`] when accepted, then the [`CommandReply`], so
+    /// whoever waits for the reply has seen the marker); `None` for any other command.
     pub fn on_command(&mut self, seq: u64, command: &Command, now_ns: u64) -> Option<Vec<Body>> {
         let reply = |outcome| -> Body {
             CommandReply {
@@ -88,17 +88,17 @@ impl Passes {
                 self.used.insert(name.clone());
                 self.running = Some(name.clone());
                 vec![
-                    accepted(),
                     marker(PassEvent::Started {
                         name,
                         x_m: *x_m,
                         y_m: *y_m,
                         heading_deg: *heading_deg,
                     }),
+                    accepted(),
                 ]
             }
             Command::StopPass => match self.running.take() {
-                Some(name) => vec![accepted(), marker(PassEvent::Stopped { name })],
+                Some(name) => vec![marker(PassEvent::Stopped { name }), accepted()],
                 None => refuse("no pass is running".to_owned()),
             },
             Command::StartStaticScan { .. }
@@ -139,17 +139,16 @@ mod tests {
         command: &Command,
         t: u64,
     ) -> (CommandOutcome, Option<PassMarker>) {
-        let bodies = passes.on_command(seq, command, t).expect("a pass command");
-        let mut bodies = bodies.into_iter();
-        let Some(Body::CommandReply(reply)) = bodies.next() else {
-            panic!("first a reply");
+        let mut bodies = passes.on_command(seq, command, t).expect("a pass command");
+        let Some(Body::CommandReply(reply)) = bodies.pop() else {
+            panic!("last a reply");
         };
         assert_eq!((reply.command_seq, reply.t_ns), (seq, t));
-        let marker = bodies.next().map(|b| match b {
+        let marker = bodies.pop().map(|b| match b {
             Body::Pass(m) => m,
-            other => panic!("then a marker, got {other:?}"),
+            other => panic!("before it a marker, got {other:?}"),
         });
-        assert!(bodies.next().is_none());
+        assert!(bodies.is_empty());
         (reply.outcome, marker)
     }
 

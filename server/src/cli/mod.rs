@@ -20,6 +20,7 @@ pub mod sessions;
 pub mod slam;
 pub mod snapshot;
 pub mod status;
+pub mod trolley;
 
 /// scan3d server and offline tools (laptop side).
 #[derive(Debug, Parser)]
@@ -47,6 +48,8 @@ pub enum Command {
     Replay(replay::ReplayArgs),
     /// Tell a connected edge to make a static 3D scan at a known position (or to stop one).
     Scan(scan::ScanArgs),
+    /// Open or close a trolley pass on a connected edge (the head's pose in the room at the start).
+    Trolley(trolley::TrolleyArgs),
     /// Turn a session's static scans into one world-frame cloud (eq. 1): PLY, PCD or .scans.
     Assemble(assemble::AssembleArgs),
     /// Build an OctoMap-identical occupancy map (.bt/.ot) from a cloud, with filters.
@@ -100,6 +103,7 @@ pub fn execute(cli: Cli, out: &mut dyn Write) -> anyhow::Result<()> {
         Command::Sessions(args) => sessions::run(&args, out),
         Command::Replay(args) => replay::run(&args, out),
         Command::Scan(args) => scan::run(&args, out),
+        Command::Trolley(args) => trolley::run(&args, out),
         Command::Assemble(args) => assemble::run(&args, out),
         Command::Map(args) => map::run(&args, out),
         Command::Convert(args) => convert::run(&args, out),

@@ -37,7 +37,10 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use scan3d_protocol::{Body, Command, CommandOutcome, CommandReply, InvalidCommand, StaticScan};
+use scan3d_protocol::{
+    Body, Command, CommandOutcome, CommandReply, InvalidCommand, PassEvent, PassMarker, SensorId,
+    StaticScan,
+};
 use serde::{Deserialize, Serialize};
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::net::{UnixListener, UnixStream};
@@ -64,6 +67,40 @@ pub enum ControlError {
     /// The command is not one an edge can be sent ([`Command::validate`]).
     #[error("invalid command: {0}")]
     Invalid(#[from] InvalidCommand),
+    /// A trolley pass for an edge whose latest `Hello` lists no RPLidar ([`pass_refusal`]).
+    #[error("edge {edge:?} has no RPLidar (its Hello lists: {sensors}): a trolley pass needs one")]
+    NoRplidar {
+        /// The edge.
+        edge: String,
+        /// The sensors its `Hello` lists, comma-separated (or "none").
+        sensors: String,
+    },
+}
+
+/// Why the server refuses `command` for `edge` without asking it: a [`Command::StartPass`] when
+/// the edge's latest `Hello` (its `sensors`, `None` when none was seen) lists no RPLidar.
+/// Pure, so the rule is tested without a connection.
+pub fn pass_refusal(
+    edge: &str,
+    command: &Command,
+    sensors: Option<&[SensorId]>,
+) -> Option<ControlError> {
+    let sensors = sensors?;
+    if !matches!(command, Command::StartPass { .. }) || sensors.contains(&SensorId::RPLIDAR) {
+        return None;
+    }
+    Some(ControlError::NoRplidar {
+        edge: edge.to_owned(),
+        sensors: if sensors.is_empty() {
+            "none".to_owned()
+        } else {
+            sensors
+                .iter()
+                .map(ToString::to_string)
+                .collect::<Vec<_>>()
+                .join(", ")
+        },
+    })
 }
 
 /// A command on its way to an edge's connection task; `sent` learns the session and sequence
@@ -101,7 +138,7 @@ pub enum EdgeEvent {
     Frame {
         /// Its session.
         session_id: u64,
-        /// A `CommandReply` or a `StaticScan`.
+        /// A `CommandReply`, a `StaticScan` or a `Pass`.
         body: Body,
     },
 }
@@ -114,6 +151,8 @@ struct Links {
     commands: HashMap<String, mpsc::UnboundedSender<QueuedCommand>>,
     /// Kept across reconnections, so a follower sees the edge come back.
     events: HashMap<String, broadcast::Sender<EdgeEvent>>,
+    /// The sensors of each edge's latest `Hello`.
+    sensors: HashMap<String, Vec<SensorId>>,
 }
 
 impl Links {
@@ -168,10 +207,18 @@ impl EdgeControl {
     }
 
     /// Hands a recorded frame of `edge` to the followers of its commands, if it is one they
-    /// follow (a command reply or a static-scan message).
+    /// follow (a command reply, a static-scan message, a pass marker); a `Hello` updates the
+    /// edge's known sensors ([`pass_refusal`]).
     pub(crate) fn publish(&self, edge: &str, frame: &scan3d_protocol::Frame) {
-        if matches!(frame.body, Body::CommandReply(_) | Body::StaticScan(_))
-            && let Some(events) = self.lock().events.get(edge)
+        if let Body::Hello(hello) = &frame.body {
+            let sensors = hello.sensors.iter().map(|info| info.sensor).collect();
+            self.lock().sensors.insert(edge.to_owned(), sensors);
+            return;
+        }
+        if matches!(
+            frame.body,
+            Body::CommandReply(_) | Body::StaticScan(_) | Body::Pass(_)
+        ) && let Some(events) = self.lock().events.get(edge)
         {
             let _ = events.send(EdgeEvent::Frame {
                 session_id: frame.session_id,
@@ -216,6 +263,14 @@ impl EdgeControl {
     ) -> Result<broadcast::Receiver<EdgeEvent>, ControlError> {
         command.validate()?;
         let mut links = self.lock();
+        // A disconnected edge is told as such (below), whatever its last Hello said.
+        let connected = links.commands.get(edge).is_some_and(|tx| !tx.is_closed());
+        if connected
+            && let Some(refusal) =
+                pass_refusal(edge, &command, links.sensors.get(edge).map(Vec::as_slice))
+        {
+            return Err(refusal);
+        }
         let events = links.events(edge).subscribe();
         let queued = links
             .commands
@@ -389,6 +444,10 @@ pub struct CommandStatus {
     pub reason: Option<String>,
     /// The static scan's progress, while followed.
     pub progress: Option<ScanProgress>,
+    /// The trolley pass a `StartPass` / `StopPass` opened or closed (the edge's marker, stamped
+    /// on its clock).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pass: Option<PassMarker>,
     /// Seconds since the request.
     pub elapsed_s: f64,
     /// One line for a human.
@@ -423,6 +482,11 @@ const EARLY_EVENTS: usize = 1024;
 pub struct CommandFollower {
     edge: String,
     starts_scan: bool,
+    /// A `StartPass` or `StopPass`: the edge's pass marker is kept for the status.
+    pass_command: bool,
+    /// The server refused the command itself (its reason is the whole line).
+    by_server: bool,
+    pass: Option<PassMarker>,
     follow: bool,
     timing: FollowTiming,
     started: std::time::Instant,
@@ -447,6 +511,9 @@ impl CommandFollower {
         CommandFollower {
             edge: edge.to_owned(),
             starts_scan: matches!(command, Command::StartStaticScan { .. }),
+            pass_command: matches!(command, Command::StartPass { .. } | Command::StopPass),
+            by_server: false,
+            pass: None,
             follow,
             timing,
             started: now,
@@ -464,8 +531,9 @@ impl CommandFollower {
     pub fn failed(&mut self, error: &ControlError, now: std::time::Instant) -> CommandStatus {
         self.state = match error {
             ControlError::NotConnected { .. } => CommandState::NotConnected,
-            ControlError::Invalid(_) => CommandState::Refused,
+            ControlError::Invalid(_) | ControlError::NoRplidar { .. } => CommandState::Refused,
         };
+        self.by_server = true;
         self.reason = Some(error.to_string());
         self.status(now)
     }
@@ -518,6 +586,11 @@ impl CommandFollower {
                         self.on_reply(reply, now)
                     }
                     Body::StaticScan(message) => self.on_scan(message, event, now),
+                    // The edge sends the marker just before its reply.
+                    Body::Pass(marker) if self.pass_command => {
+                        self.pass = Some(marker.clone());
+                        None
+                    }
                     _ => None,
                 }
             }
@@ -652,13 +725,32 @@ impl CommandFollower {
         let summary = || progress.map_or_else(String::new, ScanProgress::summary);
         let detail = match self.state {
             CommandState::Sent => format!("sent to {edge}; waiting for its answer"),
-            CommandState::NotConnected | CommandState::Refused if reason.starts_with("invalid") => {
+            CommandState::NotConnected | CommandState::Refused if self.by_server => {
                 reason.to_owned()
             }
             CommandState::NotConnected => reason.to_owned(),
             CommandState::Timeout => format!("edge {edge} did not answer: {reason}"),
             CommandState::Refused => format!("edge {edge} refused: {reason}"),
             CommandState::Waiting => format!("edge {edge} accepted and waits: {reason}"),
+            CommandState::Accepted if self.pass_command => match &self.pass {
+                Some(PassMarker {
+                    event:
+                        PassEvent::Started {
+                            name,
+                            x_m,
+                            y_m,
+                            heading_deg,
+                        },
+                    t_ns,
+                }) => format!(
+                    "edge {edge} started pass {name:?} at x {x_m} m, y {y_m} m, heading {heading_deg}° (edge time {t_ns} ns)"
+                ),
+                Some(PassMarker {
+                    event: PassEvent::Stopped { name },
+                    t_ns,
+                }) => format!("edge {edge} stopped pass {name:?} (edge time {t_ns} ns)"),
+                None => format!("edge {edge} accepted"),
+            },
             CommandState::Accepted => match (self.starts_scan, self.scan_id) {
                 (true, Some(id)) => format!("edge {edge} started static scan {id}"),
                 (false, Some(id)) => format!("edge {edge} stops static scan {id}"),
@@ -680,6 +772,7 @@ impl CommandFollower {
             scan_id: self.scan_id,
             reason: self.reason.clone(),
             progress: self.progress.clone(),
+            pass: self.pass.clone(),
             elapsed_s: now.duration_since(self.started).as_secs_f64(),
             detail,
         }
@@ -1327,6 +1420,119 @@ mod tests {
             late_steps: 1,
             failed_steps: 0,
         })
+    }
+
+    #[test]
+    fn a_pass_start_is_refused_by_the_server_when_the_hello_lists_no_rplidar() {
+        let start = Command::StartPass {
+            name: None,
+            x_m: 0.0,
+            y_m: 0.0,
+            heading_deg: 0.0,
+        };
+        let refusal = pass_refusal("pi", &start, Some(&[SensorId::SWEEP, SensorId::IMU]));
+        assert_eq!(
+            refusal.map(|e| e.to_string()).as_deref(),
+            Some(
+                "edge \"pi\" has no RPLidar (its Hello lists: sweep, imu): a trolley pass needs one"
+            )
+        );
+        assert!(
+            pass_refusal("pi", &start, Some(&[]))
+                .unwrap()
+                .to_string()
+                .contains("lists: none")
+        );
+        assert_eq!(pass_refusal("pi", &start, Some(&[SensorId::RPLIDAR])), None);
+        // No Hello seen yet: the edge decides; other commands are never refused here.
+        assert_eq!(pass_refusal("pi", &start, None), None);
+        assert_eq!(pass_refusal("pi", &Command::StopPass, Some(&[])), None);
+
+        // Through EdgeControl: the latest Hello of a connected edge counts.
+        let control = EdgeControl::default();
+        let _rx = control.register("pi");
+        let hello = |sensors: &[SensorId]| {
+            let infos = sensors
+                .iter()
+                .map(|&sensor| scan3d_protocol::SensorInfo {
+                    sensor,
+                    model: String::new(),
+                    firmware: String::new(),
+                    serial: String::new(),
+                })
+                .collect();
+            scan3d_protocol::Frame::new(1, 0, scan3d_protocol::Hello::new("pi", "0", infos))
+        };
+        control.publish("pi", &hello(&[SensorId::SWEEP]));
+        assert!(matches!(
+            control.send("pi", start.clone()),
+            Err(ControlError::NoRplidar { .. })
+        ));
+        control.publish("pi", &hello(&[SensorId::SWEEP, SensorId::RPLIDAR]));
+        assert_eq!(control.send("pi", start.clone()), Ok(()));
+        let now = std::time::Instant::now();
+        let mut follower = CommandFollower::new("pi", &start, false, FollowTiming::default(), now);
+        let status = follower.failed(
+            &ControlError::NoRplidar {
+                edge: "pi".into(),
+                sensors: "sweep".into(),
+            },
+            now,
+        );
+        assert!(!status.ok && status.done);
+        assert_eq!(
+            status.detail,
+            "edge \"pi\" has no RPLidar (its Hello lists: sweep): a trolley pass needs one"
+        );
+    }
+
+    #[test]
+    fn a_followed_pass_start_reports_the_edges_marker() {
+        let start = Command::StartPass {
+            name: None,
+            x_m: 1.0,
+            y_m: 2.0,
+            heading_deg: 90.0,
+        };
+        let now = std::time::Instant::now();
+        let mut follower = CommandFollower::new("pi", &start, false, FollowTiming::default(), now);
+        let marker = PassMarker {
+            t_ns: 77,
+            event: PassEvent::Started {
+                name: "pass-1".into(),
+                x_m: 1.0,
+                y_m: 2.0,
+                heading_deg: 90.0,
+            },
+        };
+        // The marker comes just before the reply, possibly before the send is known.
+        let marker_event = EdgeEvent::Frame {
+            session_id: 5,
+            body: marker.clone().into(),
+        };
+        assert_eq!(follower.on_event(&marker_event, now), None);
+        assert_eq!(
+            follower.on_sent(
+                SentCommand {
+                    session_id: 5,
+                    seq: 3
+                },
+                now
+            ),
+            None
+        );
+        let status = follower
+            .on_event(
+                &reply_event(5, 3, CommandOutcome::Accepted { scan_id: None }),
+                now,
+            )
+            .unwrap();
+        assert!(status.ok && status.done);
+        assert_eq!(status.pass, Some(marker));
+        assert_eq!(
+            status.detail,
+            "edge pi started pass \"pass-1\" at x 1 m, y 2 m, heading 90° (edge time 77 ns)"
+        );
     }
 
     #[test]
