@@ -9,7 +9,7 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use common::{arg, run_cli};
-use pipeline_support::{SessionBuilder, break_chunk, position};
+use pipeline_support::{DEMO_ROOM, SessionBuilder, break_chunk, position};
 use scan3d_map::cloud::io;
 use scan3d_map::cloud::scans::RevolutionCollector;
 use scan3d_map::octree::{Octree, SensorModel};
@@ -373,7 +373,11 @@ fn metrics_come_at_most_once_a_second_and_a_snapshot_scores_like_scan3d_eval() {
             "map.ot",
             "cloud.ply",
             "metrics.json",
-            "metrics.txt"
+            "metrics.txt",
+            "trajectory.tum",
+            "grid.pgm",
+            "grid.yaml",
+            "grid.png"
         ]
     );
     let eval = run_cli(&[
@@ -581,4 +585,101 @@ fn mapping_a_damaged_session_fails_unless_lenient_and_then_maps_the_readable_res
             .num_occupied()
             > 0
     );
+}
+
+/// A head standing 10 revolutions, then a pass started where it stands, then 30 revolutions of
+/// motion; returns the session and the true poses at the revolutions' middles.
+fn trolley_session() -> (SessionBuilder, Vec<[f64; 3]>) {
+    let mut s = SessionBuilder::in_room(0x7011, DEMO_ROOM);
+    let start = [2.5, 2.0, 0.3];
+    let mut truth = s.rplidar_moving(10, 360, start, [0.0; 3]);
+    s.push(scan3d_protocol::PassMarker {
+        t_ns: s.now_ns(),
+        event: scan3d_protocol::PassEvent::Started {
+            name: "aisle 1".into(),
+            x_m: start[0],
+            y_m: start[1],
+            heading_deg: start[2].to_degrees(),
+        },
+    });
+    truth.extend(s.rplidar_moving(30, 360, start, [0.3, 0.1, 0.2]));
+    s.push(scan3d_protocol::PassMarker {
+        t_ns: s.now_ns(),
+        event: scan3d_protocol::PassEvent::Stopped {
+            name: "aisle 1".into(),
+        },
+    });
+    (s, truth)
+}
+
+#[test]
+fn the_live_pose_stage_gives_the_poses_of_scan3d_slam_and_a_pass_anchors_them_in_the_room() {
+    let (session, truth) = trolley_session();
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = session.record(tmp.path(), "trolley");
+    let (mut pipeline, _) = run_session(
+        &dir,
+        &PipelineSettings::default(),
+        Products::default(),
+        false,
+    )
+    .unwrap();
+    let stage = pipeline
+        .pose()
+        .expect("the live daemon's products have the pose stage");
+    let (offline, _) = scan3d_server::pose::scan_matching::map_session(
+        &dir,
+        &scan3d_slam::mapper::MapperConfig::default(),
+        &scan3d_server::pipeline::pose_stage::POSE_RANGE_LIMITS,
+        None,
+        false,
+        |_| {},
+    )
+    .unwrap();
+    assert_eq!(stage.poses().len(), 40);
+    let live: Vec<_> = stage.poses().iter().map(|p| p.pose).collect();
+    let off: Vec<_> = offline.trajectory.poses.iter().map(|p| p.pose).collect();
+    assert_eq!(live, off, "the same poses live and offline");
+    assert_eq!(stage.passes(), ["aisle 1"]);
+
+    let status = pipeline.status().pose.expect("a pose");
+    let [x, y, heading] = *truth.last().unwrap();
+    assert!(status.anchored);
+    assert!(
+        (status.x - x).hypot(status.y - y) < 0.05,
+        "{status:?} against ({x}, {y})"
+    );
+    assert!(
+        (status.yaw_deg - heading.to_degrees()).abs() < 1.0,
+        "{status:?}"
+    );
+    assert!(
+        (status.path_m - 30.0 * 0.18 * 0.3f64.hypot(0.1)).abs() < 0.1,
+        "{status:?}"
+    );
+    assert!(status.covariance[0] > 0.0 && status.covariance[8] > 0.0);
+
+    let snap = pipeline
+        .write_snapshot(&tmp.path().join("snap"), None)
+        .unwrap();
+    let tum = std::fs::read_to_string(tmp.path().join("snap/trajectory.tum")).unwrap();
+    let rows: Vec<Vec<f64>> = tum
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .map(|l| l.split(' ').map(|v| v.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(rows.len(), 40);
+    assert!(rows.iter().all(|r| r.len() == 8));
+    // The standing poses, before the pass, are carried into the room frame too.
+    assert!(
+        (rows[0][1] - 2.5).abs() < 0.03 && (rows[0][2] - 2.0).abs() < 0.03,
+        "{:?}",
+        rows[0]
+    );
+    let pass =
+        std::fs::read_to_string(tmp.path().join("snap/passes/aisle_1/trajectory.tum")).unwrap();
+    assert_eq!(pass.lines().filter(|l| !l.starts_with('#')).count(), 30);
+    for name in ["grid.pgm", "grid.yaml", "grid.png"] {
+        assert!(snap.files.iter().any(|f| f.ends_with(name)), "{name}");
+    }
 }

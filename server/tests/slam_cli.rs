@@ -275,7 +275,7 @@ fn a_mounted_lidar_gives_the_trajectory_of_the_base() {
     // The trajectory starts at the identity: compare each pose with the base's motion since its
     // first pose.
     let worst = |mount: &Pose2| {
-        let (run, _) = map_session(&session_dir, &config, &limits, mount, false, |_| {})
+        let (run, _) = map_session(&session_dir, &config, &limits, Some(mount), false, |_| {})
             .expect("the session is matched");
         assert_eq!(run.trajectory.poses.len(), base.len());
         run.trajectory

@@ -105,6 +105,10 @@ pub fn run(args: &ReplayArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         for path in collector.write_ply_files(&dir.join("scans"))? {
             writeln!(out, "wrote {}", path.display())?;
         }
+        // The trajectory is stamped on the server's clock through the recorded models.
+        pipeline.set_clock(crate::pose::timesync::SessionClock::from_session(
+            &args.session_dir,
+        )?);
         let snapshot = pipeline.write_snapshot(dir, None)?;
         writeln!(
             out,

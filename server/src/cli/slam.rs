@@ -224,26 +224,20 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
             );
             bar
         });
-        let (run, recording) = map_session(
-            &args.input,
-            &config,
-            &limits,
-            &Pose2::default(),
-            args.lenient,
-            |done| {
+        let (run, recording) =
+            map_session(&args.input, &config, &limits, None, args.lenient, |done| {
                 if let Some(bar) = &bar
                     && done % 64 == 0
                 {
                     bar.set_position(done as u64);
                 }
-            },
-        )
-        .with_context(|| {
-            format!(
-                "cannot match the session {} (--lenient matches what is readable)",
-                args.input.display()
-            )
-        })?;
+            })
+            .with_context(|| {
+                format!(
+                    "cannot match the session {} (--lenient matches what is readable)",
+                    args.input.display()
+                )
+            })?;
         if let Some(bar) = bar {
             bar.finish_and_clear();
         }

@@ -381,6 +381,8 @@ struct WorkerShared {
     progress: Mutex<Progress>,
     /// The session's latest edge → server clock model (time sync).
     clock: Mutex<Option<ClockModel>>,
+    /// Every model of the session so far (the snapshot's trajectory is stamped through them).
+    clock_models: Mutex<crate::pose::timesync::SessionClock>,
     /// Sample-to-voxel latencies, ns, the last [`LATENCY_WINDOW`].
     latencies: Mutex<std::collections::VecDeque<i64>>,
     /// Accept-to-voxel latencies, ns, the last [`LATENCY_WINDOW`].
@@ -486,6 +488,7 @@ impl LivePipelines {
                     .find(|w| w.edge == edge && w.session_id == session_id)
                 {
                     *lock(&worker.shared.clock) = Some(model);
+                    lock(&worker.shared.clock_models).push(model);
                 }
                 state.timesync.insert((edge, session_id), status);
             }
@@ -561,6 +564,7 @@ impl LivePipelines {
             pipeline: Mutex::new(Slot::Starting),
             progress: Mutex::new(Progress::default()),
             clock: Mutex::new(None),
+            clock_models: Mutex::new(crate::pose::timesync::SessionClock::new()),
             latencies: Mutex::new(std::collections::VecDeque::with_capacity(LATENCY_WINDOW)),
             server_latencies: Mutex::new(std::collections::VecDeque::with_capacity(LATENCY_WINDOW)),
         });
@@ -762,6 +766,7 @@ impl LivePipelines {
                 });
             }
         };
+        pipeline.set_clock(lock(&shared.clock_models).clone());
         let snapshot =
             pipeline
                 .write_snapshot(dir, position)
@@ -1062,6 +1067,7 @@ impl WorkerRun {
         let Some(pipeline) = slot.running() else {
             return;
         };
+        pipeline.set_clock(lock(&self.shared.clock_models).clone());
         if let Err(e) = pipeline.write_snapshot(&self.snapshot_dir, None) {
             tracing::error!(edge = %self.shared.edge, session = format!("{:016x}", self.shared.session_id),
                 dir = %self.snapshot_dir.display(), error = %e, "periodic snapshot failed; recording goes on");
@@ -1111,6 +1117,7 @@ mod tests {
                 ..Progress::default()
             }),
             clock: Mutex::new(None),
+            clock_models: Mutex::new(crate::pose::timesync::SessionClock::new()),
             latencies: Mutex::new(std::collections::VecDeque::new()),
             server_latencies: Mutex::new(std::collections::VecDeque::new()),
         };

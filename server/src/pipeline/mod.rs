@@ -49,6 +49,7 @@ pub mod live;
 mod metrics;
 pub mod offline;
 pub mod order;
+pub mod pose_stage;
 mod snapshot;
 mod stages;
 
@@ -66,6 +67,7 @@ use scan3d_protocol::{Body, Frame};
 
 pub use metrics::{load_reference, write_metrics_table};
 pub use order::{OrderStats, OrderedQueue, Release, StreamId};
+pub use pose_stage::{PoseStage, PoseStatus};
 pub use snapshot::{Snapshot, SnapshotWriter};
 pub use stages::{
     AssemblyStage, FilterStage, MapStage, MetricsStage, PositionMap, RevolutionStage,
@@ -151,6 +153,8 @@ pub struct SessionStatus {
     pub queued_frames: u64,
     /// Points inserted into the session's octree (after the revolution filters).
     pub points: u64,
+    /// Where `base` is now (the live pose stage), once an RPLidar revolution was matched.
+    pub pose: Option<PoseStatus>,
     /// Named static-scan positions seen, in first-seen order.
     pub positions: Vec<String>,
 }
@@ -228,10 +232,14 @@ pub struct Products {
     /// The session's octree (and the positions' ones with `position_maps`); `scan3d assemble`
     /// needs none.
     pub octrees: bool,
+    /// The live 2D trajectory of `base` from the RPLidar's revolutions ([`PoseStage`]):
+    /// `trajectory.tum` and the grid in snapshots, the pose in `status`.
+    pub trajectory: bool,
 }
 
 impl Default for Products {
-    /// What the live daemon keeps: octrees per session and position, and the cloud.
+    /// What the live daemon keeps: octrees per session and position, the cloud and the
+    /// trajectory.
     fn default() -> Self {
         Products {
             revolution_points: false,
@@ -239,6 +247,7 @@ impl Default for Products {
             cloud: true,
             static_scans: false,
             octrees: true,
+            trajectory: true,
         }
     }
 }
@@ -309,14 +318,12 @@ fn stream_of(body: &Body) -> Option<(StreamId, Option<u64>)> {
             };
             (StreamId::StaticScan, Some(t))
         }
+        Body::Pass(marker) => (StreamId::Pass, Some(marker.t_ns)),
         Body::Hello(_)
+        | Body::Mounts(_)
         | Body::Status(_)
         | Body::CommandReply(_)
-        | Body::Command(_)
-        | Body::Mounts(_)
-        | Body::Pass(_) => {
-            (StreamId::Edge, None)
-        }
+        | Body::Command(_) => (StreamId::Edge, None),
         Body::Heartbeat(_)
         | Body::TimePing(_)
         | Body::TimePong(_)
@@ -452,6 +459,7 @@ pub struct SessionPipeline {
 #[derive(Debug, Clone, Copy)]
 struct Builtin {
     revolutions: Option<usize>,
+    pose: Option<usize>,
     assembly: usize,
     filters: usize,
     maps: usize,
@@ -520,6 +528,7 @@ impl SessionPipeline {
             lanes: Vec::new(),
             builtin: Builtin {
                 revolutions: None,
+                pose: None,
                 assembly: 0,
                 filters: 0,
                 maps: 0,
@@ -535,6 +544,13 @@ impl SessionPipeline {
         if products.revolution_points {
             pipeline.builtin.revolutions =
                 Some(pipeline.push_stage(Box::new(RevolutionStage::new())));
+        }
+        if products.trajectory {
+            let stage = PoseStage::new(
+                scan3d_slam::mapper::MapperConfig::default(),
+                scan3d_slam::pose::Pose2::default(),
+            );
+            pipeline.builtin.pose = Some(pipeline.push_stage(Box::new(stage)));
         }
         pipeline.builtin.assembly =
             pipeline.push_stage(Box::new(AssemblyStage::new(products.static_scans)));
@@ -727,6 +743,7 @@ impl SessionPipeline {
             filtered_out_points: filters.dropped_points(),
             points: self.maps().points(),
             positions: self.positions(),
+            pose: self.pose().and_then(PoseStage::status),
             late_frames: order.late,
             stream_releases: order.releases,
             queued_frames: order.queued,
@@ -745,8 +762,9 @@ impl SessionPipeline {
 
     /// Writes the current products into `dir` (created if missing): `map.bt`, `map.ot`,
     /// `cloud.ply` (the cloud through the snapshot filters) and, with a reference, `metrics.json`
-    /// and `metrics.txt`; of the whole session, or of one `position`; then what each added
-    /// stage writes ([`Stage::snapshot`]). With no 3D data yet the `.bt`/`.ot` are valid empty
+    /// and `metrics.txt`; of the whole session, or of one `position`; then what the other
+    /// stages write ([`Stage::snapshot`]; the pose stage: `trajectory.tum`, each pass's
+    /// `passes/NAME/trajectory.tum`, `grid.pgm`, `grid.yaml`, `grid.png`). With no 3D data yet the `.bt`/`.ot` are valid empty
     /// trees and the PLY has no vertex (no metrics then). Each file is written under a
     /// temporary name and renamed, so a reader never sees half a file.
     pub fn write_snapshot(
@@ -768,8 +786,13 @@ impl SessionPipeline {
             source,
         })?;
         let mut writer = SnapshotWriter::new(dir, position);
-        for stage in &mut self.stages {
-            stage.snapshot(&mut writer)?;
+        // The map's files first (map.bt, map.ot, cloud.ply, metrics), then the others' in order.
+        let (maps, metrics) = (self.builtin.maps, self.builtin.metrics);
+        let order = [maps, metrics]
+            .into_iter()
+            .chain((0..self.stages.len()).filter(|&i| i != maps && i != metrics));
+        for index in order {
+            self.stages[index].snapshot(&mut writer)?;
         }
         Ok(writer.snapshot)
     }
@@ -797,6 +820,25 @@ impl SessionPipeline {
 
     fn metrics_stage(&self) -> &MetricsStage {
         self.stage(self.builtin.metrics)
+    }
+
+    /// The pose stage, when [`Products::trajectory`] is on.
+    pub fn pose(&self) -> Option<&PoseStage> {
+        self.builtin.pose.map(|index| self.stage(index))
+    }
+
+    fn pose_mut(&mut self) -> Option<&mut PoseStage> {
+        let index = self.builtin.pose?;
+        let stage: &mut dyn std::any::Any = self.stages[index].as_mut();
+        stage.downcast_mut::<PoseStage>()
+    }
+
+    /// The session's time-sync models (recorded, or as the live server made them): the
+    /// snapshot's trajectory is stamped on the server's clock through them.
+    pub fn set_clock(&mut self, clock: crate::pose::timesync::SessionClock) {
+        if let Some(pose) = self.pose_mut() {
+            pose.set_clock(clock);
+        }
     }
 
     /// The 2D revolution collector, when [`Products::revolution_points`] is on.

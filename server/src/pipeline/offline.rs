@@ -84,6 +84,7 @@ pub fn assemble_session(
         cloud: false,
         static_scans: true,
         octrees: false,
+        trajectory: false,
     };
     let mut pipeline = SessionPipeline::with_products(&PipelineSettings::default(), products)
         .expect("the default settings are valid and name no reference");
@@ -106,4 +107,5 @@ pub const MAP_ONLY: Products = Products {
     cloud: false,
     static_scans: false,
     octrees: true,
+    trajectory: false,
 };

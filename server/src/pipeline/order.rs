@@ -38,6 +38,8 @@ pub enum StreamId {
     StaticScan,
     /// Stepper states: events.
     Stepper,
+    /// Trolley pass markers (start, stop): events.
+    Pass,
     /// IMU samples: continuous.
     Imu,
     /// RPLidar revolutions, keyed by their end: continuous.
@@ -69,6 +71,7 @@ impl StreamId {
             StreamId::Edge => "edge",
             StreamId::StaticScan => "static_scan",
             StreamId::Stepper => "stepper",
+            StreamId::Pass => "pass",
             StreamId::Imu => "imu",
             StreamId::Rplidar => "rplidar",
             StreamId::Poses => "poses",

@@ -17,7 +17,8 @@ pub struct Snapshot {
     /// The position it is of (`None`: the whole session).
     pub position: Option<String>,
     /// The files written, in order: `map.bt`, `map.ot`, `cloud.ply`, then `metrics.json` and
-    /// `metrics.txt` when there were metrics.
+    /// `metrics.txt` when there were metrics, then the trajectory's (`trajectory.tum`, each
+    /// pass's, `grid.pgm`, `grid.yaml`, `grid.png`) when the session has RPLidar revolutions.
     pub files: Vec<PathBuf>,
     /// Nodes of the octree (OctoMap's count, root included; 0 for an empty map).
     pub nodes: u64,
@@ -63,6 +64,21 @@ impl SnapshotWriter {
     /// lists it.
     pub fn write_file(&mut self, name: &str, bytes: &[u8]) -> Result<(), PipelineError> {
         let dir = self.snapshot.dir.clone();
+        write_file(&dir, name, bytes, &mut self.snapshot.files)
+    }
+
+    /// [`SnapshotWriter::write_file`] into `subdir` of the snapshot's directory (created).
+    pub fn write_file_in(
+        &mut self,
+        subdir: &Path,
+        name: &str,
+        bytes: &[u8],
+    ) -> Result<(), PipelineError> {
+        let dir = self.snapshot.dir.join(subdir);
+        std::fs::create_dir_all(&dir).map_err(|source| PipelineError::Write {
+            path: dir.clone(),
+            source,
+        })?;
         write_file(&dir, name, bytes, &mut self.snapshot.files)
     }
 }

@@ -60,8 +60,9 @@ pub fn revolution_scan(
 }
 
 /// Matches every RPLidar revolution of a recorded session, in recording order, streaming the
-/// recording (memory: the map, not the session), the lidar at `mount` in `base`
-/// ([`Pose2::default`] when it is `base`); each pose of the trajectory is the base's, stamped
+/// recording (memory: the map, not the session), the lidar at `mount` in `base` (`None`: where
+/// the session's `Body::Mounts` puts the RPLidar, as the live pose stage takes it; `base` itself
+/// without one); each pose of the trajectory is the base's, stamped
 /// with the time it is for, the middle of its revolution's beams (edge clock, s). A damaged recording fails with
 /// [`RecorderError::Damaged`] unless `lenient` (then the readable rest is mapped, with a
 /// warning); frames the server could not decode are counted in the returned report, not
@@ -70,18 +71,27 @@ pub fn map_session(
     session_dir: &Path,
     config: &MapperConfig,
     limits: &RangeLimits,
-    mount: &Pose2,
+    mount: Option<&Pose2>,
     lenient: bool,
     mut progress: impl FnMut(usize),
 ) -> Result<(MapperRun, SessionReport), RecorderError> {
     let mut mapper = Mapper::new(*config);
+    let mut session_mount = Pose2::default();
     let mut results = Vec::new();
     let mut poses = Vec::new();
     let recording = visit_session(session_dir, |recorded| {
+        if let Body::Mounts(mounts) = &recorded.frame.body
+            && let Some(m) = mounts
+                .sensors
+                .iter()
+                .find(|m| m.sensor == SensorId::RPLIDAR)
+        {
+            session_mount = Pose2::new(m.x_m, m.y_m, m.yaw_deg.to_radians());
+        }
         if let Body::Revolution(revolution) = &recorded.frame.body
             && revolution.sensor == SensorId::RPLIDAR
         {
-            let scan = revolution_scan(revolution, limits, mount);
+            let scan = revolution_scan(revolution, limits, mount.unwrap_or(&session_mount));
             let result = mapper.add_scan(&scan);
             poses.push(TrajectoryPose::of(&result));
             results.push(result);

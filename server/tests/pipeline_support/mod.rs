@@ -76,7 +76,13 @@ impl SessionBuilder {
         }
     }
 
-    fn push(&mut self, body: impl Into<Body>) {
+    /// The edge time the next frame starts at, ns.
+    pub fn now_ns(&self) -> u64 {
+        self.t_ns
+    }
+
+    /// Appends any frame body (e.g. a pass marker) with the next sequence number.
+    pub fn push(&mut self, body: impl Into<Body>) {
         self.items
             .push(Recorded::Frame(Frame::new(self.session_id, self.seq, body)));
         self.seq += 1;

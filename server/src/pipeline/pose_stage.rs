@@ -1,0 +1,422 @@
+//! The live pose stage: a session's RPLidar revolutions, in sample-time order, through the slam
+//! crate's mapper (lidar only for now: constant-velocity prior and window search), giving the
+//! live 2D trajectory of `base` with each pose's covariance.
+//!
+//! The RPLidar sits at its mount in `base` (the session's `Body::Mounts`; `base` itself without
+//! one), so the trajectory is of `base`. It is in the session's own frame (its first pose at the
+//! origin) until a pass starts (`Body::Pass`, stamped by the edge when `scan3d trolley start`
+//! reached it): the pass says where `base` stood in the room at that edge time, and the whole
+//! trajectory, before and after, is reported through that one transform (a later pass's start
+//! re-anchors it). A snapshot writes `trajectory.tum` (TUM lines `t x y z qx qy qz qw`, t in
+//! UNIX seconds of the server's clock through the session's time-sync models), each pass's
+//! `passes/NAME/trajectory.tum` (its poses from start to stop), and the scan matcher's grid as
+//! map_server `grid.pgm` + `grid.yaml` and `grid.png` (in the session's frame).
+
+use std::io::Write;
+
+use serde::Serialize;
+
+use scan3d_protocol::{Body, Frame, PassEvent, SensorId};
+use scan3d_slam::map_image::{Thresholds, write_pgm, write_png_with_trajectory, write_yaml};
+use scan3d_slam::mapper::{Mapper, MapperConfig};
+use scan3d_slam::offline::{RangeLimits, raster};
+use scan3d_slam::pose::Pose2;
+use scan3d_slam::relations::TrajectoryPose;
+
+use super::order::StreamId;
+use super::snapshot::SnapshotWriter;
+use super::{PipelineError, Stage, StageContext};
+use crate::pose::scan_matching::revolution_scan;
+use crate::pose::timesync::SessionClock;
+
+/// The range limits of the live pose stage: `scan3d slam SESSION_DIR`'s defaults (0.1 m and up),
+/// so the offline command gives the poses the live daemon gave.
+pub const POSE_RANGE_LIMITS: RangeLimits = RangeLimits {
+    min_range: 0.1,
+    max_range: None,
+    no_return: None,
+};
+
+/// Where `base` is now, for `scan3d status`.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct PoseStatus {
+    /// x in the room frame (the session's own before a pass anchors it), m.
+    pub x: f64,
+    /// y, m.
+    pub y: f64,
+    /// Heading of `base`'s x axis, degrees.
+    pub yaw_deg: f64,
+    /// Covariance over (x, y, yaw), row-major, m² / m·rad / rad².
+    pub covariance: [f64; 9],
+    /// Length of the path so far, m.
+    pub path_m: f64,
+    /// Revolutions matched.
+    pub revolutions: u64,
+    /// Whether the trajectory is anchored in the room (a pass started).
+    pub anchored: bool,
+}
+
+/// The live 2D trajectory of `base` from the RPLidar's revolutions.
+pub struct PoseStage {
+    mapper: Mapper,
+    limits: RangeLimits,
+    /// The RPLidar's pose in `base` (x, y, yaw).
+    mount: Pose2,
+    /// Poses in the session's frame, edge clock seconds.
+    poses: Vec<TrajectoryPose>,
+    path_m: f64,
+    /// Session frame → room frame, once anchored.
+    anchor: Option<Pose2>,
+    passes: Vec<Pass>,
+    clock: SessionClock,
+}
+
+/// One trolley pass: a name and its span of edge time.
+#[derive(Debug, Clone, PartialEq)]
+struct Pass {
+    name: String,
+    start_ns: u64,
+    stop_ns: Option<u64>,
+}
+
+impl std::fmt::Debug for PoseStage {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("PoseStage")
+            .field("poses", &self.poses.len())
+            .field("path_m", &self.path_m)
+            .field("anchor", &self.anchor)
+            .finish_non_exhaustive()
+    }
+}
+
+impl PoseStage {
+    /// A stage matching with `config` and [`POSE_RANGE_LIMITS`], the lidar at `mount` in `base`.
+    pub fn new(config: MapperConfig, mount: Pose2) -> Self {
+        PoseStage {
+            mapper: Mapper::new(config),
+            limits: POSE_RANGE_LIMITS,
+            mount,
+            poses: Vec::new(),
+            path_m: 0.0,
+            anchor: None,
+            passes: Vec::new(),
+            clock: SessionClock::new(),
+        }
+    }
+
+    /// The trajectory so far, in the session's frame (edge clock seconds).
+    pub fn poses(&self) -> &[TrajectoryPose] {
+        &self.poses
+    }
+
+    /// Says that `base` stood at `room` (room frame) at edge time `t_ns`: the whole trajectory
+    /// is reported in the room frame from now on. The pose at `t_ns` is the one of the newest
+    /// revolution at or before it (the first one if none).
+    /// The newest pose at or before it is carried to `t_ns` with its velocity.
+    pub fn anchor(&mut self, t_ns: u64, room: Pose2) {
+        let t = t_ns as f64 * 1e-9;
+        let at = match self.poses.iter().rev().find(|p| p.timestamp.seconds <= t) {
+            Some(p) => {
+                let dt = t - p.timestamp.seconds;
+                let v = p.velocity.unwrap_or_default();
+                Pose2 {
+                    x: p.pose.x + v.x * dt,
+                    y: p.pose.y + v.y * dt,
+                    theta: p.pose.theta + v.theta * dt,
+                }
+            }
+            None => self.poses.first().map_or_else(Pose2::default, |p| p.pose),
+        };
+        self.anchor = Some(room.compose(&at.inverse()));
+    }
+
+    /// Names of the passes seen, in start order.
+    pub fn passes(&self) -> Vec<String> {
+        self.passes.iter().map(|p| p.name.clone()).collect()
+    }
+
+    fn on_pass(&mut self, t_ns: u64, event: &PassEvent) {
+        match event {
+            PassEvent::Started {
+                name,
+                x_m,
+                y_m,
+                heading_deg,
+            } => {
+                let room = Pose2 {
+                    x: *x_m,
+                    y: *y_m,
+                    theta: heading_deg.to_radians(),
+                };
+                if ![room.x, room.y, room.theta].iter().all(|v| v.is_finite()) {
+                    tracing::warn!(pass = %name, "a pass start with a non-finite pose: not anchored");
+                    return;
+                }
+                self.anchor(t_ns, room);
+                self.passes.push(Pass {
+                    name: name.clone(),
+                    start_ns: t_ns,
+                    stop_ns: None,
+                });
+            }
+            PassEvent::Stopped { name } => {
+                match self.passes.iter_mut().rev().find(|p| &p.name == name) {
+                    Some(pass) if pass.stop_ns.is_none() => pass.stop_ns = Some(t_ns),
+                    _ => tracing::warn!(pass = %name, "a pass stop without its start"),
+                }
+            }
+        }
+    }
+
+    /// The time-sync models the snapshot maps edge times with.
+    pub fn set_clock(&mut self, clock: SessionClock) {
+        self.clock = clock;
+    }
+
+    /// A pose of the session's frame in the reported frame (the room's once anchored).
+    fn reported(&self, pose: &Pose2) -> Pose2 {
+        self.anchor.map_or(*pose, |a| a.compose(pose))
+    }
+
+    /// Where `base` is now; `None` before the first revolution.
+    pub fn status(&self) -> Option<PoseStatus> {
+        let last = self.poses.last()?;
+        let pose = self.reported(&last.pose);
+        let mut covariance = last.covariance.unwrap_or([[0.0; 3]; 3]);
+        if let Some(anchor) = self.anchor {
+            covariance = rotate_covariance(&covariance, anchor.theta);
+        }
+        Some(PoseStatus {
+            x: pose.x,
+            y: pose.y,
+            yaw_deg: pose.theta.to_degrees(),
+            covariance: [0, 1, 2, 3, 4, 5, 6, 7, 8].map(|k| covariance[k / 3][k % 3]),
+            path_m: self.path_m,
+            revolutions: self.poses.len() as u64,
+            anchored: self.anchor.is_some(),
+        })
+    }
+
+    /// Writes the trajectory as TUM lines: t in UNIX seconds of the server's clock when a
+    /// time-sync model covers the session, else in edge-clock seconds (said in a comment).
+    pub fn write_tum(&self, out: &mut dyn Write) -> std::io::Result<()> {
+        self.write_tum_between(out, 0, u64::MAX)
+    }
+
+    /// [`PoseStage::write_tum`] of the poses from edge time `from_ns` to `to_ns`.
+    fn write_tum_between(
+        &self,
+        out: &mut dyn Write,
+        from_ns: u64,
+        to_ns: u64,
+    ) -> std::io::Result<()> {
+        let on_server = !self.clock.models().is_empty();
+        if !on_server {
+            writeln!(
+                out,
+                "# t: edge clock seconds (no time-sync model in this session)"
+            )?;
+        }
+        let (from, to) = (from_ns as f64 * 1e-9, to_ns as f64 * 1e-9);
+        for p in &self.poses {
+            if p.timestamp.seconds < from || p.timestamp.seconds > to {
+                continue;
+            }
+            let edge_s = p.timestamp.seconds;
+            let t = if on_server {
+                let edge_ns = (edge_s * 1e9).round().max(0.0) as u64;
+                self.clock
+                    .to_server_ns(edge_ns)
+                    .map_or(edge_s, |ns| ns as f64 * 1e-9)
+            } else {
+                edge_s
+            };
+            let pose = self.reported(&p.pose);
+            let (qz, qw) = ((pose.theta / 2.0).sin(), (pose.theta / 2.0).cos());
+            writeln!(
+                out,
+                "{t:.6} {:.6} {:.6} 0 0 0 {qz:.9} {qw:.9}",
+                pose.x, pose.y
+            )?;
+        }
+        Ok(())
+    }
+}
+
+/// A pass name as one path component: letters, digits, `.`, `_` and `-` kept, anything else
+/// `_`, and never `.` or `..` alone.
+fn path_safe(name: &str) -> String {
+    let safe: String = name
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-') {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect();
+    if safe.is_empty() || safe.chars().all(|c| c == '.') {
+        format!("_{safe}")
+    } else {
+        safe
+    }
+}
+
+/// Σ' = R Σ Rᵀ for a rotation of the frame by `theta` (x, y rotate; yaw does not).
+fn rotate_covariance(c: &[[f64; 3]; 3], theta: f64) -> [[f64; 3]; 3] {
+    let (s, co) = theta.sin_cos();
+    let r = [[co, -s, 0.0], [s, co, 0.0], [0.0, 0.0, 1.0]];
+    let mut rc = [[0.0; 3]; 3];
+    for i in 0..3 {
+        for j in 0..3 {
+            rc[i][j] = (0..3).map(|k| r[i][k] * c[k][j]).sum();
+        }
+    }
+    let mut out = [[0.0; 3]; 3];
+    for i in 0..3 {
+        for j in 0..3 {
+            out[i][j] = (0..3).map(|k| rc[i][k] * r[j][k]).sum();
+        }
+    }
+    out
+}
+
+impl Stage for PoseStage {
+    fn name(&self) -> &'static str {
+        "pose"
+    }
+
+    fn streams(&self) -> &'static [StreamId] {
+        &[StreamId::Rplidar, StreamId::Pass]
+    }
+
+    fn on_frame(&mut self, _ctx: &mut StageContext, frame: &Frame) {
+        let revolution = match &frame.body {
+            Body::Revolution(revolution) => revolution,
+            Body::Mounts(mounts) => {
+                if let Some(m) = mounts
+                    .sensors
+                    .iter()
+                    .find(|m| m.sensor == SensorId::RPLIDAR)
+                {
+                    self.mount = Pose2 {
+                        x: m.x_m,
+                        y: m.y_m,
+                        theta: m.yaw_deg.to_radians(),
+                    };
+                }
+                return;
+            }
+            Body::Pass(marker) => {
+                self.on_pass(marker.t_ns, &marker.event);
+                return;
+            }
+            _ => return,
+        };
+        if revolution.sensor != SensorId::RPLIDAR {
+            return;
+        }
+        let scan = revolution_scan(revolution, &self.limits, &self.mount);
+        let result = self.mapper.add_scan(&scan);
+        if let Some(previous) = self.poses.last() {
+            let (dx, dy) = (
+                result.pose.x - previous.pose.x,
+                result.pose.y - previous.pose.y,
+            );
+            self.path_m += dx.hypot(dy);
+        }
+        self.poses.push(TrajectoryPose::of(&result));
+    }
+
+    fn snapshot(&mut self, out: &mut SnapshotWriter) -> Result<(), PipelineError> {
+        if out.snapshot.position.is_some() || self.poses.is_empty() {
+            return Ok(());
+        }
+        let dir = out.snapshot.dir.clone();
+        let failed = |name: &str, source: std::io::Error| PipelineError::Write {
+            path: dir.join(name),
+            source,
+        };
+        let mut tum = Vec::new();
+        self.write_tum(&mut tum)
+            .map_err(|e| failed("trajectory.tum", e))?;
+        out.write_file("trajectory.tum", &tum)?;
+        for pass in &self.passes {
+            let subdir = std::path::Path::new("passes").join(path_safe(&pass.name));
+            let mut tum = Vec::new();
+            self.write_tum_between(&mut tum, pass.start_ns, pass.stop_ns.unwrap_or(u64::MAX))
+                .map_err(|e| failed("passes", e))?;
+            out.write_file_in(&subdir, "trajectory.tum", &tum)?;
+        }
+        let Ok(raster) = raster(self.mapper.map().finest()) else {
+            // No cell was ever hit: no grid to write.
+            return Ok(());
+        };
+        let thresholds = Thresholds::default();
+        let mut pgm = Vec::new();
+        write_pgm(&raster, &thresholds, &mut pgm).map_err(|e| failed("grid.pgm", e))?;
+        let mut yaml = Vec::new();
+        write_yaml(&raster, "grid.pgm", &mut yaml).map_err(|e| failed("grid.yaml", e))?;
+        let poses: Vec<Pose2> = self.poses.iter().map(|p| p.pose).collect();
+        let mut png = Vec::new();
+        write_png_with_trajectory(&raster, &thresholds, &poses, &mut png)
+            .map_err(|e| failed("grid.png", e))?;
+        out.write_file("grid.pgm", &pgm)?;
+        out.write_file("grid.yaml", &yaml)?;
+        out.write_file("grid.png", &png)?;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_anchor_carries_the_whole_trajectory_into_the_room_frame() {
+        let mut stage = PoseStage::new(MapperConfig::default(), Pose2::default());
+        for (i, x) in [0.0, 0.5, 1.0].into_iter().enumerate() {
+            stage.poses.push(TrajectoryPose::new(
+                scan3d_slam::text::Timestamp::from_seconds(i as f64),
+                Pose2 {
+                    x,
+                    y: 0.0,
+                    theta: 0.0,
+                },
+            ));
+        }
+        // At t = 1 s base stood at (2, 3) facing +y.
+        stage.anchor(
+            1_000_000_000,
+            Pose2 {
+                x: 2.0,
+                y: 3.0,
+                theta: std::f64::consts::FRAC_PI_2,
+            },
+        );
+        let now = stage.status().expect("a pose");
+        assert!(
+            (now.x - 2.0).abs() < 1e-9 && (now.y - 3.5).abs() < 1e-9,
+            "{now:?}"
+        );
+        assert!((now.yaw_deg - 90.0).abs() < 1e-9);
+        let mut tum = Vec::new();
+        stage.write_tum(&mut tum).unwrap();
+        let text = String::from_utf8(tum).unwrap();
+        let lines: Vec<&str> = text.lines().collect();
+        assert!(lines[0].starts_with("# t: edge clock"));
+        assert_eq!(
+            lines[1],
+            "0.000000 2.000000 2.500000 0 0 0 0.707106781 0.707106781"
+        );
+    }
+
+    #[test]
+    fn a_rotated_frame_rotates_the_position_covariance_and_keeps_the_yaw_variance() {
+        let c = [[4.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.01]];
+        let r = rotate_covariance(&c, std::f64::consts::FRAC_PI_2);
+        assert!((r[0][0] - 1.0).abs() < 1e-12 && (r[1][1] - 4.0).abs() < 1e-12);
+        assert!((r[2][2] - 0.01).abs() < 1e-15);
+    }
+}
