@@ -140,13 +140,21 @@ impl OperatorRig {
     /// with `scan3d-edge check-config` and starts the edge daemon. Logs go to
     /// `root/{rig,serve,edge}.log`.
     pub fn start(root: &Path, edge_name: &str) -> Self {
+        Self::start_with_rig_args(root, edge_name, &[])
+    }
+
+    /// [`OperatorRig::start`] with more `scan3d-sim rig` options (`--trolley PATH.toml`).
+    pub fn start_with_rig_args(root: &Path, edge_name: &str, rig_args: &[&str]) -> Self {
         let scan3d = binary("scan3d", "scan3d-server");
         let edge = binary("scan3d-edge", "scan3d-edge");
         let sim = binary("scan3d-sim", "scan3d-hw-sim");
         let p = |name: &str| root.join(name);
 
         // The head: it prints its four paths once they exist.
-        let mut rig = spawn(&sim, &["rig", "--dir", &utf8(&p("head"))], &p("rig.log"));
+        let head = utf8(&p("head"));
+        let mut args = vec!["rig", "--dir", head.as_str()];
+        args.extend_from_slice(rig_args);
+        let mut rig = spawn(&sim, &args, &p("rig.log"));
         let stdout = rig.0.stdout.take().expect("rig stdout");
         let printed: Vec<String> = BufReader::new(stdout)
             .lines()
