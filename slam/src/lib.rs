@@ -29,6 +29,7 @@ pub mod pose;
 pub mod relations;
 pub mod surface;
 pub mod text;
+pub mod tum;
 
 #[cfg(test)]
 mod testing;

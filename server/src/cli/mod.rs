@@ -69,6 +69,9 @@ pub enum Command {
     Slam(slam::SlamArgs),
     /// Score a 2D trajectory against reference relations (Kümmerle et al. 2009).
     SlamEval(slam::SlamEvalArgs),
+    /// Absolute error of a TUM trajectory (a pass's trajectory.tum) against a reference in the
+    /// same frame (the simulator's --truth): position and heading RMSE.
+    TrajEval(slam::TrajEvalArgs),
 }
 
 /// Where a server keeps its recordings: `--data-dir`, or the `data_dir` of `--config`.
@@ -113,5 +116,6 @@ pub fn execute(cli: Cli, out: &mut dyn Write) -> anyhow::Result<()> {
         Command::ResolutionSweep(args) => resolution_sweep::run(&args, out),
         Command::Slam(args) => slam::run(&args, out),
         Command::SlamEval(args) => slam::run_eval(&args, out),
+        Command::TrajEval(args) => slam::run_traj_eval(&args, out),
     }
 }

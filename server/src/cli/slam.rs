@@ -552,3 +552,56 @@ mod tests {
         }
     }
 }
+
+/// Options of `scan3d traj-eval`.
+#[derive(Debug, clap::Args)]
+pub struct TrajEvalArgs {
+    /// The estimate: TUM lines `t x y z qx qy qz qw` (e.g. a snapshot's `trajectory.tum` or a
+    /// pass's `passes/NAME/trajectory.tum`).
+    pub estimate: PathBuf,
+    /// The reference in the same frame and clock (e.g. `scan3d-sim rig --truth`).
+    pub reference: PathBuf,
+    /// Compare only the estimated poses from this time on (s, the files' clock).
+    #[arg(long, value_name = "T")]
+    pub from: Option<f64>,
+    /// Compare only the estimated poses up to this time (s).
+    #[arg(long, value_name = "T")]
+    pub to: Option<f64>,
+    /// One JSON object instead of the text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Runs `scan3d traj-eval`.
+pub fn run_traj_eval(args: &TrajEvalArgs, out: &mut dyn Write) -> anyhow::Result<()> {
+    use scan3d_slam::tum::{read_tum, trajectory_error};
+    let read = |path: &Path| -> anyhow::Result<Vec<scan3d_slam::tum::TumPose>> {
+        let file = File::open(path).with_context(|| format!("opening {}", path.display()))?;
+        read_tum(BufReader::new(file)).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
+    };
+    let estimate = read(&args.estimate)?;
+    let reference = read(&args.reference)?;
+    let Some(error) = trajectory_error(&estimate, &reference, args.from, args.to) else {
+        bail!(
+            "no pose of {} lies within the time span of {} (are both on the same clock?)",
+            args.estimate.display(),
+            args.reference.display()
+        );
+    };
+    if args.json {
+        writeln!(out, "{}", serde_json::to_string(&error)?)?;
+    } else {
+        writeln!(
+            out,
+            "{} poses compared ({} outside the reference): position RMSE {:.4} m (max {:.4} m), \
+             heading RMSE {:.3}° (max {:.3}°)",
+            error.compared,
+            error.outside,
+            error.position_rmse_m,
+            error.position_max_m,
+            error.heading_rmse_deg,
+            error.heading_max_deg
+        )?;
+    }
+    Ok(())
+}

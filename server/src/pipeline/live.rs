@@ -29,7 +29,7 @@ use super::{PipelineError, PipelineSettings, SessionPipeline, SessionStatus, Sna
 use crate::ingest::control::{ControlReply, LiveProducts, ProductRequest};
 use crate::ingest::scan_progress::ScanProgress;
 use crate::ingest::server::{IngestEvent, IngestSink, unix_now_ns};
-use crate::recording::{SeqRanges, SessionItem, session_dir, visit_session_items};
+use crate::recording::{SeqRanges, SessionReader, SessionRecord, session_dir};
 use scan3d_protocol::ClockModel;
 
 /// How the live driver runs: the `[pipeline]` section of `server.toml` beyond the pipeline's
@@ -114,6 +114,12 @@ impl Sequencer {
             self.owed.insert(seq);
             Offer::Owe
         }
+    }
+
+    /// The smallest sequence number not processed yet: a catch-up reads the recording from
+    /// there, so its cost follows what is owed, not the session's length.
+    pub fn resume_from(&self) -> u64 {
+        self.done.prefix().map_or(0, |last| last.saturating_add(1))
     }
 
     /// A frame the queue had no room for.
@@ -1014,10 +1020,12 @@ impl WorkerRun {
     fn catch_up(&mut self) {
         lock(&self.shared.progress).catch_ups += 1;
         let session_dir = self.session_dir.clone();
-        let visited = visit_session_items(&session_dir, |item| {
-            match item {
-                // Server-made frames (commands, clock models) number separately; no map data.
-                SessionItem::Frame(recorded) => {
+        let from = self.sequencer.resume_from();
+        let reader = SessionReader::new(&session_dir).from_seq(from);
+        let visited = reader.visit(|record| {
+            match record {
+                // Server-made frames (commands) number separately; no map data.
+                SessionRecord::Frame(recorded) => {
                     if !recorded.frame.body.is_server_made()
                         && self.sequencer.from_recording(recorded.frame.seq)
                     {
@@ -1025,13 +1033,15 @@ impl WorkerRun {
                     }
                 }
                 // Recorded raw (a body this server cannot decode): its seq is no gap.
-                SessionItem::Undecodable(frame) => {
+                SessionRecord::Undecodable(frame) => {
                     if self.sequencer.from_recording(frame.seq)
                         && let Some(pipeline) = lock(&self.shared.pipeline).running()
                     {
                         pipeline.on_undecodable(frame.seq);
                     }
                 }
+                // Clock models and other server records reach the worker through ingest.
+                SessionRecord::Server(_) => {}
             }
             Ok(())
         });
@@ -1147,6 +1157,21 @@ mod tests {
             assert_eq!(sequencer.offer(seq), Offer::Process);
         }
         assert_eq!(sequencer.owed(), 0);
+    }
+
+    #[test]
+    fn a_catch_up_reads_from_the_first_frame_not_processed() {
+        let mut sequencer = Sequencer::default();
+        assert_eq!(sequencer.resume_from(), 0);
+        for seq in 0..5 {
+            sequencer.offer(seq);
+        }
+        assert_eq!(sequencer.resume_from(), 5);
+        sequencer.owe(5);
+        assert_eq!(sequencer.offer(6), Offer::Owe);
+        assert_eq!(sequencer.resume_from(), 5, "5 and 6 are owed");
+        assert!(sequencer.from_recording(5) && sequencer.from_recording(6));
+        assert_eq!(sequencer.resume_from(), 7);
     }
 
     #[test]
