@@ -97,7 +97,7 @@ mod tests {
     use crate::noise::RangeNoise;
     use crate::stepper::Pca9685Emulator;
     use crate::sweep::{SweepEmulator, SweepEmulatorConfig};
-    use crate::world::{Aabb, Material, Primitive, Shape, World};
+    use crate::world::World;
 
     const MS: u64 = 1_000_000;
 
@@ -173,23 +173,7 @@ mod tests {
 
     /// A closed opaque 8 × 6 × 3 m room: walls, floor and ceiling are 0.1 m slabs.
     fn shell() -> Arc<World> {
-        let b = |name: &str, min: [f64; 3], max: [f64; 3]| Primitive {
-            name: name.to_owned(),
-            shape: Shape::Box(Aabb::new(min, max)),
-            material: Material::Opaque,
-        };
-        let world = World::new(
-            Aabb::new([0.0; 3], [8.0, 6.0, 3.0]),
-            vec![
-                b("floor", [-0.1, -0.1, -0.1], [8.1, 6.1, 0.0]),
-                b("ceiling", [-0.1, -0.1, 3.0], [8.1, 6.1, 3.1]),
-                b("south", [-0.1, -0.1, 0.0], [8.1, 0.0, 3.0]),
-                b("north", [-0.1, 6.0, 0.0], [8.1, 6.1, 3.0]),
-                b("west", [-0.1, -0.1, 0.0], [0.0, 6.1, 3.0]),
-                b("east", [8.0, -0.1, 0.0], [8.1, 6.1, 3.0]),
-            ],
-        );
-        Arc::new(world.expect("a valid room"))
+        Arc::new(World::shell([8.0, 6.0, 3.0], Vec::new()).expect("a valid room"))
     }
 
     /// Range from `o` along `d` to the inside of the box [0, 8] × [0, 6] × [0, 3], by hand.

@@ -269,6 +269,27 @@ pub const GLASS_P_RETURN: f64 = 0.3;
 pub const GLASS_P_PASS: f64 = 0.5;
 
 impl World {
+    /// A closed, opaque room with its interior `[0, size]` (walls, floor and ceiling 0.1 m slabs)
+    /// and `inside` added: every return is exact, for tests that check ranges by hand.
+    pub fn shell(size: [f64; 3], inside: Vec<Primitive>) -> Result<Self, WorldError> {
+        let [x, y, z] = size;
+        let slab = |name: &str, min: [f64; 3], max: [f64; 3]| Primitive {
+            name: name.to_owned(),
+            shape: Shape::Box(Aabb::new(min, max)),
+            material: Material::Opaque,
+        };
+        let mut primitives = vec![
+            slab("floor", [-0.1, -0.1, -0.1], [x + 0.1, y + 0.1, 0.0]),
+            slab("ceiling", [-0.1, -0.1, z], [x + 0.1, y + 0.1, z + 0.1]),
+            slab("south", [-0.1, -0.1, 0.0], [x + 0.1, 0.0, z]),
+            slab("north", [-0.1, y, 0.0], [x + 0.1, y + 0.1, z]),
+            slab("west", [-0.1, -0.1, 0.0], [0.0, y + 0.1, z]),
+            slab("east", [x, -0.1, 0.0], [x + 0.1, y + 0.1, z]),
+        ];
+        primitives.extend(inside);
+        World::new(Aabb::new([0.0; 3], size), primitives)
+    }
+
     /// A world from its room interior and primitives, after checking them (see
     /// [`WorldError::Invalid`]).
     pub fn new(room: Aabb, primitives: Vec<Primitive>) -> Result<Self, WorldError> {

@@ -54,24 +54,12 @@ y = 3.0
 
 /// A closed opaque 8 × 6 × 3 m room (0.1 m slabs) with a pillar, so every return is exact.
 fn room() -> Arc<World> {
-    let b = |name: &str, min: [f64; 3], max: [f64; 3]| Primitive {
-        name: name.to_owned(),
-        shape: Shape::Box(Aabb::new(min, max)),
+    let pillar = Primitive {
+        name: "pillar".to_owned(),
+        shape: Shape::Box(Aabb::new([4.0, 2.5, 0.0], [4.6, 3.5, 3.0])),
         material: Material::Opaque,
     };
-    let world = World::new(
-        Aabb::new([0.0; 3], [8.0, 6.0, 3.0]),
-        vec![
-            b("floor", [-0.1, -0.1, -0.1], [8.1, 6.1, 0.0]),
-            b("ceiling", [-0.1, -0.1, 3.0], [8.1, 6.1, 3.1]),
-            b("south", [-0.1, -0.1, 0.0], [8.1, 0.0, 3.0]),
-            b("north", [-0.1, 6.0, 0.0], [8.1, 6.1, 3.0]),
-            b("west", [-0.1, -0.1, 0.0], [0.0, 6.1, 3.0]),
-            b("east", [8.0, -0.1, 0.0], [8.1, 6.1, 3.0]),
-            b("pillar", [4.0, 2.5, 0.0], [4.6, 3.5, 3.0]),
-        ],
-    );
-    Arc::new(world.expect("a valid room"))
+    Arc::new(World::shell([8.0, 6.0, 3.0], vec![pillar]).expect("a valid room"))
 }
 
 fn unix_now_s() -> f64 {
