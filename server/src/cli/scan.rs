@@ -116,24 +116,13 @@ impl ScanArgs {
 
 /// Runs `scan3d scan`.
 pub fn run(args: &ScanArgs, out: &mut dyn Write) -> anyhow::Result<()> {
-    let command = args.command();
-    // The server checks too; checking here gives the reason without a round trip.
-    command
-        .validate()
-        .map_err(|e| anyhow::anyhow!("invalid command: {e}"))?;
-    if !(args.timeout.is_finite() && args.timeout > 0.0) {
-        anyhow::bail!(
-            "--timeout {} is not a positive number of seconds",
-            args.timeout
-        );
-    }
-    let socket = socket_path(&args.data.resolve()?);
-    let request = CommandRequest {
-        edge: args.edge.clone(),
-        command,
-        follow: args.wait,
-        reply_timeout_s: Some(args.timeout),
-    };
+    let (socket, request) = command_request(
+        args.command(),
+        &args.edge,
+        &args.data,
+        args.wait,
+        args.timeout,
+    )?;
     let mut progress = Progress::new(args.wait && !args.json);
     let last = request_command(&socket, &request, &mut |status| {
         if !status.done {
@@ -141,8 +130,43 @@ pub fn run(args: &ScanArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         }
     })?;
     progress.finish();
-    if args.json {
-        writeln!(out, "{}", serde_json::to_string_pretty(&last)?)?;
+    print_outcome(&last, args.json, out)
+}
+
+/// Checks `command` and `timeout` here (the server checks too; here gives the reason without a
+/// round trip) and makes the control socket's request for `edge`, following it if `follow`.
+pub(crate) fn command_request(
+    command: Command,
+    edge: &str,
+    data: &DataDirArgs,
+    follow: bool,
+    timeout: f64,
+) -> anyhow::Result<(std::path::PathBuf, CommandRequest)> {
+    command
+        .validate()
+        .map_err(|e| anyhow::anyhow!("invalid command: {e}"))?;
+    if !(timeout.is_finite() && timeout > 0.0) {
+        anyhow::bail!("--timeout {timeout} is not a positive number of seconds");
+    }
+    let socket = socket_path(&data.resolve()?);
+    let request = CommandRequest {
+        edge: edge.to_owned(),
+        command,
+        follow,
+        reply_timeout_s: Some(timeout),
+    };
+    Ok((socket, request))
+}
+
+/// Prints a command's last status (JSON, or its detail line when it succeeded) and fails with
+/// the detail when it did not.
+pub(crate) fn print_outcome(
+    last: &CommandStatus,
+    json: bool,
+    out: &mut dyn Write,
+) -> anyhow::Result<()> {
+    if json {
+        writeln!(out, "{}", serde_json::to_string_pretty(last)?)?;
     } else if last.ok {
         writeln!(out, "{}", last.detail)?;
     }

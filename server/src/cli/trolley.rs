@@ -18,8 +18,8 @@ use std::io::Write;
 use scan3d_protocol::Command;
 
 use super::DataDirArgs;
-use super::scan::At;
-use crate::ingest::control::{CommandRequest, request_command, socket_path};
+use super::scan::{At, command_request, print_outcome};
+use crate::ingest::control::request_command;
 
 /// Options of `scan3d trolley`.
 #[derive(Debug, clap::Args)]
@@ -108,39 +108,22 @@ impl TrolleyArgs {
 
 /// Runs `scan3d trolley`.
 pub fn run(args: &TrolleyArgs, out: &mut dyn Write) -> anyhow::Result<()> {
-    let command = args.command()?;
-    command
-        .validate()
-        .map_err(|e| anyhow::anyhow!("invalid command: {e}"))?;
     let common = args.common();
-    if !(common.timeout.is_finite() && common.timeout > 0.0) {
-        anyhow::bail!(
-            "--timeout {} is not a positive number of seconds",
-            common.timeout
-        );
-    }
-    let socket = socket_path(&common.data.resolve()?);
-    let request = CommandRequest {
-        edge: common.edge.clone(),
-        command,
-        follow: false,
-        reply_timeout_s: Some(common.timeout),
-    };
+    let (socket, request) = command_request(
+        args.command()?,
+        &common.edge,
+        &common.data,
+        false,
+        common.timeout,
+    )?;
     let last = request_command(&socket, &request, &mut |_| {})?;
-    if common.json {
-        writeln!(out, "{}", serde_json::to_string_pretty(&last)?)?;
-    } else if last.ok {
-        writeln!(out, "{}", last.detail)?;
-    }
-    if !last.ok {
-        anyhow::bail!("{}", last.detail);
-    }
-    Ok(())
+    print_outcome(&last, common.json, out)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::ingest::control::socket_path;
     use clap::Parser;
 
     fn parse(args: &[&str]) -> Result<TrolleyArgs, String> {
