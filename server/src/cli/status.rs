@@ -78,7 +78,7 @@ fn columns(rows: &[Vec<String>], left: usize) -> String {
 
 /// The report for a human: one line per session (clock sync as its error bound and skew:
 /// the raw offset between two unrelated monotonic clocks means nothing to read), then each
-/// edge's sensors and static scans.
+/// edge's sensors, the head's live pose per session and the static scans.
 pub fn table(report: &Value) -> String {
     use std::fmt::Write as _;
     let edges = report["edges"].as_array().cloned().unwrap_or_default();
@@ -184,6 +184,31 @@ pub fn table(report: &Value) -> String {
                 let _ = writeln!(s, "  {}", format!("{line}  {reason}").trim_end());
             }
         }
+        let sessions = edge["sessions"].as_array().cloned().unwrap_or_default();
+        let posed: Vec<&Value> = sessions.iter().filter(|s| s["pose"].is_object()).collect();
+        if !posed.is_empty() {
+            let _ = writeln!(s, "\n{name}: pose of the head (live, from the RPLidar)");
+            for session in posed {
+                let pose = &session["pose"];
+                let c = |i: usize| pose["covariance"][i].as_f64().unwrap_or(f64::NAN);
+                let frame = if pose["anchored"] == Value::Bool(true) {
+                    "room frame"
+                } else {
+                    "session frame: no pass started"
+                };
+                let _ = writeln!(
+                    s,
+                    "  {}: x {:.3} m, y {:.3} m, yaw {:.1}° (σ {:.0} mm, {:.2}°), path {:.1} m ({frame})",
+                    session["id"].as_str().unwrap_or("?"),
+                    pose["x"].as_f64().unwrap_or(f64::NAN),
+                    pose["y"].as_f64().unwrap_or(f64::NAN),
+                    pose["yaw_deg"].as_f64().unwrap_or(f64::NAN),
+                    (c(0) + c(4)).sqrt() * 1e3,
+                    c(8).sqrt().to_degrees(),
+                    pose["path_m"].as_f64().unwrap_or(f64::NAN),
+                );
+            }
+        }
         let scans = edge["static_scans"].as_array().cloned().unwrap_or_default();
         if !scans.is_empty() {
             let _ = writeln!(s, "\n{name}: static scans");
@@ -218,7 +243,10 @@ mod tests {
                  "occupied_voxels": 90, "free_voxels": 1200, "lag_ms": 35, "lag_frames": 2,
                  "timesync": {"offset_ns": -1_796_277_375_188_796_000i64, "skew_ppm": 1.234,
                               "error_bound_ns": 250_000},
-                 "metrics": null}],
+                 "metrics": null,
+                 "pose": {"x": 1.5082, "y": 2.1798, "yaw_deg": -89.75,
+                          "covariance": [9e-6, 0.0, 0.0, 0.0, 7e-6, 0.0, 0.0, 0.0, 4e-6],
+                          "path_m": 16.39, "revolutions": 475, "anchored": true}}],
              "sensors": [{"kind": "sweep", "model": "Sweep", "state": "lost",
                           "reason": "unplugged", "frames_per_s": 2.0, "samples_per_s": 1000.0,
                           "last_data_age_s": 4.25}],
@@ -274,6 +302,12 @@ mod tests {
         assert!(
             table.contains(
                 "scan 0 at \"door\" (00000000000000ab): running, 12 revolutions, yaw 43.2° of 360.0°, 1 late steps"
+            ),
+            "{table}"
+        );
+        assert!(
+            table.contains(
+                "00000000000000ab: x 1.508 m, y 2.180 m, yaw -89.8° (σ 4 mm, 0.11°), path 16.4 m (room frame)"
             ),
             "{table}"
         );
