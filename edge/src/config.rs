@@ -556,11 +556,7 @@ impl EdgeConfig {
 
     /// Reads, parses and validates the configuration file at `path`.
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|error| ConfigError::Read {
-            path: path.to_path_buf(),
-            error,
-        })?;
-        Self::from_toml_str(&text, path)
+        Self::from_toml_str(&scan3d_service::config::read_text(path)?, path)
     }
 
     /// Checks every setting the daemon will use; the daemon refuses to start on an error.

@@ -42,7 +42,7 @@ use std::path::Path;
 use std::sync::Arc;
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
-use scan3d_service::config::{ConfigError, parse_toml};
+use scan3d_service::config::{ConfigError, parse_toml, read_text};
 use serde::Deserialize;
 use toml::Spanned;
 
@@ -351,11 +351,7 @@ impl TrolleyPath {
 
     /// Reads and parses a path file.
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|error| ConfigError::Read {
-            path: path.to_path_buf(),
-            error,
-        })?;
-        Self::from_toml_str(&text, path)
+        Self::from_toml_str(&read_text(path)?, path)
     }
 
     /// A path from settings built in code; the error names the waypoint (by index) or setting.

@@ -46,11 +46,15 @@ pub fn parse_toml<T: DeserializeOwned>(text: &str, origin: &Path) -> Result<T, C
 
 /// Reads and parses the TOML file at `path`.
 pub fn load_toml<T: DeserializeOwned>(path: &Path) -> Result<T, ConfigError> {
-    let text = std::fs::read_to_string(path).map_err(|error| ConfigError::Read {
+    parse_toml(&read_text(path)?, path)
+}
+
+/// Reads a configuration file's text; a failure is [`ConfigError::Read`] naming the path.
+pub fn read_text(path: &Path) -> Result<String, ConfigError> {
+    std::fs::read_to_string(path).map_err(|error| ConfigError::Read {
         path: path.to_path_buf(),
         error,
-    })?;
-    parse_toml(&text, path)
+    })
 }
 
 #[cfg(test)]
