@@ -263,8 +263,6 @@ pub struct StageContext {
     /// current frame, with their position; the assembly stage fills it, later stages transform
     /// or consume it. Emptied after each frame.
     pub rays: Vec<NewRays>,
-    /// Points the map stage inserted for the current frame (after filters and the range cut).
-    pub inserted_points: u64,
 }
 
 /// One stage: takes frames in sample-time order, keeps its products.
@@ -621,6 +619,9 @@ impl SessionPipeline {
             }
             return;
         };
+        if !self.lanes.iter().any(|lane| lane.takes(stream)) {
+            return;
+        }
         let frame = Arc::new(frame.clone());
         for index in 0..self.lanes.len() {
             if !self.lanes[index].takes(stream) {
@@ -628,7 +629,7 @@ impl SessionPipeline {
             }
             let lane = &mut self.lanes[index];
             // An untimed frame takes its place at the lane's newest time.
-            let t = t_ns.unwrap_or_else(|| lane_frontier(&lane.queue));
+            let t = t_ns.unwrap_or_else(|| lane.queue.frontier_ns().unwrap_or(0));
             let mut out = Vec::new();
             let mut releases = Vec::new();
             lane.queue
@@ -670,7 +671,6 @@ impl SessionPipeline {
                 self.stages[stage].on_frame(ctx, &ordered.item);
             }
             ctx.rays.clear();
-            ctx.inserted_points = 0;
         }
     }
 
@@ -695,7 +695,6 @@ impl SessionPipeline {
                 self.stages[stage].flush(ctx);
             }
             ctx.rays.clear();
-            ctx.inserted_points = 0;
         }
     }
 
@@ -859,11 +858,6 @@ impl SessionPipeline {
             .expect("the assembly stage at its index");
         std::mem::replace(assembly, AssemblyStage::new(false)).into_bundles()
     }
-}
-
-/// The newest key a lane's queue has seen (where an untimed frame takes its place).
-fn lane_frontier<T>(queue: &OrderedQueue<T>) -> u64 {
-    queue.frontier_ns().unwrap_or(0)
 }
 
 // The daemon runs each session's pipeline on a worker thread.

@@ -364,7 +364,6 @@ impl Stage for MapStage {
             };
             let n = new.rays.points.len() as u64;
             self.points += n;
-            ctx.inserted_points += n;
             let position = &mut self.positions[index];
             position.points += n;
             if self.products.octrees {
@@ -394,8 +393,6 @@ pub struct MetricsStage {
     at: Option<Instant>,
     /// Points inserted when it was computed (nothing new since: no recompute).
     points: u64,
-    /// Points inserted so far (from [`StageContext::inserted_points`]).
-    inserted: u64,
     occupied: u64,
     free: u64,
     metrics: Option<Metrics>,
@@ -408,7 +405,6 @@ impl MetricsStage {
             reference,
             at: None,
             points: 0,
-            inserted: 0,
             occupied: 0,
             free: 0,
             metrics: None,
@@ -436,14 +432,14 @@ impl MetricsStage {
         let due = self
             .at
             .is_none_or(|at| now.saturating_duration_since(at) >= METRICS_INTERVAL);
-        if !due || self.points == self.inserted {
+        if !due || self.points == maps.points() {
             return;
         }
         let leaves = metrics::leaf_map(&maps.session_map().to_octree());
         self.occupied = leaves.occupied_voxels();
         self.free = leaves.free_voxels();
         self.metrics = self.evaluate(&leaves);
-        self.points = self.inserted;
+        self.points = maps.points();
         self.at = Some(now);
     }
 
@@ -460,9 +456,9 @@ impl Stage for MetricsStage {
         "metrics"
     }
 
-    fn on_frame(&mut self, ctx: &mut StageContext, _frame: &Frame) {
-        self.inserted += ctx.inserted_points;
-    }
+    /// Nothing per frame: the numbers are computed from the map when asked
+    /// ([`MetricsStage::refresh`]) and for each snapshot.
+    fn on_frame(&mut self, _ctx: &mut StageContext, _frame: &Frame) {}
 
     fn snapshot(&mut self, out: &mut SnapshotWriter) -> Result<(), PipelineError> {
         let Some(leaves) = &out.leaves else {
