@@ -19,6 +19,7 @@
 //! take `Write`.
 
 pub mod carmen;
+pub mod fusion;
 pub mod grid;
 pub mod map_image;
 pub mod mapper;
