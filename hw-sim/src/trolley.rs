@@ -849,6 +849,134 @@ impl BaseTrajectory for TrolleyPath {
     }
 }
 
+/// Floor bumps under the trolley: its roll and pitch as band-limited functions of the distance
+/// travelled, so they change only while it moves (a floor is not level, and a trolley's wheels
+/// rock it over joints and tiles).
+///
+/// Each angle is a sum of [`FloorBumps::COMPONENTS`] sines of the distance with wavelengths
+/// drawn uniformly from `wavelength_m` and random phases (from `seed`), scaled so the angle's
+/// RMS over a long run is `rms_deg`. At 0.3 m/s wavelengths of 0.15–1 m give 0.3–2 Hz.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Deserialize, serde::Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FloorBumps {
+    /// RMS of roll and of pitch, degrees.
+    pub rms_deg: f64,
+    /// Shortest and longest wavelength along the path, m.
+    pub wavelength_m: [f64; 2],
+    /// Seed of the wavelengths and phases.
+    pub seed: u64,
+}
+
+impl Default for FloorBumps {
+    /// 0.3° RMS over 0.15–1 m: an office floor with tile joints under small castors.
+    fn default() -> Self {
+        Self {
+            rms_deg: 0.3,
+            wavelength_m: [0.15, 1.0],
+            seed: 0xB0B,
+        }
+    }
+}
+
+impl FloorBumps {
+    /// Sines per angle.
+    pub const COMPONENTS: usize = 4;
+
+    /// (amplitude rad, wave number rad/m, phase rad) of each sine of roll (`[0]`) and pitch
+    /// (`[1]`).
+    fn components(&self) -> [[(f64, f64, f64); Self::COMPONENTS]; 2] {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(self.seed);
+        // A sine of amplitude a has RMS a/√2: n of them with equal amplitude have RMS a·√(n/2).
+        let amplitude = self.rms_deg.to_radians() * (2.0 / Self::COMPONENTS as f64).sqrt();
+        let [lo, hi] = self.wavelength_m;
+        let mut out = [[(0.0, 0.0, 0.0); Self::COMPONENTS]; 2];
+        for angle in &mut out {
+            for c in angle.iter_mut() {
+                let wavelength = lo + (hi - lo) * rng.random::<f64>();
+                *c = (amplitude, 2.0 * PI / wavelength, 2.0 * PI * rng.random::<f64>());
+            }
+        }
+        out
+    }
+}
+
+/// A [`TrolleyPath`] over a bumpy floor: the path's planar motion with the roll and pitch of
+/// [`FloorBumps`] about the reference point (on the floor, so the tilt does not move it). The
+/// lidars, the IMU and `--truth` all see the tilted pose.
+#[derive(Debug, Clone)]
+pub struct BumpyTrolley {
+    path: Arc<TrolleyPath>,
+    sines: [[(f64, f64, f64); FloorBumps::COMPONENTS]; 2],
+}
+
+impl BumpyTrolley {
+    /// `path` over a floor with `bumps`.
+    pub fn new(path: Arc<TrolleyPath>, bumps: &FloorBumps) -> Self {
+        Self {
+            path,
+            sines: bumps.components(),
+        }
+    }
+
+    /// The path underneath.
+    pub fn path(&self) -> &Arc<TrolleyPath> {
+        &self.path
+    }
+
+    /// Roll and pitch (rad) and their first and second derivatives by distance, at `s` m.
+    fn tilt_at(&self, s: f64) -> [[f64; 3]; 2] {
+        self.sines.map(|angle| {
+            angle.iter().fold([0.0; 3], |[f, df, ddf], &(a, k, phase)| {
+                let (sin, cos) = (k * s + phase).sin_cos();
+                [f + a * sin, df + a * k * cos, ddf - a * k * k * sin]
+            })
+        })
+    }
+
+    /// Roll and pitch (rad) at `t_s` seconds since the rig's start.
+    pub fn roll_pitch_at(&self, t_s: f64) -> [f64; 2] {
+        let [roll, pitch] = self.tilt_at(self.path.state_at(t_s).s_m);
+        [roll[0], pitch[0]]
+    }
+
+    /// The pose and the angular velocity (room frame) at `t_s`.
+    fn pose_and_rate(&self, t_s: f64) -> (TrolleyState, Isometry3<f64>, Vector3<f64>) {
+        let st = self.path.state_at(t_s);
+        let [roll, pitch] = self.tilt_at(st.s_m);
+        let v = st.speed_m_s;
+        let yaw = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), st.heading_rad);
+        let yaw_pitch = yaw * UnitQuaternion::from_axis_angle(&Vector3::y_axis(), pitch[0]);
+        let rotation = yaw_pitch * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), roll[0]);
+        // R = Rz(ψ)·Ry(θ)·Rx(φ): ω = ψ̇ z + Rz(ψ)·θ̇ y + Rz(ψ)Ry(θ)·φ̇ x, with θ̇ = θ'(s)·v.
+        let rate = Vector3::new(0.0, 0.0, st.yaw_rate_rad_s)
+            + yaw * Vector3::new(0.0, pitch[1] * v, 0.0)
+            + yaw_pitch * Vector3::new(roll[1] * v, 0.0, 0.0);
+        let pose = Isometry3::from_parts(
+            Translation3::new(st.position_m[0], st.position_m[1], 0.0),
+            rotation,
+        );
+        (st, pose, rate)
+    }
+}
+
+impl BaseTrajectory for BumpyTrolley {
+    fn motion_at(&self, t_ns: u64) -> BaseMotion {
+        let t = t_ns as f64 * 1e-9;
+        let (st, pose, rate) = self.pose_and_rate(t);
+        // The angular acceleration by a central difference of the rate (smooth, and tiny
+        // next to the lever arm's other terms).
+        let h = 1e-4;
+        let alpha = (self.pose_and_rate(t + h).2 - self.pose_and_rate(t - h).2) / (2.0 * h);
+        BaseMotion {
+            pose,
+            angular_velocity_rad_s: rate,
+            angular_accel_rad_s2: alpha,
+            accel_m_s2: Vector3::new(st.accel_m_s2[0], st.accel_m_s2[1], 0.0),
+        }
+    }
+}
+
 /// Heading, curvature and d curvature / ds at arc length `s` along `segments`.
 fn geometry(segments: &[Segment], s: f64) -> (f64, f64, f64) {
     let i = segments
@@ -1182,5 +1310,59 @@ speed_m_s = 0.2
                 assert!((p[i] - want[i]).abs() < 1e-9, "t {t}: {p:?} vs {want:?}");
             }
         }
+    }
+
+    #[test]
+    fn floor_bumps_tilt_the_trolley_by_their_rms_only_while_it_moves_with_a_consistent_rate() {
+        let path = Arc::new(TrolleyPath::demo_room());
+        let bumps = FloorBumps::default();
+        let bumpy = BumpyTrolley::new(path.clone(), &bumps);
+        // Along the whole path: RMS roll and pitch near the configured 0.3°.
+        let n = 20_000;
+        let (mut roll2, mut pitch2) = (0.0, 0.0);
+        for k in 0..n {
+            let s = path.length_m() * f64::from(k) / f64::from(n);
+            let [roll, pitch] = bumpy.tilt_at(s);
+            roll2 += roll[0] * roll[0];
+            pitch2 += pitch[0] * pitch[0];
+        }
+        let rms = |sum: f64| (sum / f64::from(n)).sqrt().to_degrees();
+        eprintln!(
+            "floor bumps over {:.1} m: roll {:.3}°, pitch {:.3}° RMS (configured {})",
+            path.length_m(),
+            rms(roll2),
+            rms(pitch2),
+            bumps.rms_deg
+        );
+        for r in [rms(roll2), rms(pitch2)] {
+            assert!((r / bumps.rms_deg - 1.0).abs() < 0.35, "{r}");
+        }
+        // At rest the tilt does not change and nothing turns.
+        let at_rest = bumpy.motion_at(5_000_000_000);
+        assert!(at_rest.angular_velocity_rad_s.norm() < 1e-12);
+        assert_eq!(bumpy.roll_pitch_at(1.0), bumpy.roll_pitch_at(10.0));
+        // The reference point still follows the path; the angular velocity is the derivative
+        // of the pose: R(t+h) ≈ exp(ω h) R(t).
+        let mut tilted = 0usize;
+        for k in 0..400 {
+            let t = 25.0 + f64::from(k) * 0.2;
+            let ns = |t: f64| (t * 1e9).round() as u64;
+            let m = bumpy.motion_at(ns(t));
+            let p = m.pose.translation.vector;
+            let st = path.state_at(t);
+            assert!((p.x - st.position_m[0]).abs() < 1e-9 && p.z == 0.0);
+            let h = 1e-3;
+            let next = bumpy.motion_at(ns(t + h)).pose.rotation;
+            let prev = bumpy.motion_at(ns(t - h)).pose.rotation;
+            let numeric = (next * prev.inverse()).scaled_axis() / (2.0 * h);
+            assert!(
+                (numeric - m.angular_velocity_rad_s).norm() < 2e-3,
+                "t {t}: {numeric} vs {}",
+                m.angular_velocity_rad_s
+            );
+            let up = m.pose.rotation * Vector3::z();
+            tilted += usize::from(up.z < (0.1f64).to_radians().cos());
+        }
+        assert!(tilted > 40, "only {tilted} of 400 poses tilted by more than 0.1°");
     }
 }

@@ -17,6 +17,7 @@
 //! [`Mpu9250Emulator::set_who_am_i`] (wrong chip), [`Ak8963Emulator::inject_overflows`] (HOFL).
 
 mod ak8963;
+pub mod errors;
 mod mpu9250;
 mod truth;
 
