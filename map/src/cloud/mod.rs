@@ -6,6 +6,7 @@ pub mod assembly;
 pub mod filter;
 pub mod flat;
 pub mod io;
+pub mod moving;
 pub mod pcd;
 pub mod ply;
 pub mod scans;
