@@ -645,7 +645,8 @@ pub struct YawFuser {
 
 impl YawFuser {
     /// A fuser that estimates the frame alignment over its first seconds; refuses a config
-    /// with a non-positive or non-finite κ, gap, history or alignment duration.
+    /// with a non-finite value, or a non-positive κ, gap, history, alignment duration, β,
+    /// sample period or field timeout.
     pub fn new(config: FuserConfig) -> Result<Self, FusionError> {
         if let OmegaPolicy::Literal { kappa } = config.policy {
             positive("the literal ω rule's κ", kappa)?;
@@ -653,6 +654,21 @@ impl YawFuser {
         positive("max_gap", config.max_gap)?;
         positive("history", config.history)?;
         positive("alignment_duration", config.alignment_duration)?;
+        let noise = &config.noise;
+        positive("noise.beta", noise.beta)?;
+        positive("noise.sample_period", noise.sample_period)?;
+        positive("noise.field_timeout", noise.field_timeout)?;
+        for (what, value) in [
+            ("noise.gyro_noise_density", noise.gyro_noise_density),
+            ("noise.gyro_bias_residual", noise.gyro_bias_residual),
+            ("noise.heading_floor", noise.heading_floor),
+            ("noise.field_tolerance", noise.field_tolerance),
+            ("noise.disturbance_gain", noise.disturbance_gain),
+        ] {
+            if finite(what, value)? < 0.0 {
+                return Err(FusionError::NotPositive { what, value });
+            }
+        }
         if let Some(reference) = config.field_reference {
             positive("the reference field's magnitude", reference.magnitude)?;
             finite("the reference field's dip", reference.dip)?;
@@ -679,6 +695,13 @@ impl YawFuser {
         config: FuserConfig,
         alignment: AlignmentEstimate,
     ) -> Result<Self, FusionError> {
+        finite("the alignment's offset", alignment.offset)?;
+        if finite("the alignment's variance", alignment.variance)? < 0.0 {
+            return Err(FusionError::NotPositive {
+                what: "the alignment's variance",
+                value: alignment.variance,
+            });
+        }
         let mut fuser = Self::new(config)?;
         fuser.aligned = Some(alignment);
         Ok(fuser)
@@ -1056,6 +1079,24 @@ mod tests {
         )
         .expect("valid");
         assert!((fused.estimate.mean.to_degrees() - printed).abs() > 12.0);
+    }
+
+    #[test]
+    fn a_bad_config_is_refused_with_its_field() {
+        let bad_beta = FuserConfig {
+            noise: MadgwickNoise {
+                beta: 0.0,
+                ..MadgwickNoise::default()
+            },
+            ..FuserConfig::default()
+        };
+        let error = YawFuser::new(bad_beta).expect_err("β = 0");
+        assert_eq!(error.to_string(), "noise.beta must be positive, got 0");
+        let bad_gap = FuserConfig {
+            max_gap: f64::NAN,
+            ..FuserConfig::default()
+        };
+        assert!(YawFuser::new(bad_gap).is_err());
     }
 
     #[test]
