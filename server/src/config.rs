@@ -120,6 +120,11 @@ pub struct PipelineSection {
     /// longer waited for by the stages that merge them in sample-time order.
     #[serde(deserialize_with = "positive_u64")]
     pub lateness_ms: u64,
+    /// A session's worker that has taken no frame for this long, seconds, writes its products
+    /// to `data_dir/retired/<edge>/<session>/` and frees its maps (`status` and `snapshot`
+    /// serve it from there; a later frame rebuilds it from the recording).
+    #[serde(deserialize_with = "positive_u64")]
+    pub retire_after_s: u64,
 }
 
 impl Default for PipelineSection {
@@ -138,6 +143,7 @@ impl Default for PipelineSection {
             snapshot_every_s: None,
             queue_frames: 256,
             lateness_ms: defaults.lateness_ms,
+            retire_after_s: 60,
         }
     }
 }
@@ -395,6 +401,7 @@ impl ServerConfig {
             snapshot_every: section.snapshot_every_s.map(Duration::from_secs),
             // Owed frames appear in the recording at the next commit.
             catch_up_retry: self.commit_interval().max(Duration::from_millis(10)),
+            retire_after: Some(Duration::from_secs(section.retire_after_s)),
             ..LiveSettings::new(section.settings(), self.data_dir.clone())
         })
     }
@@ -522,7 +529,7 @@ mod tests {
                     filters = [\"voxel:0.02\", \"box:0,0,0,8,6,3\"]\n\
                     snapshot_filters = [\"sor:8,1.0\", \"gauss:0.02,0.05\"]\n\
                     hit = 0.8\nmiss = 0.3\nclamp = [0.2, 0.9]\nreference = \"/r/ref.bt\"\n\
-                    snapshot_every_s = 30\nqueue_frames = 1\n";
+                    snapshot_every_s = 30\nqueue_frames = 1\nretire_after_s = 5\n";
         let config = parse(text).unwrap();
         let settings = config.pipeline.settings();
         assert_eq!(settings.resolution_m, 0.1);
@@ -543,6 +550,7 @@ mod tests {
         let live = config.live_settings().expect("enabled by default");
         assert_eq!(live.queue_frames, 1);
         assert_eq!(live.snapshot_every, Some(Duration::from_secs(30)));
+        assert_eq!(live.retire_after, Some(Duration::from_secs(5)));
         assert_eq!(live.data_dir, Path::new("/d"));
         assert_eq!(live.pipeline, settings);
         let off = parse("[pipeline]\nenabled = false\n").unwrap();
@@ -565,6 +573,7 @@ mod tests {
             ("miss = 0", "probability"),
             ("clamp = [0.9, 0.2]", "min < max"),
             ("snapshot_every_s = 0", "positive"),
+            ("retire_after_s = 0", "positive"),
             ("queue_frames = 0", "frames"),
             ("queue_frames = 2000000", "frames"),
             ("resolution = 0.05", "resolution"),

@@ -297,6 +297,22 @@ impl std::fmt::Debug for VoxelMap {
     }
 }
 
+/// A copy of the map's voxels (its insertion scratch starts empty): what a snapshot takes so
+/// the octree is derived and written without holding the map's owner.
+impl Clone for VoxelMap {
+    fn clone(&self) -> Self {
+        Self {
+            res: self.res,
+            model: self.model,
+            bricks: self.bricks.clone(),
+            index: self.index.clone(),
+            scratch: Scratch::default(),
+            totals: self.totals,
+            kernel: self.kernel,
+        }
+    }
+}
+
 impl VoxelMap {
     /// An empty map, inserting with the process's default [`Kernel`] ([`Kernel::from_env`]).
     pub fn new(res: Resolution, model: SensorModel) -> Self {

@@ -12,6 +12,14 @@
 //! processed, so the live products are those of a replay of the recording. [`Sequencer`] is the
 //! pure core of that decision; the worker's lag (frames and ms) is reported in
 //! [`StatusReport`].
+//!
+//! The worker never lends its pipeline for heavy work: it publishes what `status` shows
+//! between frames (recomputing the metrics itself, at most once per
+//! [`super::METRICS_INTERVAL`], while status is asked or once idle), and a snapshot holds the
+//! pipeline only to copy what it writes ([`SessionPipeline::prepare_snapshot`]). A worker that
+//! has taken no frame for [`LiveSettings::retire_after`] writes its products to disk and exits,
+//! freeing its maps; the session is then served from those files, until a frame of it starts a
+//! new worker that rebuilds it from the recording.
 
 use std::collections::{BTreeSet, HashMap};
 use std::path::{Path, PathBuf};
@@ -25,11 +33,16 @@ use scan3d_protocol::{Body, Frame, SensorId, StaticScan};
 use serde::Serialize;
 
 use super::edge_activity::{EdgeActivity, SensorStatus};
-use super::{PipelineError, PipelineSettings, SessionPipeline, SessionStatus, Snapshot};
+use super::{
+    PipelineError, PipelineSettings, PreparedSnapshot, Products, SessionPipeline, SessionStatus,
+    Snapshot, SnapshotWriter, load_reference,
+};
 use crate::ingest::control::{ControlReply, LiveProducts, ProductRequest};
 use crate::ingest::scan_progress::ScanProgress;
 use crate::ingest::server::{IngestEvent, IngestSink, unix_now_ns};
-use crate::recording::{SeqRanges, SessionReader, SessionRecord, session_dir};
+use crate::recording::{ReadPosition, SeqRanges, SessionReader, SessionRecord, session_dir};
+use scan3d_map::eval::LeafMap;
+use scan3d_map::octree::Resolution;
 use scan3d_protocol::ClockModel;
 
 /// How the live driver runs: the `[pipeline]` section of `server.toml` beyond the pipeline's
@@ -55,6 +68,12 @@ pub struct LiveSettings {
     pub give_up_after: Duration,
     /// How long a snapshot request waits for its session's worker to catch up.
     pub snapshot_wait: Duration,
+    /// A session's worker that has taken no frame for this long writes its products into
+    /// `data_dir/retired/<edge>/<session>/` and exits, freeing its maps; `status` and
+    /// `snapshot` serve the session from there until a frame of it comes again. `None`: never.
+    pub retire_after: Option<Duration>,
+    /// How long shutdown waits, in all, for the workers to finish what they were given.
+    pub shutdown_wait: Duration,
 }
 
 impl LiveSettings {
@@ -68,6 +87,8 @@ impl LiveSettings {
             catch_up_retry: Duration::from_millis(50),
             give_up_after: Duration::from_secs(30),
             snapshot_wait: Duration::from_secs(20),
+            retire_after: Some(Duration::from_secs(60)),
+            shutdown_wait: Duration::from_secs(35),
         }
     }
 }
@@ -140,9 +161,55 @@ impl Sequencer {
         self.owed.len()
     }
 
+    /// Counts every seq before `seq` as processed (a worker that took them from its queue):
+    /// the next catch-up reads from `seq`.
+    pub fn processed_before(&mut self, seq: u64) {
+        if let Some(last) = seq.checked_sub(1) {
+            self.done.insert_range(0, last);
+            self.owed.retain(|&owed| owed >= seq);
+        }
+    }
+
     /// Gives up the owed frames (they never reached the recording); returns them.
     pub fn forgive(&mut self) -> Vec<u64> {
         std::mem::take(&mut self.owed).into_iter().collect()
+    }
+}
+
+/// One catch-up of a session's worker, run by the daemon's own code ([`WorkerRun`]'s
+/// catch-up) outside the daemon: the catch-up benchmark's entry point. The worker is built as
+/// if it had processed every frame before `owed_from` from its queue and owed the rest.
+pub struct CatchUpProbe {
+    run: WorkerRun,
+}
+
+impl CatchUpProbe {
+    /// A worker of `edge`'s session `session_id` (recorded under `settings.data_dir`), its
+    /// pipeline built, owing every frame from `owed_from` on.
+    pub fn new(
+        settings: &LiveSettings,
+        edge: &str,
+        session_id: u64,
+        owed_from: u64,
+    ) -> Result<Self, PipelineError> {
+        let pipeline = SessionPipeline::new(&settings.pipeline)?;
+        let (_queue, frames) = std::sync::mpsc::sync_channel(1);
+        let mut run = WorkerRun::new(
+            Arc::new(WorkerShared::new(edge, session_id)),
+            frames,
+            settings,
+        );
+        *lock(&run.shared.pipeline) = Slot::Running(Box::new(pipeline));
+        run.sequencer.processed_before(owed_from);
+        Ok(CatchUpProbe { run })
+    }
+
+    /// Reads the recording from the first frame owed and processes it all, as the worker
+    /// does; returns the frames put through the pipeline.
+    pub fn catch_up(&mut self) -> u64 {
+        let before = self.run.processed;
+        self.run.catch_up();
+        self.run.processed - before
     }
 }
 
@@ -152,6 +219,9 @@ impl Sequencer {
 pub struct LiveSessionStatus {
     /// The session id, 16 hex digits (its directory's name).
     pub id: String,
+    /// The session's worker was retired (no frame for `retire_after`): the numbers are its
+    /// last, and snapshots are served from the products it wrote.
+    pub retired: bool,
     /// What the pipeline has built (frames, samples, revolutions, voxels, metrics, positions).
     #[serde(flatten)]
     pub pipeline: SessionStatus,
@@ -328,6 +398,8 @@ pub struct LivePipelines {
 
 struct Inner {
     settings: LiveSettings,
+    /// The reference map, loaded once for every session.
+    reference: Option<Arc<LeafMap>>,
     state: Mutex<State>,
 }
 
@@ -339,6 +411,9 @@ struct State {
     timesync: HashMap<(String, u64), TimeSyncStatus>,
     /// Per edge: its sensors and static scans, from the frames recorded.
     activity: HashMap<String, EdgeActivity>,
+    /// Threads of retired workers, joined at shutdown (finished ones are joined as new ones
+    /// come).
+    exited: Vec<JoinHandle<()>>,
 }
 
 struct Worker {
@@ -360,13 +435,71 @@ enum Slot {
     Starting,
     Running(Box<SessionPipeline>),
     Failed(String),
+    /// The worker wrote its products and exited ([`LiveSettings::retire_after`]).
+    Retired(Arc<RetiredProducts>),
 }
+
+/// What a retired worker left on disk: the snapshot of its session and of each named position,
+/// served (copied) by later snapshot requests.
+#[derive(Debug)]
+struct RetiredProducts {
+    session: Snapshot,
+    positions: Vec<Snapshot>,
+}
+
+impl RetiredProducts {
+    /// Copies the products of the session (`position` `None`) or of one position into `dir`.
+    fn copy_into(&self, dir: &Path, position: Option<&str>) -> Result<Snapshot, PipelineError> {
+        let written = match position {
+            None => &self.session,
+            Some(name) => self
+                .positions
+                .iter()
+                .find(|p| p.position.as_deref() == Some(name))
+                .ok_or_else(|| PipelineError::UnknownPosition {
+                    name: name.to_owned(),
+                    known: self
+                        .positions
+                        .iter()
+                        .filter_map(|p| p.position.clone())
+                        .collect::<Vec<_>>()
+                        .join(", "),
+                })?,
+        };
+        std::fs::create_dir_all(dir).map_err(|source| PipelineError::Write {
+            path: dir.to_path_buf(),
+            source,
+        })?;
+        let mut writer = SnapshotWriter::new(dir, position);
+        for file in &written.files {
+            let relative = file.strip_prefix(&written.dir).unwrap_or(file);
+            writer.copy_file(relative, file)?;
+        }
+        Ok(Snapshot {
+            dir: dir.to_path_buf(),
+            files: writer.snapshot.files,
+            ..written.clone()
+        })
+    }
+}
+
+/// What a worker last published for `status` ([`WorkerRun::publish`]): computed on the
+/// worker's thread, so a status request never waits for the pipeline.
+#[derive(Debug)]
+struct Published {
+    pipeline: SessionStatus,
+    map_memory_bytes: u64,
+}
+
+/// For this long after a status request, a worker refreshes its metrics as often as
+/// [`super::METRICS_INTERVAL`] allows while frames come (when idle it does anyway).
+const STATUS_INTEREST: Duration = Duration::from_secs(10);
 
 impl Slot {
     fn running(&mut self) -> Option<&mut SessionPipeline> {
         match self {
             Slot::Running(pipeline) => Some(pipeline),
-            Slot::Starting | Slot::Failed(_) => None,
+            Slot::Starting | Slot::Failed(_) | Slot::Retired(_) => None,
         }
     }
 }
@@ -393,6 +526,14 @@ struct WorkerShared {
     latencies: Mutex<std::collections::VecDeque<i64>>,
     /// Accept-to-voxel latencies, ns, the last [`LATENCY_WINDOW`].
     server_latencies: Mutex<std::collections::VecDeque<i64>>,
+    /// What `status` shows of the pipeline (`None` until it is built).
+    published: Mutex<Option<Arc<Published>>>,
+    /// When `status` last asked.
+    status_asked: Mutex<Option<Instant>>,
+    /// Whether the worker is retired. Ingest counts a frame in `accepted` before it looks here
+    /// and the worker retires only with every accepted frame taken, both under this lock: a
+    /// frame is either taken by the worker or revives the session.
+    retired: Mutex<bool>,
 }
 
 /// Appends `latency_ns` to a window of at most [`LATENCY_WINDOW`].
@@ -423,6 +564,37 @@ fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 impl WorkerShared {
+    /// The shared state of a new worker of `edge`'s session `session_id`.
+    fn new(edge: &str, session_id: u64) -> Self {
+        WorkerShared {
+            edge: edge.to_owned(),
+            session_id,
+            accepted: AtomicU64::new(0),
+            overflowed: AtomicU64::new(0),
+            missed: Mutex::new(Vec::new()),
+            waiting: Mutex::new(std::collections::VecDeque::new()),
+            pipeline: Mutex::new(Slot::Starting),
+            progress: Mutex::new(Progress::default()),
+            clock: Mutex::new(None),
+            clock_models: Mutex::new(crate::pose::timesync::SessionClock::new()),
+            latencies: Mutex::new(std::collections::VecDeque::with_capacity(LATENCY_WINDOW)),
+            server_latencies: Mutex::new(std::collections::VecDeque::with_capacity(LATENCY_WINDOW)),
+            published: Mutex::new(None),
+            status_asked: Mutex::new(None),
+            retired: Mutex::new(false),
+        }
+    }
+
+    /// A new worker's shared state for the session `self` retired from: the time sync and the
+    /// last status carry over.
+    fn revived(&self) -> Self {
+        let shared = WorkerShared::new(&self.edge, self.session_id);
+        *lock(&shared.clock) = *lock(&self.clock);
+        *lock(&shared.clock_models) = lock(&self.clock_models).clone();
+        *lock(&shared.published) = lock(&self.published).clone();
+        shared
+    }
+
     /// `(lag_frames, lag_ms)` now.
     fn lag(&self) -> (u64, u64) {
         let accepted = self.accepted.load(Ordering::Acquire);
@@ -458,10 +630,20 @@ impl LivePipelines {
     /// Checks the settings by building one pipeline (a reference map that cannot be read or
     /// has another resolution fails here, at start) and makes an empty driver.
     pub fn new(settings: LiveSettings) -> Result<Self, PipelineError> {
-        SessionPipeline::new(&settings.pipeline)?;
+        let res = Resolution::new(settings.pipeline.resolution_m)?;
+        let reference = match &settings.pipeline.reference {
+            Some(path) => Some(Arc::new(load_reference(path, &res)?)),
+            None => None,
+        };
+        SessionPipeline::with_reference(
+            &settings.pipeline,
+            Products::default(),
+            reference.clone(),
+        )?;
         Ok(LivePipelines {
             inner: Arc::new(Inner {
                 settings,
+                reference,
                 state: Mutex::new(State::default()),
             }),
         })
@@ -518,7 +700,7 @@ impl LivePipelines {
                 .position(|w| w.edge == edge && w.session_id == frame.session_id)
             {
                 Some(index) => index,
-                None => match self.spawn(edge, frame.session_id) {
+                None => match self.spawn(edge, WorkerShared::new(edge, frame.session_id)) {
                     Ok(worker) => {
                         state.workers.push(worker);
                         state.workers.len() - 1
@@ -530,11 +712,36 @@ impl LivePipelines {
                     }
                 },
             };
+            // Counted before the retired check (see `WorkerShared::retired`).
+            let shared = state.workers[index].shared.clone();
+            shared.accepted.fetch_add(1, Ordering::AcqRel);
+            if *lock(&shared.retired) {
+                shared.accepted.fetch_sub(1, Ordering::AcqRel);
+                // A frame of a retired session: a new worker rebuilds it from the recording
+                // (its first frame is out of sequence, so it catches up from the start).
+                match self.spawn(edge, shared.revived()) {
+                    Ok(worker) => {
+                        tracing::info!(%edge, session = format!("{:016x}", frame.session_id),
+                            "a frame of a retired session; its pipeline is rebuilt from the recording");
+                        let old = std::mem::replace(&mut state.workers[index], worker);
+                        state.exited.retain(|thread| !thread.is_finished());
+                        state.exited.extend(old.thread);
+                        state.workers[index]
+                            .shared
+                            .accepted
+                            .fetch_add(1, Ordering::AcqRel);
+                    }
+                    Err(e) => {
+                        tracing::error!(%edge, session = format!("{:016x}", frame.session_id), error = %e,
+                            "cannot restart the retired session's pipeline; the frame is recorded only");
+                        return;
+                    }
+                }
+            }
             let worker = &state.workers[index];
             (worker.queue.clone(), worker.shared.clone())
         };
         let Some(queue) = queue else { return };
-        shared.accepted.fetch_add(1, Ordering::AcqRel);
         let seq = frame.seq;
         let accepted_at = Instant::now();
         let queued = Queued { frame, accepted_at };
@@ -557,39 +764,14 @@ impl LivePipelines {
         }
     }
 
-    fn spawn(&self, edge: &str, session_id: u64) -> std::io::Result<Worker> {
+    fn spawn(&self, edge: &str, shared: WorkerShared) -> std::io::Result<Worker> {
         // The pipeline itself is built on the worker's thread.
         let settings = &self.inner.settings;
-        let shared = Arc::new(WorkerShared {
-            edge: edge.to_owned(),
-            session_id,
-            accepted: AtomicU64::new(0),
-            overflowed: AtomicU64::new(0),
-            missed: Mutex::new(Vec::new()),
-            waiting: Mutex::new(std::collections::VecDeque::new()),
-            pipeline: Mutex::new(Slot::Starting),
-            progress: Mutex::new(Progress::default()),
-            clock: Mutex::new(None),
-            clock_models: Mutex::new(crate::pose::timesync::SessionClock::new()),
-            latencies: Mutex::new(std::collections::VecDeque::with_capacity(LATENCY_WINDOW)),
-            server_latencies: Mutex::new(std::collections::VecDeque::with_capacity(LATENCY_WINDOW)),
-        });
+        let session_id = shared.session_id;
+        let shared = Arc::new(shared);
         let (queue, frames) = std::sync::mpsc::sync_channel(settings.queue_frames.max(1));
-        let run = WorkerRun {
-            shared: shared.clone(),
-            frames,
-            sequencer: Sequencer::default(),
-            session_dir: session_dir(&settings.data_dir, edge, session_id),
-            snapshot_dir: settings
-                .data_dir
-                .join("snapshots")
-                .join(edge)
-                .join(format!("{session_id:016x}")),
-            settings: settings.clone(),
-            changed: false,
-            last_snapshot: Instant::now(),
-            recent_sweeps: std::collections::VecDeque::with_capacity(RECENT_SWEEPS),
-        };
+        let mut run = WorkerRun::new(shared.clone(), frames, settings);
+        run.reference = self.inner.reference.clone();
         let thread = std::thread::Builder::new()
             .name(format!("pipeline {edge}/{session_id:016x}"))
             .spawn(move || run.run())?;
@@ -648,20 +830,18 @@ impl LivePipelines {
             .map(|name| edge_status(name, true))
             .collect();
         for shared in workers {
-            let (pipeline, map_memory_bytes) = {
-                let mut slot = lock(&shared.pipeline);
-                // Not built yet (a few ms) or failed (logged): no line.
-                let Some(pipeline) = slot.running() else {
-                    continue;
-                };
-                let memory = pipeline.maps().session_map().memory_bytes() as u64;
-                (pipeline.status(), memory)
+            // Not built yet (a few ms) or failed (logged): no line.
+            let Some(published) = lock(&shared.published).clone() else {
+                continue;
             };
+            *lock(&shared.status_asked) = Some(now);
+            let retired = *lock(&shared.retired);
             let (lag_frames, lag_ms) = shared.lag();
             let progress = lock(&shared.progress);
             let session = LiveSessionStatus {
                 id: format!("{:016x}", shared.session_id),
-                pipeline,
+                retired,
+                pipeline: published.pipeline.clone(),
                 lag_ms,
                 lag_frames,
                 max_lag_frames: progress.max_lag_frames.max(lag_frames),
@@ -670,7 +850,7 @@ impl LivePipelines {
                 queue_overflows: shared.overflowed.load(Ordering::Acquire),
                 abandoned: progress.abandoned,
                 worker_cpu_ms: progress.cpu_ns / 1_000_000,
-                map_memory_bytes,
+                map_memory_bytes: published.map_memory_bytes,
                 timesync: timesync
                     .get(&(shared.edge.clone(), shared.session_id))
                     .copied(),
@@ -754,46 +934,66 @@ impl LivePipelines {
             }
             std::thread::sleep(Duration::from_millis(5));
         }
-        let mut slot = lock(&shared.pipeline);
-        let pipeline = match &mut *slot {
-            Slot::Running(pipeline) => pipeline,
-            Slot::Starting => {
-                return Err(LiveError::NotRunning {
-                    edge: edge.to_owned(),
-                    session: shared.session_id,
-                    reason: "its pipeline is still starting".into(),
-                });
-            }
-            Slot::Failed(reason) => {
-                return Err(LiveError::NotRunning {
-                    edge: edge.to_owned(),
-                    session: shared.session_id,
-                    reason: reason.clone(),
-                });
+        let not_running = |reason: String| LiveError::NotRunning {
+            edge: edge.to_owned(),
+            session: shared.session_id,
+            reason,
+        };
+        let failed = |source| LiveError::Write {
+            edge: edge.to_owned(),
+            session: shared.session_id,
+            dir: dir.to_path_buf(),
+            source,
+        };
+        // Only the copies are taken under the pipeline; the files are written without it.
+        let prepared = {
+            let mut slot = lock(&shared.pipeline);
+            match &mut *slot {
+                Slot::Running(pipeline) => {
+                    pipeline.set_clock(lock(&shared.clock_models).clone());
+                    pipeline.prepare_snapshot(dir, position).map_err(failed)?
+                }
+                Slot::Retired(products) => {
+                    let products = Arc::clone(products);
+                    drop(slot);
+                    let snapshot = products.copy_into(dir, position).map_err(failed)?;
+                    return Ok((shared.session_id, snapshot));
+                }
+                Slot::Starting => return Err(not_running("its pipeline is still starting".into())),
+                Slot::Failed(reason) => return Err(not_running(reason.clone())),
             }
         };
-        pipeline.set_clock(lock(&shared.clock_models).clone());
-        let snapshot =
-            pipeline
-                .write_snapshot(dir, position)
-                .map_err(|source| LiveError::Write {
-                    edge: edge.to_owned(),
-                    session: shared.session_id,
-                    dir: dir.to_path_buf(),
-                    source,
-                })?;
+        let snapshot = prepared.write().map_err(failed)?;
         Ok((shared.session_id, snapshot))
     }
 
     /// Stops every worker after it has processed what it was given (and read back what it
     /// owes, within `give_up_after`).
     pub fn shutdown(&self) {
-        let workers = std::mem::take(&mut lock(&self.inner.state).workers);
+        let (workers, mut threads) = {
+            let mut state = lock(&self.inner.state);
+            (
+                std::mem::take(&mut state.workers),
+                std::mem::take(&mut state.exited),
+            )
+        };
+        // Every worker is told at once (its queue closes); then one deadline for them all.
         for mut worker in workers {
             worker.queue = None;
-            if let Some(thread) = worker.thread.take() {
-                let _ = thread.join();
-            }
+            threads.extend(worker.thread.take());
+        }
+        let deadline = Instant::now() + self.inner.settings.shutdown_wait;
+        while threads.iter().any(|thread| !thread.is_finished()) && Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        let (finished, running): (Vec<_>, Vec<_>) =
+            threads.into_iter().partition(JoinHandle::is_finished);
+        for thread in finished {
+            let _ = thread.join();
+        }
+        if !running.is_empty() {
+            tracing::warn!(workers = running.len(), waited = ?self.inner.settings.shutdown_wait,
+                "session workers still catching up at shutdown; left to end with the process");
         }
     }
 }
@@ -854,27 +1054,89 @@ struct WorkerRun {
     session_dir: PathBuf,
     snapshot_dir: PathBuf,
     settings: LiveSettings,
+    /// The reference map shared by every session (`None`: none configured, or a pipeline
+    /// built alone that reads its own).
+    reference: Option<Arc<LeafMap>>,
     /// Frames processed since the last periodic snapshot.
     changed: bool,
     last_snapshot: Instant,
     /// `(start, end)` edge times (ns) of the latest Sweep revolutions processed, oldest first.
     recent_sweeps: std::collections::VecDeque<(u64, u64)>,
+    /// Frames put through the pipeline.
+    processed: u64,
+    /// Frames taken from the queue since the last [`WorkerRun::publish`] (they count in the
+    /// lag until their effect is published).
+    taken: u64,
+    /// When the worker last took or processed a frame (the retirement clock).
+    last_activity: Instant,
+    /// Where the last catch-up's read of the recording ended: every record before it is
+    /// processed, so the next catch-up reads on from there, not from the start of the file
+    /// holding the first frame owed.
+    read_to: Option<ReadPosition>,
+}
+
+impl WorkerRun {
+    /// A worker taking `shared`'s session's frames from `frames`.
+    fn new(shared: Arc<WorkerShared>, frames: Receiver<Queued>, settings: &LiveSettings) -> Self {
+        let (edge, session_id) = (&shared.edge, shared.session_id);
+        WorkerRun {
+            session_dir: session_dir(&settings.data_dir, edge, session_id),
+            snapshot_dir: settings
+                .data_dir
+                .join("snapshots")
+                .join(edge)
+                .join(format!("{session_id:016x}")),
+            shared,
+            frames,
+            sequencer: Sequencer::default(),
+            settings: settings.clone(),
+            reference: None,
+            changed: false,
+            last_snapshot: Instant::now(),
+            recent_sweeps: std::collections::VecDeque::with_capacity(RECENT_SWEEPS),
+            processed: 0,
+            taken: 0,
+            last_activity: Instant::now(),
+            read_to: None,
+        }
+    }
 }
 
 /// Sweep revolutions [`WorkerRun`] remembers to date the static-scan samples that refer to them.
 const RECENT_SWEEPS: usize = 16;
 
+/// Whether [`WorkerRun::publish`] recomputes the metrics first.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Refresh {
+    /// No: the counters only.
+    No,
+    /// If the map grew and the last computation is [`super::METRICS_INTERVAL`] old.
+    Due,
+    /// If the map grew.
+    Now,
+}
+
 impl WorkerRun {
     fn run(mut self) {
-        match SessionPipeline::new(&self.settings.pipeline) {
+        let built = match &self.reference {
+            Some(reference) => SessionPipeline::with_reference(
+                &self.settings.pipeline,
+                Products::default(),
+                Some(Arc::clone(reference)),
+            ),
+            None => SessionPipeline::new(&self.settings.pipeline),
+        };
+        match built {
             Ok(pipeline) => *lock(&self.shared.pipeline) = Slot::Running(Box::new(pipeline)),
             Err(e) => {
                 tracing::error!(edge = %self.shared.edge, session = format!("{:016x}", self.shared.session_id),
                     error = %e, "cannot build the session's pipeline; the session is recorded only");
                 *lock(&self.shared.pipeline) = Slot::Failed(e.to_string());
+                *lock(&self.shared.published) = None;
                 return;
             }
         }
+        self.publish(Refresh::No);
         let mut owed_since: Option<Instant> = None;
         let mut last_catch_up: Option<Instant> = None;
         let mut open = true;
@@ -906,17 +1168,33 @@ impl WorkerRun {
             if !open && self.sequencer.owed() == 0 {
                 break;
             }
+            if open
+                && self.sequencer.owed() == 0
+                && self
+                    .settings
+                    .retire_after
+                    .is_some_and(|after| self.last_activity.elapsed() >= after)
+            {
+                if self.retire() {
+                    return;
+                }
+                // A frame came meanwhile, or the products could not be written: go on, and try
+                // again after another idle period.
+                self.last_activity = Instant::now();
+            }
             let wait = if self.sequencer.owed() > 0 || !open {
                 self.settings.catch_up_retry
             } else {
-                self.settings
-                    .snapshot_every
-                    .map_or(self.settings.catch_up_retry, |every| {
-                        every
-                            .saturating_sub(self.last_snapshot.elapsed())
-                            .min(self.settings.catch_up_retry)
-                    })
+                let mut wait = self.settings.catch_up_retry;
+                if let Some(every) = self.settings.snapshot_every {
+                    wait = wait.min(every.saturating_sub(self.last_snapshot.elapsed()));
+                }
+                if let Some(after) = self.settings.retire_after {
+                    wait = wait.min(after.saturating_sub(self.last_activity.elapsed()));
+                }
+                wait
             };
+            let mut idle = false;
             if open {
                 match self.frames.recv_timeout(wait) {
                     Ok(queued) => {
@@ -925,16 +1203,118 @@ impl WorkerRun {
                             self.take(queued);
                         }
                     }
-                    Err(RecvTimeoutError::Timeout) => {}
+                    Err(RecvTimeoutError::Timeout) => idle = true,
                     Err(RecvTimeoutError::Disconnected) => open = false,
                 }
             } else {
                 std::thread::sleep(wait);
             }
+            // While frames come, the metrics are recomputed only for someone who asks; idle,
+            // the worker brings them up to date once.
+            let asked =
+                lock(&self.shared.status_asked).is_some_and(|at| at.elapsed() < STATUS_INTEREST);
+            self.publish(if idle || asked {
+                Refresh::Due
+            } else {
+                Refresh::No
+            });
             self.periodic_snapshot();
             lock(&self.shared.progress).cpu_ns = thread_cpu_ns();
         }
+        self.publish(Refresh::Now);
         self.periodic_snapshot_now();
+    }
+
+    /// Publishes what `status` shows (the pipeline's counters, refreshed as `refresh` says)
+    /// and counts the frames taken since the last time as received.
+    fn publish(&mut self, refresh: Refresh) {
+        let published = {
+            let mut slot = lock(&self.shared.pipeline);
+            let Some(pipeline) = slot.running() else {
+                return;
+            };
+            match refresh {
+                Refresh::No => {}
+                Refresh::Due => pipeline.refresh_metrics(Instant::now(), false),
+                Refresh::Now => pipeline.refresh_metrics(Instant::now(), true),
+            }
+            Published {
+                pipeline: pipeline.current_status(),
+                map_memory_bytes: pipeline.maps().session_map().memory_bytes() as u64,
+            }
+        };
+        *lock(&self.shared.published) = Some(Arc::new(published));
+        lock(&self.shared.progress).received += std::mem::take(&mut self.taken);
+        self.shared.note_lag();
+    }
+
+    /// Where a retired worker leaves its products: `data_dir/retired/<edge>/<session>/`.
+    fn retired_dir(&self) -> PathBuf {
+        self.settings
+            .data_dir
+            .join("retired")
+            .join(&self.shared.edge)
+            .join(format!("{:016x}", self.shared.session_id))
+    }
+
+    /// Writes the products (the session's and each position's, under
+    /// [`WorkerRun::retired_dir`]; positions in `positions/<n>/` by first-seen order) and the
+    /// final status, then frees the pipeline, unless a frame came meanwhile. Returns whether
+    /// the worker is retired (and must exit).
+    fn retire(&mut self) -> bool {
+        let dir = self.retired_dir();
+        let prepared = {
+            let mut slot = lock(&self.shared.pipeline);
+            let Some(pipeline) = slot.running() else {
+                return false;
+            };
+            pipeline.set_clock(lock(&self.shared.clock_models).clone());
+            let positions = pipeline.positions();
+            let mut prepared = vec![pipeline.prepare_snapshot(&dir, None)];
+            for (index, name) in positions.iter().enumerate() {
+                let position_dir = dir.join("positions").join(index.to_string());
+                prepared.push(pipeline.prepare_snapshot(&position_dir, Some(name)));
+            }
+            prepared
+        };
+        let written: Result<Vec<Snapshot>, PipelineError> = prepared
+            .into_iter()
+            .map(|prepared| prepared.and_then(PreparedSnapshot::write))
+            .collect();
+        let mut written = match written {
+            Ok(written) => written,
+            Err(e) => {
+                tracing::error!(edge = %self.shared.edge, session = format!("{:016x}", self.shared.session_id),
+                    dir = %dir.display(), error = %e, "cannot write the idle session's products; its worker stays");
+                return false;
+            }
+        };
+        self.publish(Refresh::Now);
+        self.periodic_snapshot_now();
+        let session = written.remove(0);
+        let products = RetiredProducts {
+            session,
+            positions: written,
+        };
+        let mut retired = lock(&self.shared.retired);
+        let accepted = self.shared.accepted.load(Ordering::Acquire);
+        let overflowed = self.shared.overflowed.load(Ordering::Acquire);
+        let received = lock(&self.shared.progress).received;
+        if accepted != overflowed + received || !lock(&self.shared.missed).is_empty() {
+            return false;
+        }
+        *retired = true;
+        let pipeline = std::mem::replace(
+            &mut *lock(&self.shared.pipeline),
+            Slot::Retired(Arc::new(products)),
+        );
+        drop(retired);
+        // Its maps and cloud are freed here, with no lock held.
+        drop(pipeline);
+        tracing::info!(edge = %self.shared.edge, session = format!("{:016x}", self.shared.session_id),
+            dir = %dir.display(), idle = ?self.last_activity.elapsed(),
+            "idle session retired: its products are on disk and its maps freed");
+        true
     }
 
     fn set_owed(&self, since: Option<Instant>) {
@@ -945,10 +1325,9 @@ impl WorkerRun {
 
     /// A frame from the queue.
     fn take(&mut self, queued: Queued) {
-        {
-            lock(&self.shared.waiting).pop_front();
-            lock(&self.shared.progress).received += 1;
-        }
+        lock(&self.shared.waiting).pop_front();
+        self.taken += 1;
+        self.last_activity = Instant::now();
         match self.sequencer.offer(queued.frame.seq) {
             Offer::Process => self.process(&queued.frame, Some(queued.accepted_at)),
             Offer::Skip => {}
@@ -956,7 +1335,6 @@ impl WorkerRun {
                 lock(&self.shared.progress).owed = self.sequencer.owed() as u64;
             }
         }
-        self.shared.note_lag();
     }
 
     /// Puts one frame through the pipeline; `accepted_at`: when the recorder accepted it, for
@@ -983,6 +1361,7 @@ impl WorkerRun {
             pipeline.maps().points() > before
         };
         self.changed = true;
+        self.processed += 1;
         // Sample-to-voxel latency: the age of the newest sample whose points this frame put into
         // the octree (the end of its Sweep revolution, mapped to server time by the session's
         // clock model; the server's time-sync clock is UNIX time at start plus monotonic time).
@@ -1019,9 +1398,13 @@ impl WorkerRun {
     /// Reads the recording and processes, in its order, every frame not processed yet.
     fn catch_up(&mut self) {
         lock(&self.shared.progress).catch_ups += 1;
+        let processed = self.processed;
         let session_dir = self.session_dir.clone();
         let from = self.sequencer.resume_from();
-        let reader = SessionReader::new(&session_dir).from_seq(from);
+        let mut reader = SessionReader::new(&session_dir).from_seq(from);
+        if let Some(position) = self.read_to.clone() {
+            reader = reader.resume_at(position);
+        }
         let visited = reader.visit(|record| {
             match record {
                 // Server-made frames (commands) number separately; no map data.
@@ -1045,8 +1428,12 @@ impl WorkerRun {
             }
             Ok(())
         });
+        if self.processed > processed {
+            self.last_activity = Instant::now();
+        }
         match visited {
             Ok(report) => {
+                self.read_to.clone_from(&report.end);
                 if let Some(line) = report.loss_line() {
                     tracing::warn!(edge = %self.shared.edge, session = format!("{:016x}", self.shared.session_id),
                         "{line}; catching up from what is readable");
@@ -1073,12 +1460,15 @@ impl WorkerRun {
         }
         self.last_snapshot = Instant::now();
         self.changed = false;
-        let mut slot = lock(&self.shared.pipeline);
-        let Some(pipeline) = slot.running() else {
-            return;
+        let prepared = {
+            let mut slot = lock(&self.shared.pipeline);
+            let Some(pipeline) = slot.running() else {
+                return;
+            };
+            pipeline.set_clock(lock(&self.shared.clock_models).clone());
+            pipeline.prepare_snapshot(&self.snapshot_dir, None)
         };
-        pipeline.set_clock(lock(&self.shared.clock_models).clone());
-        if let Err(e) = pipeline.write_snapshot(&self.snapshot_dir, None) {
+        if let Err(e) = prepared.and_then(PreparedSnapshot::write) {
             tracing::error!(edge = %self.shared.edge, session = format!("{:016x}", self.shared.session_id),
                 dir = %self.snapshot_dir.display(), error = %e, "periodic snapshot failed; recording goes on");
         }
@@ -1114,23 +1504,10 @@ mod tests {
         let now = Instant::now();
         let ago = |s| now.checked_sub(Duration::from_secs(s)).expect("uptime");
         // Three frames accepted, one taken at once (it waited 0 ms); two wait, since 3 s and 1 s.
-        let shared = WorkerShared {
-            edge: "e".into(),
-            session_id: 1,
-            accepted: AtomicU64::new(3),
-            overflowed: AtomicU64::new(0),
-            missed: Mutex::new(Vec::new()),
-            waiting: Mutex::new([ago(3), ago(1)].into()),
-            pipeline: Mutex::new(Slot::Starting),
-            progress: Mutex::new(Progress {
-                received: 1,
-                ..Progress::default()
-            }),
-            clock: Mutex::new(None),
-            clock_models: Mutex::new(crate::pose::timesync::SessionClock::new()),
-            latencies: Mutex::new(std::collections::VecDeque::new()),
-            server_latencies: Mutex::new(std::collections::VecDeque::new()),
-        };
+        let shared = WorkerShared::new("e", 1);
+        shared.accepted.store(3, Ordering::Release);
+        *lock(&shared.waiting) = [ago(3), ago(1)].into();
+        lock(&shared.progress).received = 1;
         let (frames, ms) = shared.lag();
         assert_eq!(frames, 2);
         assert!((3_000..60_000).contains(&ms), "{ms} ms");
@@ -1172,6 +1549,18 @@ mod tests {
         assert_eq!(sequencer.resume_from(), 5, "5 and 6 are owed");
         assert!(sequencer.from_recording(5) && sequencer.from_recording(6));
         assert_eq!(sequencer.resume_from(), 7);
+    }
+
+    #[test]
+    fn frames_counted_as_processed_are_not_read_back() {
+        let mut sequencer = Sequencer::default();
+        sequencer.owe(3);
+        sequencer.owe(7);
+        sequencer.processed_before(5);
+        assert_eq!(sequencer.resume_from(), 5);
+        assert_eq!(sequencer.owed(), 1, "3 is done, 7 still owed");
+        assert!(!sequencer.from_recording(4));
+        assert!(sequencer.from_recording(5));
     }
 
     #[test]

@@ -287,6 +287,50 @@ pub trait Stage: std::any::Any + Send {
         let _ = out;
         Ok(())
     }
+    /// Takes what this stage's part of a snapshot of the session (`position` `None`) or of one
+    /// position needs (shared handles or plain copies, no heavy work) and returns the job that
+    /// writes it later, after the pipeline is released ([`SessionPipeline::prepare_snapshot`]).
+    /// `None` (the default): the stage writes in [`Stage::snapshot`] while the pipeline is
+    /// held, adding files only.
+    fn snapshot_job(&self, position: Option<&str>) -> Option<SnapshotJob> {
+        let _ = position;
+        None
+    }
+}
+
+/// A stage's part of a snapshot, taken while the pipeline is held and written after
+/// ([`Stage::snapshot_job`]).
+pub type SnapshotJob = Box<dyn FnOnce(&mut SnapshotWriter) -> Result<(), PipelineError> + Send>;
+
+/// A snapshot taken from a pipeline and not written yet ([`SessionPipeline::prepare_snapshot`]):
+/// owns what it needs, so the heavy work (the octree derived, the snapshot filters, the files)
+/// runs without the pipeline.
+pub struct PreparedSnapshot {
+    dir: PathBuf,
+    position: Option<String>,
+    parts: Vec<SnapshotPart>,
+}
+
+/// One stage's part of a [`PreparedSnapshot`].
+enum SnapshotPart {
+    /// To be written.
+    Job(SnapshotJob),
+    /// Written already (a stage without [`Stage::snapshot_job`]): its files, in order.
+    Written(Vec<PathBuf>),
+}
+
+impl PreparedSnapshot {
+    /// Writes the stages' parts in order (each file through a temporary name and a rename).
+    pub fn write(self) -> Result<Snapshot, PipelineError> {
+        let mut writer = SnapshotWriter::new(&self.dir, self.position.as_deref());
+        for part in self.parts {
+            match part {
+                SnapshotPart::Job(job) => job(&mut writer)?,
+                SnapshotPart::Written(files) => writer.snapshot.files.extend(files),
+            }
+        }
+        Ok(writer.snapshot)
+    }
 }
 
 /// Frames a lane holds at most before it releases its slowest stream.
@@ -706,6 +750,14 @@ impl SessionPipeline {
 
     /// [`SessionPipeline::status`] with the caller's clock.
     pub fn status_at(&mut self, now: Instant) -> SessionStatus {
+        self.refresh_metrics(now, false);
+        self.current_status()
+    }
+
+    /// Recomputes the voxel counts and metrics if the map grew: at most once per
+    /// [`METRICS_INTERVAL`] at `now`, or however recent the last computation with `always`.
+    /// The heavy part of a status (the octree derived, its `.bt` view, the metrics).
+    pub fn refresh_metrics(&mut self, now: Instant, always: bool) {
         let (maps, metrics) = (self.builtin.maps, self.builtin.metrics);
         let (low, high) = self.stages.split_at_mut(metrics);
         let maps: &dyn std::any::Any = low[maps].as_ref();
@@ -714,8 +766,17 @@ impl SessionPipeline {
             maps.downcast_ref::<MapStage>(),
             metrics.downcast_mut::<MetricsStage>(),
         ) {
-            metrics.refresh(maps, now);
+            if always {
+                metrics.refresh_now(maps, now);
+            } else {
+                metrics.refresh(maps, now);
+            }
         }
+    }
+
+    /// What the pipeline has done, with the voxel counts and metrics as last computed
+    /// ([`SessionPipeline::refresh_metrics`]): cheap.
+    pub fn current_status(&self) -> SessionStatus {
         let metrics = self.metrics_stage();
         let filters = self.filters_stage();
         let mut order = OrderStats::default();
@@ -771,6 +832,18 @@ impl SessionPipeline {
         dir: &Path,
         position: Option<&str>,
     ) -> Result<Snapshot, PipelineError> {
+        self.prepare_snapshot(dir, position)?.write()
+    }
+
+    /// The first half of [`SessionPipeline::write_snapshot`]: checks `position`, creates `dir`
+    /// and takes from each stage what its part needs ([`Stage::snapshot_job`]); the returned
+    /// [`PreparedSnapshot`] writes the same bytes later, without the pipeline, so a daemon holds
+    /// its pipeline only for the copies.
+    pub fn prepare_snapshot(
+        &mut self,
+        dir: &Path,
+        position: Option<&str>,
+    ) -> Result<PreparedSnapshot, PipelineError> {
         let maps = self.maps();
         if let Some(name) = position
             && maps.position(name).is_none()
@@ -784,16 +857,28 @@ impl SessionPipeline {
             path: dir.to_path_buf(),
             source,
         })?;
-        let mut writer = SnapshotWriter::new(dir, position);
         // The map's files first (map.bt, map.ot, cloud.ply, metrics), then the others' in order.
         let (maps, metrics) = (self.builtin.maps, self.builtin.metrics);
         let order = [maps, metrics]
             .into_iter()
             .chain((0..self.stages.len()).filter(|&i| i != maps && i != metrics));
+        let mut parts = Vec::with_capacity(self.stages.len());
         for index in order {
-            self.stages[index].snapshot(&mut writer)?;
+            let part = match self.stages[index].snapshot_job(position) {
+                Some(job) => SnapshotPart::Job(job),
+                None => {
+                    let mut writer = SnapshotWriter::new(dir, position);
+                    self.stages[index].snapshot(&mut writer)?;
+                    SnapshotPart::Written(writer.snapshot.files)
+                }
+            };
+            parts.push(part);
         }
-        Ok(writer.snapshot)
+        Ok(PreparedSnapshot {
+            dir: dir.to_path_buf(),
+            position: position.map(str::to_owned),
+            parts,
+        })
     }
 
     fn stage<T: 'static>(&self, index: usize) -> &T {

@@ -83,6 +83,35 @@ impl SnapshotWriter {
     }
 }
 
+impl SnapshotWriter {
+    /// Copies the file `from` to `relative` (a path inside the snapshot's directory, its
+    /// directories created) through a temporary file and a rename, and lists it: a snapshot
+    /// served from products written earlier.
+    pub fn copy_file(&mut self, relative: &Path, from: &Path) -> Result<(), PipelineError> {
+        let path = self.snapshot.dir.join(relative);
+        let failed = |source| PipelineError::Write {
+            path: path.clone(),
+            source,
+        };
+        let (Some(dir), Some(name)) = (path.parent(), path.file_name()) else {
+            return Err(failed(std::io::Error::new(
+                std::io::ErrorKind::InvalidInput,
+                "not a file name",
+            )));
+        };
+        std::fs::create_dir_all(dir).map_err(failed)?;
+        let tmp = dir.join(format!(".{}.tmp", name.to_string_lossy()));
+        std::fs::copy(from, &tmp)
+            .and_then(|_| std::fs::rename(&tmp, &path))
+            .map_err(|source| {
+                let _ = std::fs::remove_file(&tmp);
+                failed(source)
+            })?;
+        self.snapshot.files.push(path);
+        Ok(())
+    }
+}
+
 /// Writes `dir/name` through a temporary file and a rename, so readers never see half of it.
 fn write_file(
     dir: &Path,

@@ -19,7 +19,8 @@ use scan3d_protocol::{Body, Frame, SensorId, StaticScan};
 use super::order::StreamId;
 use super::snapshot::SnapshotWriter;
 use super::{
-    METRICS_INTERVAL, PipelineError, PipelineSettings, Products, Stage, StageContext, metrics,
+    METRICS_INTERVAL, PipelineError, PipelineSettings, Products, SnapshotJob, Stage, StageContext,
+    metrics,
 };
 
 /// The 2D revolution collector as a stage: every lidar revolution's samples as points in the
@@ -243,8 +244,9 @@ pub struct MapStage {
     products: Products,
     session: VoxelMap,
     positions: Vec<PositionMap>,
-    /// Filtered points within `max_range` with their origin and position index.
-    cloud: Vec<(usize, RayBundle)>,
+    /// Filtered points within `max_range` with their origin and position index (shared, so a
+    /// snapshot takes the cloud without copying it).
+    cloud: Vec<(usize, Arc<RayBundle>)>,
     points: u64,
 }
 
@@ -295,12 +297,36 @@ impl MapStage {
     /// The cloud of the session (`None`) or of one position, as origin groups in insertion
     /// order (empty when the cloud is not kept).
     pub fn cloud(&self, position: Option<&str>) -> Vec<RayBundle> {
+        self.shared_cloud(position)
+            .into_iter()
+            .map(Arc::unwrap_or_clone)
+            .collect()
+    }
+
+    /// [`MapStage::cloud`] as shared handles (no point is copied).
+    fn shared_cloud(&self, position: Option<&str>) -> Vec<Arc<RayBundle>> {
         let index = position.map(|name| self.positions.iter().position(|p| p.name == name));
         self.cloud
             .iter()
             .filter(|(i, _)| index.is_none_or(|want| want == Some(*i)))
-            .map(|(_, rays)| rays.clone())
+            .map(|(_, rays)| Arc::clone(rays))
             .collect()
+    }
+
+    /// What a snapshot of the session (`position` `None`) or of one position needs: a copy of
+    /// its octree's voxels and the cloud's handles, taken while the pipeline is held; the
+    /// octree is derived, filtered and written later ([`MapSnapshot::write`]).
+    fn take_snapshot(&self, position: Option<&str>) -> MapSnapshot {
+        let map = match position {
+            None => Some(&self.session),
+            Some(name) => self.position(name).and_then(|p| p.map.as_ref()),
+        };
+        MapSnapshot {
+            map: map.cloned(),
+            cloud: self.shared_cloud(position),
+            res: self.res,
+            settings: self.settings.clone(),
+        }
     }
 
     fn max_range(&self) -> f64 {
@@ -315,36 +341,12 @@ impl Stage for MapStage {
 
     fn snapshot(&mut self, out: &mut SnapshotWriter) -> Result<(), PipelineError> {
         let position = out.snapshot.position.clone();
-        let map = match position.as_deref() {
-            None => Some(&self.session),
-            Some(name) => self.position(name).and_then(|p| p.map.as_ref()),
-        };
-        let tree = map.map_or_else(
-            || Octree::empty(self.res, self.settings.sensor),
-            |m| m.to_octree(),
-        );
-        let bt = tree.to_bt_bytes();
-        let leaves = metrics::leaf_map_of_bt(&tree, &bt);
-        let mut cloud = self.cloud(position.as_deref());
-        if !self.settings.snapshot_filters.is_empty() && !cloud.is_empty() {
-            cloud = apply_filters(&self.settings.snapshot_filters, cloud)?;
-        }
-        let mut ply = Vec::new();
-        write_ply_bundles(&mut ply, &cloud, Encoding::Binary).map_err(|source| {
-            PipelineError::Write {
-                path: out.snapshot.dir.join("cloud.ply"),
-                source,
-            }
-        })?;
-        out.write_file("map.bt", &bt)?;
-        out.write_file("map.ot", &tree.to_ot_bytes())?;
-        out.write_file("cloud.ply", &ply)?;
-        out.snapshot.nodes = tree.num_nodes() as u64;
-        out.snapshot.occupied_voxels = leaves.occupied_voxels();
-        out.snapshot.free_voxels = leaves.free_voxels();
-        out.snapshot.points = cloud.iter().map(|c| c.points.len() as u64).sum();
-        out.leaves = Some(leaves);
-        Ok(())
+        self.take_snapshot(position.as_deref()).write(out)
+    }
+
+    fn snapshot_job(&self, position: Option<&str>) -> Option<SnapshotJob> {
+        let taken = self.take_snapshot(position);
+        Some(Box::new(move |out: &mut SnapshotWriter| taken.write(out)))
     }
 
     fn on_frame(&mut self, ctx: &mut StageContext, _frame: &Frame) {
@@ -377,9 +379,50 @@ impl Stage for MapStage {
                 if max_range >= 0.0 {
                     cut_range(std::slice::from_mut(&mut rays), max_range);
                 }
-                self.cloud.push((index, rays));
+                self.cloud.push((index, Arc::new(rays)));
             }
         }
+    }
+}
+
+/// A map's part of a snapshot, taken by [`MapStage::take_snapshot`].
+struct MapSnapshot {
+    map: Option<VoxelMap>,
+    cloud: Vec<Arc<RayBundle>>,
+    res: Resolution,
+    settings: PipelineSettings,
+}
+
+impl MapSnapshot {
+    /// Writes `map.bt`, `map.ot` and `cloud.ply` (through the snapshot filters) and hands the
+    /// `.bt`'s leaves on to the metrics.
+    fn write(self, out: &mut SnapshotWriter) -> Result<(), PipelineError> {
+        let tree = self.map.map_or_else(
+            || Octree::empty(self.res, self.settings.sensor),
+            |m| m.to_octree(),
+        );
+        let bt = tree.to_bt_bytes();
+        let leaves = metrics::leaf_map_of_bt(&tree, &bt);
+        let mut cloud: Vec<RayBundle> = self.cloud.into_iter().map(Arc::unwrap_or_clone).collect();
+        if !self.settings.snapshot_filters.is_empty() && !cloud.is_empty() {
+            cloud = apply_filters(&self.settings.snapshot_filters, cloud)?;
+        }
+        let mut ply = Vec::new();
+        write_ply_bundles(&mut ply, &cloud, Encoding::Binary).map_err(|source| {
+            PipelineError::Write {
+                path: out.snapshot.dir.join("cloud.ply"),
+                source,
+            }
+        })?;
+        out.write_file("map.bt", &bt)?;
+        out.write_file("map.ot", &tree.to_ot_bytes())?;
+        out.write_file("cloud.ply", &ply)?;
+        out.snapshot.nodes = tree.num_nodes() as u64;
+        out.snapshot.occupied_voxels = leaves.occupied_voxels();
+        out.snapshot.free_voxels = leaves.free_voxels();
+        out.snapshot.points = cloud.iter().map(|c| c.points.len() as u64).sum();
+        out.leaves = Some(leaves);
+        Ok(())
     }
 }
 
@@ -432,7 +475,15 @@ impl MetricsStage {
         let due = self
             .at
             .is_none_or(|at| now.saturating_duration_since(at) >= METRICS_INTERVAL);
-        if !due || self.points == maps.points() {
+        if due {
+            self.refresh_now(maps, now);
+        }
+    }
+
+    /// Recomputes from `maps` if the map grew, however recent the last computation (a worker
+    /// about to be retired reports its final numbers).
+    pub fn refresh_now(&mut self, maps: &MapStage, now: Instant) {
+        if self.points == maps.points() {
             return;
         }
         let leaves = metrics::leaf_map(&maps.session_map().to_octree());
@@ -461,29 +512,45 @@ impl Stage for MetricsStage {
     fn on_frame(&mut self, _ctx: &mut StageContext, _frame: &Frame) {}
 
     fn snapshot(&mut self, out: &mut SnapshotWriter) -> Result<(), PipelineError> {
-        let Some(leaves) = &out.leaves else {
-            return Ok(());
-        };
-        let Some(reference) = &self.reference else {
-            return Ok(());
-        };
-        if leaves.num_leaves() == 0 {
-            return Ok(());
-        }
-        let m = eval::evaluate(reference, leaves, None)?;
-        let mut json = serde_json::to_vec_pretty(&m).map_err(|e| PipelineError::Write {
-            path: out.snapshot.dir.join("metrics.json"),
-            source: e.into(),
-        })?;
-        json.push(b'\n');
-        out.write_file("metrics.json", &json)?;
-        let mut text = Vec::new();
-        metrics::write_metrics_table(&m, &mut text).map_err(|source| PipelineError::Write {
-            path: out.snapshot.dir.join("metrics.txt"),
-            source,
-        })?;
-        out.write_file("metrics.txt", &text)?;
-        out.snapshot.metrics = Some(m);
-        Ok(())
+        write_metrics(self.reference.as_deref(), out)
     }
+
+    fn snapshot_job(&self, _position: Option<&str>) -> Option<SnapshotJob> {
+        let reference = self.reference.clone();
+        Some(Box::new(move |out: &mut SnapshotWriter| {
+            write_metrics(reference.as_deref(), out)
+        }))
+    }
+}
+
+/// Writes `metrics.json` and `metrics.txt` of the leaves the map's part of the snapshot handed
+/// on, against `reference` (nothing without a reference or without 3D data).
+fn write_metrics(
+    reference: Option<&LeafMap>,
+    out: &mut SnapshotWriter,
+) -> Result<(), PipelineError> {
+    let Some(leaves) = &out.leaves else {
+        return Ok(());
+    };
+    let Some(reference) = reference else {
+        return Ok(());
+    };
+    if leaves.num_leaves() == 0 {
+        return Ok(());
+    }
+    let m = eval::evaluate(reference, leaves, None)?;
+    let mut json = serde_json::to_vec_pretty(&m).map_err(|e| PipelineError::Write {
+        path: out.snapshot.dir.join("metrics.json"),
+        source: e.into(),
+    })?;
+    json.push(b'\n');
+    out.write_file("metrics.json", &json)?;
+    let mut text = Vec::new();
+    metrics::write_metrics_table(&m, &mut text).map_err(|source| PipelineError::Write {
+        path: out.snapshot.dir.join("metrics.txt"),
+        source,
+    })?;
+    out.write_file("metrics.txt", &text)?;
+    out.snapshot.metrics = Some(m);
+    Ok(())
 }
