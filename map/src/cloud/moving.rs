@@ -30,7 +30,7 @@
 //! it trades a boundary voxel for its face neighbour and never reaches a voxel the true ray
 //! does not touch or border; the occupied (end) updates are unchanged. At the default 5 cm
 //! resolution that is 12.5 mm of origin travel: 25 ms at 0.5 m/s, 62 ms at 0.2 m/s, i.e.
-//! about 14–34 samples at the Sweep's 550 Hz (26–64 at 1025 Hz), three to eight bundles per
+//! about 14–34 samples at the Sweep's 550 Hz (26–64 at 1025 Hz), four to eight bundles per
 //! 5 Hz revolution (turning moves the mast-mounted origin too and shortens them). A bundle
 //! never spans two revolutions.
 //!
@@ -416,9 +416,10 @@ fn distance(a: [f64; 3], b: [f64; 3]) -> f64 {
 /// How far a sample's own origin may drift from its bundle's, as a fraction of the voxel edge.
 pub const DEFAULT_DRIFT_FRACTION: f64 = 0.25;
 
-/// Default [`MovingSettings::extrapolation_tolerance_ns`]: 50 ms. Linear extrapolation over
-/// 50 ms errs by ½·a·t² ≈ 0.6 mm at a pushed trolley's 0.5 m/s² — far below a voxel; it places
-/// the last samples of a pass, measured after the last RPLidar pose.
+/// Default [`MovingSettings::extrapolation_tolerance_ns`]: 50 ms, to place the last samples of
+/// a pass, measured after the last RPLidar pose. Extrapolating t = 50 ms from an end segment of
+/// Δ = 100 ms (one pose per 10 Hz RPLidar revolution) errs by a·t·(Δ + t)/2 ≈ 2 mm at a pushed
+/// trolley's 0.5 m/s² — a sixth of the default bundle drift.
 pub const DEFAULT_EXTRAPOLATION_TOLERANCE_NS: u64 = 50_000_000;
 
 /// How a [`MovingAssembler`] groups, limits and filters.
@@ -850,6 +851,19 @@ mod tests {
                 assert!(distance3(opening.origin, bundle.origin) > drift);
             }
         }
+        // At 0.2 m/s: 35 samples per bundle, four bundles per revolution.
+        let slow = |t_ns| RigidTransform::planar(1.0 + 0.2 * seconds(t_ns), 3.0, 0.0);
+        let rev = revolution_from(slow, T0_NS);
+        let trajectory = FnTrajectory {
+            span_ns: (0, u64::MAX),
+            pose_at: slow,
+        };
+        let placed = place_revolution(&rev, &trajectory, &trolley_mount(), 0);
+        let sizes: Vec<usize> = bundle_by_origin(&placed.samples, drift)
+            .iter()
+            .map(|b| b.points.len())
+            .collect();
+        assert_eq!(sizes, [35, 35, 35, 5]);
         // Standing still: one bundle per revolution.
         let still = |_| RigidTransform::planar(4.0, 3.0, 0.3);
         let rev = revolution_from(still, T0_NS);
