@@ -356,7 +356,7 @@ fn by_x_then_y(p: &(f64, f64), q: &(f64, f64)) -> std::cmp::Ordering {
 /// optimum is the edge of the points' lower convex hull that spans the mean of `x`. Late
 /// arrivals only ever lie above the line, so they cannot pull it; only the least-delayed
 /// samples define it. A negative slope (time running backwards) is clamped to zero.
-fn lower_envelope_fit(points: &[(f64, f64)], hull: &mut Vec<(f64, f64)>) -> (f64, f64) {
+pub(crate) fn lower_envelope_fit(points: &[(f64, f64)], hull: &mut Vec<(f64, f64)>) -> (f64, f64) {
     // Andrew's monotone chain, lower hull only; for equal x keep the lowest y.
     hull.clear();
     for &p in points {

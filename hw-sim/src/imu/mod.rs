@@ -7,6 +7,10 @@
 //! the motor HAT, and the edge's real driver runs against it unchanged. Unknown addresses, the
 //! AK8963 without bypass and the MPU during H_RESET NACK their address.
 //!
+//! The MPU's I2C master reaches the AK8963 over the package's auxiliary bus ([`AuxBus`]): with
+//! USER_CTRL.I2C_MST_EN the host no longer sees 0x0C, and SLV0 copies the AK8963's registers
+//! into EXT_SENS_DATA and the FIFO at the sample rate (see [`Mpu9250Emulator`]).
+//!
 //! Values come from an [`ImuTruth`] sampled on the chips' own sampling grids (set by
 //! SMPLRT_DIV/CONFIG and the AK8963 mode), plus per-axis noise and constant biases, quantised
 //! at the configured full scale. Time is pushed in by the bus (from a
@@ -18,13 +22,15 @@
 
 mod ak8963;
 pub mod errors;
+mod fifo;
 mod mpu9250;
 mod truth;
 
 use std::sync::Arc;
 
 pub use ak8963::{Ak8963Emulator, AkEmulatorConfig};
-pub use mpu9250::{Mpu9250Emulator, MpuEmulatorConfig};
+pub use fifo::{FIFO_CAPACITY, Fifo};
+pub use mpu9250::{AuxBus, MAX_CATCH_UP, Mpu9250Emulator, MpuEmulatorConfig};
 pub use truth::{
     EarthField, ImuTruth, MountedImuTruth, STANDARD_GRAVITY, StaticTruth, TrueImu, YawRateTruth,
 };
@@ -129,26 +135,62 @@ impl I2cDevice for ImuEmulator {
 
     fn write(&mut self, address: u8, bytes: &[u8]) -> Result<(), Nack> {
         self.take_injected_nack()?;
+        let truth = self.truth.as_ref();
         if address == AK8963_ADDRESS {
-            self.ak.write(self.now_ns, self.truth.as_ref(), bytes);
+            self.ak.write(self.now_ns, truth, bytes);
         } else {
-            self.mpu.write(self.now_ns, bytes);
+            let mut aux = AkOnAuxBus {
+                ak: &mut self.ak,
+                truth,
+            };
+            self.mpu.write(self.now_ns, truth, &mut aux, bytes);
         }
         Ok(())
     }
 
     fn read(&mut self, address: u8, buf: &mut [u8]) -> Result<(), Nack> {
         self.take_injected_nack()?;
+        let truth = self.truth.as_ref();
         if address == AK8963_ADDRESS {
-            self.ak.read(self.now_ns, self.truth.as_ref(), buf);
+            self.ak.read(self.now_ns, truth, buf);
         } else {
-            self.mpu.read(self.now_ns, self.truth.as_ref(), buf);
+            let mut aux = AkOnAuxBus {
+                ak: &mut self.ak,
+                truth,
+            };
+            self.mpu.read(self.now_ns, truth, &mut aux, buf);
         }
         Ok(())
     }
 
     fn set_time_ns(&mut self, now_ns: u64) {
         self.now_ns = now_ns;
+    }
+}
+
+/// The package's auxiliary bus as the MPU's I2C master drives it: the AK8963 at 0x0C, nothing
+/// else (other addresses NACK).
+struct AkOnAuxBus<'a> {
+    ak: &'a mut Ak8963Emulator,
+    truth: &'a dyn ImuTruth,
+}
+
+impl AuxBus for AkOnAuxBus<'_> {
+    fn read(&mut self, t_ns: u64, address: u8, reg: u8, buf: &mut [u8]) -> Result<(), Nack> {
+        if address != AK8963_ADDRESS {
+            return Err(Nack);
+        }
+        self.ak.write(t_ns, self.truth, &[reg]);
+        self.ak.read(t_ns, self.truth, buf);
+        Ok(())
+    }
+
+    fn write(&mut self, t_ns: u64, address: u8, reg: u8, value: u8) -> Result<(), Nack> {
+        if address != AK8963_ADDRESS {
+            return Err(Nack);
+        }
+        self.ak.write(t_ns, self.truth, &[reg, value]);
+        Ok(())
     }
 }
 

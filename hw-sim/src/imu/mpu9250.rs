@@ -1,32 +1,99 @@
 //! Register-level MPU-9250 (accel/gyro/temperature die) emulator, a pure core: bytes, time and
 //! the ground truth in, register bytes out (research/hardware.md §1.3, §1.6, §1.8).
+//!
+//! The chip samples on its own grid (SMPLRT_DIV, CONFIG, GYRO_CONFIG). Idle, only the newest
+//! sample matters and it is latched into the data registers when the host reads. Once the FIFO
+//! (USER_CTRL.FIFO_EN with FIFO_EN ≠ 0) or the I2C master (USER_CTRL.I2C_MST_EN) runs, every
+//! sample instant is played in order before each host transfer: the data registers latch the
+//! sample, the master's SLV0 runs its transfer on the auxiliary bus (the AK8963, through
+//! [`AuxBus`]) into EXT_SENS_DATA_00.., and the FIFO appends the enabled registers in register
+//! order (accel, temperature, gyro x/y/z, SLV0's bytes). With I2C_MST_CTRL.WAIT_FOR_ES the
+//! record waits for that sample's external data; without it the record holds the previous
+//! instant's. The FIFO ([`Fifo`]) overflows as the chip's does (oldest bytes dropped, or with
+//! CONFIG.FIFO_MODE the new ones) and sets INT_STATUS.FIFO_OFLOW_INT; FIFO_COUNTH/L read its
+//! byte count big-endian, FIFO_R_W reads pop it without advancing the register pointer (so a
+//! burst from 0x74 reads the FIFO). Not modelled: SLV1..4, SLV0's BYTE_SW/REG_DIS/GRP and
+//! I2C_SLV0_DLY_EN (SLV0 runs at every sample), the DMP. A host that does not read for long
+//! has at most the last [`MAX_CATCH_UP`] instants played (more than fill the FIFO).
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
+use super::fifo::Fifo;
 use super::truth::{ImuTruth, STANDARD_GRAVITY};
+use crate::i2c::Nack;
 
 const SMPLRT_DIV: u8 = 0x19;
 const CONFIG: u8 = 0x1A;
 const GYRO_CONFIG: u8 = 0x1B;
 const ACCEL_CONFIG: u8 = 0x1C;
+const FIFO_EN: u8 = 0x23;
+const I2C_MST_CTRL: u8 = 0x24;
+const I2C_SLV0_ADDR: u8 = 0x25;
+const I2C_SLV0_REG: u8 = 0x26;
+const I2C_SLV0_CTRL: u8 = 0x27;
+const I2C_MST_STATUS: u8 = 0x36;
 const INT_PIN_CFG: u8 = 0x37;
 const INT_STATUS: u8 = 0x3A;
 const ACCEL_XOUT_H: u8 = 0x3B;
+const TEMP_OUT_H: u8 = 0x41;
+const GYRO_XOUT_H: u8 = 0x43;
 const GYRO_ZOUT_L: u8 = 0x48;
+const EXT_SENS_DATA_00: u8 = 0x49;
+const EXT_SENS_DATA_23: u8 = 0x60;
+const I2C_SLV0_DO: u8 = 0x63;
 const USER_CTRL: u8 = 0x6A;
 const PWR_MGMT_1: u8 = 0x6B;
+const FIFO_COUNTH: u8 = 0x72;
+const FIFO_COUNTL: u8 = 0x73;
+const FIFO_R_W: u8 = 0x74;
 const WHO_AM_I: u8 = 0x75;
 
 const H_RESET: u8 = 0x80;
 const SLEEP: u8 = 0x40;
 const BYPASS_EN: u8 = 0x02;
 const INT_ANYRD_2CLEAR: u8 = 0x10;
+/// CONFIG.FIFO_MODE: a full FIFO keeps its bytes and drops new ones.
+const FIFO_MODE: u8 = 0x40;
+/// USER_CTRL.FIFO_EN: records are written to the FIFO.
+const USER_FIFO_EN: u8 = 0x40;
 const I2C_MST_EN: u8 = 0x20;
+/// USER_CTRL.FIFO_RST: empties the FIFO (self-clearing).
+const FIFO_RST: u8 = 0x04;
 /// USER_CTRL bits that reset something and clear themselves.
 const USER_CTRL_SELF_CLEARING: u8 = 0x0F;
+/// INT_STATUS bits.
 const RAW_DATA_RDY: u8 = 0x01;
+const FIFO_OFLOW_INT: u8 = 0x10;
+/// FIFO_EN bits, in the order their registers land in a record.
+const FIFO_TEMP: u8 = 0x80;
+const FIFO_GYRO_X: u8 = 0x40;
+const FIFO_GYRO_Y: u8 = 0x20;
+const FIFO_GYRO_Z: u8 = 0x10;
+const FIFO_ACCEL: u8 = 0x08;
+const FIFO_SLV0: u8 = 0x01;
+/// I2C_MST_CTRL.WAIT_FOR_ES: a sample waits for its external sensor data.
+const WAIT_FOR_ES: u8 = 0x40;
+/// I2C_SLVx_ADDR bit 7: the slave transfer is a read.
+const SLV_READ: u8 = 0x80;
+/// I2C_SLVx_CTRL bit 7: the slave is enabled; [3:0] its length.
+const SLV_EN: u8 = 0x80;
+const SLV_LEN: u8 = 0x0F;
+/// I2C_MST_STATUS.I2C_SLV0_NACK.
+const SLV0_NACK: u8 = 0x01;
+
+/// Sample instants played at most per host transfer (see the module doc): more than any record
+/// layout needs to fill the 512-byte FIFO.
+pub const MAX_CATCH_UP: u64 = 1024;
+
+/// The MPU-9250's auxiliary I2C bus as its I2C master sees it (the AK8963 sits on it).
+pub trait AuxBus {
+    /// Reads `buf.len()` bytes from register `reg` of `address`, at emulated time `t_ns`.
+    fn read(&mut self, t_ns: u64, address: u8, reg: u8, buf: &mut [u8]) -> Result<(), Nack>;
+    /// Writes `value` to register `reg` of `address`, at emulated time `t_ns`.
+    fn write(&mut self, t_ns: u64, address: u8, reg: u8, value: u8) -> Result<(), Nack>;
+}
 
 /// How the emulated MPU-9250 differs from an ideal one.
 #[derive(Debug, Clone, PartialEq, serde::Deserialize, serde::Serialize)]
@@ -81,8 +148,9 @@ pub struct Mpu9250Emulator {
     busy_until_ns: u64,
     /// Start of the sampling grid: samples fall at epoch + k·period, k ≥ 1.
     epoch_ns: u64,
-    /// Grid index of the sample in the data registers.
-    latched: Option<u64>,
+    /// Grid index of the last sample instant played (0: none yet).
+    played: u64,
+    fifo: Fifo,
     rng: ChaCha8Rng,
 }
 
@@ -96,7 +164,8 @@ impl Mpu9250Emulator {
             pointer: 0,
             busy_until_ns: 0,
             epoch_ns: 0,
-            latched: None,
+            played: 0,
+            fifo: Fifo::default(),
             rng,
         };
         emulator.reset_registers(0);
@@ -125,9 +194,20 @@ impl Mpu9250Emulator {
         self.reg(INT_PIN_CFG) & BYPASS_EN != 0 && self.reg(USER_CTRL) & I2C_MST_EN == 0
     }
 
-    /// A register's current content, without side effects (for tests and inspection).
+    /// A register's current content, without side effects (for tests and inspection; FIFO_R_W
+    /// is not popped, FIFO_COUNTH/L give the count).
     pub fn peek(&self, reg: u8) -> u8 {
-        self.reg(reg)
+        let [high, low] = (self.fifo.len() as u16).to_be_bytes();
+        match reg & 0x7F {
+            FIFO_COUNTH => high,
+            FIFO_COUNTL => low,
+            other => self.reg(other),
+        }
+    }
+
+    /// The FIFO's bytes, oldest first, without popping them (for tests and inspection).
+    pub fn fifo_contents(&self) -> Vec<u8> {
+        self.fifo.contents()
     }
 
     /// Accel/gyro output period in ns from CONFIG, SMPLRT_DIV and GYRO_CONFIG.FCHOICE_B.
@@ -143,29 +223,49 @@ impl Mpu9250Emulator {
         internal_period_ns * (1 + u64::from(self.reg(SMPLRT_DIV)))
     }
 
-    /// A host write transfer: register pointer, then data with auto-increment.
-    pub fn write(&mut self, now_ns: u64, bytes: &[u8]) {
+    /// A host write transfer: register pointer, then data with auto-increment (a write to
+    /// FIFO_R_W pushes a byte and keeps the pointer there). The sample instants due by `now_ns`
+    /// are played first, with the registers as they were.
+    pub fn write(&mut self, now_ns: u64, truth: &dyn ImuTruth, aux: &mut dyn AuxBus, bytes: &[u8]) {
+        self.update(now_ns, truth, aux);
         let Some((&pointer, data)) = bytes.split_first() else {
             return;
         };
         self.pointer = pointer & 0x7F;
         for &value in data {
             self.write_register(now_ns, self.pointer, value);
-            self.pointer = (self.pointer + 1) & 0x7F;
+            if self.pointer != FIFO_R_W {
+                self.pointer = (self.pointer + 1) & 0x7F;
+            }
         }
     }
 
-    /// A host read transfer from the register pointer, with auto-increment. The data
-    /// registers hold the latest sample due at `now_ns`, so a burst never mixes two instants.
-    pub fn read(&mut self, now_ns: u64, truth: &dyn ImuTruth, buf: &mut [u8]) {
-        self.update(now_ns, truth);
+    /// A host read transfer from the register pointer, with auto-increment, except at FIFO_R_W
+    /// where every byte pops the FIFO. The data registers hold the latest sample due at
+    /// `now_ns`, so a burst never mixes two instants.
+    pub fn read(
+        &mut self,
+        now_ns: u64,
+        truth: &dyn ImuTruth,
+        aux: &mut dyn AuxBus,
+        buf: &mut [u8],
+    ) {
+        self.update(now_ns, truth, aux);
         let any_read_clears = self.reg(INT_PIN_CFG) & INT_ANYRD_2CLEAR != 0;
+        let [count_high, count_low] = (self.fifo.len() as u16).to_be_bytes();
         for byte in buf.iter_mut() {
-            *byte = self.reg(self.pointer);
+            *byte = match self.pointer {
+                FIFO_COUNTH => count_high,
+                FIFO_COUNTL => count_low,
+                FIFO_R_W => self.fifo.pop(),
+                reg => self.reg(reg),
+            };
             if self.pointer == INT_STATUS || any_read_clears {
-                self.regs[usize::from(INT_STATUS)] &= !RAW_DATA_RDY;
+                self.regs[usize::from(INT_STATUS)] &= !(RAW_DATA_RDY | FIFO_OFLOW_INT);
             }
-            self.pointer = (self.pointer + 1) & 0x7F;
+            if self.pointer != FIFO_R_W {
+                self.pointer = (self.pointer + 1) & 0x7F;
+            }
         }
     }
 
@@ -177,12 +277,22 @@ impl Mpu9250Emulator {
         self.regs = [0; 128];
         self.regs[usize::from(PWR_MGMT_1)] = 0x01;
         self.regs[usize::from(WHO_AM_I)] = self.config.who_am_i;
+        self.fifo.reset();
         self.restart_sampling(now_ns);
     }
 
     fn restart_sampling(&mut self, now_ns: u64) {
         self.epoch_ns = now_ns;
-        self.latched = None;
+        self.played = 0;
+    }
+
+    /// Records go to the FIFO: USER_CTRL.FIFO_EN and at least one FIFO_EN source.
+    fn fifo_writing(&self) -> bool {
+        self.reg(USER_CTRL) & USER_FIFO_EN != 0 && self.reg(FIFO_EN) != 0
+    }
+
+    fn master_enabled(&self) -> bool {
+        self.reg(USER_CTRL) & I2C_MST_EN != 0
     }
 
     fn write_register(&mut self, now_ns: u64, reg: u8, value: u8) {
@@ -198,31 +308,142 @@ impl Mpu9250Emulator {
                     self.restart_sampling(now_ns);
                 }
             }
-            // Read-only: status, data, identity.
-            INT_STATUS | ACCEL_XOUT_H..=GYRO_ZOUT_L | WHO_AM_I => {}
+            // Read-only: status, data, external sensor data, FIFO count, identity.
+            I2C_MST_STATUS
+            | INT_STATUS
+            | ACCEL_XOUT_H..=GYRO_ZOUT_L
+            | EXT_SENS_DATA_00..=EXT_SENS_DATA_23
+            | FIFO_COUNTH
+            | FIFO_COUNTL
+            | WHO_AM_I => {}
             SMPLRT_DIV | CONFIG | GYRO_CONFIG => {
                 self.regs[usize::from(reg)] = value;
                 self.restart_sampling(now_ns);
             }
-            USER_CTRL => self.regs[usize::from(reg)] = value & !USER_CTRL_SELF_CLEARING,
+            USER_CTRL => {
+                if value & FIFO_RST != 0 {
+                    self.fifo.reset();
+                }
+                self.regs[usize::from(reg)] = value & !USER_CTRL_SELF_CLEARING;
+            }
+            FIFO_R_W => self.push_fifo(&[value]),
             _ => self.regs[usize::from(reg & 0x7F)] = value,
         }
     }
 
-    /// Latches the newest sample due at `now_ns` into the data registers (unless asleep).
-    fn update(&mut self, now_ns: u64, truth: &dyn ImuTruth) {
+    /// Plays the sample instants due by `now_ns` (unless asleep): every one while the FIFO or
+    /// the I2C master runs, else only the newest, latched into the data registers.
+    fn update(&mut self, now_ns: u64, truth: &dyn ImuTruth, aux: &mut dyn AuxBus) {
         if self.reg(PWR_MGMT_1) & SLEEP != 0 {
             return;
         }
         let period = self.sample_period_ns();
-        let k = now_ns.saturating_sub(self.epoch_ns) / period;
-        if k == 0 || self.latched == Some(k) {
+        let due = now_ns.saturating_sub(self.epoch_ns) / period;
+        if due <= self.played {
             return;
         }
-        self.latched = Some(k);
-        let t_ns = self.epoch_ns + k * period;
-        self.latch_sample(t_ns, truth);
+        if self.fifo_writing() || self.master_enabled() {
+            let first = self.played + 1;
+            let keep_old = self.reg(CONFIG) & FIFO_MODE != 0;
+            let played = if due - first < MAX_CATCH_UP {
+                first..=due
+            } else if keep_old {
+                // The first instants fill the FIFO and it keeps them; the newest still latches.
+                first..=first + MAX_CATCH_UP - 1
+            } else {
+                due + 1 - MAX_CATCH_UP..=due
+            };
+            let last = *played.end();
+            for k in played {
+                self.play_instant(self.epoch_ns + k * period, truth, aux);
+            }
+            if last != due {
+                self.latch_sample(self.epoch_ns + due * period, truth);
+            }
+        } else {
+            self.latch_sample(self.epoch_ns + due * period, truth);
+        }
+        self.played = due;
         self.regs[usize::from(INT_STATUS)] |= RAW_DATA_RDY;
+    }
+
+    /// One sample instant with the FIFO or the master running: latch, the SLV0 transfer, the
+    /// FIFO record (after the transfer with WAIT_FOR_ES, before it otherwise).
+    fn play_instant(&mut self, t_ns: u64, truth: &dyn ImuTruth, aux: &mut dyn AuxBus) {
+        self.latch_sample(t_ns, truth);
+        let wait_for_external = self.reg(I2C_MST_CTRL) & WAIT_FOR_ES != 0;
+        if wait_for_external {
+            self.run_slave0(t_ns, aux);
+        }
+        if self.fifo_writing() {
+            let record = self.fifo_record();
+            self.push_fifo(&record);
+        }
+        if !wait_for_external {
+            self.run_slave0(t_ns, aux);
+        }
+    }
+
+    /// SLV0's transfer on the auxiliary bus, if the master and SLV0 are enabled: a read of
+    /// LENGTH bytes from SLV0_REG into EXT_SENS_DATA_00.., or a write of SLV0_DO. A NACK sets
+    /// I2C_MST_STATUS.I2C_SLV0_NACK and leaves EXT_SENS_DATA as it was.
+    fn run_slave0(&mut self, t_ns: u64, aux: &mut dyn AuxBus) {
+        let ctrl = self.reg(I2C_SLV0_CTRL);
+        if !self.master_enabled() || ctrl & SLV_EN == 0 {
+            return;
+        }
+        let address = self.reg(I2C_SLV0_ADDR);
+        let reg = self.reg(I2C_SLV0_REG);
+        let result = if address & SLV_READ != 0 {
+            let len = usize::from(ctrl & SLV_LEN);
+            let mut buf = [0u8; 16];
+            let result = aux.read(t_ns, address & 0x7F, reg, &mut buf[..len]);
+            if result.is_ok() {
+                let at = usize::from(EXT_SENS_DATA_00);
+                self.regs[at..at + len].copy_from_slice(&buf[..len]);
+            }
+            result
+        } else {
+            aux.write(t_ns, address & 0x7F, reg, self.reg(I2C_SLV0_DO))
+        };
+        let status = &mut self.regs[usize::from(I2C_MST_STATUS)];
+        match result {
+            Ok(()) => *status &= !SLV0_NACK,
+            Err(Nack) => *status |= SLV0_NACK,
+        }
+    }
+
+    /// The enabled FIFO_EN sources in register order: accel, temperature, gyro x, y, z, then
+    /// SLV0's LENGTH bytes of EXT_SENS_DATA.
+    fn fifo_record(&self) -> Vec<u8> {
+        let enabled = self.reg(FIFO_EN);
+        let sources = [
+            (FIFO_ACCEL, ACCEL_XOUT_H, 6),
+            (FIFO_TEMP, TEMP_OUT_H, 2),
+            (FIFO_GYRO_X, GYRO_XOUT_H, 2),
+            (FIFO_GYRO_Y, GYRO_XOUT_H + 2, 2),
+            (FIFO_GYRO_Z, GYRO_XOUT_H + 4, 2),
+            (
+                FIFO_SLV0,
+                EXT_SENS_DATA_00,
+                usize::from(self.reg(I2C_SLV0_CTRL) & SLV_LEN),
+            ),
+        ];
+        let mut record = Vec::with_capacity(30);
+        for (bit, first, len) in sources {
+            if enabled & bit != 0 {
+                let at = usize::from(first);
+                record.extend_from_slice(&self.regs[at..at + len]);
+            }
+        }
+        record
+    }
+
+    fn push_fifo(&mut self, bytes: &[u8]) {
+        let keep_old = self.reg(CONFIG) & FIFO_MODE != 0;
+        if self.fifo.push(bytes, keep_old) {
+            self.regs[usize::from(INT_STATUS)] |= FIFO_OFLOW_INT;
+        }
     }
 
     fn latch_sample(&mut self, t_ns: u64, truth: &dyn ImuTruth) {

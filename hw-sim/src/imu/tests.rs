@@ -301,17 +301,224 @@ fn injected_nacks_fail_whole_transactions() {
     assert_eq!(r.rd(MPU, 0x75, 1), [0x70]);
 }
 
+/// Gyro z in °/s at ±500 °/s (65.5 LSB per °/s) reads the sample's time in ms as LSB, so a
+/// FIFO record shows which instant it holds.
+fn time_in_gyro_z() -> FnTruth {
+    FnTruth(|t_ns| TrueImu {
+        gyro_rad_s: [0.0, 0.0, (t_ns as f64 / 1e6 / 65.5).to_radians()],
+        ..fixed_mag([1.2, 3.0, 4.8])
+    })
+}
+
+/// What the chip holds for one sample of [`time_in_gyro_z`] at `t_ms` (±4 g, ±500 °/s, 25 °C):
+/// accel, temperature, gyro, big-endian, in register order.
+fn mpu_record(t_ms: i16) -> Vec<u8> {
+    let mut record = vec![0, 0, 0, 0, 0x20, 0x00, 0x05, 0x37, 0, 0, 0, 0];
+    record.extend_from_slice(&t_ms.to_be_bytes());
+    record
+}
+
+/// 200 Hz from t = 0, ±4 g, ±500 °/s, DLPF 41 Hz.
+fn at_200_hz(r: &mut Fixture) {
+    r.wr(MPU, 0x1A, 0x03);
+    r.wr(MPU, 0x19, 0x04);
+    r.wr(MPU, 0x1B, 0x08);
+    r.wr(MPU, 0x1C, 0x08);
+}
+
+#[test]
+fn fifo_holds_every_sample_in_register_order_and_pops_on_read() {
+    let mut r = fixture(quiet(), Arc::new(time_in_gyro_z()));
+    at_200_hz(&mut r);
+    r.wr(MPU, 0x23, 0xF8); // temperature, gyro x/y/z, accel
+    r.wr(MPU, 0x6A, 0x40); // FIFO on
+    r.at_ms(26);
+    // Five samples (5 … 25 ms) of 14 bytes: 70 = 0x0046, big-endian.
+    assert_eq!(r.rd(MPU, 0x72, 2), [0x00, 0x46]);
+    let want: Vec<u8> = [5, 10, 15, 20, 25]
+        .into_iter()
+        .flat_map(mpu_record)
+        .collect();
+    assert_eq!(lock(&r.imu).mpu().fifo_contents(), want);
+    // A burst from FIFO_R_W stays there: 20 bytes pop 20 bytes.
+    assert_eq!(r.rd(MPU, 0x74, 20), want[..20]);
+    assert_eq!(r.rd(MPU, 0x72, 2), [0x00, 50]);
+    assert_eq!(r.rd(MPU, 0x74, 50), want[20..]);
+    // Empty: a read repeats the last byte, the count stays 0.
+    assert_eq!(r.rd(MPU, 0x74, 2), [want[69]; 2]);
+    assert_eq!(r.rd(MPU, 0x72, 2), [0, 0]);
+    // Accel only: 6 bytes a sample; the count passes 255 (0x0102 = 258 after 43 samples).
+    r.wr(MPU, 0x23, 0x08);
+    r.at_ms(26 + 43 * 5);
+    assert_eq!(r.rd(MPU, 0x72, 2), [0x01, 0x02]);
+    // FIFO_RST empties it and clears itself.
+    r.wr(MPU, 0x6A, 0x44);
+    assert_eq!(r.rd(MPU, 0x72, 2), [0, 0]);
+    assert_eq!(r.rd(MPU, 0x6A, 1), [0x40]);
+    // USER_CTRL.FIFO_EN off: nothing more is written.
+    r.wr(MPU, 0x6A, 0x00);
+    r.at_ms(400);
+    assert_eq!(r.rd(MPU, 0x72, 2), [0, 0]);
+}
+
+#[test]
+fn fifo_overflow_drops_the_oldest_bytes_and_sets_fifo_oflow_int() {
+    let mut r = fixture(quiet(), Arc::new(time_in_gyro_z()));
+    at_200_hz(&mut r);
+    r.wr(MPU, 0x23, 0xF8);
+    r.wr(MPU, 0x6A, 0x40);
+    r.at_ms(36 * 5);
+    // 36 records of 14 bytes = 504: full to the last whole record, no overflow.
+    assert_eq!(r.rd(MPU, 0x72, 2), [0x01, 0xF8]);
+    assert_eq!(r.rd(MPU, 0x3A, 1), [0x01]);
+    r.at_ms(37 * 5);
+    // The 37th needs 518 bytes: the 6 oldest are dropped, the FIFO starts 6 bytes into the
+    // 5 ms record, and the overflow flag is up until INT_STATUS is read.
+    assert_eq!(r.rd(MPU, 0x72, 2), [0x02, 0x00]);
+    let contents = lock(&r.imu).mpu().fifo_contents();
+    assert_eq!(contents[..8], mpu_record(5)[6..]);
+    assert_eq!(contents[8..22], mpu_record(10));
+    assert_eq!(contents[498..], mpu_record(185));
+    assert_eq!(r.rd(MPU, 0x3A, 1), [0x11]);
+    assert_eq!(r.rd(MPU, 0x3A, 1), [0x00]);
+
+    // CONFIG.FIFO_MODE = 1: a full FIFO keeps its old bytes (the grid restarts with CONFIG).
+    r.wr(MPU, 0x6A, 0x44);
+    r.wr(MPU, 0x1A, 0x43);
+    r.at_ms(185 + 37 * 5);
+    // (The chip plays the instants due when the host next talks to it.)
+    assert_eq!(r.rd(MPU, 0x72, 2), [0x02, 0x00]);
+    let contents = lock(&r.imu).mpu().fifo_contents();
+    assert_eq!(contents[..14], mpu_record(190));
+    // The 37th record was cut after 8 bytes.
+    assert_eq!(contents[504..], mpu_record(185 + 37 * 5)[..8]);
+    assert_eq!(r.rd(MPU, 0x3A, 1), [0x11]);
+
+    // A host that does not read for a minute: the FIFO is full and flagged, not stalled.
+    r.wr(MPU, 0x1A, 0x03);
+    r.wr(MPU, 0x6A, 0x44);
+    r.at_ms(60_000);
+    assert_eq!(r.rd(MPU, 0x72, 2), [0x02, 0x00]);
+    assert_eq!(r.rd(MPU, 0x3A, 1), [0x11]);
+    // H_RESET empties the FIFO.
+    r.wr(MPU, 0x6B, 0x80);
+    r.at_ms(60_010);
+    assert_eq!(r.rd(MPU, 0x72, 2), [0, 0]);
+}
+
+#[test]
+fn i2c_master_slv0_copies_the_ak8963_into_ext_sens_data_and_the_fifo() {
+    // Body field (1.2, 3, 4.8) µT: the AK8963 block is [DRDY, 20, 0, 8, 0, −32 (LE), BITM].
+    let block = [0x01, 0x14, 0x00, 0x08, 0x00, 0xE0, 0xFF, 0x10];
+    let mut r = fixture(quiet(), Arc::new(time_in_gyro_z()));
+    at_200_hz(&mut r);
+    r.wr(MPU, 0x37, 0x02);
+    r.wr(AK, 0x0A, 0x16); // continuous 100 Hz from t = 0, in bypass
+    r.wr(MPU, 0x37, 0x00);
+    r.wr(MPU, 0x24, 0x4D); // WAIT_FOR_ES, 400 kHz
+    r.wr(MPU, 0x25, 0x8C); // SLV0 reads 0x0C
+    r.wr(MPU, 0x26, 0x02); // from ST1
+    r.wr(MPU, 0x27, 0x88); // 8 bytes
+    r.wr(MPU, 0x23, 0xF9); // … and SLV0's bytes to the FIFO
+    r.wr(MPU, 0x6A, 0x60); // FIFO and master on
+    assert!(r.bus.write_read(AK, &[0x00], &mut [0]).is_err());
+    r.at_ms(21);
+    // Samples at 5, 10, 15, 20 ms; the AK8963 measures at 10 and 20 ms. The master reads ST1..ST2
+    // at every sample, so DRDY shows at 10 and 20 ms only (the read of ST2 clears it).
+    let not_ready = [0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x10];
+    let mut want = Vec::new();
+    for (t_ms, ext) in [(5, not_ready), (10, block), (15, block), (20, block)] {
+        want.extend(mpu_record(t_ms));
+        let mut ext = ext;
+        if t_ms == 15 {
+            ext[0] = 0x00; // the 10 ms field again, DRDY clear
+        }
+        want.extend(ext);
+    }
+    assert_eq!(r.rd(MPU, 0x72, 2), [0x00, 88]);
+    assert_eq!(lock(&r.imu).mpu().fifo_contents(), want);
+    // EXT_SENS_DATA_00..07 hold the last copy; reading them does not touch the AK8963.
+    assert_eq!(r.rd(MPU, 0x49, 8), block);
+    assert_eq!(r.rd(MPU, 0x36, 1), [0x00]);
+    // A 22-byte burst from ACCEL_XOUT_H reads the newest sample and the copy together.
+    let burst = r.rd(MPU, 0x3B, 22);
+    assert_eq!(burst[..14], mpu_record(20));
+    assert_eq!(burst[14..], block);
+
+    // Without WAIT_FOR_ES a record carries the copy the master made at the previous sample.
+    r.wr(MPU, 0x6A, 0x64);
+    r.wr(MPU, 0x24, 0x0D);
+    r.at_ms(31);
+    assert_eq!(r.rd(MPU, 0x72, 2), [0x00, 44]);
+    let contents = lock(&r.imu).mpu().fifo_contents();
+    let mut no_new_field = block;
+    no_new_field[0] = 0x00;
+    // The 25 ms record: the copy made at 20 ms (DRDY); the 30 ms record: the one made at 25 ms
+    // (no new field); the 30 ms field came after its record.
+    assert_eq!(contents[14..22], block);
+    assert_eq!(contents[36..44], no_new_field);
+    assert_eq!(r.rd(MPU, 0x49, 8), block);
+
+    // SLV0 addressing nobody: I2C_SLV0_NACK, EXT_SENS_DATA kept.
+    r.wr(MPU, 0x25, 0x8D);
+    r.at_ms(36);
+    assert_eq!(r.rd(MPU, 0x36, 1), [0x01]);
+    assert_eq!(r.rd(MPU, 0x49, 8), block);
+}
+
 mod with_driver {
-    use scan3d_edge::drivers::imu::{Chip, Error, ImuConfig, ImuReading, Mpu9250};
+    use scan3d_edge::drivers::imu::{
+        Chip, Error, FifoClock, FifoRead, ImuConfig, ImuReading, Mpu9250, ReadMode,
+        fifo_read_interval_ns,
+    };
 
     use super::*;
 
+    /// The per-sample path: data registers and the AK8963 in bypass.
+    fn registers() -> ImuConfig {
+        ImuConfig {
+            read_mode: ReadMode::Registers,
+            ..ImuConfig::default()
+        }
+    }
+
     fn started(config: ImuEmulatorConfig, truth: Arc<dyn ImuTruth>) -> (Fixture, Mpu9250<I2cBus>) {
+        started_with(config, truth, registers())
+    }
+
+    fn started_with(
+        config: ImuEmulatorConfig,
+        truth: Arc<dyn ImuTruth>,
+        driver: ImuConfig,
+    ) -> (Fixture, Mpu9250<I2cBus>) {
         let r = fixture(config, truth);
-        let mut imu = Mpu9250::new(r.bus.clone(), ImuConfig::default());
+        let mut imu = Mpu9250::new(r.bus.clone(), driver);
         let mut delay = r.clock.clone();
         imu.init(&mut delay).unwrap();
         (r, imu)
+    }
+
+    /// FIFO batches every `interval_ns` for `ms`: each sample with the time of the count read.
+    fn run_fifo(
+        r: &Fixture,
+        imu: &mut Mpu9250<I2cBus>,
+        interval_ns: u64,
+        ms: u64,
+    ) -> Vec<(ImuReading, u64)> {
+        let end = r.clock.now_ns() + ms * 1_000_000;
+        let mut out = Vec::new();
+        let mut readings = Vec::new();
+        while r.clock.now_ns() + interval_ns <= end {
+            r.clock.advance_ns(interval_ns);
+            let count = imu.fifo_count().unwrap();
+            readings.clear();
+            match imu.read_fifo(count, &mut readings).unwrap() {
+                FifoRead::Samples { samples, .. } => assert_eq!(samples, readings.len()),
+                other => panic!("{other:?} at {} ns", r.clock.now_ns()),
+            }
+            out.extend(readings.iter().map(|&reading| (reading, r.clock.now_ns())));
+        }
+        out
     }
 
     /// Reads for `ms` milliseconds at the 200 Hz sample rate.
@@ -393,7 +600,7 @@ mod with_driver {
             r.bus.clone(),
             ImuConfig {
                 gyro_bias_samples: 0,
-                ..ImuConfig::default()
+                ..registers()
             },
         );
         imu.init(&mut r.clock.clone()).unwrap();
@@ -512,6 +719,217 @@ mod with_driver {
         // 10 measurements in 100 ms: 3 dropped, 7 delivered.
         assert_eq!(stats.mag_samples - before.mag_samples, 7);
         assert_eq!(readings.iter().filter(|r| r.mag_ut.is_some()).count(), 7);
+    }
+
+    #[test]
+    fn fifo_batches_carry_the_same_samples_and_rates_in_few_transactions() {
+        let mut config = ImuEmulatorConfig::default();
+        config.mpu.gyro_bias_rad_s = [0.01, -0.02, 0.005];
+        let truth = StaticTruth {
+            heading_rad: 30f64.to_radians(),
+            field: EarthField::default(),
+        };
+        let (r, mut imu) = started_with(config, Arc::new(truth), ImuConfig::default());
+        // The host bus no longer sees the AK8963: the MPU's master reads it.
+        assert!(r.bus.clone().write_read(AK, &[0x00], &mut [0]).is_err());
+        let lsb_gyro = 1f64.to_radians() / 65.5;
+        assert!(
+            within(imu.gyro_bias(), [0.01, -0.02, 0.005], 0.0005 + lsb_gyro),
+            "bias {:?}",
+            imu.gyro_bias()
+        );
+        let interval = fifo_read_interval_ns(40, 5_000_000, imu.fifo_layout().unwrap());
+        run_fifo(&r, &mut imu, interval, 100); // past the start
+        let before = r.bus.stats();
+        let t0 = r.clock.now_ns();
+        let readings = run_fifo(&r, &mut imu, interval, 10_000);
+        let seconds = (r.clock.now_ns() - t0) as f64 / 1e9;
+        let after = r.bus.stats();
+        let per_second = (after.transactions - before.transactions) as f64 / seconds;
+        let rate = readings.len() as f64 / seconds;
+        let mags = readings.iter().filter(|(r, _)| r.mag_ut.is_some()).count();
+        println!(
+            "IMU FIFO at 200 Hz: {per_second:.1} I2C transactions/s, {rate:.1} samples/s, {:.1} \
+             field samples/s",
+            mags as f64 / seconds
+        );
+        // Two transactions (count, records) per batch of 7 or 8 samples.
+        assert!(
+            (per_second - 2e9 / interval as f64).abs() < 0.5,
+            "{per_second}"
+        );
+        assert!((rate - 200.0).abs() < 1.0, "{rate} samples/s");
+        assert!((mags as f64 / seconds - 100.0).abs() < 1.0, "{mags} fields");
+        let field = truth.field.in_level_body(truth.heading_rad);
+        let lsb_accel = 9.80665 / 8192.0;
+        for (reading, _) in &readings {
+            assert!(within(
+                reading.accel_m_s2,
+                [0.0, 0.0, 9.80665],
+                5.0 * 0.02 + lsb_accel
+            ));
+            assert!(within(
+                reading.gyro_rad_s,
+                [0.0; 3],
+                5.0 * 0.0012 + 2.0 * lsb_gyro
+            ));
+            assert!((reading.temp_c - 25.0).abs() < 0.01);
+            if let Some(m) = reading.mag_ut {
+                assert!(within(m, field, 5.0 * 0.3 + 0.2), "{m:?} vs {field:?}");
+            }
+        }
+        // Fields every other sample, as the AK8963 measures at half the rate.
+        assert!(
+            readings
+                .windows(2)
+                .all(|w| w[0].0.mag_ut.is_some() != w[1].0.mag_ut.is_some())
+        );
+        let stats = imu.stats();
+        assert_eq!((stats.fifo_overflows, stats.fifo_discards), (0, 0));
+        // The probe's single read works in FIFO mode too: data registers + the master's copy.
+        let reading = imu.read().unwrap();
+        assert!(within(reading.accel_m_s2, [0.0, 0.0, 9.80665], 0.2));
+    }
+
+    #[test]
+    fn fifo_samples_are_stamped_with_their_measurement_times() {
+        // Gyro z in °/s is 0.5 × (the time in ms, modulo 400): the reading says when it was
+        // measured, to 1/65.5/0.5 ≈ 0.03 ms.
+        let truth = FnTruth(|t_ns| TrueImu {
+            gyro_rad_s: [
+                0.0,
+                0.0,
+                (0.5 * ((t_ns / 1000) % 400_000) as f64 / 1000.0).to_radians(),
+            ],
+            ..fixed_mag([20.0, 0.0, -40.0])
+        });
+        let driver = ImuConfig {
+            gyro_bias_samples: 0,
+            ..ImuConfig::default()
+        };
+        let (r, mut imu) = started_with(quiet(), Arc::new(truth), driver);
+        let interval = fifo_read_interval_ns(40, 5_000_000, imu.fifo_layout().unwrap());
+        let mut clock = FifoClock::new(5_000_000);
+        let mut times = Vec::new();
+        let mut worst_ms: f64 = 0.0;
+        let mut stamped = 0;
+        for batch in 0..200 {
+            // A host that wakes a little late, by 0 to 2.9 ms.
+            r.clock.advance_ns(interval + (batch * 7919 % 30) * 100_000);
+            let count = imu.fifo_count().unwrap();
+            let counted = r.clock.now_ns();
+            let mut readings = Vec::new();
+            let FifoRead::Samples { samples, restarted } =
+                imu.read_fifo(count, &mut readings).unwrap()
+            else {
+                panic!("no samples");
+            };
+            assert_eq!(restarted, batch == 0);
+            times.clear();
+            clock.stamp(counted, samples, &mut times);
+            for (reading, &t) in readings.iter().zip(&times) {
+                assert!(t <= counted);
+                let measured_ms = f64::from(reading.gyro_rad_s[2]).to_degrees() / 0.5;
+                let stamped_ms = (t % 400_000_000) as f64 / 1e6;
+                let mut error = stamped_ms - measured_ms;
+                if error.abs() > 200.0 {
+                    error -= 400.0 * error.signum(); // across the wrap
+                }
+                if batch >= 20 {
+                    worst_ms = worst_ms.max(error.abs());
+                    stamped += 1;
+                }
+            }
+        }
+        println!("FIFO stamps after the first 20 batches: worst error {worst_ms:.3} ms");
+        assert!(stamped > 1000);
+        assert!(worst_ms < 1.0, "worst stamp error {worst_ms} ms");
+    }
+
+    #[test]
+    fn an_overflow_is_counted_reset_and_nothing_misaligned_is_decoded() {
+        let (r, mut imu) = started_with(
+            quiet(),
+            Arc::new(StaticTruth::default()),
+            ImuConfig {
+                gyro_bias_samples: 0,
+                ..ImuConfig::default()
+            },
+        );
+        let interval = fifo_read_interval_ns(40, 5_000_000, imu.fifo_layout().unwrap());
+        run_fifo(&r, &mut imu, interval, 100);
+        // 200 ms unread: 40 records of 22 bytes do not fit in 512.
+        r.clock.advance_ns(200_000_000);
+        let count = imu.fifo_count().unwrap();
+        assert_eq!(count, 512);
+        let mut readings = Vec::new();
+        assert_eq!(
+            imu.read_fifo(count, &mut readings).unwrap(),
+            FifoRead::Overflow { count: 512 }
+        );
+        assert!(readings.is_empty());
+        assert_eq!(imu.stats().fifo_overflows, 1);
+        // The FIFO was reset: the next batch is a new stream of whole, sane samples.
+        r.clock.advance_ns(interval);
+        let count = imu.fifo_count().unwrap();
+        assert!(matches!(
+            imu.read_fifo(count, &mut readings).unwrap(),
+            FifoRead::Samples {
+                samples: 7..=8,
+                restarted: true
+            }
+        ));
+        for reading in &readings {
+            assert!(within(reading.accel_m_s2, [0.0, 0.0, 9.80665], 0.01));
+            assert!(within(reading.gyro_rad_s, [0.0; 3], 0.001));
+        }
+    }
+
+    #[test]
+    fn a_fifo_that_lost_its_record_boundary_is_discarded_not_decoded() {
+        let (r, mut imu) = started_with(
+            quiet(),
+            Arc::new(StaticTruth::default()),
+            ImuConfig {
+                gyro_bias_samples: 0,
+                ..ImuConfig::default()
+            },
+        );
+        let interval = fifo_read_interval_ns(40, 5_000_000, imu.fifo_layout().unwrap());
+        run_fifo(&r, &mut imu, interval, 100);
+        // Someone else pops 5 bytes: the records now start 5 bytes late.
+        r.clock.advance_ns(interval);
+        r.bus.clone().write_read(MPU, &[0x74], &mut [0; 5]).unwrap();
+        let count = imu.fifo_count().unwrap();
+        let mut readings = Vec::new();
+        assert_eq!(
+            imu.read_fifo(count, &mut readings).unwrap(),
+            FifoRead::Misaligned
+        );
+        assert!(readings.is_empty());
+        assert_eq!(imu.stats().fifo_discards, 1);
+        assert_eq!(lock(&r.imu).mpu().peek(0x73), 0);
+
+        // A failed data read is not retried (it may have popped bytes): the FIFO is reset.
+        r.clock.advance_ns(interval);
+        let count = imu.fifo_count().unwrap();
+        lock(&r.imu).nack_next(1);
+        assert!(imu.read_fifo(count, &mut readings).is_err());
+        assert_eq!(imu.stats().fifo_discards, 2);
+        r.clock.advance_ns(interval);
+        let count = imu.fifo_count().unwrap();
+        assert!(matches!(
+            imu.read_fifo(count, &mut readings).unwrap(),
+            FifoRead::Samples {
+                samples: 7..=8,
+                restarted: true
+            }
+        ));
+        assert!(
+            readings
+                .iter()
+                .all(|r| within(r.accel_m_s2, [0.0, 0.0, 9.80665], 0.01))
+        );
     }
 
     #[test]

@@ -170,6 +170,21 @@ pub enum MagMode {
     Off,
 }
 
+/// How the driver gets samples off the chip.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+pub enum ReadMode {
+    /// The chip's FIFO (the default): every sample period the MPU appends accel, temperature,
+    /// gyro and (through its I2C master reading the AK8963) ST1..ST2 of the magnetometer; the
+    /// host reads the count and the records every [`ImuConfig::fifo_read_interval_ms`], two bus
+    /// transactions for a batch of samples.
+    #[serde(rename = "fifo")]
+    Fifo,
+    /// One data-register burst per sample and the AK8963 in bypass mode (1.5 bus transactions
+    /// a sample at 200 Hz): the caller polls [`super::Mpu9250::read`] at the sample rate.
+    #[serde(rename = "registers")]
+    Registers,
+}
+
 /// Everything the driver needs to set up and calibrate an MPU-9250 + AK8963.
 ///
 /// Every field has a default, so an empty `[imu]` table is a working configuration.
@@ -202,6 +217,12 @@ pub struct ImuConfig {
     /// Extra attempts for a failed I2C transaction (NACK, bus error) before giving up.
     /// Default 3.
     pub retries: u8,
+    /// How samples are read: `"fifo"` (default) or `"registers"` ([`ReadMode`]).
+    pub read_mode: ReadMode,
+    /// In FIFO mode, the longest time between two FIFO reads, ms (1..=1000; default 40). Shorter
+    /// at high sample rates, so that the FIFO is never more than half full
+    /// ([`super::fifo_read_interval_ns`]).
+    pub fifo_read_interval_ms: u16,
 }
 
 impl Default for ImuConfig {
@@ -218,6 +239,8 @@ impl Default for ImuConfig {
             mag_hard_iron_ut: [0.0; 3],
             mag_soft_iron: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
             retries: 3,
+            read_mode: ReadMode::Fifo,
+            fifo_read_interval_ms: 40,
         }
     }
 }
@@ -234,6 +257,9 @@ pub enum ConfigError {
     /// A calibration value is NaN or infinite.
     #[error("IMU magnetometer calibration contains a non-finite value")]
     NonFiniteCalibration,
+    /// The FIFO read interval is outside 1..=1000 ms.
+    #[error("IMU fifo_read_interval_ms {0} is outside 1..=1000")]
+    FifoReadInterval(u16),
 }
 
 impl ImuConfig {
@@ -249,6 +275,9 @@ impl ImuConfig {
             && self.mag_soft_iron.iter().flatten().all(|v| v.is_finite());
         if !finite {
             return Err(ConfigError::NonFiniteCalibration);
+        }
+        if !(1..=1000).contains(&self.fifo_read_interval_ms) {
+            return Err(ConfigError::FifoReadInterval(self.fifo_read_interval_ms));
         }
         Ok(())
     }
@@ -299,7 +328,8 @@ mod tests {
         let config: ImuConfig = toml::from_str(
             "address = 0x69\nsample_rate_hz = 500\ngyro_range = \"2000dps\"\n\
              accel_range = \"16g\"\ngyro_dlpf = \"184hz\"\naccel_dlpf = \"99hz\"\n\
-             mag_mode = \"8hz\"\nmag_hard_iron_ut = [1.0, -2.0, 3.5]\n",
+             mag_mode = \"8hz\"\nmag_hard_iron_ut = [1.0, -2.0, 3.5]\n\
+             read_mode = \"registers\"\nfifo_read_interval_ms = 25\n",
         )
         .unwrap();
         assert_eq!(config.address, 0x69);
@@ -309,6 +339,8 @@ mod tests {
         assert_eq!(config.accel_dlpf, AccelDlpf::Hz99);
         assert_eq!(config.mag_mode, MagMode::Continuous8Hz);
         assert_eq!(config.mag_hard_iron_ut, [1.0, -2.0, 3.5]);
+        assert_eq!(config.read_mode, ReadMode::Registers);
+        assert_eq!(config.fifo_read_interval_ms, 25);
         assert!(toml::from_str::<ImuConfig>("adress = 0x68").is_err());
     }
 
@@ -335,6 +367,13 @@ mod tests {
                 ..ImuConfig::default()
             }),
             ConfigError::NonFiniteCalibration
+        );
+        assert_eq!(
+            bad(ImuConfig {
+                fifo_read_interval_ms: 0,
+                ..ImuConfig::default()
+            }),
+            ConfigError::FifoReadInterval(0)
         );
         assert!(ImuConfig::default().validate().is_ok());
     }

@@ -2,6 +2,8 @@
 
 use core::fmt;
 
+use embedded_hal::i2c::ErrorKind;
+
 use super::config::ConfigError;
 use super::registers::{ak, mpu};
 
@@ -61,6 +63,12 @@ pub enum Error<E> {
     },
     /// The configuration cannot be applied.
     Config(ConfigError),
+    /// A FIFO read was asked of a driver whose FIFO is not running (register read mode, or
+    /// before a successful `init`).
+    FifoOff {
+        /// The MPU-9250's address.
+        address: u8,
+    },
 }
 
 impl<E: embedded_hal::i2c::Error> fmt::Display for Error<E> {
@@ -71,12 +79,18 @@ impl<E: embedded_hal::i2c::Error> fmt::Display for Error<E> {
                 address,
                 attempts,
                 source,
-            } => write!(
-                f,
-                "{chip} at I2C address {address:#04x}: bus error after {attempts} attempt(s): \
-                 {} ({source:?})",
-                source.kind()
-            ),
+            } => {
+                write!(
+                    f,
+                    "{chip} at I2C address {address:#04x}: bus error after {attempts} attempt(s): "
+                )?;
+                // `Other` says only "a different error occurred"; the bus error's own words
+                // (e.g. the I2C socket's) are the message then.
+                match source.kind() {
+                    ErrorKind::Other => write!(f, "{source:?}"),
+                    kind => write!(f, "{kind} ({source:?})"),
+                }
+            }
             Self::WrongChip {
                 chip: Chip::Mpu9250,
                 address,
@@ -109,6 +123,11 @@ impl<E: embedded_hal::i2c::Error> fmt::Display for Error<E> {
                  {asa:02x?} is invalid (0x00 or 0xff)"
             ),
             Self::Config(e) => write!(f, "{e}"),
+            Self::FifoOff { address } => write!(
+                f,
+                "MPU-9250 at I2C address {address:#04x}: FIFO read asked while the FIFO is not \
+                 running (read_mode = \"registers\" or not initialised)"
+            ),
         }
     }
 }

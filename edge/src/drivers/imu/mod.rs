@@ -9,22 +9,42 @@
 //!
 //! - [`Mpu9250::init`]: reset and init sequence (§1.4), AK8963 fuse-ROM sensitivity adjustment,
 //!   continuous mode, then the gyro bias estimated at rest.
-//! - [`Mpu9250::read`]: one 14-byte burst (accel, temperature, gyro) and, when a new field is
-//!   due, one 8-byte AK8963 read (ST1, data, ST2), converted to SI units in the accel/gyro frame,
-//!   calibrated. The field comes at 100 Hz (or 8 Hz), so at 200 Hz every other read skips the
-//!   AK8963: 1.5 bus transactions a sample instead of 2.
-//! - Every bus transaction is retried [`ImuConfig::retries`] times before an [`Error`] that
-//!   names the chip and the address.
+//! - FIFO mode ([`ReadMode::Fifo`], the default), what a real driver does to spare the bus: after
+//!   the init the AK8963 moves behind the MPU's own I2C master, whose SLV0 reads its ST1..ST2
+//!   block every sample period; every sample appends accel, temperature, gyro and that block
+//!   (22 bytes, [`FifoLayout`]) to the 512-byte FIFO. [`Mpu9250::fifo_count`] and
+//!   [`Mpu9250::read_fifo`] then fetch a whole batch in two transactions (about 27 a second at
+//!   200 Hz instead of 300); [`FifoClock`] gives each sample its measurement time. Only whole
+//!   records are read, so the FIFO stays aligned; an overflow (the chip then drops the oldest
+//!   *bytes*, so the content no longer starts at a record), a data read that failed (bytes may
+//!   have been popped) or magnetometer status bytes that cannot be ST1/ST2 reset the FIFO and
+//!   discard its content: misaligned bytes are never decoded as samples.
+//! - [`Mpu9250::read`]: the newest sample from the data registers, in either mode. Register mode
+//!   ([`ReadMode::Registers`]): one 14-byte burst (accel, temperature, gyro) and, when a new
+//!   field is due, one 8-byte AK8963 read in bypass (ST1, data, ST2): the field comes at 100 Hz
+//!   (or 8 Hz), so at 200 Hz every other read skips the AK8963, 1.5 transactions a sample. FIFO
+//!   mode: one 22-byte burst of the data registers and EXT_SENS_DATA_00..07 (the master's latest
+//!   copy of the AK8963 block), for probes and tests; a field shows at every read until the
+//!   master's next copy, so polling faster than the sample rate repeats fields.
+//! - Readings are converted to SI units in the accel/gyro frame and calibrated. Every bus
+//!   transaction but a FIFO data read (which must not be repeated) is retried
+//!   [`ImuConfig::retries`] times before an [`Error`] that names the chip and the address.
 
 mod config;
 mod error;
+mod fifo;
 mod registers;
 
 use embedded_hal::delay::DelayNs;
 use embedded_hal::i2c::I2c;
 
-pub use config::{AccelDlpf, AccelRange, ConfigError, GyroDlpf, GyroRange, ImuConfig, MagMode};
+pub use config::{
+    AccelDlpf, AccelRange, ConfigError, GyroDlpf, GyroRange, ImuConfig, MagMode, ReadMode,
+};
 pub use error::{Chip, Error};
+pub use fifo::{
+    FIFO_CAPACITY, FifoClock, FifoLayout, MAG_RECORD_LEN, MPU_RECORD_LEN, fifo_read_interval_ns,
+};
 use registers::{ak, mpu};
 
 /// AK8963 bus address (visible only in bypass mode).
@@ -79,6 +99,44 @@ pub struct ImuStats {
     pub mag_overflows: u64,
     /// Reads where ST1.DOR said the AK8963 skipped at least one sample (polled too slowly).
     pub mag_overruns: u64,
+    /// FIFO overflows found (samples lost; the FIFO was reset).
+    pub fifo_overflows: u64,
+    /// FIFO contents discarded because they could not be trusted to start at a record (a
+    /// failed data read, impossible magnetometer status bytes); the FIFO was reset.
+    pub fifo_discards: u64,
+}
+
+/// What one [`Mpu9250::read_fifo`] did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FifoRead {
+    /// Whole records decoded and appended (0 when no sample was due). `restarted`: the FIFO
+    /// was reset since the previous batch, so these samples do not follow on from earlier ones
+    /// ([`FifoClock::restart`]).
+    Samples {
+        /// Samples appended.
+        samples: usize,
+        /// A new stream starts with them.
+        restarted: bool,
+    },
+    /// The FIFO overflowed (its count past the last whole record): the content was discarded
+    /// and the FIFO reset; samples were lost.
+    Overflow {
+        /// The byte count read.
+        count: u16,
+    },
+    /// Magnetometer status bytes where they cannot be (a record boundary lost): the content was
+    /// discarded and the FIFO reset.
+    Misaligned,
+}
+
+/// The FIFO path's state, once [`Mpu9250::init`] started it.
+#[derive(Debug, Clone, Copy)]
+struct FifoState {
+    layout: FifoLayout,
+    /// The FIFO must be reset before its content is trusted (a data read failed).
+    needs_reset: bool,
+    /// It was reset since the last batch handed out.
+    restarted: bool,
 }
 
 /// What one AK8963 read found.
@@ -102,6 +160,10 @@ pub struct Mpu9250<I2C> {
     stats: ImuStats,
     /// Reads of [`Mpu9250::read`] to skip the AK8963 before its next field is due.
     mag_skip: u32,
+    /// Set by `init` in FIFO mode.
+    fifo: Option<FifoState>,
+    /// Scratch buffer of FIFO reads.
+    fifo_bytes: Vec<u8>,
 }
 
 impl<I2C: I2c> Mpu9250<I2C> {
@@ -114,6 +176,8 @@ impl<I2C: I2c> Mpu9250<I2C> {
             gyro_bias_rad_s: [0.0; 3],
             stats: ImuStats::default(),
             mag_skip: 0,
+            fifo: None,
+            fifo_bytes: Vec::new(),
         }
     }
 
@@ -144,8 +208,10 @@ impl<I2C: I2c> Mpu9250<I2C> {
 
     /// Runs the reset and init sequence of research/hardware.md §1.4, then (if
     /// [`ImuConfig::gyro_bias_samples`] > 0) estimates the gyro bias; the device must be at rest.
+    /// In FIFO mode it then hands the AK8963 to the I2C master and starts the FIFO.
     pub fn init<D: DelayNs>(&mut self, delay: &mut D) -> Result<ChipIds, Error<I2C::Error>> {
         self.config.validate().map_err(Error::Config)?;
+        self.fifo = None;
         let mag_on = self.config.mag_mode != MagMode::Off;
 
         // 1. Identity.
@@ -194,7 +260,175 @@ impl<I2C: I2c> Mpu9250<I2C> {
             self.estimate_gyro_bias(delay, self.config.gyro_bias_samples)?;
         }
         self.mag_skip = 0;
+        if self.config.read_mode == ReadMode::Fifo {
+            self.start_fifo(delay)?;
+        }
         Ok(ChipIds { who_am_i, wia, asa })
+    }
+
+    /// FIFO mode: the AK8963 read by SLV0 of the MPU's I2C master at every sample (ST1..ST2
+    /// into EXT_SENS_DATA_00..07, WAIT_FOR_ES so a record carries its own sample's copy), then
+    /// the FIFO reset and on. The AK8963 leaves the host bus (bypass off).
+    fn start_fifo<D: DelayNs>(&mut self, delay: &mut D) -> Result<(), Error<I2C::Error>> {
+        let layout = FifoLayout {
+            mag: self.config.mag_mode != MagMode::Off,
+        };
+        self.write_reg(Chip::Mpu9250, mpu::USER_CTRL, 0x00)?;
+        self.write_reg(Chip::Mpu9250, mpu::FIFO_EN, 0x00)?;
+        let master = if layout.mag {
+            let writes = [
+                (mpu::INT_PIN_CFG, 0x00),
+                (
+                    mpu::I2C_MST_CTRL,
+                    mpu::WAIT_FOR_ES | mpu::I2C_MST_CLK_400KHZ,
+                ),
+                (mpu::I2C_SLV0_ADDR, mpu::SLV_READ | AK8963_ADDRESS),
+                (mpu::I2C_SLV0_REG, ak::ST1),
+                (mpu::I2C_SLV0_CTRL, mpu::SLV_EN | MAG_RECORD_LEN as u8),
+                (mpu::USER_CTRL, mpu::USER_I2C_MST_EN),
+            ];
+            for (reg, value) in writes {
+                self.write_reg(Chip::Mpu9250, reg, value)?;
+            }
+            // A few master cycles, so EXT_SENS_DATA holds an AK8963 block before any record.
+            delay.delay_ms(SETTLE_WAIT_MS);
+            mpu::USER_I2C_MST_EN
+        } else {
+            0
+        };
+        self.write_reg(Chip::Mpu9250, mpu::FIFO_EN, layout.fifo_en())?;
+        self.write_reg(
+            Chip::Mpu9250,
+            mpu::USER_CTRL,
+            master | mpu::USER_FIFO_EN | mpu::USER_FIFO_RST,
+        )?;
+        self.fifo = Some(FifoState {
+            layout,
+            needs_reset: false,
+            restarted: true,
+        });
+        Ok(())
+    }
+
+    /// Empties the FIFO (USER_CTRL.FIFO_RST, the master and the FIFO left on).
+    fn reset_fifo(&mut self) -> Result<(), Error<I2C::Error>> {
+        let Some(state) = self.fifo else {
+            return Ok(());
+        };
+        let master = if state.layout.mag {
+            mpu::USER_I2C_MST_EN
+        } else {
+            0
+        };
+        self.write_reg(
+            Chip::Mpu9250,
+            mpu::USER_CTRL,
+            master | mpu::USER_FIFO_EN | mpu::USER_FIFO_RST,
+        )?;
+        self.fifo = Some(FifoState {
+            needs_reset: false,
+            restarted: true,
+            ..state
+        });
+        Ok(())
+    }
+
+    /// The FIFO's record layout, once `init` started the FIFO (FIFO mode).
+    pub fn fifo_layout(&self) -> Option<FifoLayout> {
+        self.fifo.map(|state| state.layout)
+    }
+
+    /// FIFO mode: the FIFO's byte count (FIFO_COUNTH/L, one transaction; a reset owed from a
+    /// failed data read goes first). Pass it to [`Mpu9250::read_fifo`]; the time this returns
+    /// is an upper bound of the newest counted sample's measurement time ([`FifoClock`]).
+    pub fn fifo_count(&mut self) -> Result<u16, Error<I2C::Error>> {
+        let state = self.fifo.ok_or(Error::FifoOff {
+            address: self.config.address,
+        })?;
+        if state.needs_reset {
+            self.reset_fifo()?;
+        }
+        let mut count = [0u8; 2];
+        self.read_regs(Chip::Mpu9250, mpu::FIFO_COUNTH, &mut count)?;
+        Ok(u16::from_be_bytes(count) & 0x1FFF)
+    }
+
+    /// FIFO mode: reads the whole records among the `count` bytes [`Mpu9250::fifo_count`] gave
+    /// (one transaction, not retried: a failed read may have popped bytes, so the FIFO is
+    /// reset instead) and appends them to `out`, oldest first. An overflow or a content that
+    /// cannot be aligned resets the FIFO and decodes nothing.
+    pub fn read_fifo(
+        &mut self,
+        count: u16,
+        out: &mut Vec<ImuReading>,
+    ) -> Result<FifoRead, Error<I2C::Error>> {
+        let state = self.fifo.ok_or(Error::FifoOff {
+            address: self.config.address,
+        })?;
+        let layout = state.layout;
+        let record_len = layout.record_len();
+        let count_bytes = usize::from(count);
+        if count_bytes > layout.capacity_records() * record_len {
+            self.stats.fifo_overflows += 1;
+            self.reset_fifo()?;
+            return Ok(FifoRead::Overflow { count });
+        }
+        let records = count_bytes / record_len;
+        if records > 0 {
+            let mut bytes = std::mem::take(&mut self.fifo_bytes);
+            bytes.clear();
+            bytes.resize(records * record_len, 0);
+            let address = self.config.address;
+            let result = self.attempt(Chip::Mpu9250, 1, |i2c| {
+                i2c.write_read(address, &[mpu::FIFO_R_W], &mut bytes)
+            });
+            if let Err(e) = result {
+                self.fifo_bytes = bytes;
+                self.stats.fifo_discards += 1;
+                if let Some(state) = &mut self.fifo {
+                    state.needs_reset = true;
+                }
+                // Reset now if the bus lets us; otherwise `fifo_count` does it first.
+                let _ = self.reset_fifo();
+                return Err(e);
+            }
+            let aligned = !layout.mag
+                || bytes
+                    .chunks_exact(record_len)
+                    .all(|record| plausible_mag_status(&record[MPU_RECORD_LEN..]));
+            if !aligned {
+                self.fifo_bytes = bytes;
+                self.stats.fifo_discards += 1;
+                self.reset_fifo()?;
+                return Ok(FifoRead::Misaligned);
+            }
+            out.reserve(records);
+            for record in bytes.chunks_exact(record_len) {
+                let (mpu_bytes, mag_bytes) = record.split_at(MPU_RECORD_LEN);
+                let raw = RawMpu::from_be_bytes(mpu_bytes);
+                let mag_ut = match <[u8; MAG_RECORD_LEN]>::try_from(mag_bytes) {
+                    Ok(block) => match self.decode_mag(block) {
+                        MagRead::Field(field) => Some(field),
+                        MagRead::NotReady | MagRead::Overflow => None,
+                    },
+                    Err(_) => None,
+                };
+                let reading = self.convert(&raw, mag_ut);
+                out.push(reading);
+            }
+            self.fifo_bytes = bytes;
+        }
+        let restarted = if records > 0 {
+            self.fifo
+                .as_mut()
+                .is_some_and(|state| std::mem::take(&mut state.restarted))
+        } else {
+            false
+        };
+        Ok(FifoRead::Samples {
+            samples: records,
+            restarted,
+        })
     }
 
     /// Steps 6-10: identity, soft reset, fuse-ROM ASA, continuous 16-bit mode.
@@ -257,13 +491,29 @@ impl<I2C: I2c> Mpu9250<I2C> {
         Ok(self.gyro_bias_rad_s)
     }
 
-    /// Reads one sample: accel, temperature and gyro always; the magnetic field when the
-    /// AK8963 has a new one (call at the accel/gyro rate; the field comes at 100 Hz). After a
-    /// field was read, the AK8963 is not asked again until its next one is due (every other
-    /// read at 200 Hz); when it had none yet, it is asked again at the next read.
+    /// Reads the newest sample: accel, temperature and gyro always; the magnetic field when the
+    /// AK8963 has a new one (call at the accel/gyro rate; the field comes at 100 Hz). Register
+    /// mode: after a field was read, the AK8963 is not asked again until its next one is due
+    /// (every other read at 200 Hz); when it had none yet, it is asked again at the next read.
+    /// FIFO mode: one burst of the data registers and the master's copy of the AK8963 block.
     pub fn read(&mut self) -> Result<ImuReading, Error<I2C::Error>> {
+        if let Some(state) = self.fifo
+            && state.layout.mag
+        {
+            let mut b = [0u8; MPU_RECORD_LEN + MAG_RECORD_LEN];
+            self.read_regs(Chip::Mpu9250, mpu::ACCEL_XOUT_H, &mut b)?;
+            let (mpu_bytes, mag_bytes) = b.split_at(MPU_RECORD_LEN);
+            let raw = RawMpu::from_be_bytes(mpu_bytes);
+            let mut block = [0u8; MAG_RECORD_LEN];
+            block.copy_from_slice(mag_bytes);
+            let mag_ut = match self.decode_mag(block) {
+                MagRead::Field(field) => Some(field),
+                MagRead::NotReady | MagRead::Overflow => None,
+            };
+            return Ok(self.convert(&raw, mag_ut));
+        }
         let raw = self.read_mpu_raw()?;
-        let mag_ut = if self.config.mag_mode == MagMode::Off {
+        let mag_ut = if self.config.mag_mode == MagMode::Off || self.fifo.is_some() {
             None
         } else if self.mag_skip > 0 {
             self.mag_skip -= 1;
@@ -281,6 +531,11 @@ impl<I2C: I2c> Mpu9250<I2C> {
                 }
             }
         };
+        Ok(self.convert(&raw, mag_ut))
+    }
+
+    /// One sample in SI units, the gyro bias removed (counted in [`ImuStats::samples`]).
+    fn convert(&mut self, raw: &RawMpu, mag_ut: Option<[f32; 3]>) -> ImuReading {
         self.stats.samples += 1;
         let accel_scale = STANDARD_GRAVITY / self.config.accel_range.lsb_per_g();
         let gyro_scale = self.gyro_scale();
@@ -288,12 +543,12 @@ impl<I2C: I2c> Mpu9250<I2C> {
         for (g, b) in gyro_rad_s.iter_mut().zip(self.gyro_bias_rad_s) {
             *g -= b;
         }
-        Ok(ImuReading {
+        ImuReading {
             accel_m_s2: raw.accel.map(|a| f32::from(a) * accel_scale),
             gyro_rad_s,
             mag_ut,
             temp_c: f32::from(raw.temp) / 333.87 + 21.0,
-        })
+        }
     }
 
     /// rad/s per gyro LSB at the configured full scale.
@@ -303,37 +558,9 @@ impl<I2C: I2c> Mpu9250<I2C> {
 
     /// One 14-byte burst from ACCEL_XOUT_H: accel xyz, temperature, gyro xyz, big-endian.
     fn read_mpu_raw(&mut self) -> Result<RawMpu, Error<I2C::Error>> {
-        let mut b = [0u8; 14];
+        let mut b = [0u8; MPU_RECORD_LEN];
         self.read_regs(Chip::Mpu9250, mpu::ACCEL_XOUT_H, &mut b)?;
-        let [
-            ax0,
-            ax1,
-            ay0,
-            ay1,
-            az0,
-            az1,
-            t0,
-            t1,
-            gx0,
-            gx1,
-            gy0,
-            gy1,
-            gz0,
-            gz1,
-        ] = b;
-        Ok(RawMpu {
-            accel: [
-                i16::from_be_bytes([ax0, ax1]),
-                i16::from_be_bytes([ay0, ay1]),
-                i16::from_be_bytes([az0, az1]),
-            ],
-            temp: i16::from_be_bytes([t0, t1]),
-            gyro: [
-                i16::from_be_bytes([gx0, gx1]),
-                i16::from_be_bytes([gy0, gy1]),
-                i16::from_be_bytes([gz0, gz1]),
-            ],
-        })
+        Ok(RawMpu::from_be_bytes(&b))
     }
 
     /// Accel/gyro reads per magnetometer field: the whole reads that fit in one field period
@@ -349,18 +576,23 @@ impl<I2C: I2c> Mpu9250<I2C> {
     /// One 8-byte read from ST1 (ST1, HXL..HZH little-endian, ST2). Reading ST2 releases the
     /// AK8963's data protection, so this is also the "end of read" the chip waits for.
     fn read_mag(&mut self) -> Result<MagRead, Error<I2C::Error>> {
-        let mut b = [0u8; 8];
+        let mut b = [0u8; MAG_RECORD_LEN];
         self.read_regs(Chip::Ak8963, ak::ST1, &mut b)?;
-        let [st1, xl, xh, yl, yh, zl, zh, st2] = b;
+        Ok(self.decode_mag(b))
+    }
+
+    /// An AK8963 block (ST1, HXL..HZH little-endian, ST2), from the bus or the FIFO.
+    fn decode_mag(&mut self, block: [u8; MAG_RECORD_LEN]) -> MagRead {
+        let [st1, xl, xh, yl, yh, zl, zh, st2] = block;
         if st1 & ak::ST1_DRDY == 0 {
-            return Ok(MagRead::NotReady);
+            return MagRead::NotReady;
         }
         if st1 & ak::ST1_DOR != 0 {
             self.stats.mag_overruns += 1;
         }
         if st2 & ak::ST2_HOFL != 0 {
             self.stats.mag_overflows += 1;
-            return Ok(MagRead::Overflow);
+            return MagRead::Overflow;
         }
         self.stats.mag_samples += 1;
         let chip = [
@@ -376,7 +608,7 @@ impl<I2C: I2c> Mpu9250<I2C> {
         let [hx, hy, hz] = h;
         // Chip axes to the accel/gyro frame: x ← Hy, y ← Hx, z ← −Hz (§1.7).
         let aligned = [hy, hx, -hz];
-        Ok(MagRead::Field(self.calibrate_mag(aligned)))
+        MagRead::Field(self.calibrate_mag(aligned))
     }
 
     /// m = S · (m_raw − hard_iron).
@@ -417,9 +649,19 @@ impl<I2C: I2c> Mpu9250<I2C> {
     fn retrying(
         &mut self,
         chip: Chip,
-        mut transaction: impl FnMut(&mut I2C) -> Result<(), I2C::Error>,
+        transaction: impl FnMut(&mut I2C) -> Result<(), I2C::Error>,
     ) -> Result<(), Error<I2C::Error>> {
         let attempts = self.config.retries.saturating_add(1);
+        self.attempt(chip, attempts, transaction)
+    }
+
+    /// Runs one transaction, at most `attempts` times (at least once).
+    fn attempt(
+        &mut self,
+        chip: Chip,
+        attempts: u8,
+        mut transaction: impl FnMut(&mut I2C) -> Result<(), I2C::Error>,
+    ) -> Result<(), Error<I2C::Error>> {
         let mut attempt = 0u8;
         loop {
             attempt += 1;
@@ -445,6 +687,29 @@ struct RawMpu {
     accel: [i16; 3],
     temp: i16,
     gyro: [i16; 3],
+}
+
+impl RawMpu {
+    /// Accel xyz, temperature, gyro xyz, int16 big-endian: the data registers from
+    /// ACCEL_XOUT_H, or the first 14 bytes of a FIFO record (`bytes` has at least 14).
+    fn from_be_bytes(bytes: &[u8]) -> Self {
+        let word = |i: usize| i16::from_be_bytes([bytes[2 * i], bytes[2 * i + 1]]);
+        Self {
+            accel: [word(0), word(1), word(2)],
+            temp: word(3),
+            gyro: [word(4), word(5), word(6)],
+        }
+    }
+}
+
+/// Whether an 8-byte block can be the AK8963's ST1..ST2 in 16-bit mode: ST1 holds only DRDY and
+/// DOR, ST2 has BITM set and nothing but HOFL beside it. A FIFO read that lost its record
+/// boundary puts accel or gyro bytes here, which pass this only by chance.
+fn plausible_mag_status(block: &[u8]) -> bool {
+    let (Some(&st1), Some(&st2)) = (block.first(), block.get(MAG_RECORD_LEN - 1)) else {
+        return false;
+    };
+    st1 & !(ak::ST1_DRDY | ak::ST1_DOR) == 0 && st2 & !ak::ST2_HOFL == ak::ST2_BITM
 }
 
 #[cfg(test)]

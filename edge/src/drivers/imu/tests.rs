@@ -36,10 +36,19 @@ fn default_init_script(asa: [u8; 3]) -> Vec<T> {
     ]
 }
 
+/// The default configuration read per sample (data registers, AK8963 in bypass): the scripts
+/// below are that path's transactions.
+fn registers() -> ImuConfig {
+    ImuConfig {
+        read_mode: ReadMode::Registers,
+        ..ImuConfig::default()
+    }
+}
+
 fn no_bias_config() -> ImuConfig {
     ImuConfig {
         gyro_bias_samples: 0,
-        ..ImuConfig::default()
+        ..registers()
     }
 }
 
@@ -116,7 +125,7 @@ fn init_applies_a_non_default_configuration() {
         accel_dlpf: AccelDlpf::Hz218,
         mag_mode: MagMode::Continuous8Hz,
         gyro_bias_samples: 0,
-        ..ImuConfig::default()
+        ..registers()
     };
     let script = vec![
         T::write_read(0x69, vec![0x75], vec![0x73]), // an MPU-9255 is accepted
@@ -332,7 +341,7 @@ fn gyro_bias_is_averaged_at_start_up_and_removed() {
     ]);
     let config = ImuConfig {
         gyro_bias_samples: 2,
-        ..ImuConfig::default()
+        ..registers()
     };
     let mut imu = Mpu9250::new(Mock::new(&script), config);
     let mut delay = CheckedDelay::new(&[
@@ -479,10 +488,137 @@ fn persistent_nack_fails_after_the_retries_naming_chip_and_address() {
 fn invalid_config_is_rejected_before_any_bus_access() {
     let config = ImuConfig {
         address: 0x0C,
-        ..ImuConfig::default()
+        ..registers()
     };
     let mut imu = Mpu9250::new(Mock::new(&[]), config);
     let err = imu.init(&mut NoopDelay::new()).unwrap_err();
     assert!(matches!(err, Error::Config(ConfigError::Address(0x0C))));
+    finish(imu);
+}
+
+/// The FIFO start after the §1.4 sequence: the AK8963 behind the I2C master's SLV0 (ST1..ST2,
+/// 8 bytes, every sample, WAIT_FOR_ES, 400 kHz), then the FIFO reset and on with temperature,
+/// gyro, accel and SLV0.
+fn fifo_start_script() -> Vec<T> {
+    vec![
+        T::write(MPU, vec![0x6A, 0x00]),
+        T::write(MPU, vec![0x23, 0x00]),
+        T::write(MPU, vec![0x37, 0x00]),
+        T::write(MPU, vec![0x24, 0x4D]),
+        T::write(MPU, vec![0x25, 0x8C]),
+        T::write(MPU, vec![0x26, 0x02]),
+        T::write(MPU, vec![0x27, 0x88]),
+        T::write(MPU, vec![0x6A, 0x20]),
+        T::write(MPU, vec![0x23, 0xF9]),
+        T::write(MPU, vec![0x6A, 0x64]),
+    ]
+}
+
+fn fifo_initialised(then: Vec<T>) -> Mpu9250<Mock> {
+    let mut script = default_init_script([128, 128, 128]);
+    script.extend(fifo_start_script());
+    script.extend(then);
+    let config = ImuConfig {
+        gyro_bias_samples: 0,
+        ..ImuConfig::default()
+    };
+    let mut imu = Mpu9250::new(Mock::new(&script), config);
+    imu.init(&mut NoopDelay::new()).unwrap();
+    imu
+}
+
+/// One 22-byte FIFO record: accel (0, 0, 1 g), temperature 25 °C, gyro z = `gz` LSB, then the
+/// AK8963 block.
+fn fifo_record(gz: i16, mag: [u8; 8]) -> Vec<u8> {
+    let mut record = vec![0, 0, 0, 0, 0x20, 0x00, 0x05, 0x37, 0, 0, 0, 0];
+    record.extend_from_slice(&gz.to_be_bytes());
+    record.extend_from_slice(&mag);
+    record
+}
+
+/// ST1 clear (no new field), ST2 = BITM.
+const MAG_NOT_READY: [u8; 8] = [0, 0, 0, 0, 0, 0, 0, 0x10];
+
+#[test]
+fn fifo_mode_starts_the_master_and_the_fifo_after_the_init_sequence() {
+    let imu = fifo_initialised(vec![]);
+    assert_eq!(imu.fifo_layout(), Some(FifoLayout { mag: true }));
+    assert_eq!(imu.stats().transactions, 19 + 10);
+    // Register mode has no FIFO to read.
+    let mut registers_only = Mpu9250::new(Mock::new(&[]), registers());
+    assert!(matches!(
+        registers_only.fifo_count(),
+        Err(Error::FifoOff { address: 0x68 })
+    ));
+    registers_only.destroy().done();
+    finish(imu);
+}
+
+#[test]
+fn a_fifo_batch_is_two_transactions_of_whole_records() {
+    let records: Vec<u8> = [
+        fifo_record(655, MAG_NOT_READY),
+        fifo_record(-655, MAG_200_M100_400),
+    ]
+    .concat();
+    let mut imu = fifo_initialised(vec![
+        // 44 bytes and 10 of a record being written: only the whole records are read.
+        T::write_read(MPU, vec![0x72], vec![0x00, 54]),
+        T::write_read(MPU, vec![0x74], records),
+    ]);
+    let count = imu.fifo_count().unwrap();
+    assert_eq!(count, 54);
+    let mut readings = Vec::new();
+    assert_eq!(
+        imu.read_fifo(count, &mut readings).unwrap(),
+        FifoRead::Samples {
+            samples: 2,
+            restarted: true
+        }
+    );
+    let ten_dps = 10.0f32.to_radians();
+    assert_close(&readings[0].gyro_rad_s, &[0.0, 0.0, ten_dps], 1e-6);
+    assert_close(&readings[1].gyro_rad_s, &[0.0, 0.0, -ten_dps], 1e-6);
+    assert_close(&readings[0].accel_m_s2, &[0.0, 0.0, 9.80665], 1e-5);
+    assert_eq!(readings[0].mag_ut, None);
+    assert_close(&readings[1].mag_ut.unwrap(), &[-15.0, 30.0, -60.0], 1e-4);
+    assert_close(&[readings[1].temp_c], &[25.0], 0.01);
+    finish(imu);
+}
+
+#[test]
+fn a_fifo_overflow_or_misaligned_content_resets_the_fifo_and_decodes_nothing() {
+    let mut misaligned = fifo_record(0, MAG_NOT_READY);
+    misaligned[21] = 0x20; // an accel byte where ST2 should be
+    let mut imu = fifo_initialised(vec![
+        // Past the last whole record (23 × 22 = 506): the chip dropped bytes.
+        T::write_read(MPU, vec![0x72], vec![0x02, 0x00]),
+        T::write(MPU, vec![0x6A, 0x64]),
+        T::write_read(MPU, vec![0x72], vec![0x00, 22]),
+        T::write_read(MPU, vec![0x74], misaligned),
+        T::write(MPU, vec![0x6A, 0x64]),
+        // A data read that fails is not retried: the FIFO is reset instead.
+        T::write_read(MPU, vec![0x72], vec![0x00, 22]),
+        T::write_read(MPU, vec![0x74], vec![0; 22])
+            .with_error(ErrorKind::NoAcknowledge(NoAcknowledgeSource::Data)),
+        T::write(MPU, vec![0x6A, 0x64]),
+    ]);
+    let mut readings = Vec::new();
+    let count = imu.fifo_count().unwrap();
+    assert_eq!(
+        imu.read_fifo(count, &mut readings).unwrap(),
+        FifoRead::Overflow { count: 512 }
+    );
+    let count = imu.fifo_count().unwrap();
+    assert_eq!(
+        imu.read_fifo(count, &mut readings).unwrap(),
+        FifoRead::Misaligned
+    );
+    let count = imu.fifo_count().unwrap();
+    let err = imu.read_fifo(count, &mut readings).unwrap_err();
+    assert!(matches!(err, Error::I2c { attempts: 1, .. }), "{err}");
+    assert!(readings.is_empty());
+    let stats = imu.stats();
+    assert_eq!((stats.fifo_overflows, stats.fifo_discards), (1, 2));
     finish(imu);
 }
