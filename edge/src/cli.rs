@@ -43,6 +43,57 @@ pub enum Command {
         #[arg(long, default_value = "/etc/scan3d/edge.toml")]
         config: PathBuf,
     },
+    /// Calibrate the IMU in the field through the daemon's own configuration and bus (stop
+    /// the daemon first), then print the `[imu]` keys to paste or write them with --write.
+    #[command(subcommand)]
+    Calibrate(CalibrateCommand),
+}
+
+/// `scan3d-edge calibrate …`
+#[derive(Debug, Subcommand)]
+pub enum CalibrateCommand {
+    /// The gyro bias: keep the head still while it averages the rates; refused if it moved.
+    Gyro {
+        /// Configuration, output.
+        #[command(flatten)]
+        common: CalibrateArgs,
+        /// Seconds to average.
+        #[arg(long, default_value_t = 10.0)]
+        seconds: f64,
+        /// Refuse when a rate's standard deviation exceeds this, °/s (the head moved).
+        #[arg(long, default_value_t = crate::calibrate::DEFAULT_MAX_RATE_STD_DPS)]
+        max_rate_std_dps: f64,
+    },
+    /// The magnetometer's hard and soft iron: turn the head slowly while it records, through
+    /// all orientations (a 3D fit), or a trolley about its vertical only, a full turn or more
+    /// (a 2D fit of the horizontal ellipse).
+    Mag {
+        /// Configuration, output.
+        #[command(flatten)]
+        common: CalibrateArgs,
+        /// Seconds to record.
+        #[arg(long, default_value_t = 60.0)]
+        seconds: f64,
+        /// The local field's total intensity, µT (from a geomagnetic model for the site): the
+        /// radius of the calibrated sphere; in 2D also what sets the z offset.
+        #[arg(long, value_name = "UT")]
+        field_ut: Option<f64>,
+        /// The local field's inclination, degrees (negative south of the magnetic equator):
+        /// with --field-ut, the horizontal and vertical parts for a 2D fit.
+        #[arg(long, value_name = "DEG", allow_negative_numbers = true)]
+        inclination_deg: Option<f64>,
+    },
+}
+
+/// Options shared by the calibrations.
+#[derive(Debug, Args)]
+pub struct CalibrateArgs {
+    /// The daemon's configuration: its `[imu]` settings and the `[i2c]` bus or socket.
+    #[arg(long, default_value = "/etc/scan3d/edge.toml")]
+    pub config: PathBuf,
+    /// Also write the keys into this edge.toml's `[imu]` table (the rest of the file is kept).
+    #[arg(long, value_name = "EDGE.toml")]
+    pub write: Option<PathBuf>,
 }
 
 /// `scan3d-edge probe …`
@@ -182,6 +233,7 @@ pub fn execute(cli: Cli, out: &mut dyn Write) -> anyhow::Result<()> {
             let mut driver = Sweep::new(SweepConfig::default())?;
             run_probe(&mut driver, path, 115_200, &common, out)
         }
+        Command::Calibrate(command) => run_calibrate(command, out),
         Command::CheckConfig { config: path } => {
             let config = EdgeConfig::load(&path)?;
             print_config(&config, out)?;
@@ -409,6 +461,184 @@ fn run_probe(
     let mut emit = json_lines(out);
     probe::run(driver, &options, clock, |line: &ProbeLine| emit.write(line))?;
     emit.finish()
+}
+
+/// Most samples a calibration keeps (10 minutes at 1 kHz).
+const MAX_CALIBRATION_SAMPLES: usize = 600_000;
+
+/// `scan3d-edge calibrate gyro|mag`: reads the IMU through the configured bus, fits, prints
+/// the `[imu]` keys (and writes them with `--write`).
+fn run_calibrate(command: CalibrateCommand, out: &mut dyn Write) -> anyhow::Result<()> {
+    use crate::calibrate::{self, LocalField, MagFitKind};
+    let (common, seconds) = match &command {
+        CalibrateCommand::Gyro {
+            common, seconds, ..
+        }
+        | CalibrateCommand::Mag {
+            common, seconds, ..
+        } => (common, *seconds),
+    };
+    anyhow::ensure!(
+        seconds.is_finite() && seconds > 0.0 && seconds <= 600.0,
+        "--seconds must be within (0, 600], got {seconds}"
+    );
+    let config = EdgeConfig::load(&common.config)?;
+    let Some(imu) = &config.imu else {
+        anyhow::bail!(
+            "{} has no [imu] section: nothing to calibrate",
+            common.config.display()
+        );
+    };
+    let duration = std::time::Duration::from_secs_f64(seconds);
+    let progress = |s: u64| eprintln!("scan3d-edge calibrate: {s} s of {seconds} s");
+    let collected = match &config.i2c.socket {
+        Some(socket) => {
+            let mut bus = crate::i2c_socket::SocketI2c::new(socket);
+            bus.connect().map_err(|e| {
+                anyhow::anyhow!(
+                    "cannot open the I2C socket {}: {e} (is `scan3d-sim rig` running?)",
+                    socket.display()
+                )
+            })?;
+            calibrate::collect(
+                bus,
+                &mut ThreadDelay,
+                &imu.driver,
+                duration,
+                MAX_CALIBRATION_SAMPLES,
+                progress,
+            )?
+        }
+        None => calibrate::collect(
+            open_i2c(config.i2c.bus_number())?,
+            &mut ThreadDelay,
+            &imu.driver,
+            duration,
+            MAX_CALIBRATION_SAMPLES,
+            progress,
+        )?,
+    };
+    let (comments, keys): (Vec<String>, Vec<(&str, String)>) = match command {
+        CalibrateCommand::Gyro {
+            max_rate_std_dps, ..
+        } => {
+            let fit = calibrate::gyro_bias(
+                &collected.rates,
+                &collected.fields,
+                max_rate_std_dps.to_radians(),
+            )?;
+            let dps = fit.bias_rad_s.map(f64::to_degrees);
+            let std = fit.std_rad_s.map(f64::to_degrees);
+            (
+                vec![
+                    format!(
+                        "gyro bias at rest from {} samples over {seconds} s: ({:.3}, {:.3}, {:.3}) °/s, \
+                         rate σ ({:.3}, {:.3}, {:.3}) °/s",
+                        fit.samples, dps[0], dps[1], dps[2], std[0], std[1], std[2]
+                    ),
+                    "used instead of the start-up estimate at rest (set gyro_bias_samples > 0 \
+                     and remove the key to estimate at every start)"
+                        .to_owned(),
+                ],
+                vec![(GYRO_BIAS_KEY, calibrate::toml_array(&fit.bias_rad_s))],
+            )
+        }
+        CalibrateCommand::Mag {
+            field_ut,
+            inclination_deg,
+            ..
+        } => {
+            let local = LocalField {
+                total_ut: field_ut,
+                inclination_deg,
+            };
+            let fit = calibrate::fit_mag(&collected.fields, local)?;
+            let configured_z = f64::from(imu.driver.mag_hard_iron_ut[2]);
+            let hard = [
+                fit.hard_iron_ut[0].unwrap_or_default(),
+                fit.hard_iron_ut[1].unwrap_or_default(),
+                fit.hard_iron_ut[2].unwrap_or(configured_z),
+            ];
+            let mut comments = vec![match fit.kind {
+                MagFitKind::Ellipsoid => format!(
+                    "3D fit (ellipsoid) of {} fields covering {} of {} parts of the sphere; \
+                     calibrated radius {:.1} µT, residual {:.2} %",
+                    fit.samples,
+                    fit.covered.0,
+                    fit.covered.1,
+                    fit.radius_ut,
+                    fit.residual_rms * 100.0
+                ),
+                MagFitKind::HorizontalEllipse => format!(
+                    "2D fit (horizontal ellipse: the head turned about its z only) of {} fields \
+                     covering {}° of the circle; horizontal field {:.1} µT, residual {:.2} %; the \
+                     z row of the soft iron is left at identity",
+                    fit.samples,
+                    fit.covered.0 * 10,
+                    fit.radius_ut,
+                    fit.residual_rms * 100.0
+                ),
+            }];
+            if fit.hard_iron_ut[2].is_none() {
+                comments.push(format!(
+                    "the z offset cannot be seen in a turn about z: kept at {configured_z} µT \
+                     (pass --field-ut and --inclination-deg of the site to set it)"
+                ));
+            }
+            (
+                comments,
+                vec![
+                    ("mag_hard_iron_ut", calibrate::toml_array(&hard)),
+                    ("mag_soft_iron", calibrate::toml_matrix(&fit.soft_iron)),
+                ],
+            )
+        }
+    };
+    for line in &comments {
+        writeln!(out, "# {line}")?;
+    }
+    writeln!(out, "[imu]")?;
+    for (key, value) in &keys {
+        writeln!(out, "{key} = {value}")?;
+    }
+    if let Some(path) = &common.write {
+        write_imu_keys(path, &keys)?;
+        let names: Vec<&str> = keys.iter().map(|(k, _)| *k).collect();
+        writeln!(
+            out,
+            "# wrote {} to [imu] of {}",
+            names.join(", "),
+            path.display()
+        )?;
+    }
+    Ok(())
+}
+
+/// The `[imu]` key of a saved gyro bias.
+const GYRO_BIAS_KEY: &str = "gyro_bias_rad_s";
+
+/// Sets `keys` in the `[imu]` table of the file at `path` (created if missing), checking that
+/// the table still loads, and replaces the file in one rename.
+fn write_imu_keys(path: &std::path::Path, keys: &[(&str, String)]) -> anyhow::Result<()> {
+    use anyhow::Context;
+    let text = match std::fs::read_to_string(path) {
+        Ok(text) => text,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => String::new(),
+        Err(e) => return Err(e).with_context(|| format!("cannot read {}", path.display())),
+    };
+    let edited = crate::calibrate::set_imu_keys(&text, keys)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    let table: toml::Table = edited.parse().context("the edited file is not TOML")?;
+    if let Some(toml::Value::Table(imu)) = table.get("imu") {
+        crate::config::ImuSection::try_from(imu.clone())
+            .map_err(|e| anyhow::anyhow!("{}: not written: {e}", path.display()))?;
+    }
+    let mut tmp = path.as_os_str().to_owned();
+    tmp.push(".calibrate.tmp");
+    let tmp = PathBuf::from(tmp);
+    std::fs::write(&tmp, edited).with_context(|| format!("cannot write {}", tmp.display()))?;
+    std::fs::rename(&tmp, path).with_context(|| format!("cannot replace {}", path.display()))?;
+    Ok(())
 }
 
 /// `scan3d-edge --config edge.toml`: runs the daemon until SIGTERM or SIGINT.

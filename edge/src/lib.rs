@@ -16,6 +16,7 @@
 #![warn(missing_docs)]
 
 pub mod acquisition;
+pub mod calibrate;
 pub mod cli;
 pub mod clock;
 pub mod config;

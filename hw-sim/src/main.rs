@@ -75,6 +75,11 @@ struct RigArgs {
     /// World file (TOML) instead of the default conference room.
     #[arg(long, value_name = "FILE")]
     world: Option<PathBuf>,
+    /// With --trolley: an ideal IMU (white noise only) on a level floor, instead of the
+    /// default drifting gyro bias, hard and soft iron, a steel cabinet beside the path and
+    /// floor bumps (docs/simulator.md).
+    #[arg(long, requires = "trolley")]
+    ideal_imu: bool,
 }
 
 fn parse_at(s: &str) -> Result<[f64; 3], String> {
@@ -229,15 +234,17 @@ fn run_rig(args: &RigArgs) -> anyhow::Result<()> {
         Some(None) => Head::Trolley(Arc::new(TrolleyPath::demo_room())),
         Some(Some(path)) => Head::Trolley(Arc::new(TrolleyPath::load(path)?)),
     };
-    let rig = Rig::start(
-        world,
-        &RigOptions {
-            dir: args.dir.clone(),
-            head,
-            truth: args.truth.clone(),
-            seed: args.seed,
-        },
-    )?;
+    let options = RigOptions {
+        dir: args.dir.clone(),
+        head,
+        truth: args.truth.clone(),
+        seed: args.seed,
+    };
+    let rig = if args.ideal_imu {
+        Rig::start_with_imu(world, &options, None)?
+    } else {
+        Rig::start(world, &options)?
+    };
     let mut stdout = std::io::stdout().lock();
     for path in rig.paths() {
         writeln!(stdout, "{}", path.display()).context("cannot write to stdout")?;

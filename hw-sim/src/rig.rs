@@ -23,6 +23,12 @@
 //! ([`MountedImuTruth`]: rates, gravity plus acceleration, the field with magnetic north at
 //! [`ROOM_MAGNETIC_NORTH_DEG`]) with the emulator's noise and bias.
 //!
+//! On the trolley the IMU lies as real ones do unless `--ideal-imu` ([`Rig::start_with_imu`],
+//! [`crate::imu::errors`]): a drifting gyro bias, the trolley's hard and soft iron, a steel
+//! cabinet beside the path ([`ImuErrors::beside_path`]), and floor bumps that tilt the
+//! trolley (its pose, so the lidars and `--truth` see them too). With `--truth FILE` the true
+//! errors go to `FILE.imu.toml` ([`imu_truth_toml`]) so a calibration can be checked.
+//!
 //! `--truth FILE` writes the pose of `base` in `room` as TUM lines ([`TumWriter`]) at
 //! [`TRUTH_HZ`], t in UNIX seconds; the trolley's ends with `# end of path` once it rests at
 //! the end of its path (it stays at the last pose written).
@@ -41,11 +47,12 @@ use scan3d_map::cloud::assembly::Position;
 
 use crate::faults::FaultConfig;
 use crate::i2c_socket::I2cSocketServer;
-use crate::imu::{EarthField, MountedImuTruth};
+use crate::imu::errors::{ErroneousImu, ImuErrors};
+use crate::imu::{EarthField, ImuTruth, MountedImuTruth};
 use crate::pty::{PtyDevice, PtyHandle, PtyOptions};
 use crate::rplidar::{RplidarEmulator, RplidarEmulatorConfig};
 use crate::sweep::{SweepEmulator, SweepEmulatorConfig};
-use crate::trolley::{BaseTrajectory, OnBase, TROLLEY_CLEARANCE_M, TrolleyPath};
+use crate::trolley::{BaseTrajectory, BumpyTrolley, OnBase, TROLLEY_CLEARANCE_M, TrolleyPath};
 use crate::turntable::TurntableMount;
 use crate::turntable_head::{DEMO_MOUNT, head_bus};
 use crate::world::World;
@@ -117,6 +124,7 @@ pub struct Rig {
     i2c: Option<I2cSocketServer>,
     edge_toml: PathBuf,
     truth: Option<(Arc<AtomicBool>, JoinHandle<()>)>,
+    imu_errors: Option<Arc<ErroneousImu>>,
 }
 
 /// A pose of `base` in `room` from x, y (m) and heading (deg).
@@ -137,8 +145,25 @@ pub fn mount_pose(m: [f64; 6]) -> Isometry3<f64> {
 
 impl Rig {
     /// Starts every device in `world` and writes `edge.toml`. A trolley path that comes
-    /// closer than [`TROLLEY_CLEARANCE_M`] to the room's walls or furniture is refused.
+    /// closer than [`TROLLEY_CLEARANCE_M`] to the room's walls or furniture is refused. The
+    /// trolley's IMU has the default errors ([`ImuErrors::beside_path`]); the static head's is
+    /// ideal.
     pub fn start(world: Arc<World>, options: &RigOptions) -> anyhow::Result<Self> {
+        let errors = match &options.head {
+            Head::Trolley(path) => Some(ImuErrors::beside_path(path)),
+            Head::Static { .. } => None,
+        };
+        Self::start_with_imu(world, options, errors)
+    }
+
+    /// [`Rig::start`] with the IMU's errors given: `None` is an ideal IMU (the emulators'
+    /// white noise only) and, on the trolley, a level floor. On the trolley, the errors'
+    /// [`ImuErrors::floor_bumps`] tilt its trajectory.
+    pub fn start_with_imu(
+        world: Arc<World>,
+        options: &RigOptions,
+        imu_errors: Option<ImuErrors>,
+    ) -> anyhow::Result<Self> {
         let dir = &options.dir;
         let (base, at): (Arc<dyn BaseTrajectory>, [f64; 3]) = match &options.head {
             Head::Static { at } => {
@@ -165,7 +190,11 @@ impl Rig {
                         clearance.at[1]
                     );
                 }
-                (path.clone(), path.start_pose())
+                let base: Arc<dyn BaseTrajectory> = match &imu_errors {
+                    Some(errors) => Arc::new(BumpyTrolley::new(path.clone(), &errors.floor_bumps)),
+                    None => path.clone(),
+                };
+                (base, path.start_pose())
             }
         };
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
@@ -176,7 +205,12 @@ impl Rig {
             field: EarthField::default(),
             north_heading_rad: ROOM_MAGNETIC_NORTH_DEG.to_radians(),
         };
-        let (bus, _hat, turntable) = head_bus(Arc::new(clock), Arc::new(imu));
+        let imu_errors = imu_errors.map(|errors| Arc::new(ErroneousImu::new(imu.clone(), errors)));
+        let imu_truth: Arc<dyn ImuTruth> = match &imu_errors {
+            Some(erroneous) => erroneous.clone(),
+            None => Arc::new(imu),
+        };
+        let (bus, _hat, turntable) = head_bus(Arc::new(clock), imu_truth);
         let pty = |seed: u64| PtyOptions {
             time_scale: 1.0,
             faults: FaultConfig::default(),
@@ -241,6 +275,13 @@ impl Rig {
             Some(path) => Some(start_truth(path, clock, base.clone(), end_of_path_s)?),
             None => None,
         };
+        if let (Some(truth), Some(erroneous)) = (&options.truth, &imu_errors) {
+            let mut name = truth.clone().into_os_string();
+            name.push(".imu.toml");
+            let path = PathBuf::from(name);
+            std::fs::write(&path, imu_truth_toml(erroneous))
+                .with_context(|| format!("cannot write {}", path.display()))?;
+        }
         match &options.head {
             Head::Static { .. } => tracing::info!(
                 rplidar = %rplidar.link().display(),
@@ -268,7 +309,13 @@ impl Rig {
             i2c: Some(i2c),
             edge_toml,
             truth,
+            imu_errors,
         })
+    }
+
+    /// The IMU's errors as emulated (the true iron, bias and disturbance), `None` when ideal.
+    pub fn imu_errors(&self) -> Option<&ErroneousImu> {
+        self.imu_errors.as_deref()
     }
 
     /// The rig's clock: every emulator's time base (its `now_ns` is the time since the rig's
@@ -378,6 +425,37 @@ fn mount_text(m: [f64; 6]) -> String {
     format!(
         "x = {:?}\ny = {:?}\nz = {:?}\nroll = {:?}\npitch = {:?}\nyaw = {:?}\n",
         m[0], m[1], m[2], m[3], m[4], m[5]
+    )
+}
+
+/// The true IMU errors as TOML (`--truth FILE` writes them to `FILE.imu.toml`): the
+/// `[imu]` keys a perfect `scan3d-edge calibrate mag` would write (`mag_hard_iron_ut`,
+/// `mag_soft_iron` = A⁻¹), the turn-on gyro bias, then the configured errors.
+pub fn imu_truth_toml(imu: &ErroneousImu) -> String {
+    #[derive(serde::Serialize)]
+    struct Calibration {
+        mag_hard_iron_ut: Option<[f64; 3]>,
+        mag_soft_iron: Option<[[f64; 3]; 3]>,
+        gyro_bias_at_start_rad_s: [f64; 3],
+    }
+    #[derive(serde::Serialize)]
+    struct File<'a> {
+        calibration: Calibration,
+        errors: &'a ImuErrors,
+    }
+    let expected = imu.expected_calibration();
+    let file = File {
+        calibration: Calibration {
+            mag_hard_iron_ut: expected.map(|e| e.0),
+            mag_soft_iron: expected.map(|e| e.1),
+            gyro_bias_at_start_rad_s: imu.gyro_bias_at(0).into(),
+        },
+        errors: imu.errors(),
+    };
+    format!(
+        "# The rig's true IMU errors (generated). [calibration]: what a perfect calibration \
+         finds;\n# [errors]: what the emulator adds.\n\n{}",
+        toml::to_string(&file).unwrap_or_default()
     )
 }
 
@@ -516,6 +594,27 @@ mod tests {
         )
         .expect("the edge accepts it");
         assert!(config.stepper.is_none() && config.imu.is_some());
+    }
+
+    #[test]
+    fn the_true_imu_errors_file_holds_the_calibration_that_undoes_them() {
+        let path = Arc::new(TrolleyPath::demo_room());
+        let truth = MountedImuTruth {
+            base: path.clone(),
+            mount: mount_pose(IMU_MOUNT),
+            field: EarthField::default(),
+            north_heading_rad: 0.0,
+        };
+        let imu = ErroneousImu::new(truth, ImuErrors::beside_path(&path));
+        let table: toml::Table = imu_truth_toml(&imu).parse().expect("valid TOML");
+        let hard = table["calibration"]["mag_hard_iron_ut"].as_array().unwrap();
+        assert_eq!(hard[0].as_float(), Some(15.0));
+        let soft = table["calibration"]["mag_soft_iron"].as_array().unwrap();
+        // S = A⁻¹: S₀₀ below 1 since A₀₀ = 1.06.
+        let s00 = soft[0].as_array().unwrap()[0].as_float().unwrap();
+        assert!(s00 > 0.9 && s00 < 0.95, "{s00}");
+        let errors: ImuErrors = table["errors"].clone().try_into().expect("errors");
+        assert_eq!(&errors, imu.errors());
     }
 
     #[test]

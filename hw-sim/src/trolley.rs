@@ -894,7 +894,11 @@ impl FloorBumps {
         for angle in &mut out {
             for c in angle.iter_mut() {
                 let wavelength = lo + (hi - lo) * rng.random::<f64>();
-                *c = (amplitude, 2.0 * PI / wavelength, 2.0 * PI * rng.random::<f64>());
+                *c = (
+                    amplitude,
+                    2.0 * PI / wavelength,
+                    2.0 * PI * rng.random::<f64>(),
+                );
             }
         }
         out
@@ -1363,6 +1367,9 @@ speed_m_s = 0.2
             let up = m.pose.rotation * Vector3::z();
             tilted += usize::from(up.z < (0.1f64).to_radians().cos());
         }
-        assert!(tilted > 40, "only {tilted} of 400 poses tilted by more than 0.1°");
+        assert!(
+            tilted > 40,
+            "only {tilted} of 400 poses tilted by more than 0.1°"
+        );
     }
 }

@@ -172,7 +172,9 @@ impl ErroneousImu {
         let grid = errors.gyro_bias_grid_s;
         let steps = if grid.is_finite() && grid > 0.0 && errors.gyro_bias_horizon_s.is_finite() {
             // Bounded: at most a day at 1 s, whatever the file says.
-            (errors.gyro_bias_horizon_s / grid).ceil().clamp(0.0, 86_400.0) as usize
+            (errors.gyro_bias_horizon_s / grid)
+                .ceil()
+                .clamp(0.0, 86_400.0) as usize
         } else {
             0
         };
