@@ -4,7 +4,9 @@
 //! 100 ms of data as ingest does, the recorder left open as in a live session; then a worker
 //! that processed everything but the last `--owed` frames from its queue catches up from the
 //! recording through the daemon's own catch-up ([`CatchUpProbe`]). The cost per caught-up frame
-//! should not grow with the session (the ratio 100k / 1k near 1).
+//! should not grow with the session (the ratio 100k / 1k near 1). The read alone is timed too:
+//! the files before the one holding the first frame owed are skipped through the session
+//! index, but that file is read from its start (at most `CHUNKS_PER_FILE` commits).
 //!
 //! `cargo bench -p scan3d-server --bench catch_up` (`-- --lengths 1000,10000 --runs 5` …).
 
