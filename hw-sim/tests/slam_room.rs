@@ -94,6 +94,22 @@ impl Drive {
         }
     }
 
+    /// 1 s at rest, 1.2 m east at up to 0.3 m/s (speeding up and slowing down over 1 s),
+    /// then standing for `seconds` from [`MOVING_UNTIL`] on: the map was not made where the head
+    /// stands.
+    fn moving_then_standing(seconds: f64) -> Self {
+        Self {
+            keyframes: vec![
+                (0.0, 0.0, 0.0),
+                (1.0, 0.0, 0.0),
+                (2.0, 0.3, 0.0),
+                (5.0, 0.3, 0.0),
+                (MOVING_UNTIL, 0.0, 0.0),
+                (MOVING_UNTIL + seconds, 0.0, 0.0),
+            ],
+        }
+    }
+
     fn duration(&self) -> f64 {
         self.keyframes.last().map_or(0.0, |k| k.0)
     }
@@ -134,6 +150,9 @@ impl Drive {
     }
 }
 
+/// When [`Drive::moving_then_standing`] stops (s).
+const MOVING_UNTIL: f64 = 6.0;
+
 /// Which beam's time a revolution is stamped with.
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Stamp {
@@ -162,6 +181,8 @@ enum Path {
     AroundTheTable,
     /// [`Drive::standing`] for this many seconds.
     Standing(f64),
+    /// [`Drive::moving_then_standing`] for this many seconds of standing.
+    MovingThenStanding(f64),
 }
 
 /// One simulated run: what the lidar and the trolley are like, and how the mapper is fed.
@@ -396,6 +417,7 @@ fn simulate(run: &Run) -> Simulated {
     let drive = match run.path {
         Path::AroundTheTable => Drive::around_the_table(run.turn_rate),
         Path::Standing(seconds) => Drive::standing(seconds),
+        Path::MovingThenStanding(seconds) => Drive::moving_then_standing(seconds),
     };
     let truth = drive.poses(run.start, period);
     let scanner = Scanner {
@@ -638,6 +660,17 @@ fn inverse(m: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
     [0, 1, 2].map(|i| [0, 1, 2].map(|j| inv[(i, j)]))
 }
 
+/// Which of a scan's estimates a NEES is of.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Estimate {
+    /// Each revolution's own match and its covariance (`ScanResult::matched`,
+    /// `ScanResult::match_covariance`): what the calibration is of.
+    Match,
+    /// The reported pose and covariance (`ScanResult::pose`, `ScanResult::covariance`): the
+    /// match, or a standing head's held mean.
+    Reported,
+}
+
 /// Localises `run`'s revolutions in a map built from the true poses, so that the error of each
 /// pose is its match's alone (no drift), and scores the reported covariances against it.
 ///
@@ -647,7 +680,7 @@ fn inverse(m: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
 /// mapper that does not integrate starts at the true pose of `run`'s first revolution and matches
 /// every following one as it would live (de-skewed by itself, constant-velocity prior); its
 /// frame is the room's.
-fn nees(run: &Run) -> Nees {
+fn nees(run: &Run, which: Estimate) -> Nees {
     let config = MapperConfig {
         map_update_distance: f64::INFINITY,
         map_update_angle: f64::INFINITY,
@@ -682,12 +715,15 @@ fn nees(run: &Run) -> Nees {
     for revolution in rest {
         let result = mapper.add_scan(revolution);
         let truth = simulated.truth_at(result.time);
+        let (pose, c) = match which {
+            Estimate::Match => (result.matched, &result.match_covariance),
+            Estimate::Reported => (result.pose, &result.covariance),
+        };
         let e = [
-            result.pose.x - truth.x,
-            result.pose.y - truth.y,
-            wrap_angle(result.pose.theta - truth.theta),
+            pose.x - truth.x,
+            pose.y - truth.y,
+            wrap_angle(pose.theta - truth.theta),
         ];
-        let c = &result.covariance;
         let information = inverse(c);
         sum += (0..3)
             .map(|i| (0..3).map(|j| e[i] * information[i][j] * e[j]).sum::<f64>())
@@ -756,9 +792,10 @@ fn the_reported_covariance_matches_the_error_of_a_match_against_a_true_map() {
     // [1.5, 4.5] for the 3 degrees of freedom (3 when the covariance is exactly right).
     let mut means = Vec::new();
     for (name, run) in calibration_runs() {
-        let nees = nees(&run);
-        println!("{name}: {nees}");
-        means.push((nees.mean, name));
+        let matched = nees(&run, Estimate::Match);
+        let reported = nees(&run, Estimate::Reported);
+        println!("{name}: {matched}\n    reported (held when standing): {reported}");
+        means.push((matched.mean, name));
     }
     means.sort_by(|a, b| a.0.total_cmp(&b.0));
     let median = means[means.len() / 2].0;
@@ -782,61 +819,152 @@ fn the_reported_covariance_matches_the_error_of_a_match_against_a_true_map() {
     }
 }
 
-/// How far a standing head's live poses are from its first over `seconds` of revolutions at
-/// 10 Hz (the mapper as live: from the identity, the trolley's configuration, RPLidar noise):
-/// the largest distance and heading difference, and as the last line of `println!`, their RMS.
-fn standing_drift(seconds: f64) -> (f64, f64, usize) {
+/// How far a standing head's live poses move over `seconds` of revolutions at 10 Hz (the mapper
+/// as live: from the identity, `config`, RPLidar noise drawn with `seed`): the largest and RMS
+/// distance and heading difference of the reported poses from the first one counted, and the
+/// same for each revolution's own match, counted from 3 s after the head stopped (the mapper
+/// holds a head that has stood 2 s). `after_moving`: the head first moves 1.2 m and then stands
+/// (the map was made elsewhere, so the held pose is the mean of the matches); else it stands
+/// from the start (where the map was made).
+fn standing_drift(seconds: f64, seed: u64, config: &MapperConfig, after_moving: bool) -> Drift {
     let mut run = Run::trolley(RangeNoise::RPLIDAR);
-    run.path = Path::Standing(seconds);
+    run.path = if after_moving {
+        Path::MovingThenStanding(seconds)
+    } else {
+        Path::Standing(seconds)
+    };
     run.rotation_hz = 10.0;
+    run.seed = seed;
+    run.config = *config;
+    // The mapper holds a head that has stood 2 s (`SCATTER_AFTER` revolutions at 10 Hz).
+    let from = 3.0 + if after_moving { MOVING_UNTIL } else { 0.0 };
     let simulated = simulate(&run);
     let mut mapper = Mapper::new(run.config);
-    let (mut translation, mut rotation) = (0.0f64, 0.0f64);
-    let (mut sum_t, mut sum_r) = (0.0, 0.0);
+    let mut reported = Excursion::default();
+    let mut matched = Excursion::default();
+    let (mut scans, mut standing) = (0, 0);
+    let mut origin: Option<(Pose2, Pose2)> = None;
     for revolution in &simulated.revolutions {
-        let pose = mapper.add_scan(revolution).pose;
-        let (t, r) = (pose.x.hypot(pose.y), wrap_angle(pose.theta).abs());
-        translation = translation.max(t);
-        rotation = rotation.max(r);
-        sum_t += t * t;
-        sum_r += r * r;
+        let result = mapper.add_scan(revolution);
+        if result.time < from {
+            continue;
+        }
+        let (first_reported, first_matched) = *origin.get_or_insert((result.pose, result.matched));
+        reported.add(&first_reported.between(&result.pose));
+        matched.add(&first_matched.between(&result.matched));
+        scans += 1;
+        standing += usize::from(result.standing);
     }
-    let n = simulated.revolutions.len() as f64;
-    println!(
-        "standing {seconds} s: RMS distance from the first pose {:.2} mm, {:.3}°",
-        (sum_t / n).sqrt() * 1e3,
-        (sum_r / n).sqrt().to_degrees()
-    );
-    (translation, rotation, simulated.revolutions.len())
+    let drift = Drift {
+        reported,
+        matched,
+        scans,
+        standing,
+    };
+    let case = if after_moving {
+        "after moving"
+    } else {
+        "from the start"
+    };
+    println!("standing {seconds} s {case}, seed {seed}: {drift}");
+    drift
+}
+
+/// The largest and RMS distance and heading difference of poses from the origin.
+#[derive(Debug, Clone, Copy, Default)]
+struct Excursion {
+    max_translation: f64,
+    max_rotation: f64,
+    sum_t: f64,
+    sum_r: f64,
+    count: usize,
+}
+
+impl Excursion {
+    fn add(&mut self, pose: &Pose2) {
+        let (t, r) = (pose.x.hypot(pose.y), wrap_angle(pose.theta).abs());
+        self.max_translation = self.max_translation.max(t);
+        self.max_rotation = self.max_rotation.max(r);
+        self.sum_t += t * t;
+        self.sum_r += r * r;
+        self.count += 1;
+    }
+}
+
+impl std::fmt::Display for Excursion {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let n = self.count.max(1) as f64;
+        write!(
+            f,
+            "max {:.2} mm, {:.3}°; RMS {:.2} mm, {:.3}°",
+            self.max_translation * 1e3,
+            self.max_rotation.to_degrees(),
+            (self.sum_t / n).sqrt() * 1e3,
+            (self.sum_r / n).sqrt().to_degrees()
+        )
+    }
+}
+
+/// A standing run's reported poses and its revolutions' own matches.
+#[derive(Debug, Clone, Copy)]
+struct Drift {
+    reported: Excursion,
+    matched: Excursion,
+    scans: usize,
+    /// Revolutions whose pose was a held one.
+    standing: usize,
+}
+
+impl std::fmt::Display for Drift {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} revolutions ({} held): reported {}; matches {}",
+            self.scans, self.standing, self.reported, self.matched
+        )
+    }
+}
+
+/// The trolley's configuration (the live pose stage's but for the map update distances).
+fn trolley_config() -> MapperConfig {
+    Run::trolley(RangeNoise::RPLIDAR).config
+}
+
+/// Whether a standing run's reported poses stayed within the goal: < 1 cm and < 0.2°.
+fn within_goal(drift: &Drift) -> bool {
+    drift.reported.max_translation < 0.01 && drift.reported.max_rotation < 0.2f64.to_radians()
 }
 
 #[test]
-fn a_standing_heads_pose_stays_within_its_revolution_noise_over_a_minute() {
-    // Issue 20 asks for < 1 cm and < 0.2° over ten minutes (the ignored test below). Not met
-    // yet: each revolution is matched on its own, and under the RPLidar's noise (1 % of range,
-    // 8 cm at the far walls) one revolution pins the pose to about 5 mm and 0.25° RMS against a
-    // one-revolution map, so the largest excursion over 600 revolutions is 16 mm and 1.0°. What
-    // the pose does not do is drift: this bound guards that, with margin over the measured.
-    let (translation, rotation, scans) = standing_drift(60.0);
-    println!(
-        "standing 60 s, {scans} revolutions: moved at most {:.2} mm and {:.3}°",
-        translation * 1e3,
-        rotation.to_degrees()
-    );
-    assert!(scans >= 590, "{scans} revolutions");
-    assert!(translation < 0.025 && rotation < 1.5f64.to_radians());
+fn a_standing_heads_pose_moves_less_than_1_cm_and_0_2_degrees_over_a_minute() {
+    // Issue 20 asks for < 1 cm and < 0.2° over ten minutes (the ignored test below). Each
+    // revolution alone is matched with about 5 mm and 0.25° RMS of noise, so over 600
+    // revolutions its largest excursion is 16 mm and 1.0°; the mapper holds a standing head
+    // (`StandstillConfig`): where it stood when the map was made, or after moving, at the mean
+    // of its matches since it stopped. Three draws of the noise, each within the goal; with
+    // the hold off the same draws exceed it (so the test can fail).
+    let config = trolley_config();
+    let mut unheld = config;
+    unheld.standstill.enabled = false;
+    for after_moving in [false, true] {
+        for seed in [12, 13, 14] {
+            let drift = standing_drift(60.0, seed, &config, after_moving);
+            assert!(drift.scans >= 570, "{drift}");
+            assert!(within_goal(&drift), "{drift}");
+            assert!(drift.standing + 2 >= drift.scans, "{drift}");
+        }
+        let drift = standing_drift(60.0, 12, &unheld, after_moving);
+        assert!(!within_goal(&drift), "{drift}");
+    }
 }
 
 #[test]
-#[ignore = "ten minutes of revolutions, and the issue's goal is not met yet (see the test above): \
-            cargo test -p scan3d-hw-sim --test slam_room -- --ignored"]
+#[ignore = "ten minutes of revolutions: \
+            cargo test -p scan3d-hw-sim --release --test slam_room -- --ignored"]
 fn a_standing_heads_pose_moves_less_than_1_cm_and_0_2_degrees_over_ten_minutes() {
-    let (translation, rotation, scans) = standing_drift(600.0);
-    println!(
-        "standing 600 s, {scans} revolutions: moved at most {:.2} mm and {:.3}°",
-        translation * 1e3,
-        rotation.to_degrees()
-    );
-    assert!(scans >= 5990, "{scans} revolutions");
-    assert!(translation < 0.01 && rotation < 0.2f64.to_radians());
+    for after_moving in [false, true] {
+        let drift = standing_drift(600.0, 12, &trolley_config(), after_moving);
+        assert!(drift.scans >= 5960, "{drift}");
+        assert!(within_goal(&drift), "{drift}");
+    }
 }

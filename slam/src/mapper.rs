@@ -61,6 +61,63 @@ impl CovarianceConfig {
     }
 }
 
+/// When the head stands still, its reported pose is the mean of its matches since it stopped,
+/// not each revolution's own match: one revolution pins the pose to its match noise (about
+/// 5 mm and 0.25° RMS for the RPLidar in the simulated room), and ten minutes of revolutions
+/// would show excursions of three to four of those. The mean of N matches against the same map
+/// keeps only the error they share (the map's): what the covariance floor stands for.
+///
+/// A hold is opened when the last `revolutions` matches all lie within `start_gate` of their
+/// mean (Mahalanobis distance squared over x, y, θ with each match's covariance and the mean's,
+/// χ² with 3 degrees of freedom) and, when a gyro's turn is given, it says no turn (within 3σ).
+/// It collects the matches that follow within `gate` of the held pose (a match outside closes
+/// it), still reporting each as matched, until [`SCATTER_AFTER`] are held: then the head stands,
+/// and its reported pose is the held one. From then on the gate is taken with the matches'
+/// observed scatter instead of their calibrated covariance, far tighter for a precise lidar, so
+/// a head that starts moving is let go within millimetres; a match outside it is left out of
+/// the mean, and standing ends at the second in a row (one alone is taken for an outlier), or
+/// at once when the gyro says the head turned. A pause shorter than [`SCATTER_AFTER`]
+/// revolutions (2 s at 10 Hz) is never held, so a trolley that stops briefly is tracked as
+/// before. While standing the
+/// prediction is the held pose with no motion, so neither the de-skew nor the prior carries one
+/// revolution's noise into the next; the map is not updated (the head has not moved).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct StandstillConfig {
+    /// Hold a standing head's pose (`false`: every revolution reports its own match).
+    pub enabled: bool,
+    /// Poses in a row (the matches, and the pose the map was integrated at when it is one of
+    /// them), all consistent with one pose, before standing starts (≥ 2).
+    pub revolutions: usize,
+    /// The χ² gate (3 degrees of freedom) each of those poses must pass against their mean,
+    /// with its covariance and the mean's: tighter than `gate`, so slow motion is not taken
+    /// for standing (6.25 is the 90 % quantile).
+    pub start_gate: f64,
+    /// The χ² gate (3 degrees of freedom) a match must pass to count as not moved: 16.27 is
+    /// the 99.9 % quantile, so a calibrated covariance leaves a standing head once in a
+    /// thousand revolutions by chance, and then only for one.
+    pub gate: f64,
+}
+
+impl Default for StandstillConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            revolutions: 2,
+            start_gate: 6.25,
+            gate: 16.27,
+        }
+    }
+}
+
+/// Matches held before a standing head's gate is taken with their observed scatter
+/// ([`StandstillConfig`]): enough for a sample covariance of 3 degrees of freedom.
+const SCATTER_AFTER: usize = 20;
+
+/// Added to the observed scatter of a standing head's matches: 1 mm along x and y, 0.03° in
+/// heading (standard deviations), so that a lidar without noise is not let go for a rounding.
+const SCATTER_FLOOR: Matrix3 = [[1e-6, 0.0, 0.0], [0.0, 1e-6, 0.0], [0.0, 0.0, 2.7e-7]];
+
 /// How the pose is predicted before matching, and how much the prediction is trusted.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -133,6 +190,8 @@ pub struct MapperConfig {
     pub min_score: f64,
     /// What the reported covariance adds for the errors a scan's endpoints share.
     pub covariance: CovarianceConfig,
+    /// Holding a standing head's pose.
+    pub standstill: StandstillConfig,
 }
 
 impl Default for MapperConfig {
@@ -148,6 +207,7 @@ impl Default for MapperConfig {
             map_update_angle: 0.9,
             min_score: 0.0,
             covariance: CovarianceConfig::default(),
+            standstill: StandstillConfig::default(),
         }
     }
 }
@@ -208,18 +268,29 @@ pub struct ScanResult {
     /// The time the pose is for (s): the scan's `time`, or for a scan with per-beam times the
     /// middle of its beams.
     pub time: f64,
-    /// The robot pose at `time`, in the map frame.
+    /// The robot pose at `time`, in the map frame: the scan's match ([`ScanResult::matched`]),
+    /// or while the head stands still the mean of its matches since it stopped
+    /// ([`StandstillConfig`]).
     pub pose: Pose2,
+    /// The pose this scan's match found (for a match not trusted, the prediction): what `pose`
+    /// is unless the head stands still.
+    pub matched: Pose2,
+    /// Whether `pose` is a standing head's held pose.
+    pub standing: bool,
     /// The pose the motion model predicted.
     pub predicted: Pose2,
     /// The robot's velocity at `time`, in the map frame: for a revolution the one its
     /// refinement found with the pose, else the mean since the previous scan (0 for the first).
     pub velocity: Velocity2,
-    /// Covariance of `pose` over (x, y, θ) in the map frame (m², m·rad, rad²): what the scan
-    /// says and what the prediction said, combined as the match weighed them (see the module
-    /// doc). Relative to the map, drift not included; 0 for the first scan, which defines the
-    /// map frame; for a match not trusted, the prediction's.
+    /// Covariance of `pose` over (x, y, θ) in the map frame (m², m·rad, rad²): the match's
+    /// ([`ScanResult::match_covariance`]), or for a held pose the mean's: the floor, which the
+    /// matches share, plus the rest of their mean covariance over their number. Relative to the
+    /// map, drift not included.
     pub covariance: Matrix3,
+    /// Covariance of `matched` (m², m·rad, rad²): what the scan says and what the prediction
+    /// said, combined as the match weighed them (see the module doc). 0 for the first scan,
+    /// which defines the map frame; for a match not trusted, the prediction's.
+    pub match_covariance: Matrix3,
     /// Covariance of the robot pose from the scan alone (its fit and the floor, no prior), for
     /// fusing with a source the prior did not already use; `None` when not matched.
     pub scan_covariance: Option<Matrix3>,
@@ -238,6 +309,7 @@ pub struct Mapper {
     last: Option<Last>,
     last_integrated: Option<Pose2>,
     refused: usize,
+    standstill: Standstill,
 }
 
 /// When a revolution's endpoints were seen: per endpoint, its time from the reference time
@@ -271,6 +343,7 @@ impl Mapper {
             last: None,
             last_integrated: None,
             refused: 0,
+            standstill: Standstill::default(),
         }
     }
 
@@ -313,7 +386,9 @@ impl Mapper {
                 .odometry
                 .filter(|_| self.config.motion.use_odometry)
                 .unwrap_or_default();
-            self.integrate(scan, &pose, &scan.hits);
+            if self.integrate(scan, &pose, &scan.hits) {
+                self.standstill.integrated(&pose, &[[0.0; 3]; 3]);
+            }
             self.last = Some(Last {
                 time: reference,
                 pose,
@@ -326,9 +401,12 @@ impl Mapper {
             return ScanResult {
                 time: reference,
                 pose,
+                matched: pose,
+                standing: false,
                 predicted: pose,
                 velocity: Velocity2::default(),
                 covariance: [[0.0; 3]; 3],
+                match_covariance: [[0.0; 3]; 3],
                 scan_covariance: None,
                 score: 0.0,
                 integrated: true,
@@ -418,7 +496,7 @@ impl Mapper {
         });
         let covariance = carry(&sensor_covariance, &sensor, &pose);
         let scan_covariance = fit.map(|fit| carry(&add(&fit.covariance(), &floor), &sensor, &pose));
-        let velocity = match sensor_velocity {
+        let mut velocity = match sensor_velocity {
             Some(v) => robot_velocity(&v, &sensor, &pose),
             None if dt > 0.0 => Velocity2 {
                 x: (pose.x - last.pose.x) / dt,
@@ -427,8 +505,27 @@ impl Mapper {
             },
             None => last.velocity,
         };
-        let integrated = trusted && self.due(&pose) && self.integrate(scan, &pose, &hits);
-        let found = last.pose.between(&pose);
+        let (matched_pose, match_covariance) = (pose, covariance);
+        let turned = scan
+            .rotation
+            .is_some_and(|r| r.increment.abs() > 3.0 * r.variance.max(0.0).sqrt());
+        let held = if trusted && !turned && self.config.standstill.enabled {
+            let floor = carry(&floor, &sensor, &pose);
+            self.standstill
+                .observe(&self.config.standstill, &pose, &covariance, &floor)
+        } else {
+            self.standstill.leave();
+            None
+        };
+        let (pose, covariance, found) = match held {
+            Some((held, held_covariance)) => {
+                velocity = Velocity2::default();
+                (held, held_covariance, Pose2::default())
+            }
+            None => (pose, covariance, last.pose.between(&pose)),
+        };
+        let integrated =
+            trusted && held.is_none() && self.due(&pose) && self.integrate(scan, &pose, &hits);
         self.last = Some(Last {
             time: reference,
             pose,
@@ -441,9 +538,12 @@ impl Mapper {
         ScanResult {
             time: reference,
             pose,
+            matched: matched_pose,
+            standing: held.is_some(),
             predicted,
             velocity,
             covariance,
+            match_covariance,
             scan_covariance,
             score: if trusted { matched.score } else { 0.0 },
             integrated,
@@ -462,6 +562,7 @@ impl Mapper {
     /// one with its `covariance`, standing still: the next scan is predicted from it. Used to
     /// localise in a prepared map, or to place a session's start.
     pub fn start_at(&mut self, time: f64, pose: Pose2, covariance: Matrix3) {
+        self.standstill.leave();
         self.last = Some(Last {
             time,
             pose,
@@ -597,6 +698,203 @@ impl Mapper {
             false
         }
     }
+}
+
+/// A standing head's matches ([`StandstillConfig`]): the recent ones while it may be moving,
+/// then the sum of those since it stopped, about the first (headings unwrapped from its).
+#[derive(Debug, Clone, Default)]
+struct Standstill {
+    /// The last poses (pose, covariance, whether the map was integrated at it) while not
+    /// standing, oldest first.
+    recent: Vec<(Pose2, Matrix3, bool)>,
+    /// While standing: the matches held.
+    hold: Option<Hold>,
+}
+
+#[derive(Debug, Clone)]
+struct Hold {
+    first: Pose2,
+    /// Sums of x, y and θ − first.θ (wrapped) over the matches held.
+    sum: [f64; 3],
+    /// Sum of their covariances.
+    covariance_sum: Matrix3,
+    /// Sum of the outer products of their offsets from `first` (x, y, wrapped θ): their
+    /// scatter, with `sum`.
+    offsets_squared: Matrix3,
+    count: usize,
+    /// Matches in a row outside the gate.
+    strikes: usize,
+    /// The session's first pose (it defines the map frame; the map is its scan, placed
+    /// there), with its covariance, when the head has stood there since: that pose agrees with
+    /// the map exactly, where other scans' matches carry the map's error as a bias. Held
+    /// instead of the mean.
+    anchor: Option<(Pose2, Matrix3)>,
+}
+
+impl Hold {
+    fn start(members: &[(Pose2, Matrix3, bool)]) -> Self {
+        let mut hold = Hold {
+            first: members[0].0,
+            sum: [0.0; 3],
+            covariance_sum: [[0.0; 3]; 3],
+            offsets_squared: [[0.0; 3]; 3],
+            count: 0,
+            strikes: 0,
+            anchor: None,
+        };
+        for (pose, covariance, integrated) in members {
+            hold.add(pose, covariance);
+            if *integrated {
+                hold.anchor = Some((*pose, *covariance));
+            }
+        }
+        hold
+    }
+
+    fn add(&mut self, pose: &Pose2, covariance: &Matrix3) {
+        let d = self.offset(pose);
+        self.sum[0] += pose.x;
+        self.sum[1] += pose.y;
+        self.sum[2] += d[2];
+        self.covariance_sum = add(&self.covariance_sum, covariance);
+        for (i, row) in self.offsets_squared.iter_mut().enumerate() {
+            for (j, v) in row.iter_mut().enumerate() {
+                *v += d[i] * d[j];
+            }
+        }
+        self.count += 1;
+    }
+
+    fn offset(&self, pose: &Pose2) -> [f64; 3] {
+        [
+            pose.x - self.first.x,
+            pose.y - self.first.y,
+            wrap_angle(pose.theta - self.first.theta),
+        ]
+    }
+
+    /// The mean of the matches held.
+    fn mean(&self) -> Pose2 {
+        let n = self.count as f64;
+        Pose2::new(
+            self.sum[0] / n,
+            self.sum[1] / n,
+            self.first.theta + self.sum[2] / n,
+        )
+    }
+
+    /// Whether `pose` (covariance `covariance`) is where the head stands: within `gate` of the
+    /// held pose with both covariances while few matches are held; once
+    /// [`SCATTER_AFTER`] are, within `gate` of their mean with their observed scatter (plus
+    /// [`SCATTER_FLOOR`]), which for a precise lidar is far tighter than the calibrated
+    /// covariance, so a head that starts moving is let go within millimetres.
+    fn holds(&self, pose: &Pose2, covariance: &Matrix3, floor: &Matrix3, gate: f64) -> bool {
+        if self.count < SCATTER_AFTER {
+            let (held, held_covariance) = self.held(floor);
+            return mahalanobis(pose, &held, &add(covariance, &held_covariance)) <= gate;
+        }
+        let n = self.count as f64;
+        let mean = [
+            self.sum[0] / n - self.first.x,
+            self.sum[1] / n - self.first.y,
+            self.sum[2] / n,
+        ];
+        let scatter = [0, 1, 2].map(|i| {
+            [0, 1, 2].map(|j| {
+                let c = (self.offsets_squared[i][j] - n * mean[i] * mean[j]) / (n - 1.0);
+                c * (1.0 + 1.0 / n) + SCATTER_FLOOR[i][j]
+            })
+        });
+        mahalanobis(pose, &self.mean(), &scatter) <= gate
+    }
+
+    /// The held pose and its covariance: the anchor's, or the mean of the matches with the
+    /// `floor` they share plus the rest of their mean covariance over their number
+    /// (`C̄ / N + F (1 − 1/N)`).
+    fn held(&self, floor: &Matrix3) -> (Pose2, Matrix3) {
+        if let Some(anchor) = self.anchor {
+            return anchor;
+        }
+        let n = self.count as f64;
+        let mean = self.mean();
+        let covariance = [0, 1, 2].map(|i| {
+            [0, 1, 2].map(|j| self.covariance_sum[i][j] / (n * n) + floor[i][j] * (1.0 - 1.0 / n))
+        });
+        (mean, covariance)
+    }
+}
+
+impl Standstill {
+    /// Takes a trusted match; returns the held pose and its covariance while standing.
+    fn observe(
+        &mut self,
+        config: &StandstillConfig,
+        pose: &Pose2,
+        covariance: &Matrix3,
+        floor: &Matrix3,
+    ) -> Option<(Pose2, Matrix3)> {
+        if let Some(hold) = &mut self.hold {
+            let sure = hold.count >= SCATTER_AFTER;
+            if hold.holds(pose, covariance, floor, config.gate) {
+                hold.strikes = 0;
+                hold.add(pose, covariance);
+                return (hold.count >= SCATTER_AFTER).then(|| hold.held(floor));
+            }
+            hold.strikes += 1;
+            if sure && hold.strikes < 2 {
+                return Some(hold.held(floor));
+            }
+            self.leave();
+        }
+        self.recent.push((*pose, *covariance, false));
+        let wanted = config.revolutions.max(2);
+        if self.recent.len() > wanted {
+            self.recent.remove(0);
+        }
+        if self.recent.len() < wanted {
+            return None;
+        }
+        let members = Hold::start(&self.recent);
+        let (mean, mean_covariance) = Hold {
+            anchor: None,
+            ..members.clone()
+        }
+        .held(floor);
+        let still = self
+            .recent
+            .iter()
+            .all(|(p, c, _)| mahalanobis(p, &mean, &add(c, &mean_covariance)) <= config.start_gate);
+        if !still {
+            return None;
+        }
+        self.recent.clear();
+        self.hold = Some(members);
+        None
+    }
+
+    /// The map was just integrated at `pose` (the head not standing): it may start a hold.
+    fn integrated(&mut self, pose: &Pose2, covariance: &Matrix3) {
+        match self.recent.last_mut() {
+            Some(last) if last.0 == *pose => last.2 = true,
+            _ => self.recent.push((*pose, *covariance, true)),
+        }
+    }
+
+    /// The head moves (or nothing is known): forget the matches.
+    fn leave(&mut self) {
+        self.hold = None;
+        self.recent.clear();
+    }
+}
+
+/// `(a − b)ᵀ C⁻¹ (a − b)` over x, y and the wrapped heading difference; infinite when `C` is
+/// singular.
+fn mahalanobis(a: &Pose2, b: &Pose2, covariance: &Matrix3) -> f64 {
+    let e = nalgebra::Vector3::new(a.x - b.x, a.y - b.y, wrap_angle(a.theta - b.theta));
+    let c = nalgebra::Matrix3::from_fn(|i, j| covariance[i][j]);
+    c.try_inverse().map_or(f64::INFINITY, |inverse| {
+        (e.transpose() * inverse * e)[(0, 0)]
+    })
 }
 
 /// `a + b`.

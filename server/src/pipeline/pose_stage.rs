@@ -1,6 +1,14 @@
-//! The live pose stage: a session's RPLidar revolutions, in sample-time order, through the slam
-//! crate's mapper (lidar only for now: constant-velocity prior and window search), giving the
-//! live 2D trajectory of `base` with each pose's covariance.
+//! The live pose stage: a session's RPLidar revolutions and IMU samples, in sample-time order,
+//! through the slam crate's mapper, giving the live 2D trajectory of `base` with each pose's
+//! covariance.
+//!
+//! Between two revolutions the gyro's rate about `base`'s vertical (the IMU's mount rotation
+//! from `Body::Mounts` applied to its rate vector, z kept), less its estimated bias, is
+//! integrated over the samples whose edge sample time lies between the two revolutions'
+//! reference times (the middles of their beams, the times the mapper's poses are for); the
+//! increment goes to the mapper as its rotation prior ([`GyroYaw`] says with what variance).
+//! Without IMU samples for an interval (no IMU, or it stopped: the ordered queue then releases
+//! its stream) the mapper falls back to its constant-velocity prior, logged once per stop.
 //!
 //! The RPLidar sits at its mount in `base` (the session's `Body::Mounts`; `base` itself without
 //! one), so the trajectory is of `base`. It is in the session's own frame (its first pose at the
@@ -16,9 +24,11 @@ use std::io::Write;
 
 use serde::Serialize;
 
-use scan3d_protocol::{Body, Frame, PassEvent, SensorId};
+use std::collections::VecDeque;
+
+use scan3d_protocol::{Body, Frame, ImuSample, LidarRevolution, PassEvent, SensorId, SensorMounts};
 use scan3d_slam::map_image::{Thresholds, write_pgm, write_png_with_trajectory, write_yaml};
-use scan3d_slam::mapper::{Mapper, MapperConfig};
+use scan3d_slam::mapper::{Mapper, MapperConfig, RotationPrior, ScanResult};
 use scan3d_slam::offline::{RangeLimits, raster};
 use scan3d_slam::pose::Pose2;
 use scan3d_slam::relations::TrajectoryPose;
@@ -36,6 +46,277 @@ pub const POSE_RANGE_LIMITS: RangeLimits = RangeLimits {
     max_range: None,
     no_return: None,
 };
+
+/// The MPU-9250's gyro rate noise spectral density: 0.01 °/s/√Hz (datasheet, PS-MPU-9250A-01
+/// §3.1), in rad/s/√Hz. Integrated over `dt` seconds it is an angle random walk of variance
+/// `N² · dt` rad².
+pub const GYRO_NOISE_DENSITY: f64 = 0.01 * std::f64::consts::PI / 180.0;
+
+/// The gyro's zero-rate offset before it was measured at rest, rad/s: the datasheet's initial
+/// tolerance, ±5 °/s, taken as one standard deviation.
+pub const GYRO_BIAS_UNMEASURED: f64 = 5.0 * std::f64::consts::PI / 180.0;
+
+/// What a bias measured at rest still misses, rad/s: its drift with temperature and time over a
+/// session (0.05 °/s; the rest's own noise, `N / √T`, is added to it).
+pub const GYRO_BIAS_DRIFT: f64 = 0.05 * std::f64::consts::PI / 180.0;
+
+/// How long the bias estimate remembers (s of rest): a drifting bias is followed, and its
+/// uncertainty from the rest's noise is that of at most this much rest.
+pub const GYRO_BIAS_MEMORY_S: f64 = 60.0;
+
+/// The longest gap between IMU samples (and at an interval's ends) still integrated, s: ten
+/// samples at the edge's 200 Hz. A longer one and the interval gets no gyro prior.
+pub const GYRO_MAX_GAP_S: f64 = 0.05;
+
+/// IMU samples kept waiting for the next revolution at most (20 s at 200 Hz): without
+/// revolutions the oldest are dropped.
+const GYRO_MAX_SAMPLES: usize = 4096;
+
+/// The gyro's yaw increments between revolutions, for the mapper's rotation prior.
+///
+/// A sample's rate is taken to hold over the time since the previous sample (the MPU-9250
+/// averages over its sample period through its low-pass filter), so the increment over
+/// `(a, b]` is `Σ ω_i · |(t_{i−1}, t_i] ∩ (a, b]|` with the sample at or after `b` included for
+/// the last piece. Its variance: the angle random walk `N² · Δt` plus the bias's uncertainty
+/// carried over the interval, `(σ_b · Δt)²`, with `σ_b` the unmeasured tolerance until the
+/// head was seen standing, then `√(N² / T_rest + drift²)`.
+///
+/// The bias is the mean rate over the intervals in which the mapper held a standing head
+/// (`ScanResult::standing`: the matches say it did not move), exponentially forgetting rest
+/// older than [`GYRO_BIAS_MEMORY_S`].
+#[derive(Debug, Clone)]
+pub struct GyroYaw {
+    /// `base`'s z axis in the IMU's frame: the z row of the mount's rotation IMU → base.
+    axis: [f64; 3],
+    /// (edge time s, rate about base z rad/s), time increasing; from the last sample at or
+    /// before the previous revolution's time on.
+    samples: VecDeque<(f64, f64)>,
+    /// The previous revolution's reference time, s.
+    from: Option<f64>,
+    bias: f64,
+    /// Seconds of rest the bias was measured over (at most [`GYRO_BIAS_MEMORY_S`]).
+    rest_s: f64,
+}
+
+impl Default for GyroYaw {
+    fn default() -> Self {
+        Self {
+            axis: [0.0, 0.0, 1.0],
+            samples: VecDeque::new(),
+            from: None,
+            bias: 0.0,
+            rest_s: 0.0,
+        }
+    }
+}
+
+impl GyroYaw {
+    /// Sets the IMU's mount: its rotation IMU → base is `Rz(yaw) Ry(pitch) Rx(roll)` (as the
+    /// edge's `[imu.mount]` says), whose z row does not depend on the yaw.
+    pub fn set_mount(&mut self, roll: f64, pitch: f64) {
+        let (sr, cr) = roll.sin_cos();
+        let (sp, cp) = pitch.sin_cos();
+        self.axis = [-sp, cp * sr, cp * cr];
+    }
+
+    /// Takes one gyro reading (rad/s, IMU frame) at edge time `t` (s). Readings not after the
+    /// newest one (late or repeated) are ignored.
+    pub fn push(&mut self, t: f64, gyro: [f32; 3]) {
+        let rate: f64 = (0..3).map(|k| self.axis[k] * f64::from(gyro[k])).sum();
+        if !t.is_finite() || !rate.is_finite() || self.samples.back().is_some_and(|s| s.0 >= t) {
+            return;
+        }
+        if self.samples.len() >= GYRO_MAX_SAMPLES {
+            self.samples.pop_front();
+        }
+        self.samples.push_back((t, rate));
+    }
+
+    /// The estimated bias, rad/s, and how long a rest it was measured over (s; 0: not yet).
+    pub fn bias(&self) -> (f64, f64) {
+        (self.bias, self.rest_s)
+    }
+
+    /// The bias's standard deviation, rad/s.
+    fn bias_sigma(&self) -> f64 {
+        if self.rest_s <= 0.0 {
+            GYRO_BIAS_UNMEASURED
+        } else {
+            (GYRO_NOISE_DENSITY.powi(2) / self.rest_s + GYRO_BIAS_DRIFT.powi(2)).sqrt()
+        }
+    }
+
+    /// The raw integral of the rate over `(a, b]` and the longest gap in it, or `None` when
+    /// the samples do not reach `b`.
+    fn integrate(&self, a: f64, b: f64) -> Option<(f64, f64)> {
+        let mut previous: Option<f64> = None;
+        let (mut sum, mut gap) = (0.0, 0.0f64);
+        for &(t, rate) in &self.samples {
+            let start = previous.unwrap_or(a).max(a);
+            let end = t.min(b);
+            if end > start {
+                sum += rate * (end - start);
+                gap = gap.max(end - start);
+            }
+            if t >= b {
+                return Some((sum, gap));
+            }
+            previous = Some(t);
+        }
+        None
+    }
+
+    /// The rotation prior from the previous revolution's time to `to` (s): `None` for the
+    /// first revolution, or when the samples do not cover the interval within
+    /// [`GYRO_MAX_GAP_S`].
+    pub fn prior(&self, to: f64) -> Option<RotationPrior> {
+        let from = self.from?;
+        let dt = to - from;
+        if dt <= 0.0 {
+            return None;
+        }
+        // The first sample must be close enough after `from` (a sample before it covers it).
+        let first = self.samples.front()?.0;
+        if first > from + GYRO_MAX_GAP_S {
+            return None;
+        }
+        let (sum, gap) = self.integrate(from, to)?;
+        if gap > GYRO_MAX_GAP_S {
+            return None;
+        }
+        let sigma_b = self.bias_sigma();
+        Some(RotationPrior {
+            increment: sum - self.bias * dt,
+            variance: GYRO_NOISE_DENSITY.powi(2) * dt + (sigma_b * dt).powi(2),
+        })
+    }
+
+    /// The revolution at reference time `time` (s) was matched; `standing`: the mapper held
+    /// the head still, so the rate since the previous revolution was the bias.
+    pub fn revolution(&mut self, time: f64, standing: bool) {
+        if let Some(from) = self.from
+            && standing
+            && time > from
+            && let Some((sum, gap)) = self.integrate(from, time)
+            && gap <= GYRO_MAX_GAP_S
+        {
+            let dt = time - from;
+            let rest = (self.rest_s + dt).min(GYRO_BIAS_MEMORY_S);
+            self.bias += (sum / dt - self.bias) * dt / rest;
+            self.rest_s = rest;
+        }
+        // Keep the last sample at or before `time`: it bounds the next interval's first piece.
+        while self.samples.len() > 1 && self.samples[1].0 <= time {
+            self.samples.pop_front();
+        }
+        self.from = Some(time);
+    }
+}
+
+/// A session's poses from its RPLidar revolutions and IMU samples: the mapper, the lidar's
+/// mount, the gyro. Live ([`PoseStage`]) and offline (`scan3d slam`) alike.
+#[derive(Debug, Clone)]
+pub struct PoseTracker {
+    mapper: Mapper,
+    limits: RangeLimits,
+    /// The RPLidar's pose in `base` (x, y, yaw).
+    mount: Pose2,
+    /// A mount that `Body::Mounts` does not replace.
+    fixed_mount: bool,
+    gyro: GyroYaw,
+    /// Whether IMU samples came at all, and whether the last revolution had none to go by.
+    imu_seen: bool,
+    falling_back: bool,
+    /// Revolutions matched with a gyro prior, and without one although IMU samples came.
+    gyro_priors: u64,
+    gyro_fallbacks: u64,
+}
+
+impl PoseTracker {
+    /// A tracker matching with `config` and `limits`, the lidar at `mount` in `base` until a
+    /// `Body::Mounts` says otherwise (`fixed`: it never does).
+    pub fn new(config: MapperConfig, limits: RangeLimits, mount: Pose2, fixed: bool) -> Self {
+        Self {
+            mapper: Mapper::new(config),
+            limits,
+            mount,
+            fixed_mount: fixed,
+            gyro: GyroYaw::default(),
+            imu_seen: false,
+            falling_back: false,
+            gyro_priors: 0,
+            gyro_fallbacks: 0,
+        }
+    }
+
+    /// The mapper (its map, its configuration).
+    pub fn mapper(&self) -> &Mapper {
+        &self.mapper
+    }
+
+    /// The gyro integration (its bias).
+    pub fn gyro(&self) -> &GyroYaw {
+        &self.gyro
+    }
+
+    /// Revolutions matched with the gyro's prior, and revolutions that had to do without one
+    /// after IMU samples had come (they stopped, or a gap).
+    pub fn gyro_counts(&self) -> (u64, u64) {
+        (self.gyro_priors, self.gyro_fallbacks)
+    }
+
+    /// Takes the sensors' mounts: the RPLidar's (unless fixed) and the IMU's rotation.
+    pub fn on_mounts(&mut self, mounts: &SensorMounts) {
+        for m in &mounts.sensors {
+            if m.sensor == SensorId::RPLIDAR && !self.fixed_mount {
+                self.mount = Pose2::new(m.x_m, m.y_m, m.yaw_deg.to_radians());
+            } else if m.sensor == SensorId::IMU {
+                self.gyro
+                    .set_mount(m.roll_deg.to_radians(), m.pitch_deg.to_radians());
+            }
+        }
+    }
+
+    /// Takes one IMU sample.
+    pub fn on_imu(&mut self, sample: &ImuSample) {
+        self.imu_seen = true;
+        self.gyro.push(sample.t_ns as f64 * 1e-9, sample.gyro_radps);
+    }
+
+    /// Matches one RPLidar revolution (other sensors' are not taken: `None`).
+    pub fn on_revolution(&mut self, revolution: &LidarRevolution) -> Option<ScanResult> {
+        if revolution.sensor != SensorId::RPLIDAR {
+            return None;
+        }
+        let mut scan = revolution_scan(revolution, &self.limits, &self.mount);
+        let reference = scan.reference_time();
+        scan.rotation = self.gyro.prior(reference);
+        if scan.rotation.is_some() {
+            self.gyro_priors += 1;
+            if self.falling_back {
+                tracing::info!("IMU samples again: the pose stage takes the gyro's turn again");
+                self.falling_back = false;
+            }
+        } else if self.imu_seen && self.mapper_started() {
+            self.gyro_fallbacks += 1;
+            if !self.falling_back {
+                tracing::warn!(
+                    at_s = reference,
+                    "no IMU samples between two revolutions: the pose stage falls back to the \
+                     constant-velocity prior"
+                );
+                self.falling_back = true;
+            }
+        }
+        let result = self.mapper.add_scan(&scan);
+        self.gyro.revolution(result.time, result.standing);
+        Some(result)
+    }
+
+    fn mapper_started(&self) -> bool {
+        self.gyro.from.is_some()
+    }
+}
 
 /// Where `base` is now, for `scan3d status`.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -58,10 +339,7 @@ pub struct PoseStatus {
 
 /// The live 2D trajectory of `base` from the RPLidar's revolutions.
 pub struct PoseStage {
-    mapper: Mapper,
-    limits: RangeLimits,
-    /// The RPLidar's pose in `base` (x, y, yaw).
-    mount: Pose2,
+    tracker: PoseTracker,
     /// Poses in the session's frame, edge clock seconds.
     poses: Vec<TrajectoryPose>,
     path_m: f64,
@@ -93,9 +371,7 @@ impl PoseStage {
     /// A stage matching with `config` and [`POSE_RANGE_LIMITS`], the lidar at `mount` in `base`.
     pub fn new(config: MapperConfig, mount: Pose2) -> Self {
         PoseStage {
-            mapper: Mapper::new(config),
-            limits: POSE_RANGE_LIMITS,
-            mount,
+            tracker: PoseTracker::new(config, POSE_RANGE_LIMITS, mount, false),
             poses: Vec::new(),
             path_m: 0.0,
             anchor: None,
@@ -107,6 +383,11 @@ impl PoseStage {
     /// The trajectory so far, in the session's frame (edge clock seconds).
     pub fn poses(&self) -> &[TrajectoryPose] {
         &self.poses
+    }
+
+    /// The mapper, the mount and the gyro behind the poses.
+    pub fn tracker(&self) -> &PoseTracker {
+        &self.tracker
     }
 
     /// Says that `base` stood at `room` (room frame) at edge time `t_ns`: the whole trajectory
@@ -288,24 +569,18 @@ impl Stage for PoseStage {
     }
 
     fn streams(&self) -> &'static [StreamId] {
-        &[StreamId::Rplidar, StreamId::Pass]
+        &[StreamId::Rplidar, StreamId::Imu, StreamId::Pass]
     }
 
     fn on_frame(&mut self, _ctx: &mut StageContext, frame: &Frame) {
         let revolution = match &frame.body {
             Body::Revolution(revolution) => revolution,
+            Body::Imu(sample) => {
+                self.tracker.on_imu(sample);
+                return;
+            }
             Body::Mounts(mounts) => {
-                if let Some(m) = mounts
-                    .sensors
-                    .iter()
-                    .find(|m| m.sensor == SensorId::RPLIDAR)
-                {
-                    self.mount = Pose2 {
-                        x: m.x_m,
-                        y: m.y_m,
-                        theta: m.yaw_deg.to_radians(),
-                    };
-                }
+                self.tracker.on_mounts(mounts);
                 return;
             }
             Body::Pass(marker) => {
@@ -314,11 +589,9 @@ impl Stage for PoseStage {
             }
             _ => return,
         };
-        if revolution.sensor != SensorId::RPLIDAR {
+        let Some(result) = self.tracker.on_revolution(revolution) else {
             return;
-        }
-        let scan = revolution_scan(revolution, &self.limits, &self.mount);
-        let result = self.mapper.add_scan(&scan);
+        };
         if let Some(previous) = self.poses.last() {
             let (dx, dy) = (
                 result.pose.x - previous.pose.x,
@@ -349,7 +622,7 @@ impl Stage for PoseStage {
                 .map_err(|e| failed("passes", e))?;
             out.write_file_in(&subdir, "trajectory.tum", &tum)?;
         }
-        let Ok(raster) = raster(self.mapper.map().finest()) else {
+        let Ok(raster) = raster(self.tracker.mapper().map().finest()) else {
             // No cell was ever hit: no grid to write.
             return Ok(());
         };

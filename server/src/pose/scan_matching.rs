@@ -16,12 +16,13 @@
 use std::path::Path;
 
 use scan3d_map::cloud::scans::scan_plane_point;
-use scan3d_protocol::{Body, SensorId};
-use scan3d_slam::mapper::{Mapper, MapperConfig, Scan};
+use scan3d_protocol::Body;
+use scan3d_slam::mapper::{MapperConfig, Scan};
 use scan3d_slam::offline::{MapperRun, RangeLimits};
 use scan3d_slam::pose::Pose2;
 use scan3d_slam::relations::{Trajectory, TrajectoryPose};
 
+use crate::pipeline::pose_stage::PoseTracker;
 use crate::recording::{RecorderError, SessionReport, check_losses, visit_session};
 
 /// The mapper's scan for one lidar revolution: endpoints within `limits` in the sensor frame
@@ -59,7 +60,10 @@ pub fn revolution_scan(
     }
 }
 
-/// Matches every RPLidar revolution of a recorded session, in recording order, streaming the
+/// Matches every RPLidar revolution of a recorded session, in recording order (with the gyro's
+/// turn between revolutions from its IMU samples, as the live [`PoseTracker`] takes them: the
+/// edge sends a sample when it reads it and a revolution at its end, so recording order is
+/// sample-time order for these two), streaming the
 /// recording (memory: the map, not the session), the lidar at `mount` in `base` (`None`: where
 /// the session's `Body::Mounts` puts the RPLidar, as the live pose stage takes it; `base` itself
 /// without one); each pose of the trajectory is the base's, stamped
@@ -75,27 +79,26 @@ pub fn map_session(
     lenient: bool,
     mut progress: impl FnMut(usize),
 ) -> Result<(MapperRun, SessionReport), RecorderError> {
-    let mut mapper = Mapper::new(*config);
-    let mut session_mount = Pose2::default();
+    let mut tracker = PoseTracker::new(
+        *config,
+        *limits,
+        mount.copied().unwrap_or_default(),
+        mount.is_some(),
+    );
     let mut results = Vec::new();
     let mut poses = Vec::new();
     let recording = visit_session(session_dir, |recorded| {
-        if let Body::Mounts(mounts) = &recorded.frame.body
-            && let Some(m) = mounts
-                .sensors
-                .iter()
-                .find(|m| m.sensor == SensorId::RPLIDAR)
-        {
-            session_mount = Pose2::new(m.x_m, m.y_m, m.yaw_deg.to_radians());
-        }
-        if let Body::Revolution(revolution) = &recorded.frame.body
-            && revolution.sensor == SensorId::RPLIDAR
-        {
-            let scan = revolution_scan(revolution, limits, mount.unwrap_or(&session_mount));
-            let result = mapper.add_scan(&scan);
-            poses.push(TrajectoryPose::of(&result));
-            results.push(result);
-            progress(results.len());
+        match &recorded.frame.body {
+            Body::Mounts(mounts) => tracker.on_mounts(mounts),
+            Body::Imu(sample) => tracker.on_imu(sample),
+            Body::Revolution(revolution) => {
+                if let Some(result) = tracker.on_revolution(revolution) {
+                    poses.push(TrajectoryPose::of(&result));
+                    results.push(result);
+                    progress(results.len());
+                }
+            }
+            _ => {}
         }
         Ok(())
     })?;
@@ -103,7 +106,7 @@ pub fn map_session(
     let run = MapperRun {
         trajectory: Trajectory { poses },
         results,
-        mapper,
+        mapper: tracker.mapper().clone(),
     };
     Ok((run, recording))
 }
@@ -111,7 +114,7 @@ pub fn map_session(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use scan3d_protocol::LidarRevolution;
+    use scan3d_protocol::{LidarRevolution, SensorId};
 
     #[test]
     fn a_revolution_becomes_endpoints_timed_back_from_its_end() {
