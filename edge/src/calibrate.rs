@@ -529,6 +529,7 @@ pub struct Collected {
 pub fn raw_config(config: &ImuConfig) -> ImuConfig {
     ImuConfig {
         gyro_bias_samples: 0,
+        gyro_bias_rad_s: None,
         mag_hard_iron_ut: [0.0; 3],
         mag_soft_iron: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
         ..config.clone()

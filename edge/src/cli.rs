@@ -536,8 +536,8 @@ fn run_calibrate(command: CalibrateCommand, out: &mut dyn Write) -> anyhow::Resu
                          rate σ ({:.3}, {:.3}, {:.3}) °/s",
                         fit.samples, dps[0], dps[1], dps[2], std[0], std[1], std[2]
                     ),
-                    "used instead of the start-up estimate at rest (set gyro_bias_samples > 0 \
-                     and remove the key to estimate at every start)"
+                    "the driver uses it instead of estimating the bias at rest at every start \
+                     (remove the key to go back to that)"
                         .to_owned(),
                 ],
                 vec![(GYRO_BIAS_KEY, calibrate::toml_array(&fit.bias_rad_s))],

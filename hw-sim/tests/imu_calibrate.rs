@@ -325,7 +325,9 @@ fn the_gyro_bias_at_rest_is_the_emulator_s_and_a_turning_head_is_refused() {
     let _serial = one_at_a_time();
     let f = fixture(Arc::new(Isometry3::<f64>::identity()));
     let before = f.clock.now_ns();
-    let printed = calibrate(&f.config, &["gyro", "--seconds", "3"]).expect("calibrate gyro");
+    let config = f.config.display().to_string();
+    let printed = calibrate(&f.config, &["gyro", "--seconds", "3", "--write", &config])
+        .expect("calibrate gyro");
     let after = f.clock.now_ns();
     eprintln!("{printed}");
     let table: toml::Table = printed.parse().unwrap();
@@ -338,6 +340,16 @@ fn the_gyro_bias_at_rest_is_the_emulator_s_and_a_turning_head_is_refused() {
         truth.map(f64::to_degrees),
     );
     assert!(error_dps < 0.03, "{bias} vs {truth}");
+    // Written, the driver takes it instead of estimating one at start.
+    let edge = EdgeConfig::load(&f.config).expect("the written edge.toml loads");
+    let saved = edge.imu.expect("[imu]").driver;
+    assert_eq!(saved.gyro_bias_rad_s, Some(bias.map(|b| b as f32).into()));
+    let mut driver = scan3d_edge::drivers::imu::Mpu9250::new(
+        SocketI2c::new(edge.i2c.socket.unwrap()).with_timeout(Duration::from_secs(10)),
+        saved.clone(),
+    );
+    driver.init(&mut ThreadDelay).expect("init");
+    assert_eq!(driver.gyro_bias(), saved.gyro_bias_rad_s.unwrap());
 
     let turning = fixture(Arc::new(Turning {
         rates_rad_s: [0.4, 0.0, 0.0],

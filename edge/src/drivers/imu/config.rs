@@ -209,6 +209,11 @@ pub struct ImuConfig {
     /// Samples averaged at start-up (device at rest) to estimate the gyro bias; 0 disables the
     /// estimate. Default 200 (1 s at 200 Hz).
     pub gyro_bias_samples: u16,
+    /// A saved gyro bias in rad/s (`scan3d-edge calibrate gyro`), subtracted from every
+    /// reading instead of the start-up estimate: for a head that cannot rest at start. Unset
+    /// by default (the estimate at rest is better when possible: the bias changes from one
+    /// power-up to the next).
+    pub gyro_bias_rad_s: Option<[f32; 3]>,
     /// Magnetometer hard-iron offset in µT, in the accel/gyro frame; subtracted first.
     pub mag_hard_iron_ut: [f32; 3],
     /// Magnetometer soft-iron matrix (row-major), applied after the hard-iron offset:
@@ -236,6 +241,7 @@ impl Default for ImuConfig {
             accel_dlpf: AccelDlpf::Hz45,
             mag_mode: MagMode::Continuous100Hz,
             gyro_bias_samples: 200,
+            gyro_bias_rad_s: None,
             mag_hard_iron_ut: [0.0; 3],
             mag_soft_iron: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
             retries: 3,
@@ -255,7 +261,7 @@ pub enum ConfigError {
     #[error("IMU sample rate {0} Hz is outside 4..=1000 Hz")]
     SampleRate(u16),
     /// A calibration value is NaN or infinite.
-    #[error("IMU magnetometer calibration contains a non-finite value")]
+    #[error("IMU calibration (magnetometer iron or gyro bias) contains a non-finite value")]
     NonFiniteCalibration,
     /// The FIFO read interval is outside 1..=1000 ms.
     #[error("IMU fifo_read_interval_ms {0} is outside 1..=1000")]
@@ -272,7 +278,8 @@ impl ImuConfig {
             return Err(ConfigError::SampleRate(self.sample_rate_hz));
         }
         let finite = self.mag_hard_iron_ut.iter().all(|v| v.is_finite())
-            && self.mag_soft_iron.iter().flatten().all(|v| v.is_finite());
+            && self.mag_soft_iron.iter().flatten().all(|v| v.is_finite())
+            && self.gyro_bias_rad_s.iter().flatten().all(|v| v.is_finite());
         if !finite {
             return Err(ConfigError::NonFiniteCalibration);
         }
@@ -329,7 +336,8 @@ mod tests {
             "address = 0x69\nsample_rate_hz = 500\ngyro_range = \"2000dps\"\n\
              accel_range = \"16g\"\ngyro_dlpf = \"184hz\"\naccel_dlpf = \"99hz\"\n\
              mag_mode = \"8hz\"\nmag_hard_iron_ut = [1.0, -2.0, 3.5]\n\
-             read_mode = \"registers\"\nfifo_read_interval_ms = 25\n",
+             read_mode = \"registers\"\nfifo_read_interval_ms = 25\n\
+             gyro_bias_rad_s = [0.01, -0.02, 0.005]\n",
         )
         .unwrap();
         assert_eq!(config.address, 0x69);
@@ -341,6 +349,7 @@ mod tests {
         assert_eq!(config.mag_hard_iron_ut, [1.0, -2.0, 3.5]);
         assert_eq!(config.read_mode, ReadMode::Registers);
         assert_eq!(config.fifo_read_interval_ms, 25);
+        assert_eq!(config.gyro_bias_rad_s, Some([0.01, -0.02, 0.005]));
         assert!(toml::from_str::<ImuConfig>("adress = 0x68").is_err());
     }
 
@@ -364,6 +373,13 @@ mod tests {
         assert_eq!(
             bad(ImuConfig {
                 mag_hard_iron_ut: [0.0, f32::NAN, 0.0],
+                ..ImuConfig::default()
+            }),
+            ConfigError::NonFiniteCalibration
+        );
+        assert_eq!(
+            bad(ImuConfig {
+                gyro_bias_rad_s: Some([0.0, 0.0, f32::INFINITY]),
                 ..ImuConfig::default()
             }),
             ConfigError::NonFiniteCalibration

@@ -206,8 +206,9 @@ impl<I2C: I2c> Mpu9250<I2C> {
         self.gyro_bias_rad_s = bias_rad_s;
     }
 
-    /// Runs the reset and init sequence of research/hardware.md §1.4, then (if
-    /// [`ImuConfig::gyro_bias_samples`] > 0) estimates the gyro bias; the device must be at rest.
+    /// Runs the reset and init sequence of research/hardware.md §1.4, then takes the saved
+    /// [`ImuConfig::gyro_bias_rad_s`] or (if [`ImuConfig::gyro_bias_samples`] > 0) estimates the
+    /// gyro bias; the device must be at rest.
     /// In FIFO mode it then hands the AK8963 to the I2C master and starts the FIFO.
     pub fn init<D: DelayNs>(&mut self, delay: &mut D) -> Result<ChipIds, Error<I2C::Error>> {
         self.config.validate().map_err(Error::Config)?;
@@ -256,7 +257,9 @@ impl<I2C: I2c> Mpu9250<I2C> {
             (None, None)
         };
 
-        if self.config.gyro_bias_samples > 0 {
+        if let Some(saved) = self.config.gyro_bias_rad_s {
+            self.gyro_bias_rad_s = saved;
+        } else if self.config.gyro_bias_samples > 0 {
             self.estimate_gyro_bias(delay, self.config.gyro_bias_samples)?;
         }
         self.mag_skip = 0;
