@@ -615,6 +615,13 @@ mod tests {
         assert!(s00 > 0.9 && s00 < 0.95, "{s00}");
         let errors: ImuErrors = table["errors"].clone().try_into().expect("errors");
         assert_eq!(&errors, imu.errors());
+        // The cabinet beside the path: a few µT at the closest point, nothing at the start.
+        let strongest = (0..2000)
+            .map(|k| imu.disturbance_at(k * 50_000_000).norm())
+            .fold(0.0, f64::max);
+        eprintln!("the cabinet's field at the chip: at most {strongest:.2} µT along the path");
+        assert!((1.0..10.0).contains(&strongest), "{strongest}");
+        assert!(imu.disturbance_at(0).norm() < 0.5);
     }
 
     #[test]
