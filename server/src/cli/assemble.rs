@@ -2,6 +2,9 @@
 //! recorded sessions, turned into one world-frame cloud by eq. (1) and spliced across positions
 //! (and sessions: an edge that rebooted between positions records a new session).
 //!
+//! With `--moving` the sessions are trolley passes instead, every Sweep sample placed with the
+//! pose at its own time ([`super::assemble_moving`]).
+//!
 //! Every output keeps each point's sensor origin (one per half revolution), so `.scans` feeds
 //! the octree's ray casting directly and PLY/PCD open in any viewer.
 
@@ -33,6 +36,21 @@ pub struct AssembleArgs {
     /// Go on with the readable rest of a damaged recording (with a warning) instead of failing.
     #[arg(long)]
     pub lenient: bool,
+    /// Trolley passes: place every Sweep sample with the pose of `base` at its own time (the
+    /// pose stage's trajectory from the RPLidar and IMU, in the room frame the pass anchors).
+    #[arg(long, conflicts_with = "positions")]
+    pub moving: bool,
+    /// With `--moving`: only the samples within the pass of this name.
+    #[arg(long, value_name = "NAME", requires = "moving")]
+    pub pass: Option<String>,
+    /// With `--moving`: the octree's voxel edge, metres (default the pipeline's, 0.05); ray
+    /// bundles keep their origins within a quarter of it.
+    #[arg(long, alias = "res", value_name = "M", requires = "moving")]
+    pub resolution: Option<f64>,
+    /// With `--moving`: also write the octree (`.bt` or `.ot`), the bundles inserted from their
+    /// origins as the map stage inserts a static scan's.
+    #[arg(long, value_name = "FILE", requires = "moving")]
+    pub bt: Option<PathBuf>,
 }
 
 /// The scans of a session directory, assembled; fails if part of the recording is damaged.
@@ -60,6 +78,9 @@ pub fn run(args: &AssembleArgs, out: &mut dyn Write) -> anyhow::Result<()> {
                 path.display()
             )
         })?;
+    }
+    if args.moving {
+        return crate::cli::assemble_moving::run(args, out);
     }
     let mut scans: Vec<AssembledScan> = Vec::new();
     for dir in &args.session_dirs {

@@ -6,6 +6,7 @@ use std::path::PathBuf;
 use clap::{Parser, Subcommand};
 
 pub mod assemble;
+pub mod assemble_moving;
 pub mod convert;
 pub mod eval;
 pub mod info;
@@ -50,7 +51,8 @@ pub enum Command {
     Scan(scan::ScanArgs),
     /// Open or close a trolley pass on a connected edge (the head's pose in the room at the start).
     Trolley(trolley::TrolleyArgs),
-    /// Turn a session's static scans into one world-frame cloud (eq. 1): PLY, PCD or .scans.
+    /// Turn a session's static scans into one world-frame cloud (eq. 1), or with --moving a
+    /// trolley pass's Sweep samples each at its own pose: PLY, PCD or .scans.
     Assemble(assemble::AssembleArgs),
     /// Build an OctoMap-identical occupancy map (.bt/.ot) from a cloud, with filters.
     Map(map::MapArgs),

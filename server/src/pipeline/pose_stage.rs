@@ -416,6 +416,32 @@ impl PoseStage {
         self.passes.iter().map(|p| p.name.clone()).collect()
     }
 
+    /// The passes seen as (name, start, stop) in edge ns (stop `None` while open), in start
+    /// order: the spans assembly along movement keeps for `--pass NAME`.
+    pub fn pass_spans(&self) -> Vec<(String, u64, Option<u64>)> {
+        self.passes
+            .iter()
+            .map(|p| (p.name.clone(), p.start_ns, p.stop_ns))
+            .collect()
+    }
+
+    /// Whether a pass start anchored the trajectory in the room frame.
+    pub fn anchored(&self) -> bool {
+        self.anchor.is_some()
+    }
+
+    /// The trajectory so far as (edge ns, pose of `base`) in the reported frame (the room's
+    /// once anchored, see [`PoseStage::anchored`]): what the Sweep's samples are placed with.
+    pub fn room_poses(&self) -> Vec<(u64, Pose2)> {
+        self.poses
+            .iter()
+            .map(|p| {
+                let t_ns = (p.timestamp.seconds * 1e9).round().max(0.0) as u64;
+                (t_ns, self.reported(&p.pose))
+            })
+            .collect()
+    }
+
     fn on_pass(&mut self, t_ns: u64, event: &PassEvent) {
         match event {
             PassEvent::Started {
