@@ -514,6 +514,75 @@ fn fit_horizontal(
     })
 }
 
+/// The median magnitude of the calibrated fields S · (raw − b), µT: the reference the daemon
+/// compares the field with (`mag_field_ut`). `None` without samples.
+pub fn calibrated_magnitude(
+    raw: &[[f64; 3]],
+    hard_iron_ut: [f64; 3],
+    soft_iron: &[[f64; 3]; 3],
+) -> Option<f64> {
+    let s = Matrix3::from_fn(|r, c| soft_iron[r][c]);
+    let b = Vector3::from(hard_iron_ut);
+    let mut norms: Vec<f64> = raw
+        .iter()
+        .map(|m| (s * (Vector3::from(*m) - b)).norm())
+        .filter(|n| n.is_finite())
+        .collect();
+    norms.sort_by(f64::total_cmp);
+    norms.get(norms.len() / 2).copied()
+}
+
+/// The daemon's check of the calibrated field (`mag_field_ut`, `mag_field_tolerance`): a
+/// warning line when the magnitude leaves the reference by more than the tolerance, at most
+/// once per [`FieldMonitor::INTERVAL_NS`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct FieldMonitor {
+    reference_ut: f64,
+    tolerance: f64,
+    last_warning_ns: Option<u64>,
+}
+
+impl FieldMonitor {
+    /// Least time between two warnings, ns (a minute).
+    pub const INTERVAL_NS: u64 = 60_000_000_000;
+
+    /// A monitor for the configured reference; `None` when there is none (or it is not a
+    /// positive number).
+    pub fn from_config(config: &ImuConfig) -> Option<Self> {
+        let reference = f64::from(config.mag_field_ut?);
+        let tolerance = f64::from(config.mag_field_tolerance);
+        (reference > 0.0 && tolerance > 0.0 && reference.is_finite() && tolerance.is_finite())
+            .then_some(Self {
+                reference_ut: reference,
+                tolerance,
+                last_warning_ns: None,
+            })
+    }
+
+    /// Checks one calibrated field (µT) read at `t_ns`: the warning to log, if any.
+    pub fn check(&mut self, t_ns: u64, field_ut: [f32; 3]) -> Option<String> {
+        let magnitude = Vector3::from(field_ut.map(f64::from)).norm();
+        let off = magnitude / self.reference_ut - 1.0;
+        if !(off.abs() > self.tolerance) {
+            return None;
+        }
+        if let Some(last) = self.last_warning_ns
+            && t_ns.saturating_sub(last) < Self::INTERVAL_NS
+        {
+            return None;
+        }
+        self.last_warning_ns = Some(t_ns);
+        Some(format!(
+            "the magnetic field reads {magnitude:.1} µT, {:+.0} % off its calibrated {:.1} µT \
+             (tolerance {:.0} %): steel nearby or a calibration out of date (`scan3d-edge \
+             calibrate mag`); the heading may be off",
+            off * 100.0,
+            self.reference_ut,
+            self.tolerance * 100.0
+        ))
+    }
+}
+
 /// Readings taken for a calibration, through the driver.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Collected {
@@ -530,6 +599,7 @@ pub fn raw_config(config: &ImuConfig) -> ImuConfig {
     ImuConfig {
         gyro_bias_samples: 0,
         gyro_bias_rad_s: None,
+        mag_field_ut: None,
         mag_hard_iron_ut: [0.0; 3],
         mag_soft_iron: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
         ..config.clone()
@@ -895,6 +965,31 @@ mod tests {
             gyro_bias(&rates[..10], &[], 1.0),
             Err(CalibrationError::TooFewSamples { got: 10, .. })
         ));
+    }
+
+    #[test]
+    fn the_field_monitor_warns_off_its_reference_at_most_once_a_minute() {
+        let config = ImuConfig {
+            mag_field_ut: Some(48.0),
+            ..ImuConfig::default()
+        };
+        let mut monitor = FieldMonitor::from_config(&config).unwrap();
+        assert_eq!(monitor.check(0, [24.0, 0.0, -41.6]), None);
+        let disturbed = [30.0, 0.0, -41.6]; // 51.3 µT: +7 %, within 10 %
+        assert_eq!(monitor.check(1, disturbed), None);
+        let far = [40.0, 0.0, -41.6]; // 57.7 µT: +20 %
+        let line = monitor.check(2, far).expect("a warning");
+        assert!(
+            line.contains("57.7 µT, +20 % off its calibrated 48.0 µT"),
+            "{line}"
+        );
+        assert_eq!(monitor.check(59_000_000_000, far), None);
+        assert!(monitor.check(62_000_000_001, far).is_some());
+        assert!(FieldMonitor::from_config(&ImuConfig::default()).is_none());
+        let raw = [[25.0, 1.0, -40.6], [23.0, 1.0, -40.6], [24.0, 1.0, -40.6]];
+        let identity = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+        let median = calibrated_magnitude(&raw, [0.0, 1.0, 1.0], &identity).unwrap();
+        assert!((median - (24.0f64.powi(2) + 41.6f64.powi(2)).sqrt()).abs() < 1e-9);
     }
 
     #[test]

@@ -579,6 +579,13 @@ fn run_calibrate(command: CalibrateCommand, out: &mut dyn Write) -> anyhow::Resu
                     fit.residual_rms * 100.0
                 ),
             }];
+            let reference =
+                calibrate::calibrated_magnitude(&collected.fields, hard, &fit.soft_iron)
+                    .unwrap_or(fit.radius_ut);
+            comments.push(format!(
+                "mag_field_ut: the calibrated field's magnitude ({reference:.1} µT), which the \
+                 daemon warns about leaving by more than mag_field_tolerance"
+            ));
             if fit.hard_iron_ut[2].is_none() {
                 comments.push(format!(
                     "the z offset cannot be seen in a turn about z: kept at {configured_z} µT \
@@ -590,6 +597,7 @@ fn run_calibrate(command: CalibrateCommand, out: &mut dyn Write) -> anyhow::Resu
                 vec![
                     ("mag_hard_iron_ut", calibrate::toml_array(&hard)),
                     ("mag_soft_iron", calibrate::toml_matrix(&fit.soft_iron)),
+                    ("mag_field_ut", format!("{reference:.3}")),
                 ],
             )
         }

@@ -322,6 +322,8 @@ struct Fusion {
     beta: f64,
     filter: Option<Madgwick>,
     last_ns: Option<u64>,
+    /// The calibrated field's check (`mag_field_ut`), if configured.
+    field: Option<crate::calibrate::FieldMonitor>,
 }
 
 impl Fusion {
@@ -330,6 +332,7 @@ impl Fusion {
             beta: section.beta,
             filter: initial_filter(section),
             last_ns: None,
+            field: crate::calibrate::FieldMonitor::from_config(&section.driver),
         }
     }
 
@@ -343,6 +346,11 @@ impl Fusion {
             t_ns.saturating_sub(last) as f64 * 1e-9
         });
         self.last_ns = Some(t_ns);
+        if let (Some(monitor), Some(mag)) = (&mut self.field, reading.mag_ut)
+            && let Some(warning) = monitor.check(t_ns, mag)
+        {
+            tracing::warn!("{warning}");
+        }
         let v = |v: [f32; 3]| Vector3::from(v.map(f64::from));
         let (gyro, accel) = (v(reading.gyro_rad_s), v(reading.accel_m_s2));
         self.filter = match (self.filter.take(), reading.mag_ut) {

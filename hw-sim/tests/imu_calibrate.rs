@@ -201,6 +201,9 @@ fn a_tumble_gives_the_emulator_s_hard_and_soft_iron_and_a_constant_field() {
          {hard_error:.3} µT); soft iron max |error| {soft_error:.4}"
     );
     assert!(hard_error < 1.0, "hard iron {hard} vs {true_hard}");
+    // The reference the daemon checks the field against.
+    let reference = table["imu"]["mag_field_ut"].as_float().unwrap();
+    assert!((reference - 48.0).abs() < 0.5, "mag_field_ut {reference}");
     assert!(soft_error < 0.02, "soft iron {soft} vs {true_soft}");
 
     // The file was edited in place: the rest kept, the keys now in [imu].

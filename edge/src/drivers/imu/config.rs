@@ -214,6 +214,12 @@ pub struct ImuConfig {
     /// by default (the estimate at rest is better when possible: the bias changes from one
     /// power-up to the next).
     pub gyro_bias_rad_s: Option<[f32; 3]>,
+    /// The calibrated field's magnitude, µT (`scan3d-edge calibrate mag` writes it): the daemon
+    /// warns, at most once a minute, when the field read leaves it by more than
+    /// `mag_field_tolerance` (steel nearby, or a calibration out of date). Unset: no check.
+    pub mag_field_ut: Option<f32>,
+    /// The fraction of `mag_field_ut` the field may depart from it. Default 0.1.
+    pub mag_field_tolerance: f32,
     /// Magnetometer hard-iron offset in µT, in the accel/gyro frame; subtracted first.
     pub mag_hard_iron_ut: [f32; 3],
     /// Magnetometer soft-iron matrix (row-major), applied after the hard-iron offset:
@@ -242,6 +248,8 @@ impl Default for ImuConfig {
             mag_mode: MagMode::Continuous100Hz,
             gyro_bias_samples: 200,
             gyro_bias_rad_s: None,
+            mag_field_ut: None,
+            mag_field_tolerance: 0.1,
             mag_hard_iron_ut: [0.0; 3],
             mag_soft_iron: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
             retries: 3,
@@ -263,6 +271,9 @@ pub enum ConfigError {
     /// A calibration value is NaN or infinite.
     #[error("IMU calibration (magnetometer iron or gyro bias) contains a non-finite value")]
     NonFiniteCalibration,
+    /// `mag_field_ut` or `mag_field_tolerance` is not a positive number.
+    #[error("IMU mag_field_ut and mag_field_tolerance must be positive numbers")]
+    MagFieldCheck,
     /// The FIFO read interval is outside 1..=1000 ms.
     #[error("IMU fifo_read_interval_ms {0} is outside 1..=1000")]
     FifoReadInterval(u16),
@@ -282,6 +293,10 @@ impl ImuConfig {
             && self.gyro_bias_rad_s.iter().flatten().all(|v| v.is_finite());
         if !finite {
             return Err(ConfigError::NonFiniteCalibration);
+        }
+        let positive = |v: f32| v.is_finite() && v > 0.0;
+        if !positive(self.mag_field_tolerance) || !self.mag_field_ut.is_none_or(positive) {
+            return Err(ConfigError::MagFieldCheck);
         }
         if !(1..=1000).contains(&self.fifo_read_interval_ms) {
             return Err(ConfigError::FifoReadInterval(self.fifo_read_interval_ms));
@@ -350,6 +365,8 @@ mod tests {
         assert_eq!(config.read_mode, ReadMode::Registers);
         assert_eq!(config.fifo_read_interval_ms, 25);
         assert_eq!(config.gyro_bias_rad_s, Some([0.01, -0.02, 0.005]));
+        assert_eq!(config.mag_field_ut, None);
+        assert_eq!(config.mag_field_tolerance, 0.1);
         assert!(toml::from_str::<ImuConfig>("adress = 0x68").is_err());
     }
 
@@ -383,6 +400,13 @@ mod tests {
                 ..ImuConfig::default()
             }),
             ConfigError::NonFiniteCalibration
+        );
+        assert_eq!(
+            bad(ImuConfig {
+                mag_field_ut: Some(0.0),
+                ..ImuConfig::default()
+            }),
+            ConfigError::MagFieldCheck
         );
         assert_eq!(
             bad(ImuConfig {
