@@ -968,3 +968,45 @@ fn a_standing_heads_pose_moves_less_than_1_cm_and_0_2_degrees_over_ten_minutes()
         assert!(within_goal(&drift), "{drift}");
     }
 }
+
+#[test]
+#[ignore = "a parameter sweep for docs/slam.md: \
+            cargo test -p scan3d-hw-sim --release --test slam_room -- --ignored sweep"]
+fn sweep_of_the_standstill_gates() {
+    // Median and worst over three noise draws, for the gates around the defaults: the standing
+    // head's excursions (from the start and after moving) and the trolley's error round the
+    // table (RPLidar noise).
+    for gate in [11.34, 16.27, 25.0] {
+        for start_gate in [4.11, 6.25, 7.81] {
+            let mut config = trolley_config();
+            config.standstill.gate = gate;
+            config.standstill.start_gate = start_gate;
+            let (mut translation, mut rotation, mut trolley) = (Vec::new(), Vec::new(), Vec::new());
+            for seed in [12, 13, 14] {
+                for after_moving in [false, true] {
+                    let drift = standing_drift(60.0, seed, &config, after_moving);
+                    translation.push(drift.reported.max_translation * 1e3);
+                    rotation.push(drift.reported.max_rotation.to_degrees());
+                }
+                let mut run = Run::trolley(RangeNoise::RPLIDAR);
+                run.config = config;
+                run.seed = seed;
+                trolley.push(score(&run).max_translation * 1e3);
+            }
+            let stats = |v: &mut Vec<f64>| {
+                v.sort_by(f64::total_cmp);
+                (v[v.len() / 2], v[v.len() - 1])
+            };
+            let (t, r, m) = (
+                stats(&mut translation),
+                stats(&mut rotation),
+                stats(&mut trolley),
+            );
+            println!(
+                "SWEEP gate {gate}, start gate {start_gate}: standing max excursion median / worst \
+                 {:.2} / {:.2} mm, {:.3} / {:.3}°; trolley max error {:.1} / {:.1} mm",
+                t.0, t.1, r.0, r.1, m.0, m.1
+            );
+        }
+    }
+}

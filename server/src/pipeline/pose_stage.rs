@@ -712,6 +712,47 @@ mod tests {
     }
 
     #[test]
+    fn the_gyros_turn_between_two_revolutions_is_its_rate_over_their_times_less_the_bias() {
+        // Mounted upside down (roll 180°): the IMU's z reads the opposite of base's.
+        let mut gyro = GyroYaw::default();
+        gyro.set_mount(std::f64::consts::PI, 0.0);
+        // 200 Hz from t = 0.9 s, turning at 0.5 rad/s about base z.
+        for k in 0..100 {
+            gyro.push(0.9 + 0.005 * f64::from(k), [0.0, 0.0, -0.5]);
+        }
+        assert_eq!(gyro.prior(1.0), None, "no revolution before");
+        gyro.revolution(1.0, false);
+        let prior = gyro.prior(1.2).expect("covered");
+        assert!((prior.increment - 0.1).abs() < 1e-9, "{prior:?}");
+        // Unmeasured bias: (5 °/s · 0.2 s)² dominates the noise density's N² · 0.2 s.
+        let want = (GYRO_BIAS_UNMEASURED * 0.2).powi(2) + GYRO_NOISE_DENSITY.powi(2) * 0.2;
+        assert!((prior.variance - want).abs() < 1e-12, "{prior:?}");
+        // Not covered: the samples end at 1.395 s.
+        assert_eq!(gyro.prior(1.5), None);
+        // Standing from 1.0 to 1.2 s at a reading of 0.5 rad/s: that is the bias now.
+        gyro.revolution(1.2, true);
+        let (bias, rest) = gyro.bias();
+        assert!((bias - 0.5).abs() < 1e-9 && (rest - 0.2).abs() < 1e-9);
+        let prior = gyro.prior(1.3).expect("covered");
+        assert!(prior.increment.abs() < 1e-9, "{prior:?}");
+        assert!(prior.variance < want / 100.0, "{prior:?}");
+    }
+
+    #[test]
+    fn a_gap_in_the_imu_samples_leaves_the_interval_without_a_prior() {
+        let mut gyro = GyroYaw::default();
+        for k in 0..10 {
+            gyro.push(1.0 + 0.005 * f64::from(k), [0.0, 0.0, 1.0]);
+        }
+        for k in 0..10 {
+            gyro.push(1.2 + 0.005 * f64::from(k), [0.0, 0.0, 1.0]);
+        }
+        gyro.revolution(1.0, false);
+        assert!(gyro.prior(1.04).is_some());
+        assert_eq!(gyro.prior(1.22), None, "150 ms without a sample");
+    }
+
+    #[test]
     fn a_rotated_frame_rotates_the_position_covariance_and_keeps_the_yaw_variance() {
         let c = [[4.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.01]];
         let r = rotate_covariance(&c, std::f64::consts::FRAC_PI_2);
