@@ -137,7 +137,7 @@ pub fn gyro_bias(
             .sqrt();
     }
     for (axis, name) in ['x', 'y', 'z'].into_iter().enumerate() {
-        if !(std[axis] <= max_std_rad_s) {
+        if std[axis].is_nan() || std[axis] > max_std_rad_s {
             return Err(CalibrationError::Moved {
                 axis: name,
                 std_dps: std[axis].to_degrees(),
@@ -272,7 +272,7 @@ pub fn fit_mag(raw: &[[f64; 3]], local: LocalField) -> Result<MagCalibration, Ca
 /// Symmetric square root of a positive-definite matrix, `None` if not positive definite.
 fn sqrt_spd3(m: &Matrix3<f64>) -> Option<Matrix3<f64>> {
     let e = m.symmetric_eigen();
-    if e.eigenvalues.iter().any(|&l| !(l > 0.0)) {
+    if e.eigenvalues.iter().any(|&l| l.is_nan() || l <= 0.0) {
         return None;
     }
     let d = Matrix3::from_diagonal(&e.eigenvalues.map(f64::sqrt));
@@ -281,7 +281,7 @@ fn sqrt_spd3(m: &Matrix3<f64>) -> Option<Matrix3<f64>> {
 
 fn sqrt_spd2(m: &Matrix2<f64>) -> Option<Matrix2<f64>> {
     let e = m.symmetric_eigen();
-    if e.eigenvalues.iter().any(|&l| !(l > 0.0)) {
+    if e.eigenvalues.iter().any(|&l| l.is_nan() || l <= 0.0) {
         return None;
     }
     let d = Matrix2::from_diagonal(&e.eigenvalues.map(f64::sqrt));
@@ -337,7 +337,7 @@ fn fit_ellipsoid(
         .sum::<f64>()
         / points.len() as f64)
         .sqrt();
-    if !(scale > 0.0) {
+    if scale.is_nan() || scale <= 0.0 {
         return Err(CalibrationError::Degenerate(SHAPE));
     }
     let design = DMatrix::from_fn(points.len(), 9, |r, c| {
@@ -424,7 +424,7 @@ fn fit_horizontal(
         .sum::<f64>()
         / points.len() as f64)
         .sqrt();
-    if !(scale > 0.0) {
+    if scale.is_nan() || scale <= 0.0 {
         return Err(CalibrationError::Degenerate(SHAPE));
     }
     let design = DMatrix::from_fn(points.len(), 5, |r, c| {
@@ -563,7 +563,7 @@ impl FieldMonitor {
     pub fn check(&mut self, t_ns: u64, field_ut: [f32; 3]) -> Option<String> {
         let magnitude = Vector3::from(field_ut.map(f64::from)).norm();
         let off = magnitude / self.reference_ut - 1.0;
-        if !(off.abs() > self.tolerance) {
+        if off.is_nan() || off.abs() <= self.tolerance {
             return None;
         }
         if let Some(last) = self.last_warning_ns
