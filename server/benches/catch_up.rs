@@ -13,7 +13,6 @@
 #[path = "../tests/pipeline_support/mod.rs"]
 mod support;
 
-use std::path::Path;
 use std::time::{Duration, Instant};
 
 use clap::Parser;
@@ -136,27 +135,29 @@ fn frames(count: u64) -> Vec<Frame> {
     out
 }
 
-/// Records `frames` under `data_dir` with the real recorder, committing every
-/// [`FRAMES_PER_COMMIT`]; returns the recorder still open (a live session's last file has no
-/// summary yet).
-fn record(data_dir: &Path, frames: &[Frame]) -> SessionRecorder {
-    let mut recorder = SessionRecorder::open(data_dir, EDGE, SESSION).expect("open the recorder");
+/// Records `frames` (the session's from its `first`th on) with the real recorder, committing
+/// every [`FRAMES_PER_COMMIT`] of the session, as ingest does; the recorder stays open (a live
+/// session's last file has no summary yet).
+fn record(recorder: &mut SessionRecorder, frames: &[Frame], first: usize) {
     for (n, frame) in frames.iter().enumerate() {
+        let n = (first + n) as u64;
         let raw = encode(frame).expect("encode");
-        recorder
-            .append(&raw, frame, 1_000 + n as u64)
-            .expect("append");
-        if n as u64 % FRAMES_PER_COMMIT == FRAMES_PER_COMMIT - 1 {
+        recorder.append(&raw, frame, 1_000 + n).expect("append");
+        if n % FRAMES_PER_COMMIT == FRAMES_PER_COMMIT - 1 {
             recorder.commit().expect("commit");
         }
     }
     recorder.commit().expect("commit");
-    recorder
 }
 
 fn median(mut v: Vec<Duration>) -> Duration {
     v.sort();
     v[v.len() / 2]
+}
+
+/// Microseconds per caught-up frame.
+fn per_frame(time: Duration, frames: u64) -> f64 {
+    time.as_secs_f64() * 1e6 / frames.max(1) as f64
 }
 
 fn main() {
@@ -174,30 +175,62 @@ fn main() {
         args.owed, args.runs
     );
     println!(
-        "{:>10} {:>6} {:>10} {:>12} {:>14} {:>10} {:>14}",
-        "frames", "files", "caught up", "catch-up ms", "µs per frame", "read ms", "read µs/frame"
+        "cold: the worker's first read of the recording; after read-on: the worker read on through the recording just before the gap (it does every read_on_every while it owes nothing)"
     );
-    let mut per_frame = Vec::new();
+    println!(
+        "{:>10} {:>6} {:>10} {:>14} {:>13} {:>16} {:>15}",
+        "frames",
+        "files",
+        "caught up",
+        "cold µs/frame",
+        "cold read ms",
+        "read-on µs/frame",
+        "read-on read ms"
+    );
+    let mut rows = Vec::new();
     for &length in &args.lengths {
         let data = tempfile::tempdir().expect("temporary directory");
         settings.data_dir = data.path().to_path_buf();
         let frames = frames(length);
-        let recorder = record(data.path(), &frames);
+        let owed_from = length.saturating_sub(args.owed);
+        let split = owed_from as usize;
+        let mut recorder =
+            SessionRecorder::open(data.path(), EDGE, SESSION).expect("open the recorder");
+        record(&mut recorder, &frames[..split], 0);
+        // Workers that processed everything recorded so far and read on through it.
+        let runs = args.runs.max(1);
+        let mut followers: Vec<CatchUpProbe> = (0..runs)
+            .map(|_| {
+                let mut probe = CatchUpProbe::new(&settings, EDGE, SESSION, owed_from)
+                    .expect("build the pipeline");
+                assert_eq!(probe.read_on(), 0, "nothing before the gap is owed");
+                probe
+            })
+            .collect();
+        // The same, counting the gap's frames as processed too: their read alone.
+        let mut readers: Vec<CatchUpProbe> = (0..runs)
+            .map(|_| {
+                let mut probe = CatchUpProbe::new(&settings, EDGE, SESSION, length)
+                    .expect("build the pipeline");
+                assert_eq!(probe.read_on(), 0, "nothing is owed");
+                probe
+            })
+            .collect();
+        record(&mut recorder, &frames[split..], split);
         let files = std::fs::read_dir(recorder.session_dir())
             .expect("session directory")
             .filter_map(Result::ok)
             .filter(|e| e.path().extension().is_some_and(|x| x == "mcap"))
             .count();
-        let owed_from = length.saturating_sub(args.owed);
-        let mut times = Vec::with_capacity(args.runs);
-        let mut reads = Vec::with_capacity(args.runs);
+        let (mut cold, mut reads, mut warm, mut warm_reads) =
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         let mut caught_up = 0;
-        for _ in 0..args.runs.max(1) {
+        for (follower, reader) in followers.iter_mut().zip(&mut readers) {
             let mut probe =
                 CatchUpProbe::new(&settings, EDGE, SESSION, owed_from).expect("build the pipeline");
             let started = Instant::now();
             caught_up = probe.catch_up();
-            times.push(started.elapsed());
+            cold.push(started.elapsed());
             // The reading share alone: the same read, nothing processed.
             let started = Instant::now();
             let report = SessionReader::new(recorder.session_dir())
@@ -206,29 +239,44 @@ fn main() {
                 .expect("read the recording");
             assert!(report.losses.is_empty(), "{:?}", report.loss_line());
             reads.push(started.elapsed());
+            let started = Instant::now();
+            assert_eq!(follower.catch_up(), caught_up, "the same frames caught up");
+            warm.push(started.elapsed());
+            let started = Instant::now();
+            assert_eq!(reader.read_on(), 0, "the gap counted as processed");
+            warm_reads.push(started.elapsed());
         }
-        let (time, read) = (median(times), median(reads));
-        let per = |d: Duration| d.as_secs_f64() * 1e6 / caught_up.max(1) as f64;
-        let us = per(time);
-        per_frame.push((length, us, per(read)));
-        println!(
-            "{length:>10} {files:>6} {caught_up:>10} {:>12.1} {us:>14.1} {:>10.1} {:>14.1}",
-            time.as_secs_f64() * 1e3,
-            read.as_secs_f64() * 1e3,
-            per(read)
+        let (cold, read, warm, warm_read) = (
+            median(cold),
+            median(reads),
+            median(warm),
+            median(warm_reads),
         );
+        let row = (
+            length,
+            per_frame(cold, caught_up),
+            per_frame(warm, caught_up),
+        );
+        println!(
+            "{length:>10} {files:>6} {caught_up:>10} {:>14.1} {:>13.1} {:>16.1} {:>15.1}",
+            row.1,
+            read.as_secs_f64() * 1e3,
+            row.2,
+            warm_read.as_secs_f64() * 1e3
+        );
+        rows.push(row);
         drop(recorder);
     }
-    if let (Some(&(first_len, first, first_read)), Some(&(last_len, last, last_read))) =
-        (per_frame.first(), per_frame.last())
-        && per_frame.len() > 1
+    if let (Some(&(first_len, first_cold, first_warm)), Some(&(last_len, last_cold, last_warm))) =
+        (rows.first(), rows.last())
+        && rows.len() > 1
     {
         println!(
-            "ratio {}k / {}k: {:.2} per caught-up frame ({:.2} for the read alone)",
+            "ratio {}k / {}k per caught-up frame: {:.2} cold, {:.2} after read-on",
             last_len / 1000,
             first_len / 1000,
-            last / first,
-            last_read / first_read
+            last_cold / first_cold,
+            last_warm / first_warm
         );
     }
 }

@@ -74,6 +74,11 @@ pub struct LiveSettings {
     pub retire_after: Option<Duration>,
     /// How long shutdown waits, in all, for the workers to finish what they were given.
     pub shutdown_wait: Duration,
+    /// How often a worker that owes nothing reads on through its recording (taking any frame
+    /// committed there before its queue hands it over), so that a later catch-up starts where
+    /// that read ended instead of at the start of the file holding the first frame owed: a
+    /// catch-up then reads at most this much data beyond what is owed. `None`: never.
+    pub read_on_every: Option<Duration>,
 }
 
 impl LiveSettings {
@@ -89,6 +94,7 @@ impl LiveSettings {
             snapshot_wait: Duration::from_secs(20),
             retire_after: Some(Duration::from_secs(60)),
             shutdown_wait: Duration::from_secs(35),
+            read_on_every: Some(Duration::from_secs(5)),
         }
     }
 }
@@ -209,6 +215,15 @@ impl CatchUpProbe {
     pub fn catch_up(&mut self) -> u64 {
         let before = self.run.processed;
         self.run.catch_up();
+        self.run.processed - before
+    }
+
+    /// The worker's periodic read on through the recording while it owes nothing
+    /// ([`LiveSettings::read_on_every`]): the next catch-up starts where it ended. Returns the
+    /// frames put through the pipeline (those recorded and not counted as processed).
+    pub fn read_on(&mut self) -> u64 {
+        let before = self.run.processed;
+        self.run.read_recording();
         self.run.processed - before
     }
 }
@@ -1073,6 +1088,8 @@ struct WorkerRun {
     /// processed, so the next catch-up reads on from there, not from the start of the file
     /// holding the first frame owed.
     read_to: Option<ReadPosition>,
+    /// When the worker last read the recording.
+    last_read: Instant,
 }
 
 impl WorkerRun {
@@ -1098,6 +1115,7 @@ impl WorkerRun {
             taken: 0,
             last_activity: Instant::now(),
             read_to: None,
+            last_read: Instant::now(),
         }
     }
 }
@@ -1167,6 +1185,14 @@ impl WorkerRun {
             self.set_owed(owed_since);
             if !open && self.sequencer.owed() == 0 {
                 break;
+            }
+            if self.sequencer.owed() == 0
+                && self
+                    .settings
+                    .read_on_every
+                    .is_some_and(|every| self.last_read.elapsed() >= every)
+            {
+                self.read_recording();
             }
             if open
                 && self.sequencer.owed() == 0
@@ -1398,6 +1424,13 @@ impl WorkerRun {
     /// Reads the recording and processes, in its order, every frame not processed yet.
     fn catch_up(&mut self) {
         lock(&self.shared.progress).catch_ups += 1;
+        self.read_recording();
+    }
+
+    /// Reads the recording on from where the last read ended (or from the file holding the
+    /// first frame not processed) and processes, in its order, every frame not processed yet.
+    fn read_recording(&mut self) {
+        self.last_read = Instant::now();
         let processed = self.processed;
         let session_dir = self.session_dir.clone();
         let from = self.sequencer.resume_from();
