@@ -74,7 +74,7 @@ struct Options {
 /// straight at 0.5 m/s diagonally to the walls, 12 turning at 0.6 rad/s while moving, the pass
 /// stopped. Returns the session directory.
 fn record(dir: &Path, options: &Options) -> PathBuf {
-    let mut s = SessionBuilder::in_room(0x21_3, DEMO_ROOM);
+    let mut s = SessionBuilder::in_room(0x0213, DEMO_ROOM);
     if options.sweep_mount {
         s.push(SensorMounts {
             sensors: vec![SWEEP_MOUNT],
