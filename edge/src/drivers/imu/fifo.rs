@@ -242,7 +242,9 @@ mod tests {
         // The count transaction returns 30 to 150 µs after the chip latched the count, and
         // every 7th read 3 ms later (preempted): pseudo-random.
         let delay = |read: usize| {
-            30_000 + (read as u64 * 7_919 % 13) * 10_000 + if read % 7 == 0 { 3_000_000 } else { 0 }
+            30_000
+                + (read as u64 * 7_919 % 13) * 10_000
+                + if read.is_multiple_of(7) { 3_000_000 } else { 0 }
         };
         let stamped = run(period, period as f64, interval, 200, delay);
         let after_fit: Vec<f64> = stamped[200..]
