@@ -278,7 +278,7 @@ impl<I2C: I2c> Mpu9250<I2C> {
         };
         self.write_reg(Chip::Mpu9250, mpu::USER_CTRL, 0x00)?;
         self.write_reg(Chip::Mpu9250, mpu::FIFO_EN, 0x00)?;
-        let master = if layout.mag {
+        if layout.mag {
             let writes = [
                 (mpu::INT_PIN_CFG, 0x00),
                 (
@@ -295,22 +295,14 @@ impl<I2C: I2c> Mpu9250<I2C> {
             }
             // A few master cycles, so EXT_SENS_DATA holds an AK8963 block before any record.
             delay.delay_ms(SETTLE_WAIT_MS);
-            mpu::USER_I2C_MST_EN
-        } else {
-            0
-        };
+        }
         self.write_reg(Chip::Mpu9250, mpu::FIFO_EN, layout.fifo_en())?;
-        self.write_reg(
-            Chip::Mpu9250,
-            mpu::USER_CTRL,
-            master | mpu::USER_FIFO_EN | mpu::USER_FIFO_RST,
-        )?;
         self.fifo = Some(FifoState {
             layout,
             needs_reset: false,
             restarted: true,
         });
-        Ok(())
+        self.reset_fifo()
     }
 
     /// Empties the FIFO (USER_CTRL.FIFO_RST, the master and the FIFO left on).
