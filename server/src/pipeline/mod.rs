@@ -263,6 +263,40 @@ pub struct StageContext {
     /// current frame, with their position; the assembly stage fills it, later stages transform
     /// or consume it. Emptied after each frame.
     pub rays: Vec<NewRays>,
+    /// Poses of `base` made for the current frame: the pose stage adds the matcher's, a fusion
+    /// stage after it in the same lane may replace their yaw and add roll and pitch. The
+    /// pipeline hands them, in order, to the lanes that take [`StreamId::Poses`]. Emptied after
+    /// each frame.
+    pub poses: Vec<BasePose>,
+}
+
+/// A pose of `base` at one sample time, as the pose lane hands it on (see
+/// [`StageContext::poses`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BasePose {
+    /// Its time: the reference time of the RPLidar revolution it was matched from, edge ns.
+    pub t_ns: u64,
+    /// x, y (m) and yaw (rad, counter-clockwise) of `base` in the session's own frame.
+    pub pose: scan3d_slam::pose::Pose2,
+    /// Covariance over (x, y, yaw), row-major, m² / m·rad / rad².
+    pub covariance: [f64; 9],
+    /// Roll and pitch of `base`, rad, when an attitude source gave them (the fusion stage);
+    /// `None`: taken as level.
+    pub roll_pitch: Option<[f64; 2]>,
+    /// The session's frame → the room frame (a pass start anchored it) when this pose was
+    /// made; `None` before any pass. A consumer places with the anchor of the newest pose it
+    /// uses.
+    pub room_from_session: Option<scan3d_slam::pose::Pose2>,
+}
+
+impl BasePose {
+    /// The pose in the room frame (the session's own when not anchored).
+    pub fn in_room(&self) -> scan3d_slam::pose::Pose2 {
+        match &self.room_from_session {
+            Some(anchor) => anchor.compose(&self.pose),
+            None => self.pose,
+        }
+    }
 }
 
 /// One stage: takes frames in sample-time order, keeps its products.
@@ -715,6 +749,8 @@ impl SessionPipeline {
                 self.stages[stage].on_frame(ctx, &ordered.item);
             }
             ctx.rays.clear();
+            // Not handed on to other lanes yet (no stage takes `StreamId::Poses` so far).
+            ctx.poses.clear();
         }
     }
 

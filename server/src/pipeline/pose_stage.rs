@@ -35,7 +35,7 @@ use scan3d_slam::relations::TrajectoryPose;
 
 use super::order::StreamId;
 use super::snapshot::SnapshotWriter;
-use super::{PipelineError, Stage, StageContext};
+use super::{BasePose, PipelineError, Stage, StageContext};
 use crate::pose::scan_matching::revolution_scan;
 use crate::pose::timesync::SessionClock;
 
@@ -598,7 +598,7 @@ impl Stage for PoseStage {
         &[StreamId::Rplidar, StreamId::Imu, StreamId::Pass]
     }
 
-    fn on_frame(&mut self, _ctx: &mut StageContext, frame: &Frame) {
+    fn on_frame(&mut self, ctx: &mut StageContext, frame: &Frame) {
         let revolution = match &frame.body {
             Body::Revolution(revolution) => revolution,
             Body::Imu(sample) => {
@@ -626,6 +626,13 @@ impl Stage for PoseStage {
             self.path_m += dx.hypot(dy);
         }
         self.poses.push(TrajectoryPose::of(&result));
+        ctx.poses.push(BasePose {
+            t_ns: (result.time * 1e9).round().max(0.0) as u64,
+            pose: result.pose,
+            covariance: [0, 1, 2, 3, 4, 5, 6, 7, 8].map(|k| result.covariance[k / 3][k % 3]),
+            roll_pitch: None,
+            room_from_session: self.anchor,
+        });
     }
 
     fn snapshot(&mut self, out: &mut SnapshotWriter) -> Result<(), PipelineError> {
