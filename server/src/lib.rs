@@ -9,6 +9,7 @@
 //! - the octree, clouds and metrics are the pure `scan3d-map` crate, used here.
 //! - [`report`]: map comparison reports (Table III, metrics, Fig. 11/12) from map files.
 //! - [`config`]: the daemon's `server.toml`.
+//! - [`yaw_plot`]: the paper's Fig. 5 (yaw error per source against time) from a fused run.
 //! - [`cli`]: the `scan3d` subcommands.
 #![warn(missing_docs)]
 
@@ -19,3 +20,4 @@ pub mod pipeline;
 pub mod pose;
 pub mod recording;
 pub mod report;
+pub mod yaw_plot;

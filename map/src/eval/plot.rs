@@ -427,3 +427,80 @@ pub fn fig12_svg(rows: &[Fig12Row]) -> Result<String, PlotError> {
 pub fn fig12_png(rows: &[Fig12Row], path: &Path) -> Result<(), PlotError> {
     fig12(BitMapBackend::new(path, SIZE).into_drawing_area(), rows)
 }
+
+/// One curve of Fig. 5: a yaw source's error against time.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Fig5Series {
+    /// The legend's label.
+    pub label: String,
+    /// (time s from the run's start, yaw error degrees), time increasing.
+    pub points: Vec<(f64, f64)>,
+}
+
+fn fig5<DB: DrawingBackend>(
+    root: DrawingArea<DB, Shift>,
+    series: &[Fig5Series],
+) -> Result<(), PlotError>
+where
+    DB::ErrorType: 'static,
+{
+    font()?;
+    let all = || series.iter().flat_map(|s| s.points.iter());
+    if all().next().is_none() {
+        return Err(PlotError::NoData);
+    }
+    let (t0, t1) = all().fold((f64::MAX, f64::MIN), |(a, b), p| (a.min(p.0), b.max(p.0)));
+    let (lo, hi) = all().fold((f64::MAX, f64::MIN), |(a, b), p| (a.min(p.1), b.max(p.1)));
+    let pad = ((hi - lo) * 0.08).max(0.05);
+    let xs = t0..if t1 > t0 { t1 } else { t0 + 1.0 };
+    root.fill(&WHITE).map_err(draw_err)?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption("Fig. 5: yaw error against time", (FAMILY, 24))
+        .margin(16)
+        .x_label_area_size(42)
+        .y_label_area_size(70)
+        .build_cartesian_2d(xs, (lo - pad)..(hi + pad))
+        .map_err(draw_err)?;
+    chart
+        .configure_mesh()
+        .x_desc("time [s]")
+        .y_desc("yaw error [°]")
+        .label_style((FAMILY, 14))
+        .draw()
+        .map_err(draw_err)?;
+    for (k, s) in series.iter().enumerate() {
+        let color = BAR_COLORS[k % BAR_COLORS.len()];
+        chart
+            .draw_series(LineSeries::new(s.points.clone(), color.stroke_width(2)))
+            .map_err(draw_err)?
+            .label(s.label.clone())
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(3))
+            });
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .label_font((FAMILY, 14))
+        .position(SeriesLabelPosition::UpperLeft)
+        .draw()
+        .map_err(draw_err)?;
+    root.present().map_err(draw_err)
+}
+
+/// The paper's Fig. 5 (yaw-fusion accuracy: each source's yaw error against time) as an SVG
+/// document.
+pub fn fig5_svg(series: &[Fig5Series]) -> Result<String, PlotError> {
+    let mut svg = String::new();
+    fig5(
+        SVGBackend::with_string(&mut svg, SIZE).into_drawing_area(),
+        series,
+    )?;
+    Ok(svg)
+}
+
+/// Fig. 5 as a PNG file at `path`.
+pub fn fig5_png(series: &[Fig5Series], path: &Path) -> Result<(), PlotError> {
+    fig5(BitMapBackend::new(path, SIZE).into_drawing_area(), series)
+}

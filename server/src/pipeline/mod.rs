@@ -45,6 +45,7 @@
 //! wanted, as `scan3d map` does).
 
 pub mod edge_activity;
+pub mod fusion_stage;
 pub mod live;
 mod metrics;
 pub mod offline;
@@ -67,6 +68,7 @@ use scan3d_protocol::{Body, Frame};
 
 pub use metrics::{load_reference, write_metrics_table};
 pub use order::{OrderStats, OrderedQueue, Release, StreamId};
+pub use fusion_stage::{FusedRun, FusionStage, FusionStatus, fuse_session};
 pub use pose_stage::{PoseStage, PoseStatus};
 pub use snapshot::{Snapshot, SnapshotWriter};
 pub use stages::{
@@ -155,6 +157,8 @@ pub struct SessionStatus {
     pub points: u64,
     /// Where `base` is now (the live pose stage), once an RPLidar revolution was matched.
     pub pose: Option<PoseStatus>,
+    /// The yaw fusion's counts (poses fused, matcher-only and why), with the pose stage.
+    pub fusion: Option<FusionStatus>,
     /// Named static-scan positions seen, in first-seen order.
     pub positions: Vec<String>,
 }
@@ -627,6 +631,9 @@ impl SessionPipeline {
                 scan3d_slam::pose::Pose2::default(),
             );
             pipeline.builtin.pose = Some(pipeline.push_stage(Box::new(stage)));
+            let fusion = FusionStage::new(scan3d_slam::fusion::FuserConfig::default())
+                .expect("the default fusion config is valid");
+            pipeline.push_stage(Box::new(fusion));
         }
         pipeline.builtin.assembly =
             pipeline.push_stage(Box::new(AssemblyStage::new(products.static_scans)));
@@ -840,6 +847,7 @@ impl SessionPipeline {
             points: self.maps().points(),
             positions: self.positions(),
             pose: self.pose().and_then(PoseStage::status),
+            fusion: self.fusion().map(FusionStage::status),
             late_frames: order.late,
             stream_releases: order.releases,
             queued_frames: order.queued,
@@ -956,9 +964,23 @@ impl SessionPipeline {
     /// The session's time-sync models (recorded, or as the live server made them): the
     /// snapshot's trajectory is stamped on the server's clock through them.
     pub fn set_clock(&mut self, clock: crate::pose::timesync::SessionClock) {
+        for stage in &mut self.stages {
+            let stage: &mut dyn std::any::Any = stage.as_mut();
+            if let Some(fusion) = stage.downcast_mut::<FusionStage>() {
+                fusion.set_clock(clock.clone());
+            }
+        }
         if let Some(pose) = self.pose_mut() {
             pose.set_clock(clock);
         }
+    }
+
+    /// The yaw fusion stage (after the pose stage, with [`Products::trajectory`]).
+    pub fn fusion(&self) -> Option<&FusionStage> {
+        self.stages.iter().find_map(|stage| {
+            let stage: &dyn std::any::Any = stage.as_ref();
+            stage.downcast_ref::<FusionStage>()
+        })
     }
 
     /// The 2D revolution collector, when [`Products::revolution_points`] is on.

@@ -517,42 +517,78 @@ impl PoseStage {
         from_ns: u64,
         to_ns: u64,
     ) -> std::io::Result<()> {
-        let on_server = !self.clock.models().is_empty();
-        if !on_server {
+        let poses = self
+            .poses
+            .iter()
+            .map(|p| (p.timestamp.seconds, self.reported(&p.pose), None));
+        write_tum(out, &self.clock, poses, from_ns, to_ns)
+    }
+}
+
+/// Writes poses `(edge s, pose in the reported frame, roll and pitch if known)` from edge time
+/// `from_ns` to `to_ns` as TUM lines `t x y z qx qy qz qw` (z 0; the quaternion
+/// `Rz(yaw) Ry(pitch) Rx(roll)`, level without roll and pitch): t in UNIX seconds of the
+/// server's clock when a time-sync model covers the session (`clock`), else in edge-clock
+/// seconds (said in a comment). The pose stage's `trajectory.tum` and the fusion stage's
+/// `trajectory_fused.tum` alike.
+pub fn write_tum(
+    out: &mut dyn Write,
+    clock: &SessionClock,
+    poses: impl Iterator<Item = (f64, Pose2, Option<[f64; 2]>)>,
+    from_ns: u64,
+    to_ns: u64,
+) -> std::io::Result<()> {
+    let on_server = !clock.models().is_empty();
+    if !on_server {
+        writeln!(
+            out,
+            "# t: edge clock seconds (no time-sync model in this session)"
+        )?;
+    }
+    let (from, to) = (from_ns as f64 * 1e-9, to_ns as f64 * 1e-9);
+    for (edge_s, pose, roll_pitch) in poses {
+        if edge_s < from || edge_s > to {
+            continue;
+        }
+        let t = tum_time(clock, edge_s);
+        let [roll, pitch] = roll_pitch.unwrap_or([0.0, 0.0]);
+        let (sr, cr) = (roll / 2.0).sin_cos();
+        let (sp, cp) = (pitch / 2.0).sin_cos();
+        let (sy, cy) = (pose.theta / 2.0).sin_cos();
+        let (qx, qy) = (sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy);
+        let (qz, qw) = (cr * cp * sy - sr * sp * cy, cr * cp * cy + sr * sp * sy);
+        if roll_pitch.is_some() {
             writeln!(
                 out,
-                "# t: edge clock seconds (no time-sync model in this session)"
+                "{t:.6} {:.6} {:.6} 0 {qx:.9} {qy:.9} {qz:.9} {qw:.9}",
+                pose.x, pose.y
             )?;
-        }
-        let (from, to) = (from_ns as f64 * 1e-9, to_ns as f64 * 1e-9);
-        for p in &self.poses {
-            if p.timestamp.seconds < from || p.timestamp.seconds > to {
-                continue;
-            }
-            let edge_s = p.timestamp.seconds;
-            let t = if on_server {
-                let edge_ns = (edge_s * 1e9).round().max(0.0) as u64;
-                self.clock
-                    .to_server_ns(edge_ns)
-                    .map_or(edge_s, |ns| ns as f64 * 1e-9)
-            } else {
-                edge_s
-            };
-            let pose = self.reported(&p.pose);
-            let (qz, qw) = ((pose.theta / 2.0).sin(), (pose.theta / 2.0).cos());
+        } else {
             writeln!(
                 out,
                 "{t:.6} {:.6} {:.6} 0 0 0 {qz:.9} {qw:.9}",
                 pose.x, pose.y
             )?;
         }
-        Ok(())
     }
+    Ok(())
+}
+
+/// A trajectory file's time for edge time `edge_s`: UNIX seconds of the server's clock through
+/// the session's time-sync models when one covers it, else the edge's seconds.
+pub fn tum_time(clock: &SessionClock, edge_s: f64) -> f64 {
+    if clock.models().is_empty() {
+        return edge_s;
+    }
+    let edge_ns = (edge_s * 1e9).round().max(0.0) as u64;
+    clock
+        .to_server_ns(edge_ns)
+        .map_or(edge_s, |ns| ns as f64 * 1e-9)
 }
 
 /// A pass name as one path component: letters, digits, `.`, `_` and `-` kept, anything else
 /// `_`, and never `.` or `..` alone.
-fn path_safe(name: &str) -> String {
+pub(crate) fn path_safe(name: &str) -> String {
     let safe: String = name
         .chars()
         .map(|c| {
