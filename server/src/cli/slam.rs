@@ -72,6 +72,15 @@ pub struct SlamArgs {
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
+    /// With a session: also run it through the live pipeline's pose and yaw-fusion stages and
+    /// write the fusion's files into DIR: `trajectory_fused.tum` (room frame, the clock of
+    /// `trajectory.tum`), `passes/NAME/trajectory_fused.tum`, `yaw_sources.csv`.
+    #[arg(long, value_name = "DIR")]
+    pub fused: Option<PathBuf>,
+    /// With `--fused`: the true trajectory of `base` (TUM, on the same clock) to score each yaw
+    /// source against: prints each source's yaw RMSE and writes `DIR/fig5.svg` and `fig5.png`.
+    #[arg(long, value_name = "TRUTH.tum", requires = "fused")]
+    pub truth: Option<PathBuf>,
 }
 
 /// Reads `slam.toml`: every key optional, unknown keys refused with their line.
@@ -205,6 +214,9 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         config.motion.use_odometry = false;
     } else if args.odometry {
         config.motion.use_odometry = true;
+    }
+    if args.fused.is_some() && !args.input.is_dir() {
+        bail!("--fused needs a recorded session directory, not a log");
     }
     let started = Instant::now();
     let (run, source) = if args.input.is_dir() {
@@ -352,6 +364,86 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         write_map(mapper, trajectory, stem)?;
         writeln!(out, "map {0}.pgm, {0}.yaml, {0}.png", stem.display())?;
     }
+    if let Some(dir) = &args.fused {
+        write_fused(&args.input, dir, args.truth.as_deref(), out)?;
+    }
+    Ok(())
+}
+
+/// `--fused DIR [--truth TRUTH.tum]`: the session through the pose and fusion stages; with a
+/// truth, each source's yaw RMSE and Fig. 5.
+fn write_fused(
+    session: &Path,
+    dir: &Path,
+    truth: Option<&Path>,
+    out: &mut dyn Write,
+) -> anyhow::Result<()> {
+    let (run, files) = crate::pipeline::fusion_stage::fuse_session_into(session, dir)?;
+    let c = run.counts;
+    writeln!(
+        out,
+        "yaw fusion: {} poses fused, {} the matcher's alone (aligning {}, no orientation {}, no \
+         IMU nearby {}, frame-defining {}, field unknown {}); {} IMU stop(s); {}",
+        c.fused,
+        c.matcher_only,
+        c.aligning,
+        c.no_orientation,
+        c.no_imu_nearby,
+        c.exact_matcher,
+        c.variance_unknown,
+        c.imu_stops,
+        files
+            .iter()
+            .map(|f| f.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", ")
+    )?;
+    let Some(truth) = truth else {
+        return Ok(());
+    };
+    let text =
+        std::fs::read_to_string(truth).with_context(|| format!("reading {}", truth.display()))?;
+    let truth_yaw =
+        crate::yaw_plot::read_tum_yaw(&text).with_context(|| format!("{}", truth.display()))?;
+    let series = crate::yaw_plot::yaw_errors(&run, &truth_yaw);
+    let rmse = crate::yaw_plot::rmse(&series, 0.0);
+    for r in &rmse {
+        writeln!(
+            out,
+            "yaw RMSE {:<24} {:.3}° over {} poses",
+            r.label, r.rmse_deg, r.poses
+        )?;
+    }
+    // Over the poses where every source has a yaw (Madgwick from its alignment on).
+    let both: Vec<f64> = series
+        .iter()
+        .find(|s| s.label == "Madgwick")
+        .map(|s| s.points.iter().map(|p| p.0).collect())
+        .unwrap_or_default();
+    if let Some(&from) = both.first() {
+        let r = crate::yaw_plot::rmse(&series, from);
+        let fused = r[3].rmse_deg;
+        writeln!(
+            out,
+            "from {from:.1} s (all sources): gyro {:.3}°, Madgwick {:.3}°, matcher {:.3}°, fused \
+             {fused:.3}°; fused/matcher {:.3}, fused/Madgwick {:.3}",
+            r[0].rmse_deg,
+            r[1].rmse_deg,
+            r[2].rmse_deg,
+            fused / r[2].rmse_deg,
+            fused / r[1].rmse_deg
+        )?;
+    }
+    let figures = crate::yaw_plot::write_fig5(&run, &truth_yaw, dir)?;
+    writeln!(
+        out,
+        "{}",
+        figures
+            .iter()
+            .map(|f| f.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", ")
+    )?;
     Ok(())
 }
 

@@ -341,6 +341,14 @@ impl Stage for FusionStage {
     }
 
     fn snapshot(&mut self, out: &mut SnapshotWriter) -> Result<(), PipelineError> {
+        self.write_products(out)
+    }
+}
+
+impl FusionStage {
+    /// Writes the stage's part of a session snapshot (nothing for a position's, or before the
+    /// first pose).
+    fn write_products(&self, out: &mut SnapshotWriter) -> Result<(), PipelineError> {
         if out.snapshot.position.is_some() || self.records.is_empty() {
             return Ok(());
         }
@@ -444,6 +452,33 @@ pub const TRAJECTORY_ONLY: Products = Products {
 /// then the fusion stage) and returns the fused run in the room frame, times on the server's
 /// clock through the recorded time-sync models (as `trajectory.tum`).
 pub fn fuse_session(session_dir: &Path) -> anyhow::Result<FusedRun> {
+    let pipeline = fused_pipeline(session_dir)?;
+    let stage = pipeline
+        .fusion()
+        .ok_or_else(|| anyhow::anyhow!("the pipeline has no fusion stage"))?;
+    Ok(stage.run())
+}
+
+/// [`fuse_session`], also writing the fusion stage's snapshot files into `out_dir` (created if
+/// missing): `trajectory_fused.tum`, `passes/NAME/trajectory_fused.tum`, `yaw_sources.csv`.
+/// Returns the run and the files written.
+pub fn fuse_session_into(
+    session_dir: &Path,
+    out_dir: &Path,
+) -> anyhow::Result<(FusedRun, Vec<std::path::PathBuf>)> {
+    use anyhow::Context;
+    let pipeline = fused_pipeline(session_dir)?;
+    std::fs::create_dir_all(out_dir)
+        .with_context(|| format!("cannot create {}", out_dir.display()))?;
+    let mut writer = SnapshotWriter::new(out_dir, None);
+    let stage = pipeline
+        .fusion()
+        .ok_or_else(|| anyhow::anyhow!("the pipeline has no fusion stage"))?;
+    stage.write_products(&mut writer)?;
+    Ok((stage.run(), writer.snapshot.files))
+}
+
+fn fused_pipeline(session_dir: &Path) -> anyhow::Result<super::SessionPipeline> {
     use anyhow::Context;
     let (mut pipeline, _report) = super::offline::run_session(
         session_dir,
@@ -455,8 +490,5 @@ pub fn fuse_session(session_dir: &Path) -> anyhow::Result<FusedRun> {
     let clock = SessionClock::from_session(session_dir)
         .with_context(|| format!("cannot read the clock models of {}", session_dir.display()))?;
     pipeline.set_clock(clock);
-    let stage = pipeline
-        .fusion()
-        .context("the pipeline has no fusion stage")?;
-    Ok(stage.run())
+    Ok(pipeline)
 }

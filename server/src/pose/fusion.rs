@@ -322,6 +322,8 @@ impl PoseFusion {
                 Err(_) => self.counts.rejected_samples += 1,
             }
         }
+        // The IMU stream is in time order: no Madgwick sample at or before `t` is to come.
+        settled.extend(self.fuser.advance_to(t));
         self.history.push_back(ImuPoint {
             t,
             cumulative,
@@ -539,4 +541,266 @@ impl PoseFusion {
             .min_by(|a, b| (a.t - time).abs().total_cmp(&(b.t - time).abs()))?;
         near.roll_pitch
     }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use scan3d_protocol::SensorMount;
+
+    /// The earth's field (µT) and dip (rad).
+    const FIELD: f64 = 50.0;
+    const DIP: f64 = 1.0;
+
+    /// `v` (earth frame) in the frame `q` rotates into the earth.
+    fn to_sensor(q: Quaternion, v: [f64; 3]) -> [f64; 3] {
+        let c = [q[0], -q[1], -q[2], -q[3]];
+        let r = quat_mul(quat_mul(c, [0.0, v[0], v[1], v[2]]), q);
+        [r[1], r[2], r[3]]
+    }
+
+    fn noise(seed: u64, k: u64) -> f64 {
+        let mut x = seed ^ k.wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ 0x2545_f491_4f6c_dd1d;
+        let mut sum = 0.0;
+        for _ in 0..4 {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            sum += (x % 10_000) as f64 / 10_000.0 - 0.5;
+        }
+        sum * 3f64.sqrt()
+    }
+
+    fn true_yaw(t: f64) -> f64 {
+        if t < 3.0 { 0.2 } else { 0.2 + 0.3 * (t - 3.0) }
+    }
+
+    /// The IMU sample at edge time `t_ns` of a level IMU (no mount) whose Madgwick yaw is off
+    /// by `error`, in a field scaled by `field_scale`.
+    fn imu(t_ns: u64, error: f64, field_scale: f64, orientation: bool) -> ImuSample {
+        let t = t_ns as f64 * 1e-9;
+        let truth = quat_from_euler(0.0, 0.0, true_yaw(t));
+        let reported = quat_from_euler(0.0, 0.0, true_yaw(t) + error);
+        let b = FIELD * field_scale;
+        let mag = to_sensor(truth, [b * DIP.cos(), 0.0, -b * DIP.sin()]);
+        ImuSample {
+            t_ns,
+            accel_mps2: [0.0, 0.0, 9.81],
+            gyro_radps: [0.0, 0.0, 0.3 * f32::from(u8::from(t >= 3.0))],
+            mag_ut: mag.map(|v| v as f32),
+            orientation: orientation.then(|| reported.map(|v| v as f32)),
+        }
+    }
+
+    /// One stream item as it arrives: an IMU sample or a matcher pose.
+    #[derive(Clone, Copy)]
+    enum Item {
+        Imu(ImuSample),
+        Pose(MatcherPoseYaw),
+    }
+
+    /// 20 s: IMU at 200 Hz, matcher poses at 5.5 Hz with σ = 1° noise (as bad as Madgwick, so
+    /// the fusion listens to both); Madgwick off by 20° in a field 20 % stronger in `disturbed`
+    /// seconds. Returns the items in sample-time order and the true yaw per pose.
+    fn run(seed: u64, disturbed: Option<(f64, f64)>, orientation: bool) -> (Vec<Item>, Vec<f64>) {
+        let mut items = Vec::new();
+        let mut truth = Vec::new();
+        let pose_period = 181_818_182u64;
+        let mut next_pose = 500_000_000u64;
+        for k in 0..4000u64 {
+            let t_ns = 100_000_000 + k * 5_000_000;
+            let t = t_ns as f64 * 1e-9;
+            let inside = disturbed.is_some_and(|(a, b)| t >= a && t < b);
+            // Madgwick's error: 1°, a new draw every 180 ms (about one per pose).
+            let error = 1f64.to_radians() * noise(seed, k / 36)
+                + if inside { 20f64.to_radians() } else { 0.0 };
+            items.push(Item::Imu(imu(
+                t_ns,
+                error,
+                if inside { 1.2 } else { 1.0 },
+                orientation,
+            )));
+            // A pose is known once its revolution ends, half a revolution after its time.
+            while next_pose + pose_period / 2 <= t_ns {
+                let tp = next_pose as f64 * 1e-9;
+                truth.push(true_yaw(tp));
+                items.push(Item::Pose(MatcherPoseYaw {
+                    t_ns: next_pose,
+                    yaw: wrap_angle(true_yaw(tp) + 1f64.to_radians() * noise(seed + 99, next_pose)),
+                    variance: 1f64.to_radians().powi(2),
+                }));
+                next_pose += pose_period;
+            }
+        }
+        (items, truth)
+    }
+
+    /// Feeds `items` in order (advancing the IMU stream with each sample: in order within it).
+    fn feed(items: &[Item]) -> (Vec<FusedPoseYaw>, FusionCounts) {
+        let mut fusion = PoseFusion::new(FuserConfig::default()).expect("valid");
+        let mut out = Vec::new();
+        for item in items {
+            match item {
+                Item::Imu(sample) => out.extend(fusion.on_imu(sample)),
+                Item::Pose(pose) => out.extend(fusion.on_pose(*pose)),
+            }
+        }
+        out.extend(fusion.advance_to(u64::MAX));
+        (out, fusion.counts())
+    }
+
+    fn error_deg(out: &FusedPoseYaw, truth: f64) -> f64 {
+        wrap_angle(out.yaw - truth).to_degrees()
+    }
+
+    #[test]
+    fn a_disturbed_field_keeps_the_fusion_off_the_madgwick_yaw() {
+        let (items, truth) = run(3, Some((8.0, 12.0)), true);
+        let (out, counts) = feed(&items);
+        assert_eq!(out.len(), truth.len());
+        assert!(counts.fused > 80, "{counts:?}");
+        let during: Vec<(f64, f64)> = out
+            .iter()
+            .zip(&truth)
+            .filter(|(o, _)| (8.2..12.0).contains(&(o.t_ns as f64 * 1e-9)))
+            .map(|(o, t)| {
+                (
+                    error_deg(o, *t),
+                    wrap_angle(o.sources.madgwick.unwrap() - t).to_degrees(),
+                )
+            })
+            .collect();
+        let fused_worst = during.iter().fold(0.0f64, |m, e| m.max(e.0.abs()));
+        let madgwick_worst = during.iter().fold(0.0f64, |m, e| m.max(e.1.abs()));
+        println!("disturbed: worst fused {fused_worst:.2}°, Madgwick {madgwick_worst:.2}°");
+        assert!(madgwick_worst > 18.0);
+        // The matcher's own noise is 1° (3.5° at worst over 20 poses); half of Madgwick's 20°
+        // would be 10°.
+        assert!(fused_worst < 4.0, "{fused_worst}");
+    }
+
+    #[test]
+    fn the_fusion_beats_either_source_when_they_are_alike() {
+        for seed in [1, 2, 3] {
+            let (items, truth) = run(seed, None, true);
+            let (out, _) = feed(&items);
+            let fused: Vec<_> = out
+                .iter()
+                .zip(&truth)
+                .filter(|(o, _)| o.unfused.is_none())
+                .collect();
+            let rms = |f: &dyn Fn(&FusedPoseYaw, f64) -> f64| {
+                (fused.iter().map(|(o, t)| f(o, **t).powi(2)).sum::<f64>() / fused.len() as f64)
+                    .sqrt()
+            };
+            let f = rms(&|o, t| error_deg(o, t));
+            let m = rms(&|o, t| wrap_angle(o.sources.matcher - t).to_degrees());
+            let g = rms(&|o, t| wrap_angle(o.sources.madgwick.unwrap() - t).to_degrees());
+            println!("seed {seed}: fused {f:.3}°, matcher {m:.3}°, Madgwick {g:.3}°");
+            assert!(f <= m.min(g), "seed {seed}: {f} vs {m}, {g}");
+        }
+    }
+
+    #[test]
+    fn the_join_is_by_edge_sample_time_whatever_the_clocks_and_the_arrival() {
+        let (items, _) = run(4, None, true);
+        let (in_order, _) = feed(&items);
+        // The server sees the edge's clock offset by 3 s and 80 ppm fast, the IMU in batches of
+        // 40 samples, the poses 50–150 ms late: arrival order by server time.
+        let arrival = |item: &Item| -> f64 {
+            let (t, delay) = match item {
+                Item::Imu(s) => {
+                    let batch_end = (s.t_ns / 200_000_000 + 1) * 200_000_000;
+                    (batch_end as f64 * 1e-9, 0.01)
+                }
+                // Jitter below the poses' period: a stream keeps its own order.
+                Item::Pose(p) => (
+                    p.t_ns as f64 * 1e-9,
+                    0.05 + 0.1 * (noise(8, p.t_ns) + 1.8) / 3.6,
+                ),
+            };
+            3.0 + t * (1.0 + 80e-6) + delay
+        };
+        let mut arrived = items.clone();
+        arrived.sort_by(|a, b| arrival(a).total_cmp(&arrival(b)));
+        let moved = arrived
+            .iter()
+            .zip(&items)
+            .filter(|(a, b)| std::mem::discriminant(*a) != std::mem::discriminant(*b))
+            .count();
+        assert!(moved > 100, "the arrival order differs ({moved})");
+        let (late, _) = feed(&arrived);
+        assert_eq!(late.len(), in_order.len());
+        for (a, b) in late.iter().zip(&in_order) {
+            assert_eq!(a, b);
+        }
+    }
+
+    #[test]
+    fn without_orientation_or_after_the_imu_stops_the_pose_is_the_matchers() {
+        let (items, truth) = run(5, None, false);
+        let (out, counts) = feed(&items);
+        assert_eq!(out.len(), truth.len());
+        assert!(
+            out.iter()
+                .all(|o| o.unfused == Some(UnfusedReason::NoOrientation))
+        );
+        assert_eq!(counts.no_orientation as usize, truth.len());
+        assert!(
+            out.iter().all(|o| o.sources.gyro.is_some()),
+            "the gyro still integrates"
+        );
+
+        let (items, truth) = run(5, None, true);
+        let cut = items
+            .iter()
+            .position(|i| matches!(i, Item::Imu(s) if s.t_ns >= 10_000_000_000))
+            .unwrap();
+        let kept: Vec<Item> = items
+            .iter()
+            .enumerate()
+            .filter(|(k, i)| *k < cut || matches!(i, Item::Pose(_)))
+            .map(|(_, i)| *i)
+            .collect();
+        let (out, counts) = feed(&kept);
+        assert_eq!(out.len(), truth.len(), "every pose comes out");
+        assert_eq!(counts.imu_stops, 1);
+        for o in &out {
+            if o.t_ns as f64 * 1e-9 > 10.2 {
+                assert_eq!(o.unfused, Some(UnfusedReason::NoImuNearby));
+            }
+        }
+    }
+
+    #[test]
+    fn the_madgwick_attitude_of_base_goes_through_the_imus_mount() {
+        let mut fusion = PoseFusion::new(FuserConfig::default()).expect("valid");
+        // IMU upside down, turned 90° on base; base pitched 5° nose down at yaw 30°.
+        fusion.on_mounts(&SensorMounts {
+            sensors: vec![SensorMount {
+                sensor: SensorId::IMU,
+                x_m: 0.0,
+                y_m: 0.0,
+                z_m: 0.0,
+                roll_deg: 180.0,
+                pitch_deg: 0.0,
+                yaw_deg: 90.0,
+            }],
+        });
+        let base = quat_from_euler(0.0, 5f64.to_radians(), 30f64.to_radians());
+        let mount = quat_from_euler(PI_, 0.0, std::f64::consts::FRAC_PI_2);
+        let q = quat_mul(base, mount);
+        for k in 0..100u64 {
+            let mut sample = imu(1_000_000_000 + k * 5_000_000, 0.0, 1.0, true);
+            sample.orientation = Some(q.map(|v| v as f32));
+            fusion.on_imu(&sample);
+        }
+        let rp = fusion.roll_pitch_at(1.2).expect("covered");
+        assert!(
+            rp[0].abs() < 1e-5 && (rp[1] - 5f64.to_radians()).abs() < 1e-5,
+            "{rp:?}"
+        );
+    }
+
+    const PI_: f64 = std::f64::consts::PI;
 }
