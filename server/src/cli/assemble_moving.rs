@@ -2,31 +2,30 @@
 //! trolley passes assembled offline (issue 21, §III-B of the paper), every Sweep sample placed
 //! with the pose of `base` at its own sample time.
 //!
-//! Each session runs twice, streaming: first through the session pipeline with only the pose
-//! stage (the live daemon's [`PoseStage`], so the trajectory is the one it gave, anchored in the
-//! room frame by the pass's start), then its Sweep revolutions and its recorded Sweep mount
-//! (`Body::Mounts`, the edge's `[sweep.mount]`) go to [`MovingAssembler`] along that trajectory
-//! (x, y, yaw interpolated between RPLidar poses; roll and pitch 0). The cloud keeps each point's
-//! sensor origin (bundles drift at most a quarter voxel, see [`scan3d_map::cloud::moving`]); the
-//! octree inserts the same bundles as the static path's map stage does.
+//! Each session runs once, streaming, through the live daemon's session pipeline: the pose
+//! stage ([`PoseStage`]: the trajectory of `base` from the RPLidar and the IMU, anchored in the
+//! room by the pass's start) hands its poses to the moving stage ([`crate::pipeline::MovingStage`]), which places
+//! each Sweep sample with the pose at its own time and the recorded Sweep mount (`Body::Mounts`,
+//! the edge's `[sweep.mount]`); the filter and map stages keep the pass's cloud and octree. So
+//! the files are the bytes a live snapshot writes as `passes/NAME/cloud.ply` and
+//! `passes/NAME/map.bt` (a test holds them to it). Without `--pass`, every Sweep sample of the
+//! session is placed, in the room frame of the newest pass start. Over several sessions the
+//! clouds are concatenated and one octree grows across them.
 
 use std::io::Write;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 
 use crate::cli::assemble::AssembleArgs;
 use crate::cli::map::write_tree;
-use crate::pipeline::offline::run_session;
-use crate::pipeline::{PipelineSettings, PoseStage, Products};
-use crate::recording::visit_session;
-use scan3d_map::cloud::RayBundle;
-use scan3d_map::cloud::moving::{
-    MovingAssembler, MovingSettings, MovingTotals, PlanarTrajectory, RigidTransform,
-    TrajectoryPoint,
+use crate::pipeline::offline::{feed_session, run_session};
+use crate::pipeline::{
+    MovingOptions, MovingScope, PassStatus, PipelineSettings, PoseStage, Products, SessionPipeline,
 };
-use scan3d_map::octree::{Resolution, VoxelMap};
-use scan3d_protocol::{Body, LidarRevolution, SensorId, SensorMount};
+use scan3d_map::cloud::RayBundle;
+use scan3d_map::cloud::moving::{PlanarTrajectory, TrajectoryPoint};
+use scan3d_map::octree::{Octree, Resolution, VoxelMap};
 use scan3d_slam::pose::Pose2;
 
 /// What the first run keeps: the pose stage's trajectory only.
@@ -105,172 +104,137 @@ pub fn session_trajectory(session_dir: &Path, lenient: bool) -> anyhow::Result<S
     })
 }
 
-/// The samples of `rev` measured within `[from_ns, to_ns]`; `None` when none is.
-fn within(rev: &LidarRevolution, from_ns: u64, to_ns: u64) -> Option<LidarRevolution> {
-    let mut kept = LidarRevolution::new(rev.sensor, rev.t0_ns, rev.t1_ns);
-    for (sample, t_ns) in rev.samples.iter().zip(rev.sample_times_ns()) {
-        if (from_ns..=to_ns).contains(&t_ns) {
-            kept.samples.push(*sample);
-        }
-    }
-    (!kept.samples.is_empty()).then_some(kept)
+/// What [`assemble_moving_sessions`] made.
+#[derive(Debug)]
+pub struct MovingProducts {
+    /// The pass's cloud (every session's, in order): room frame, one bundle per origin,
+    /// through the revolution filters, cut at the max range.
+    pub cloud: Vec<RayBundle>,
+    /// The pass's octree, grown across the sessions (`None` when not asked for).
+    pub octree: Option<Octree>,
+    /// The poses of `base` used to place the samples, room frame, each session's in time order
+    /// (`t_ns` on the edge's clock; roll and pitch 0 unless a fusion stage gave them).
+    pub trajectory: Vec<TrajectoryPoint>,
+    /// What happened in each session.
+    pub sessions: Vec<MovingSessionSummary>,
 }
 
-/// A session's Sweep revolutions placed along `trajectory` (only samples within `span`, edge
-/// ns, when given); every bundle handed out goes to `octree` with `max_range` (negative: none).
-/// Fails when the session recorded Sweep revolutions but no Sweep mount before them.
-fn assemble_session(
-    session_dir: &Path,
-    trajectory: &PlanarTrajectory,
-    span: Option<(u64, u64)>,
-    settings: &MovingSettings,
-    mut octree: Option<&mut VoxelMap>,
-    max_range: f64,
-) -> anyhow::Result<(Vec<RayBundle>, MovingTotals)> {
-    let mut assembler: Option<MovingAssembler> = None;
-    let mut unmounted = 0u64;
-    let mut failure: Option<anyhow::Error> = None;
-    // Losses were checked (or allowed with --lenient) by the trajectory's run.
-    let _report = visit_session(session_dir, |recorded| {
-        match &recorded.frame.body {
-            Body::Mounts(mounts) => {
-                if let Some(mount) = mounts.sensors.iter().find(|m| m.sensor == SensorId::SWEEP)
-                    && assembler.is_none()
-                {
-                    match sweep_assembler(mount, settings) {
-                        Ok(new) => assembler = Some(new),
-                        Err(e) => failure = failure.take().or(Some(e)),
-                    }
-                }
-            }
-            Body::Revolution(rev) if rev.sensor == SensorId::SWEEP => {
-                let rev = match span {
-                    Some((from, to)) => match within(rev, from, to) {
-                        Some(kept) => std::borrow::Cow::Owned(kept),
-                        None => return Ok(()),
-                    },
-                    None => std::borrow::Cow::Borrowed(rev),
-                };
-                match &mut assembler {
-                    Some(assembler) => {
-                        assembler.add_revolution(&rev, trajectory);
-                        let new = assembler.take_new();
-                        if let Some(octree) = octree.as_deref_mut() {
-                            for bundle in &new {
-                                octree.insert_bundle(bundle, max_range);
-                            }
-                        }
-                    }
-                    None => unmounted += 1,
-                }
-            }
-            _ => {}
-        }
-        Ok(())
-    })
-    .with_context(|| format!("cannot read the session {}", session_dir.display()))?;
-    if let Some(e) = failure {
-        return Err(e);
-    }
-    match assembler {
-        Some(assembler) => {
-            if unmounted > 0 {
-                tracing::warn!(
-                    revolutions = unmounted,
-                    "Sweep revolutions recorded before the Sweep's mount were skipped"
-                );
-            }
-            let totals = assembler.totals();
-            Ok((assembler.finish(), totals))
-        }
-        None => anyhow::bail!(
-            "{}: no Sweep mount recorded (the edge's [sweep.mount]), so its samples cannot be placed",
-            session_dir.display()
-        ),
-    }
+/// One session of [`assemble_moving_sessions`].
+#[derive(Debug, Clone)]
+pub struct MovingSessionSummary {
+    /// The session directory.
+    pub dir: PathBuf,
+    /// Poses the pose stage made.
+    pub poses: usize,
+    /// Whether a pass start put the trajectory in the room frame.
+    pub anchored: bool,
+    /// The passes of the session, in start order.
+    pub passes: Vec<String>,
+    /// The pass asked for (or the whole session, named `""`): revolutions and samples placed,
+    /// points kept; `None` when the session has no such pass.
+    pub placed: Option<PassStatus>,
 }
 
-/// An assembler for the Sweep at `mount`.
-fn sweep_assembler(
-    mount: &SensorMount,
-    settings: &MovingSettings,
-) -> anyhow::Result<MovingAssembler> {
-    MovingAssembler::new(RigidTransform::from_sensor_mount(mount), settings.clone())
-        .context("the recorded Sweep mount cannot be used")
+/// The moving stage's product name for `pass` (`""`: the whole session).
+fn product_name(pass: Option<&str>) -> &str {
+    pass.unwrap_or("")
 }
 
-/// Runs `scan3d assemble --moving`.
-pub fn run(args: &AssembleArgs, out: &mut dyn Write) -> anyhow::Result<()> {
-    let (session_dirs, outs, pass, bt, max_range) = (
-        &args.session_dirs,
-        &args.out,
-        args.pass.as_deref(),
-        args.bt.as_deref(),
-        args.max_range,
-    );
-    let defaults = PipelineSettings::default();
-    let res = Resolution::new(args.resolution.unwrap_or(defaults.resolution_m))?;
-    if let Some(path) = bt
-        && crate::cli::map::TreeFormat::of(path).is_none()
-    {
-        anyhow::bail!("{}: a map must end in .bt or .ot", path.display());
-    }
-    let mut settings = MovingSettings::for_resolution(res.meters());
-    settings.max_range_m = max_range;
-    let mut octree = bt.map(|_| VoxelMap::new(res, defaults.sensor));
-    let mut cloud: Vec<RayBundle> = Vec::new();
-    let mut found_pass = pass.is_none();
+/// Assembles trolley passes offline through the live pipeline (pose stage, moving stage, filter
+/// and map stages): each session in `sessions` in turn, the samples of the pass named `pass`
+/// (the latest start of that name in each session; sessions without it are skipped) or, with
+/// `None`, every Sweep sample of the session. With `octree`, the pass's octree is grown across
+/// the sessions. Fails when a session cannot be read (unless `lenient`), has no RPLidar
+/// revolution or no Sweep mount, or no session has the pass.
+pub fn assemble_moving_sessions(
+    sessions: &[PathBuf],
+    settings: &PipelineSettings,
+    pass: Option<&str>,
+    lenient: bool,
+    octree: bool,
+) -> anyhow::Result<MovingProducts> {
+    let name = product_name(pass);
+    let products = Products {
+        revolution_points: false,
+        position_maps: false,
+        cloud: true,
+        static_scans: false,
+        octrees: octree,
+        trajectory: true,
+    };
+    let mut map: Option<VoxelMap> = None;
+    let mut out = MovingProducts {
+        cloud: Vec::new(),
+        octree: None,
+        trajectory: Vec::new(),
+        sessions: Vec::new(),
+    };
     let mut seen_passes: Vec<String> = Vec::new();
-    for dir in session_dirs {
-        let tracked = session_trajectory(dir, args.lenient)?;
-        let span = match pass {
-            Some(name) => {
-                seen_passes.extend(tracked.passes.iter().map(|p| p.0.clone()));
-                // The pass's last start of that name in this session, if any.
-                match tracked.passes.iter().rev().find(|p| p.0 == name) {
-                    Some((_, start, stop)) => {
-                        found_pass = true;
-                        Some((*start, stop.unwrap_or(u64::MAX)))
-                    }
-                    None => continue,
-                }
-            }
-            None => None,
-        };
-        let (bundles, totals) = assemble_session(
-            dir,
-            &tracked.trajectory,
-            span,
-            &settings,
-            octree.as_mut(),
-            max_range.unwrap_or(-1.0),
-        )?;
-        writeln!(
-            out,
-            "{}: {} poses in the {} frame; {} Sweep revolutions, {} samples placed ({} without \
-             a return, {} before and {} after the trajectory), {} points kept",
-            dir.display(),
-            tracked.trajectory.points().len(),
-            if tracked.anchored {
-                "room"
+    for dir in sessions {
+        let mut pipeline = SessionPipeline::with_products(settings, products)?;
+        let moving = pipeline
+            .moving_mut()
+            .expect("the pipeline keeps the trajectory, so it places along it");
+        moving.set_options(MovingOptions {
+            scope: if pass.is_some() {
+                MovingScope::Passes
             } else {
-                "session's own (no pass started)"
+                MovingScope::Whole
             },
-            totals.revolutions,
-            totals.placed,
-            totals.no_return,
-            totals.before_span,
-            totals.after_span,
-            bundles.iter().map(|b| b.points.len()).sum::<usize>(),
-        )?;
-        cloud.extend(bundles);
+            // Offline the whole session may wait for its pass start (the demo's standing
+            // revolutions before it): held as long as it takes.
+            max_held: usize::MAX,
+            keep_trajectory: true,
+            ..MovingOptions::default()
+        });
+        if let Some(seed) = map.take() {
+            pipeline.seed_pass_map(name, seed);
+        }
+        // Losses are checked by feed_session (an error unless lenient).
+        let _report = feed_session(&mut pipeline, dir, lenient, |_| {}).with_context(|| {
+            format!(
+                "cannot read the session {} (--lenient uses what is readable)",
+                dir.display()
+            )
+        })?;
+        let pose = pipeline.pose().expect("the pose stage is kept");
+        let poses = pose.poses().len();
+        if poses == 0 {
+            anyhow::bail!(
+                "{}: no RPLidar revolution, so no trajectory to place the Sweep's samples with",
+                dir.display()
+            );
+        }
+        let moving = pipeline.moving().expect("the moving stage is kept");
+        if !moving.mounted() {
+            anyhow::bail!(
+                "{}: no Sweep mount recorded (the edge's [sweep.mount]), so its samples cannot \
+                 be placed",
+                dir.display()
+            );
+        }
+        let passes: Vec<String> = moving.pass_spans().into_iter().map(|p| p.0).collect();
+        seen_passes.extend(passes.iter().cloned());
+        let anchored = pose.anchored();
+        let placed = pipeline.passes().into_iter().find(|p| p.name == name);
+        out.trajectory.extend_from_slice(moving.trajectory());
+        let mut maps = pipeline.take_maps();
+        out.cloud.extend(maps.pass_cloud(name));
+        map = maps.take_pass_map(name).or(map);
+        out.sessions.push(MovingSessionSummary {
+            dir: dir.clone(),
+            poses,
+            anchored,
+            passes,
+            placed,
+        });
     }
-    if !found_pass {
+    if pass.is_some() && out.sessions.iter().all(|s| s.placed.is_none()) {
         seen_passes.dedup();
         anyhow::bail!(
             "no pass named {:?} in {} (passes: {})",
-            pass.unwrap_or_default(),
-            session_dirs
+            name,
+            sessions
                 .iter()
                 .map(|d| d.display().to_string())
                 .collect::<Vec<_>>()
@@ -282,13 +246,73 @@ pub fn run(args: &AssembleArgs, out: &mut dyn Write) -> anyhow::Result<()> {
             }
         );
     }
-    for path in outs {
-        scan3d_map::cloud::io::save(path, &cloud)?;
+    out.octree = match map {
+        Some(map) => Some(map.to_octree()),
+        None if octree => Some(Octree::empty(
+            Resolution::new(settings.resolution_m)?,
+            settings.sensor,
+        )),
+        None => None,
+    };
+    Ok(out)
+}
+
+/// Runs `scan3d assemble --moving`.
+pub fn run(args: &AssembleArgs, out: &mut dyn Write) -> anyhow::Result<()> {
+    let defaults = PipelineSettings::default();
+    let settings = PipelineSettings {
+        resolution_m: args.resolution.unwrap_or(defaults.resolution_m),
+        max_range_m: args.max_range,
+        ..defaults
+    };
+    let res = Resolution::new(settings.resolution_m)?;
+    let bt = args.bt.as_deref();
+    if let Some(path) = bt
+        && crate::cli::map::TreeFormat::of(path).is_none()
+    {
+        anyhow::bail!("{}: a map must end in .bt or .ot", path.display());
+    }
+    let made = assemble_moving_sessions(
+        &args.session_dirs,
+        &settings,
+        args.pass.as_deref(),
+        args.lenient,
+        bt.is_some(),
+    )?;
+    for session in &made.sessions {
+        let Some(placed) = &session.placed else {
+            writeln!(
+                out,
+                "{}: no pass named {:?} (passes: {})",
+                session.dir.display(),
+                args.pass.as_deref().unwrap_or_default(),
+                session.passes.join(", ")
+            )?;
+            continue;
+        };
+        writeln!(
+            out,
+            "{}: {} poses in the {} frame; {} Sweep revolutions placed, {} samples ({} outside \
+             the trajectory), {} points kept",
+            session.dir.display(),
+            session.poses,
+            if session.anchored {
+                "room"
+            } else {
+                "session's own (no pass started)"
+            },
+            placed.revolutions,
+            placed.samples,
+            placed.unplaced_samples,
+            placed.points,
+        )?;
+    }
+    for path in &args.out {
+        scan3d_map::cloud::io::save(path, &made.cloud)?;
         writeln!(out, "wrote {}", path.display())?;
     }
-    if let (Some(path), Some(map)) = (bt, octree) {
-        let tree = map.to_octree();
-        write_tree(path, &tree)?;
+    if let (Some(path), Some(tree)) = (bt, &made.octree) {
+        write_tree(path, tree)?;
         writeln!(
             out,
             "wrote {}: resolution {} m, {} leaves ({} occupied, {} free)",

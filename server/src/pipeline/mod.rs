@@ -48,6 +48,7 @@ pub mod edge_activity;
 pub mod fusion_stage;
 pub mod live;
 mod metrics;
+pub mod moving_stage;
 pub mod offline;
 pub mod order;
 pub mod pose_stage;
@@ -60,15 +61,16 @@ use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
-use scan3d_map::cloud::assembly::NewRays;
+use scan3d_map::cloud::RayBundle;
 use scan3d_map::cloud::filter::Filter;
 use scan3d_map::eval::{EvalError, LeafMap, Metrics};
-use scan3d_map::octree::{OctreeError, Resolution, SensorModel};
+use scan3d_map::octree::{OctreeError, Resolution, SensorModel, VoxelMap};
 use scan3d_protocol::{Body, Frame};
 
-pub use metrics::{load_reference, write_metrics_table};
-pub use order::{OrderStats, OrderedQueue, Release, StreamId};
 pub use fusion_stage::{FusedRun, FusionStage, FusionStatus, fuse_session};
+pub use metrics::{load_reference, write_metrics_table};
+pub use moving_stage::{MovingOptions, MovingScope, MovingStage, PassStatus};
+pub use order::{OrderStats, OrderedQueue, Release, StreamId};
 pub use pose_stage::{PoseStage, PoseStatus};
 pub use snapshot::{Snapshot, SnapshotWriter};
 pub use stages::{
@@ -161,6 +163,8 @@ pub struct SessionStatus {
     pub fusion: Option<FusionStatus>,
     /// Named static-scan positions seen, in first-seen order.
     pub positions: Vec<String>,
+    /// Trolley passes seen (assembly along movement, [`MovingStage`]), in first-seen order.
+    pub passes: Vec<PassStatus>,
 }
 
 /// How often [`SessionPipeline::status`] recomputes voxel counts and metrics at most.
@@ -263,15 +267,37 @@ pub struct StageContext {
     pub key_ns: u64,
     /// `true` when the frame left its lane out of order (its stream had been released).
     pub late: bool,
-    /// Origin groups (one per half revolution of a static scan, world frame) completed by the
-    /// current frame, with their position; the assembly stage fills it, later stages transform
-    /// or consume it. Emptied after each frame.
-    pub rays: Vec<NewRays>,
+    /// Origin groups completed by the current frame or pose, world (room) frame, with what they
+    /// belong to: one per half revolution of a static scan (the assembly stage), or a bundle of
+    /// a pass's Sweep samples placed along the trajectory (the moving stage); later stages
+    /// transform or consume them. Emptied after each frame.
+    pub rays: Vec<NewBundle>,
     /// Poses of `base` made for the current frame: the pose stage adds the matcher's, a fusion
     /// stage after it in the same lane may replace their yaw and add roll and pitch. The
     /// pipeline hands them, in order, to the lanes that take [`StreamId::Poses`]. Emptied after
     /// each frame.
     pub poses: Vec<BasePose>,
+}
+
+/// Points with their sensor origin on their way to the filters and the maps, and what they
+/// belong to.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NewBundle {
+    /// The static-scan position or the pass the points were measured in.
+    pub source: RaySource,
+    /// The points and their origin, world (room) frame.
+    pub rays: RayBundle,
+}
+
+/// What a [`NewBundle`] belongs to: the map stage keeps a map and a cloud per position and per
+/// pass besides the session's.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum RaySource {
+    /// A static scan at the operator's named position.
+    Position(String),
+    /// A trolley pass, by its name (the empty name: the whole session placed along the
+    /// trajectory, `scan3d assemble --moving` without `--pass`).
+    Pass(String),
 }
 
 /// A pose of `base` at one sample time, as the pose lane hands it on (see
@@ -316,6 +342,12 @@ pub trait Stage: std::any::Any + Send {
     }
     /// Takes one frame and what the earlier stages of its lane handed on for it in `ctx`.
     fn on_frame(&mut self, ctx: &mut StageContext, frame: &Frame);
+    /// Takes one pose of `base` handed on by an earlier lane, in sample-time order among the
+    /// frames, when the lane takes [`StreamId::Poses`] (the default does nothing). Rays a
+    /// stage completes with it go on in `ctx` as for a frame.
+    fn on_pose(&mut self, ctx: &mut StageContext, pose: &BasePose) {
+        let _ = (ctx, pose);
+    }
     /// Called when the session's frames end (or before a snapshot): hand on what is pending.
     fn flush(&mut self, ctx: &mut StageContext) {
         let _ = ctx;
@@ -427,10 +459,18 @@ fn declared_streams(hello: &scan3d_protocol::Hello) -> Vec<StreamId> {
         .collect()
 }
 
+/// What a lane's queue orders: the session's frames and the poses of `base` an earlier lane
+/// handed on ([`StreamId::Poses`], keyed by their time).
+#[derive(Debug, Clone)]
+enum LaneItem {
+    Frame(Arc<Frame>),
+    Pose(BasePose),
+}
+
 /// A lane: the stages after one that names streams, and the queue that orders its frames.
 struct Lane {
     streams: &'static [StreamId],
-    queue: OrderedQueue<Arc<Frame>>,
+    queue: OrderedQueue<LaneItem>,
     /// Indices into [`SessionPipeline::stages`], in order.
     stages: Vec<usize>,
 }
@@ -540,6 +580,7 @@ pub struct SessionPipeline {
 struct Builtin {
     revolutions: Option<usize>,
     pose: Option<usize>,
+    moving: Option<usize>,
     assembly: usize,
     filters: usize,
     maps: usize,
@@ -609,6 +650,7 @@ impl SessionPipeline {
             builtin: Builtin {
                 revolutions: None,
                 pose: None,
+                moving: None,
                 assembly: 0,
                 filters: 0,
                 maps: 0,
@@ -635,8 +677,16 @@ impl SessionPipeline {
                 .expect("the default fusion config is valid");
             pipeline.push_stage(Box::new(fusion));
         }
-        pipeline.builtin.assembly =
-            pipeline.push_stage(Box::new(AssemblyStage::new(products.static_scans)));
+        // With poses (the pose stage), the assembly lane also takes the pass markers and the
+        // poses, and the moving stage places the passes' Sweep samples in it.
+        pipeline.builtin.assembly = pipeline.push_stage(Box::new(AssemblyStage::with_poses(
+            products.static_scans,
+            products.trajectory,
+        )));
+        if products.trajectory {
+            let stage = MovingStage::new(res, MovingOptions::default());
+            pipeline.builtin.moving = Some(pipeline.push_stage(Box::new(stage)));
+        }
         pipeline.builtin.filters = pipeline.push_stage(Box::new(FilterStage::new(
             settings.revolution_filters.clone(),
         )));
@@ -685,7 +735,13 @@ impl SessionPipeline {
             self.samples += rev.samples.len() as u64;
         }
         if let Body::Hello(hello) = &frame.body {
-            for stream in declared_streams(hello) {
+            let mut streams = declared_streams(hello);
+            // Poses come only from a pose stage fed by an RPLidar: a session without one (static
+            // scans only) never waits for them.
+            if self.builtin.pose.is_some() && streams.contains(&StreamId::Rplidar) {
+                streams.push(StreamId::Poses);
+            }
+            for stream in streams {
                 for lane in self
                     .lanes
                     .iter_mut()
@@ -715,12 +771,34 @@ impl SessionPipeline {
             let lane = &mut self.lanes[index];
             // An untimed frame takes its place at the lane's newest time.
             let t = t_ns.unwrap_or_else(|| lane.queue.frontier_ns().unwrap_or(0));
-            let mut out = Vec::new();
-            let mut releases = Vec::new();
-            lane.queue
-                .push(stream, t, Arc::clone(&frame), &mut out, &mut releases);
-            self.note_releases(index, releases);
-            self.run_lane(index, out);
+            self.push_item(index, stream, t, LaneItem::Frame(Arc::clone(&frame)));
+        }
+    }
+
+    /// Queues one item in lane `index` and runs what leaves.
+    fn push_item(&mut self, index: usize, stream: StreamId, t_ns: u64, item: LaneItem) {
+        let mut out = Vec::new();
+        let mut releases = Vec::new();
+        self.lanes[index]
+            .queue
+            .push(stream, t_ns, item, &mut out, &mut releases);
+        self.note_releases(index, releases);
+        self.run_lane(index, out);
+    }
+
+    /// Hands the poses lane `from` made to every later lane that takes [`StreamId::Poses`], in
+    /// order, keyed by their time.
+    fn hand_on_poses(&mut self, from: usize, poses: Vec<BasePose>) {
+        if poses.is_empty() {
+            return;
+        }
+        for index in from + 1..self.lanes.len() {
+            if !self.lanes[index].streams.contains(&StreamId::Poses) {
+                continue;
+            }
+            for pose in &poses {
+                self.push_item(index, StreamId::Poses, pose.t_ns, LaneItem::Pose(*pose));
+            }
         }
     }
 
@@ -746,18 +824,22 @@ impl SessionPipeline {
         }
     }
 
-    /// Runs the lane's stages on the frames that left its queue.
-    fn run_lane(&mut self, index: usize, out: Vec<order::Ordered<Arc<Frame>>>) {
+    /// Runs the lane's stages on the frames and poses that left its queue; the poses they made
+    /// go on to the later lanes that take them.
+    fn run_lane(&mut self, index: usize, out: Vec<order::Ordered<LaneItem>>) {
         for ordered in out {
             let ctx = &mut self.ctx;
             ctx.key_ns = ordered.key_ns;
             ctx.late = ordered.late;
             for &stage in &self.lanes[index].stages {
-                self.stages[stage].on_frame(ctx, &ordered.item);
+                match &ordered.item {
+                    LaneItem::Frame(frame) => self.stages[stage].on_frame(ctx, frame),
+                    LaneItem::Pose(pose) => self.stages[stage].on_pose(ctx, pose),
+                }
             }
             ctx.rays.clear();
-            // Not handed on to other lanes yet (no stage takes `StreamId::Poses` so far).
-            ctx.poses.clear();
+            let poses = std::mem::take(&mut ctx.poses);
+            self.hand_on_poses(index, poses);
         }
     }
 
@@ -782,6 +864,8 @@ impl SessionPipeline {
                 self.stages[stage].flush(ctx);
             }
             ctx.rays.clear();
+            let poses = std::mem::take(&mut ctx.poses);
+            self.hand_on_poses(index, poses);
         }
     }
 
@@ -846,12 +930,30 @@ impl SessionPipeline {
             filtered_out_points: filters.dropped_points(),
             points: self.maps().points(),
             positions: self.positions(),
+            passes: self.passes(),
             pose: self.pose().and_then(PoseStage::status),
             fusion: self.fusion().map(FusionStage::status),
             late_frames: order.late,
             stream_releases: order.releases,
             queued_frames: order.queued,
         }
+    }
+
+    /// The trolley passes seen, in first-seen order: what the moving stage placed and holds,
+    /// and the points the map stage took for each (empty without the moving stage).
+    pub fn passes(&self) -> Vec<PassStatus> {
+        let Some(moving) = self.moving() else {
+            return Vec::new();
+        };
+        let maps = self.maps();
+        moving
+            .passes()
+            .into_iter()
+            .map(|mut pass| {
+                pass.points = maps.pass(&pass.name).map_or(0, |p| p.points);
+                pass
+            })
+            .collect()
     }
 
     /// The streams released so far (a stream fell too far behind), in order.
@@ -953,6 +1055,40 @@ impl SessionPipeline {
     /// The pose stage, when [`Products::trajectory`] is on.
     pub fn pose(&self) -> Option<&PoseStage> {
         self.builtin.pose.map(|index| self.stage(index))
+    }
+
+    /// The moving stage (assembly along movement), when [`Products::trajectory`] is on.
+    pub fn moving(&self) -> Option<&MovingStage> {
+        self.builtin.moving.map(|index| self.stage(index))
+    }
+
+    /// The moving stage to configure ([`MovingStage::set_options`]) before the first frame.
+    pub fn moving_mut(&mut self) -> Option<&mut MovingStage> {
+        let index = self.builtin.moving?;
+        let stage: &mut dyn std::any::Any = self.stages[index].as_mut();
+        stage.downcast_mut::<MovingStage>()
+    }
+
+    /// Starts pass `name`'s octree from `map` instead of an empty one (before the first
+    /// frame): `scan3d assemble --moving` over several sessions grows one octree across them,
+    /// the same as inserting all their bundles in order.
+    pub fn seed_pass_map(&mut self, name: &str, map: VoxelMap) {
+        let index = self.builtin.maps;
+        let stage: &mut dyn std::any::Any = self.stages[index].as_mut();
+        if let Some(maps) = stage.downcast_mut::<MapStage>() {
+            maps.seed_pass(name, map);
+        }
+    }
+
+    /// Takes the map stage out of the pipeline (its octrees and clouds), leaving an empty one.
+    pub fn take_maps(&mut self) -> MapStage {
+        let index = self.builtin.maps;
+        let res = *self.maps().resolution();
+        let stage: &mut dyn std::any::Any = self.stages[index].as_mut();
+        let maps = stage
+            .downcast_mut::<MapStage>()
+            .expect("the map stage at its index");
+        std::mem::replace(maps, MapStage::new(res, &self.settings, self.products))
     }
 
     fn pose_mut(&mut self) -> Option<&mut PoseStage> {
@@ -1074,7 +1210,12 @@ mod tests {
 
     fn ordered_pipeline() -> (SessionPipeline, Seen) {
         let seen = Arc::new(std::sync::Mutex::new(Vec::new()));
-        let mut p = SessionPipeline::new(&PipelineSettings::default()).unwrap();
+        // Without the pose stage: its poses would make the assembly lane release the Sweep too.
+        let products = Products {
+            trajectory: false,
+            ..Products::default()
+        };
+        let mut p = SessionPipeline::with_products(&PipelineSettings::default(), products).unwrap();
         p.add_stage(Box::new(Order(Arc::clone(&seen))));
         (p, seen)
     }

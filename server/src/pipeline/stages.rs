@@ -19,8 +19,8 @@ use scan3d_protocol::{Body, Frame, SensorId, StaticScan};
 use super::order::StreamId;
 use super::snapshot::SnapshotWriter;
 use super::{
-    METRICS_INTERVAL, PipelineError, PipelineSettings, Products, SnapshotJob, Stage, StageContext,
-    metrics,
+    BasePose, METRICS_INTERVAL, NewBundle, PipelineError, PipelineSettings, Products, RaySource,
+    SnapshotJob, Stage, StageContext, metrics,
 };
 
 /// The 2D revolution collector as a stage: every lidar revolution's samples as points in the
@@ -72,6 +72,9 @@ impl Stage for RevolutionStage {
 pub struct AssemblyStage {
     assembler: StaticScanAssembler,
     keep: bool,
+    /// Whether its lane also takes the pass markers and the poses of `base` (for the moving
+    /// stage that follows it).
+    poses: bool,
     /// Orphan samples counted by assemblers already forgotten.
     forgotten_orphans: u64,
     /// Static scans forgotten.
@@ -83,9 +86,16 @@ pub struct AssemblyStage {
 impl AssemblyStage {
     /// A stage that keeps every assembled scan with its points if `keep`.
     pub fn new(keep: bool) -> Self {
+        Self::with_poses(keep, false)
+    }
+
+    /// [`AssemblyStage::new`] whose lane also takes the pass markers and the poses of `base`
+    /// if `poses` (the moving stage follows it there).
+    pub fn with_poses(keep: bool, poses: bool) -> Self {
         AssemblyStage {
             assembler: StaticScanAssembler::new(),
             keep,
+            poses,
             forgotten_orphans: 0,
             forgotten_scans: 0,
             abandoned_scans: 0,
@@ -124,7 +134,16 @@ impl Stage for AssemblyStage {
     }
 
     fn streams(&self) -> &'static [StreamId] {
-        &[StreamId::Sweep, StreamId::StaticScan]
+        if self.poses {
+            &[
+                StreamId::Sweep,
+                StreamId::StaticScan,
+                StreamId::Pass,
+                StreamId::Poses,
+            ]
+        } else {
+            &[StreamId::Sweep, StreamId::StaticScan]
+        }
     }
 
     fn on_frame(&mut self, ctx: &mut StageContext, frame: &Frame) {
@@ -146,7 +165,11 @@ impl Stage for AssemblyStage {
             self.forgotten_scans += done.scans().len() as u64;
         }
         self.assembler.on_body(&frame.body);
-        ctx.rays.extend(self.assembler.take_new());
+        ctx.rays
+            .extend(self.assembler.take_new().into_iter().map(|new| NewBundle {
+                source: RaySource::Position(new.position),
+                rays: new.rays,
+            }));
     }
 }
 
@@ -178,14 +201,9 @@ impl FilterStage {
     pub fn dropped_points(&self) -> u64 {
         self.dropped_points
     }
-}
 
-impl Stage for FilterStage {
-    fn name(&self) -> &'static str {
-        "filters"
-    }
-
-    fn on_frame(&mut self, ctx: &mut StageContext, frame: &Frame) {
+    /// Filters the groups in `ctx` together; `key_ns` names the frame or pose in the log.
+    fn filter(&mut self, ctx: &mut StageContext) {
         if self.filters.is_empty() || ctx.rays.is_empty() {
             return;
         }
@@ -206,13 +224,33 @@ impl Stage for FilterStage {
                 // The points were moved out above; count what the groups held.
                 self.dropped_points += dropped;
                 tracing::warn!(
-                    seq = frame.seq,
+                    key_ns = ctx.key_ns,
                     groups = ctx.rays.len(),
                     "revolution filter failed, its points are dropped: {e}"
                 );
                 ctx.rays.clear();
             }
         }
+    }
+}
+
+impl Stage for FilterStage {
+    fn name(&self) -> &'static str {
+        "filters"
+    }
+
+    fn on_frame(&mut self, ctx: &mut StageContext, _frame: &Frame) {
+        self.filter(ctx);
+    }
+
+    fn on_pose(&mut self, ctx: &mut StageContext, _pose: &BasePose) {
+        self.filter(ctx);
+    }
+
+    /// What the stages before it handed on at the session's end (the moving stage's last
+    /// revolutions).
+    fn flush(&mut self, ctx: &mut StageContext) {
+        self.filter(ctx);
     }
 }
 
@@ -224,19 +262,30 @@ fn take_rays(rays: &mut RayBundle) -> RayBundle {
     }
 }
 
-/// One named position's octree.
+/// One named position's (or pass's) octree.
 #[derive(Debug)]
 pub struct PositionMap {
-    /// The position's name.
+    /// The position's (or pass's) name.
     pub name: String,
-    /// Its octree (`None` when position maps are not kept).
+    /// Its octree (`None` when position maps, or octrees, are not kept).
     pub map: Option<VoxelMap>,
     /// Points inserted.
     pub points: u64,
 }
 
+/// Which part of the session a bundle of the cloud belongs to: an index into the positions or
+/// into the passes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Part {
+    Position(usize),
+    Pass(usize),
+}
+
 /// Octree insertion (OctoMap's `insertPointCloud` from each group's origin, cut at
-/// `max_range`) into the session's octree and its position's, and the growing cloud.
+/// `max_range`) into the session's octree and its position's or pass's, and the growing cloud.
+/// A pass's octree is kept whenever octrees are (a pass is the product of a trolley run, as a
+/// position's is of a static scan, but there are few passes), a position's with
+/// [`Products::position_maps`].
 #[derive(Debug)]
 pub struct MapStage {
     res: Resolution,
@@ -244,9 +293,10 @@ pub struct MapStage {
     products: Products,
     session: VoxelMap,
     positions: Vec<PositionMap>,
-    /// Filtered points within `max_range` with their origin and position index (shared, so a
-    /// snapshot takes the cloud without copying it).
-    cloud: Vec<(usize, Arc<RayBundle>)>,
+    passes: Vec<PositionMap>,
+    /// Filtered points within `max_range` with their origin and part (shared, so a snapshot
+    /// takes the cloud without copying it).
+    cloud: Vec<(Part, Arc<RayBundle>)>,
     points: u64,
 }
 
@@ -259,6 +309,7 @@ impl MapStage {
             products,
             session: VoxelMap::new(res, settings.sensor),
             positions: Vec::new(),
+            passes: Vec::new(),
             cloud: Vec::new(),
             points: 0,
         }
@@ -269,7 +320,7 @@ impl MapStage {
         &self.res
     }
 
-    /// The session's octree (every position).
+    /// The session's octree (every position and pass).
     pub fn session_map(&self) -> &VoxelMap {
         &self.session
     }
@@ -282,6 +333,31 @@ impl MapStage {
     /// Names of the positions seen, in first-seen order.
     pub fn positions(&self) -> Vec<String> {
         self.positions.iter().map(|p| p.name.clone()).collect()
+    }
+
+    /// The pass called `name`, if any of its points was mapped (or its map seeded).
+    pub fn pass(&self, name: &str) -> Option<&PositionMap> {
+        self.passes.iter().find(|p| p.name == name)
+    }
+
+    /// Names of the passes mapped, in first-seen order.
+    pub fn passes(&self) -> Vec<String> {
+        self.passes.iter().map(|p| p.name.clone()).collect()
+    }
+
+    /// Takes pass `name`'s octree out (offline assembly hands it to the next session's
+    /// pipeline, [`MapStage::seed_pass`]).
+    pub fn take_pass_map(&mut self, name: &str) -> Option<VoxelMap> {
+        self.passes
+            .iter_mut()
+            .find(|p| p.name == name)
+            .and_then(|p| p.map.take())
+    }
+
+    /// Starts pass `name`'s octree from `map` (its points count from zero).
+    pub fn seed_pass(&mut self, name: &str, map: VoxelMap) {
+        let index = self.pass_index(name);
+        self.passes[index].map = Some(map);
     }
 
     /// Points inserted into the session's octree.
@@ -303,34 +379,144 @@ impl MapStage {
             .collect()
     }
 
+    /// The cloud of pass `name`, as origin groups in insertion order (empty when the cloud is
+    /// not kept or the pass is unknown).
+    pub fn pass_cloud(&self, name: &str) -> Vec<RayBundle> {
+        self.shared_pass_cloud(name)
+            .into_iter()
+            .map(Arc::unwrap_or_clone)
+            .collect()
+    }
+
     /// [`MapStage::cloud`] as shared handles (no point is copied).
     fn shared_cloud(&self, position: Option<&str>) -> Vec<Arc<RayBundle>> {
-        let index = position.map(|name| self.positions.iter().position(|p| p.name == name));
+        let part = match position {
+            None => None,
+            Some(name) => match self.positions.iter().position(|p| p.name == name) {
+                Some(i) => Some(Part::Position(i)),
+                None => return Vec::new(),
+            },
+        };
+        self.parts_cloud(part)
+    }
+
+    fn shared_pass_cloud(&self, name: &str) -> Vec<Arc<RayBundle>> {
+        match self.passes.iter().position(|p| p.name == name) {
+            Some(i) => self.parts_cloud(Some(Part::Pass(i))),
+            None => Vec::new(),
+        }
+    }
+
+    /// The cloud's bundles of `part` (all with `None`).
+    fn parts_cloud(&self, part: Option<Part>) -> Vec<Arc<RayBundle>> {
         self.cloud
             .iter()
-            .filter(|(i, _)| index.is_none_or(|want| want == Some(*i)))
+            .filter(|(p, _)| part.is_none_or(|want| want == *p))
             .map(|(_, rays)| Arc::clone(rays))
             .collect()
     }
 
     /// What a snapshot of the session (`position` `None`) or of one position needs: a copy of
     /// its octree's voxels and the cloud's handles, taken while the pipeline is held; the
-    /// octree is derived, filtered and written later ([`MapSnapshot::write`]).
-    fn take_snapshot(&self, position: Option<&str>) -> MapSnapshot {
+    /// octree is derived, filtered and written later ([`MapSnapshot::write`]). A session's
+    /// snapshot also takes each named pass's.
+    fn take_snapshot(&self, position: Option<&str>) -> (MapSnapshot, Vec<(String, MapSnapshot)>) {
         let map = match position {
             None => Some(&self.session),
             Some(name) => self.position(name).and_then(|p| p.map.as_ref()),
         };
-        MapSnapshot {
+        let whole = MapSnapshot {
             map: map.cloned(),
             cloud: self.shared_cloud(position),
             res: self.res,
             settings: self.settings.clone(),
-        }
+        };
+        let passes = match position {
+            Some(_) => Vec::new(),
+            None => self
+                .passes
+                .iter()
+                .filter(|pass| !pass.name.is_empty())
+                .map(|pass| {
+                    let taken = MapSnapshot {
+                        map: pass.map.clone(),
+                        cloud: self.shared_pass_cloud(&pass.name),
+                        res: self.res,
+                        settings: self.settings.clone(),
+                    };
+                    (pass.name.clone(), taken)
+                })
+                .collect(),
+        };
+        (whole, passes)
     }
 
     fn max_range(&self) -> f64 {
         self.settings.max_range_m.unwrap_or(-1.0)
+    }
+
+    fn position_index(&mut self, name: &str) -> usize {
+        match self.positions.iter().position(|p| p.name == name) {
+            Some(i) => i,
+            None => {
+                self.positions.push(PositionMap {
+                    name: name.to_string(),
+                    map: (self.products.octrees && self.products.position_maps)
+                        .then(|| VoxelMap::new(self.res, self.settings.sensor)),
+                    points: 0,
+                });
+                self.positions.len() - 1
+            }
+        }
+    }
+
+    fn pass_index(&mut self, name: &str) -> usize {
+        match self.passes.iter().position(|p| p.name == name) {
+            Some(i) => i,
+            None => {
+                self.passes.push(PositionMap {
+                    name: name.to_string(),
+                    map: self
+                        .products
+                        .octrees
+                        .then(|| VoxelMap::new(self.res, self.settings.sensor)),
+                    points: 0,
+                });
+                self.passes.len() - 1
+            }
+        }
+    }
+
+    /// Inserts the groups in `ctx` into the session's octree and their part's, and keeps them
+    /// in the cloud.
+    fn insert(&mut self, ctx: &StageContext) {
+        let max_range = self.max_range();
+        for new in &ctx.rays {
+            let part = match &new.source {
+                RaySource::Position(name) => Part::Position(self.position_index(name)),
+                RaySource::Pass(name) => Part::Pass(self.pass_index(name)),
+            };
+            let n = new.rays.points.len() as u64;
+            self.points += n;
+            let part_map = match part {
+                Part::Position(i) => &mut self.positions[i],
+                Part::Pass(i) => &mut self.passes[i],
+            };
+            part_map.points += n;
+            if self.products.octrees {
+                self.session.insert_bundle(&new.rays, max_range);
+                if let Some(map) = &mut part_map.map {
+                    map.insert_bundle(&new.rays, max_range);
+                }
+            }
+            if self.products.cloud {
+                let mut rays = new.rays.clone();
+                if max_range >= 0.0 {
+                    cut_range(std::slice::from_mut(&mut rays), max_range);
+                }
+                self.cloud.push((part, Arc::new(rays)));
+            }
+        }
     }
 }
 
@@ -341,48 +527,48 @@ impl Stage for MapStage {
 
     fn snapshot(&mut self, out: &mut SnapshotWriter) -> Result<(), PipelineError> {
         let position = out.snapshot.position.clone();
-        self.take_snapshot(position.as_deref()).write(out)
+        let (whole, passes) = self.take_snapshot(position.as_deref());
+        write_map_snapshot(whole, passes, out)
     }
 
     fn snapshot_job(&self, position: Option<&str>) -> Option<SnapshotJob> {
-        let taken = self.take_snapshot(position);
-        Some(Box::new(move |out: &mut SnapshotWriter| taken.write(out)))
+        let (whole, passes) = self.take_snapshot(position);
+        Some(Box::new(move |out: &mut SnapshotWriter| {
+            write_map_snapshot(whole, passes, out)
+        }))
     }
 
     fn on_frame(&mut self, ctx: &mut StageContext, _frame: &Frame) {
-        let max_range = self.max_range();
-        for new in &ctx.rays {
-            let index = match self.positions.iter().position(|p| p.name == new.position) {
-                Some(i) => i,
-                None => {
-                    self.positions.push(PositionMap {
-                        name: new.position.clone(),
-                        map: (self.products.octrees && self.products.position_maps)
-                            .then(|| VoxelMap::new(self.res, self.settings.sensor)),
-                        points: 0,
-                    });
-                    self.positions.len() - 1
-                }
-            };
-            let n = new.rays.points.len() as u64;
-            self.points += n;
-            let position = &mut self.positions[index];
-            position.points += n;
-            if self.products.octrees {
-                self.session.insert_bundle(&new.rays, max_range);
-                if let Some(map) = &mut position.map {
-                    map.insert_bundle(&new.rays, max_range);
-                }
-            }
-            if self.products.cloud {
-                let mut rays = new.rays.clone();
-                if max_range >= 0.0 {
-                    cut_range(std::slice::from_mut(&mut rays), max_range);
-                }
-                self.cloud.push((index, Arc::new(rays)));
-            }
-        }
+        self.insert(ctx);
     }
+
+    fn on_pose(&mut self, ctx: &mut StageContext, _pose: &BasePose) {
+        self.insert(ctx);
+    }
+
+    /// What the stages before it handed on at the session's end (the moving stage's last
+    /// revolutions).
+    fn flush(&mut self, ctx: &mut StageContext) {
+        self.insert(ctx);
+    }
+}
+
+/// Writes the session's (or position's) map files, then each pass's `passes/NAME/map.bt` and
+/// `passes/NAME/cloud.ply` (beside the pose stage's `passes/NAME/trajectory.tum`).
+fn write_map_snapshot(
+    whole: MapSnapshot,
+    passes: Vec<(String, MapSnapshot)>,
+    out: &mut SnapshotWriter,
+) -> Result<(), PipelineError> {
+    whole.write(out)?;
+    // The whole map's numbers and leaves (for the metrics) stay those of the session.
+    for (name, pass) in passes {
+        let subdir = Path::new("passes").join(super::pose_stage::path_safe(&name));
+        let (bt, ply) = pass.bytes(&out.snapshot.dir.join(&subdir))?;
+        out.write_file_in(&subdir, "map.bt", &bt)?;
+        out.write_file_in(&subdir, "cloud.ply", &ply)?;
+    }
+    Ok(())
 }
 
 /// A map's part of a snapshot, taken by [`MapStage::take_snapshot`].
@@ -394,6 +580,27 @@ struct MapSnapshot {
 }
 
 impl MapSnapshot {
+    /// The `.bt` and the binary PLY (through the snapshot filters) of a pass's part; `dir`
+    /// names the files in errors.
+    fn bytes(self, dir: &Path) -> Result<(Vec<u8>, Vec<u8>), PipelineError> {
+        let tree = self.map.map_or_else(
+            || Octree::empty(self.res, self.settings.sensor),
+            |m| m.to_octree(),
+        );
+        let mut cloud: Vec<RayBundle> = self.cloud.into_iter().map(Arc::unwrap_or_clone).collect();
+        if !self.settings.snapshot_filters.is_empty() && !cloud.is_empty() {
+            cloud = apply_filters(&self.settings.snapshot_filters, cloud)?;
+        }
+        let mut ply = Vec::new();
+        write_ply_bundles(&mut ply, &cloud, Encoding::Binary).map_err(|source| {
+            PipelineError::Write {
+                path: dir.join("cloud.ply"),
+                source,
+            }
+        })?;
+        Ok((tree.to_bt_bytes(), ply))
+    }
+
     /// Writes `map.bt`, `map.ot` and `cloud.ply` (through the snapshot filters) and hands the
     /// `.bt`'s leaves on to the metrics.
     fn write(self, out: &mut SnapshotWriter) -> Result<(), PipelineError> {

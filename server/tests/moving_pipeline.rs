@@ -1,0 +1,198 @@
+//! Assembly along movement as a live pipeline stage (issue 21, part 3): the pose lane hands its
+//! poses to the assembly lane, the moving stage places each pass's Sweep samples with the pose
+//! at their own time; a live snapshot's `passes/NAME/cloud.ply` and `map.bt` are the bytes
+//! `scan3d assemble --moving --pass NAME` writes from the recording.
+
+mod pipeline_support;
+mod trolley_support;
+
+use std::path::Path;
+
+use clap::Parser;
+use pipeline_support::{DEMO_ROOM, SessionBuilder, position};
+use scan3d_protocol::{Body, Frame, Hello, SensorId, SensorInfo};
+use scan3d_server::cli::{Cli, execute};
+use scan3d_server::pipeline::{PipelineSettings, SessionPipeline};
+use trolley_support::{SWEEP_SAMPLES, Trolley, trolley_session};
+
+/// Runs `scan3d ARGS…` in-process: its output, or its error as one line.
+fn scan3d(args: &[&str]) -> Result<String, String> {
+    let cli = Cli::try_parse_from(std::iter::once("scan3d").chain(args.iter().copied()))
+        .map_err(|e| e.to_string())?;
+    let mut out = Vec::new();
+    execute(cli, &mut out).map_err(|e| format!("{e:#}"))?;
+    Ok(String::from_utf8(out).expect("utf-8"))
+}
+
+/// Distance of `p` from the nearest of the demo room's six surfaces, m.
+fn to_surface(p: [f64; 3]) -> f64 {
+    let (lo, hi) = DEMO_ROOM;
+    (0..3)
+        .flat_map(|a| [(p[a] - lo[a]).abs(), (hi[a] - p[a]).abs()])
+        .fold(f64::INFINITY, f64::min)
+}
+
+/// A live daemon's pipeline fed `frames` one by one (no flush: a live session goes on).
+fn live(frames: impl IntoIterator<Item = Frame>) -> SessionPipeline {
+    let mut pipeline = SessionPipeline::new(&PipelineSettings::default()).unwrap();
+    for frame in frames {
+        pipeline.on_frame(&frame);
+    }
+    pipeline
+}
+
+fn read(path: &Path) -> Vec<u8> {
+    std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+#[test]
+fn a_live_pass_snapshot_is_the_bytes_assemble_moving_writes() {
+    let tmp = tempfile::tempdir().unwrap();
+    let session = trolley_session(Trolley::default());
+    let dir = session.record(tmp.path(), "trolley");
+
+    let mut pipeline = live(session.frames().cloned());
+    let status = pipeline.status();
+    let pass = status
+        .passes
+        .iter()
+        .find(|p| p.name == "aisle")
+        .expect("the pass in status");
+    // 16 revolutions in the pass, all placed while the session goes on (the poses after the
+    // stop covered the last one): none held, none dropped, no sample extrapolated or lost.
+    assert_eq!(
+        (pass.revolutions, pass.held, pass.dropped, pass.stopped),
+        (16, 0, 0, true),
+        "{pass:?}"
+    );
+    assert_eq!(pass.unplaced_samples, 0, "{pass:?}");
+    assert_eq!(pass.samples, 16 * SWEEP_SAMPLES as u64, "{pass:?}");
+    assert_eq!(pass.points, pass.samples, "no filter configured: {pass:?}");
+    let json = serde_json::to_value(&status).unwrap();
+    assert_eq!(json["passes"][0]["name"], "aisle", "{json}");
+    assert_eq!(json["passes"][0]["revolutions"], 16, "{json}");
+    // The standing revolutions outside the pass are not placed: the session's map has only
+    // the pass's points (no static scan here).
+    assert_eq!(status.points, pass.points);
+
+    let snap = tmp.path().join("snap");
+    pipeline.write_snapshot(&snap, None).unwrap();
+    let live_ply = read(&snap.join("passes/aisle/cloud.ply"));
+    let live_bt = read(&snap.join("passes/aisle/map.bt"));
+    assert!(snap.join("passes/aisle/trajectory.tum").exists());
+
+    let ply = tmp.path().join("aisle.ply");
+    let bt = tmp.path().join("aisle.bt");
+    let said = scan3d(&[
+        "assemble",
+        "--moving",
+        dir.to_str().unwrap(),
+        "--pass",
+        "aisle",
+        "--out",
+        ply.to_str().unwrap(),
+        "--bt",
+        bt.to_str().unwrap(),
+    ])
+    .expect("the pass assembles");
+    assert!(said.contains("16 Sweep revolutions placed"), "{said}");
+    assert!(read(&ply) == live_ply, "cloud.ply differs live and offline");
+    assert!(read(&bt) == live_bt, "map.bt differs live and offline");
+
+    let cloud = scan3d_map::cloud::io::load(&ply, None).unwrap();
+    let points: Vec<[f64; 3]> = cloud
+        .iter()
+        .flat_map(|b| b.points.iter().map(|p| p.map(f64::from)))
+        .collect();
+    assert_eq!(points.len(), 16 * SWEEP_SAMPLES);
+    let mean = points.iter().map(|&p| to_surface(p)).sum::<f64>() / points.len() as f64;
+    eprintln!("live pass: mean point-to-surface {:.2} cm", mean * 100.0);
+    assert!(mean < 0.03, "mean point-to-surface {mean} m");
+    let tree = scan3d_map::octree::Octree::read(&live_bt, Default::default()).unwrap();
+    assert!(tree.num_occupied() > 100 && tree.num_free() > 100);
+}
+
+#[test]
+fn a_sweep_revolution_waits_for_the_poses_that_cover_it() {
+    let session = trolley_session(Trolley {
+        after: 0,
+        ..Trolley::default()
+    });
+    let frames: Vec<Frame> = session.frames().cloned().collect();
+    let mut pipeline = SessionPipeline::new(&PipelineSettings::default()).unwrap();
+    let mut waited = 0;
+    let mut i = 0;
+    while i < frames.len() {
+        pipeline.on_frame(&frames[i]);
+        let placed = pipeline.passes().first().map_or(0, |p| p.revolutions);
+        let is_sweep =
+            matches!(&frames[i].body, Body::Revolution(r) if r.sensor == SensorId::SWEEP);
+        if waited == 0 && is_sweep && placed > 0 && i + 1 < frames.len() {
+            // The revolution just sent ends after the newest pose: not placed yet, and placed
+            // once the next RPLidar revolution's pose comes.
+            assert!(
+                matches!(&frames[i + 1].body, Body::Revolution(r) if r.sensor == SensorId::RPLIDAR)
+            );
+            pipeline.on_frame(&frames[i + 1]);
+            let after = pipeline.passes()[0].revolutions;
+            assert_eq!(after, placed + 1, "placed once the next RPLidar pose came");
+            waited += 1;
+            i += 1;
+        }
+        i += 1;
+    }
+    assert_eq!(waited, 1);
+    // The pass's last revolutions have no pose after them in this session: they wait (in the
+    // lane for the Poses stream, or held by the stage) until the end, then are placed with the poses there are (extrapolated at most 50 ms, the rest counted).
+    let pass = &pipeline.passes()[0];
+    assert!(pass.revolutions < 16, "{pass:?}");
+    pipeline.flush();
+    let pass = &pipeline.passes()[0];
+    assert_eq!((pass.held, pass.revolutions), (0, 16), "{pass:?}");
+    assert!(pass.unplaced_samples > 0, "{pass:?}");
+}
+
+#[test]
+fn a_session_without_rplidar_never_waits_for_poses() {
+    let mut s = SessionBuilder::new(0x0216);
+    s.push(Hello::new(
+        "head",
+        "test",
+        vec![SensorInfo {
+            sensor: SensorId::SWEEP,
+            model: String::new(),
+            firmware: String::new(),
+            serial: String::new(),
+        }],
+    ));
+    s.static_scan(&position("p1", 2.0, 1.5, 0.0), 12, 90);
+    let frames: Vec<Frame> = s.frames().cloned().collect();
+    let mut pipeline = live(frames.iter().cloned());
+    let status = pipeline.status();
+    assert_eq!(status.stream_releases, 0, "nothing waited for: {status:?}");
+    assert!(status.points > 0, "the scan is mapped as it comes");
+    let through = status.points;
+    pipeline.flush();
+    let flushed = pipeline.status().points;
+    // At most the last revolution waits for the Sweep's next one, none for poses.
+    assert!(flushed - through <= 2 * 90, "{through} then {flushed}");
+    assert!(pipeline.passes().is_empty());
+}
+
+#[test]
+fn a_pass_stopped_without_its_start_is_ignored_and_nothing_is_lost() {
+    let clean = live(trolley_session(Trolley::default()).frames().cloned());
+    let stray = live(
+        trolley_session(Trolley {
+            stray_stop: true,
+            ..Trolley::default()
+        })
+        .frames()
+        .cloned(),
+    );
+    assert_eq!(stray.moving().unwrap().stray_stops(), 1);
+    assert_eq!(clean.moving().unwrap().stray_stops(), 0);
+    assert_eq!(stray.passes(), clean.passes());
+    assert!(!stray.maps().pass_cloud("aisle").is_empty());
+    assert!(stray.maps().pass_cloud("aisle") == clean.maps().pass_cloud("aisle"));
+}
