@@ -26,6 +26,7 @@
 
 pub mod clock;
 pub mod demo;
+pub mod demo_trolley;
 pub mod device;
 pub mod faults;
 pub mod fleet;

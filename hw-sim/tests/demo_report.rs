@@ -6,7 +6,7 @@
 use std::path::{Path, PathBuf};
 
 use clap::Parser;
-use scan3d_hw_sim::demo::{against_paper, report_options};
+use scan3d_hw_sim::demo::{Map1Notes, against_paper, report_options};
 use scan3d_hw_sim::maps::PASS_THROUGH_BOX;
 use scan3d_hw_sim::truth::{GroundTruth, truth_map};
 use scan3d_hw_sim::world::World;
@@ -105,6 +105,11 @@ fn the_printed_report_command_gives_the_demos_table() {
             .to_octree()
             .to_bt_bytes(),
     );
+    // map1: the Sweep's plane swept along a line through the room (origins every 0.5 m).
+    let along: Vec<[f64; 3]> = (0..10)
+        .map(|k| [1.6 + 0.5 * f64::from(k), 0.85, 1.0])
+        .collect();
+    write(&maps.join("map1.bt"), &scanned(&truth, &along, 0.2, res));
     write(
         &maps.join("map2.bt"),
         &scanned(&truth, &[[1.5, 3.0, 1.0]], 0.12, res),
@@ -129,7 +134,7 @@ fn the_printed_report_command_gives_the_demos_table() {
     );
 
     // The demo's path: its options, the library call.
-    let options = report_options(out, &["map2", "map3", "ref"]);
+    let options = report_options(out, &["map1", "map2", "map3", "ref"]);
     assert_eq!(options.bbox, Some(PASS_THROUGH_BOX));
     let demo = options.write().unwrap();
     let demo_json = std::fs::read(out.join("report/metrics.json")).unwrap();
@@ -177,6 +182,43 @@ fn the_printed_report_command_gives_the_demos_table() {
     );
     assert!(demo.table.contains("| 19.061 % | 80.939 % | 18320 |"));
     assert!(demo.table.contains("## Fig. 11 beside the paper"));
+    // Four rows in Table III, map1 first, each beside the paper's; three maps in Fig. 11
+    // beside ref against itself.
+    let table_iii: Vec<&str> = demo
+        .table
+        .lines()
+        .skip_while(|l| !l.starts_with("## Table III"))
+        .filter(|l| l.starts_with("| **"))
+        .take_while(|l| !l.starts_with("| **truth"))
+        .collect();
+    let labels: Vec<&str> = table_iii
+        .iter()
+        .map(|l| l.split("**").nth(1).unwrap())
+        .collect();
+    assert_eq!(labels, ["map1", "map2", "map3", "ref"], "{}", demo.table);
+    assert!(
+        table_iii[0].ends_with("| 13.059 % | 86.941 % | 17140 |"),
+        "{}",
+        table_iii[0]
+    );
+    let fig11: Vec<&str> = demo
+        .table
+        .lines()
+        .skip_while(|l| !l.starts_with("## Fig. 11 beside the paper"))
+        .filter(|l| l.starts_with("| **"))
+        .collect();
+    assert_eq!(fig11.len(), 4, "{}", demo.table);
+    assert!(fig11[0].starts_with("| **map1** |") && fig11[0].contains("the worst of map1–map3"));
+    let drawn: Vec<&str> = demo.metrics["maps"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|m| !m["metrics"].is_null())
+        .map(|m| m["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(drawn, ["map1", "map2", "map3"]);
+    // Scored against the truth too.
+    assert!(demo.metrics["maps"][0]["metrics"]["truth"]["f1"].is_number());
 
     // Scored without the box (what a reader would type without the printed line), the
     // numbers differ: the box is part of the result.
@@ -188,11 +230,64 @@ fn the_printed_report_command_gives_the_demos_table() {
     assert!(other.table.contains("U is each pair's own box"));
 
     // The differences from the paper, one sentence each, from the numbers.
-    let notes = against_paper(&demo.metrics, None);
+    let notes = against_paper(&demo.metrics, None, None);
     assert!(notes.contains("Leaf nodes: ref has"), "{notes}");
     assert!(notes.contains("Occupied ratio: ref"), "{notes}");
     assert!(notes.contains("Order of Fig. 11"), "{notes}");
     assert!(notes.contains("as the paper's ideal (1, 0, 1)"), "{notes}");
+    assert!(notes.contains("map1 (mapping along movement) is not made"));
+
+    // With the pass: map1's surface distances beside map2's against the goal, and the
+    // trajectory error against the truth, from the numbers given.
+    let accuracy = |mean_m: f64, p95_m: f64| scan3d_hw_sim::truth::Accuracy {
+        points: 1000,
+        mean_m,
+        p95_m,
+        max_m: 0.1,
+    };
+    let error = scan3d_slam::tum::TrajectoryError {
+        compared: 800,
+        outside: 0,
+        position_rmse_m: 0.0123,
+        position_max_m: 0.04,
+        heading_rmse_deg: 0.61,
+        heading_max_deg: 1.5,
+    };
+    let map1 = Map1Notes {
+        source: "offline".into(),
+        points: 1000,
+        offline_accuracy: Some(accuracy(0.018, 0.05)),
+        live_accuracy: None,
+        map2_accuracy: Some(accuracy(0.010, 0.03)),
+        matcher: Some(error),
+        fused: None,
+        fusion_failure: Some("no IMU".into()),
+        yaw_rmse: vec![
+            ("gyro integration alone".into(), 2.0, 100),
+            ("matcher alone".into(), 0.5, 100),
+            ("CI fusion".into(), 0.4, 100),
+        ],
+    };
+    let notes = against_paper(&demo.metrics, None, Some(&map1));
+    assert!(!notes.contains("is not made"), "{notes}");
+    assert!(
+        notes.contains("map1 (offline) against the true surface: mean 18.0 mm, p95 50.0 mm (map2: mean 10.0 mm, p95 30.0 mm); map1's mean is 1.80 × map2's (goal ≤ 1.5: missed)"),
+        "{notes}"
+    );
+    assert!(
+        notes.contains("scan matcher (pose stage): position RMSE 1.23 cm (max 4.00 cm, goal ≤ 3 cm: met), heading RMSE 0.610° (max 1.500°, goal ≤ 0.5°: missed)"),
+        "{notes}"
+    );
+    assert!(notes.contains("map1 (live): not made"), "{notes}");
+    assert!(notes.contains("not made in this run (no IMU;"), "{notes}");
+    assert!(
+        notes.contains(
+            "The fused yaw error is 0.20 of gyro integration alone's, 0.80 of matcher alone's"
+        ),
+        "{notes}"
+    );
+    assert!(notes.contains("Table III, map1:"), "{notes}");
+    assert!(notes.contains("Fig. 11, map1: IoU"), "{notes}");
 }
 
 #[test]
