@@ -26,10 +26,17 @@
 //! | stage | lane takes | hands on / keeps |
 //! | --- | --- | --- |
 //! | [`RevolutionStage`] (optional) | lidar revolutions | per-sensor 2D points, `scans/<lidar>.ply` |
-//! | [`AssemblyStage`] | Sweep revolutions, static-scan messages | the origin groups (one per half revolution) completed by this frame, in [`StageContext::rays`] |
+//! | [`PoseStage`], then [`FusionStage`] (with [`Products::trajectory`]) | RPLidar revolutions, IMU samples, pass markers | the poses of `base` in [`StageContext::poses`], handed on to the later lanes that take the Poses stream; `trajectory.tum`, the grid |
+//! | [`AssemblyStage`] | Sweep revolutions, static-scan messages (with the pose stage also pass markers and the Poses stream) | the origin groups (one per half revolution) completed by this frame, in [`StageContext::rays`] |
+//! | [`MovingStage`] (with [`Products::trajectory`]) | (follows) | each pass's Sweep revolutions, held until the poses cover them, placed sample by sample, in [`StageContext::rays`] tagged with the pass |
 //! | [`FilterStage`] | (follows) | the same groups through `revolution_filters` (voxel grid, pass-through) |
-//! | [`MapStage`] | (follows) | one octree per session and per named position (OctoMap's `insertPointCloud`, `max_range` cut), the growing cloud |
+//! | [`MapStage`] | (follows) | one octree per session, per named position and per pass (OctoMap's `insertPointCloud`, `max_range` cut), the growing cloud |
 //! | [`MetricsStage`] | (follows) | voxel counts and the metrics against the reference, recomputed when the map grew and `status` asks, at most once per [`METRICS_INTERVAL`]; a snapshot's from the octree it wrote |
+//!
+//! A lane's poses go on to every later lane that takes [`StreamId::Poses`], in order, keyed by
+//! their time ([`Stage::on_pose`]), so a Sweep revolution keyed by its end leaves its lane once
+//! the poses passed it (or the Poses stream was released by lateness). A lane declares the Poses
+//! stream only when the session's `Hello` names an RPLidar and there is a pose stage.
 //!
 //! [`SessionPipeline::add_stage`] puts a stage at the end: with streams of its own it opens a
 //! new lane, without it follows the last stage. Snapshots go through the stages
