@@ -567,6 +567,13 @@ pub struct FuserConfig {
     /// The calibrated field; `None`: the mean of the readings over the first
     /// `alignment_duration` seconds of Madgwick samples (the trolley standing).
     pub field_reference: Option<MagneticField>,
+    /// Innovation gate (standard deviations; 0: off). When the two yaws differ by more than
+    /// this many σ of their combined variance, √(P + Q), the Madgwick variance is raised until
+    /// they differ by exactly that many: an error the field model cannot see (iron that turns
+    /// the horizontal field without changing its magnitude or dip, an uncalibrated
+    /// magnetometer) then no longer pulls the fused yaw. The matcher's variance is the
+    /// calibrated one, so it is the Madgwick variance that is taken as wrong.
+    pub innovation_gate: f64,
 }
 
 impl Default for FuserConfig {
@@ -579,6 +586,7 @@ impl Default for FuserConfig {
             alignment_min_pairs: 5,
             noise: MadgwickNoise::default(),
             field_reference: None,
+            innovation_gate: 3.0,
         }
     }
 }
@@ -654,6 +662,12 @@ impl YawFuser {
         positive("max_gap", config.max_gap)?;
         positive("history", config.history)?;
         positive("alignment_duration", config.alignment_duration)?;
+        if finite("innovation_gate", config.innovation_gate)? < 0.0 {
+            return Err(FusionError::NotPositive {
+                what: "innovation_gate",
+                value: config.innovation_gate,
+            });
+        }
         let noise = &config.noise;
         positive("noise.beta", noise.beta)?;
         positive("noise.sample_period", noise.sample_period)?;
@@ -936,8 +950,17 @@ impl YawFuser {
         if pose.variance == 0.0 {
             return with_notice(self.unfused(pose, MatcherOnlyReason::ExactMatcher));
         }
-        let madgwick = alignment.apply(YawEstimate::new(yaw, vb + u * (va - vb)));
+        let mut madgwick = alignment.apply(YawEstimate::new(yaw, vb + u * (va - vb)));
         let matcher = YawEstimate::new(pose.yaw, pose.variance);
+        let gate = self.config.innovation_gate;
+        if gate > 0.0 {
+            let innovation = wrap_angle(matcher.mean - madgwick.mean);
+            let needed = innovation * innovation / (gate * gate) - matcher.variance;
+            madgwick.variance = madgwick
+                .variance
+                .max(needed)
+                .min(UNKNOWN_HEADING_SIGMA * UNKNOWN_HEADING_SIGMA);
+        }
         let fused = match ci_yaw(madgwick, matcher, self.config.policy) {
             Ok(fused) => fused,
             // Cannot happen: the inputs and the config's κ were checked on the way in.
@@ -1528,6 +1551,8 @@ mod tests {
                 disturbance_gain: 0.0,
                 ..MadgwickNoise::default()
             },
+            // Without the gate either: the model alone is what this compares.
+            innovation_gate: 0.0,
             ..FuserConfig::default()
         };
         let (blind_max, _, _, blind_pull) = stretch_worst(blind);
@@ -1548,6 +1573,43 @@ mod tests {
             pull < deg(0.5) && pull < blind_pull / 3.0,
             "the field did not count"
         );
+    }
+
+    #[test]
+    fn the_innovation_gate_keeps_an_error_the_model_cannot_see_out() {
+        // Madgwick 30° off while its variance says 1°: iron the field model cannot see.
+        let fuse = |gate: f64| {
+            let config = FuserConfig {
+                innovation_gate: gate,
+                ..FuserConfig::default()
+            };
+            let alignment = AlignmentEstimate {
+                offset: 0.0,
+                variance: 0.0,
+            };
+            let mut fuser = YawFuser::with_alignment(config, alignment).expect("valid");
+            for k in 0..20 {
+                let sample = MadgwickYaw {
+                    time: 0.01 * f64::from(k),
+                    yaw: deg(30.0),
+                    uncertainty: MadgwickUncertainty::Variance(deg2(1.0)),
+                };
+                fuser.push_madgwick(sample).expect("valid");
+            }
+            let pose = MatcherYaw {
+                time: 0.1,
+                yaw: 0.0,
+                variance: deg2(0.5),
+            };
+            let mut out = fuser.push_matcher(pose).expect("valid");
+            out.pop().expect("settled").estimate.mean.to_degrees()
+        };
+        let ungated = fuse(0.0);
+        let gated = fuse(3.0);
+        assert!(ungated > 5.0, "{ungated}");
+        // Raised until the innovation is 3σ: Madgwick's variance (30/3)² − 0.25 ≈ 100 deg²,
+        // which leaves it 0.15° of pull (ω stays below 0.5).
+        assert!(gated.abs() < 0.3, "{gated}");
     }
 
     #[test]

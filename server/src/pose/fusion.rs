@@ -637,7 +637,11 @@ mod tests {
 
     /// Feeds `items` in order (advancing the IMU stream with each sample: in order within it).
     fn feed(items: &[Item]) -> (Vec<FusedPoseYaw>, FusionCounts) {
-        let mut fusion = PoseFusion::new(FuserConfig::default()).expect("valid");
+        feed_with(items, FuserConfig::default())
+    }
+
+    fn feed_with(items: &[Item], config: FuserConfig) -> (Vec<FusedPoseYaw>, FusionCounts) {
+        let mut fusion = PoseFusion::new(config).expect("valid");
         let mut out = Vec::new();
         for item in items {
             match item {
@@ -656,7 +660,12 @@ mod tests {
     #[test]
     fn a_disturbed_field_keeps_the_fusion_off_the_madgwick_yaw() {
         let (items, truth) = run(3, Some((8.0, 12.0)), true);
-        let (out, counts) = feed(&items);
+        // Without the innovation gate: the field model alone must see the disturbance.
+        let config = FuserConfig {
+            innovation_gate: 0.0,
+            ..FuserConfig::default()
+        };
+        let (out, counts) = feed_with(&items, config);
         assert_eq!(out.len(), truth.len());
         assert!(counts.fused > 80, "{counts:?}");
         let during: Vec<(f64, f64)> = out
