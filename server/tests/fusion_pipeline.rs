@@ -9,7 +9,8 @@ mod pipeline_support;
 use pipeline_support::{DEMO_ROOM, SessionBuilder};
 use scan3d_protocol::{ImuSample, SensorId, SensorMount, SensorMounts};
 use scan3d_server::pipeline::fusion_stage::fuse_session_into;
-use scan3d_server::pipeline::{FusedRun, fuse_session};
+use scan3d_server::pipeline::offline::run_session;
+use scan3d_server::pipeline::{FusedRun, PipelineSettings, Products, fuse_session};
 use scan3d_slam::pose::wrap_angle;
 
 /// A revolution's length in [`SessionBuilder::rplidar_moving`], ns.
@@ -393,4 +394,19 @@ fn when_the_imu_stops_the_poses_are_the_matchers_and_keep_coming() {
     let csv = std::fs::read_to_string(out.join("yaw_sources.csv")).unwrap();
     assert_eq!(csv.lines().count(), total_revolutions() + 1);
     assert!(csv.lines().last().unwrap().ends_with(",no_imu_nearby"));
+    // `scan3d status --json`'s session entry carries the counts.
+    let (mut pipeline, _) = run_session(
+        &session,
+        &PipelineSettings::default(),
+        Products::default(),
+        false,
+    )
+    .expect("the session runs");
+    let status = serde_json::to_value(pipeline.status()).expect("json");
+    assert_eq!(
+        status["fusion"]["counts"]["imu_stops"], 1,
+        "{}",
+        status["fusion"]
+    );
+    assert_eq!(status["fusion"]["last"], "no_imu_nearby");
 }

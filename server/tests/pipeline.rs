@@ -377,7 +377,9 @@ fn metrics_come_at_most_once_a_second_and_a_snapshot_scores_like_scan3d_eval() {
             "trajectory.tum",
             "grid.pgm",
             "grid.yaml",
-            "grid.png"
+            "grid.png",
+            "trajectory_fused.tum",
+            "yaw_sources.csv"
         ]
     );
     let eval = run_cli(&[

@@ -492,3 +492,49 @@ fn fused_pipeline(session_dir: &Path) -> anyhow::Result<super::SessionPipeline> 
     pipeline.set_clock(clock);
     Ok(pipeline)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_fused_yaw_replaces_the_yaw_and_scales_its_cross_covariances() {
+        let pose = BasePose {
+            t_ns: 5,
+            pose: Pose2::new(1.0, 2.0, 0.3),
+            covariance: [4.0, 0.5, 0.2, 0.5, 1.0, 0.1, 0.2, 0.1, 0.04],
+            roll_pitch: None,
+            room_from_session: None,
+        };
+        let sources = YawSources {
+            t_ns: 5,
+            matcher: 0.3,
+            matcher_variance: 0.04,
+            madgwick: Some(0.2),
+            madgwick_variance: Some(0.04),
+            gyro: None,
+            gyro_variance: None,
+            fused: 0.25,
+            fused_variance: 0.01,
+            omega: Some(0.499),
+        };
+        let outcome = FusedPoseYaw {
+            t_ns: 5,
+            yaw: 0.25,
+            variance: 0.01,
+            matcher_variance: 0.04,
+            roll_pitch: Some([0.01, -0.02]),
+            unfused: None,
+            sources,
+        };
+        let out = rewrite(pose, &outcome);
+        assert_eq!(out.pose.theta, 0.25);
+        assert_eq!((out.pose.x, out.pose.y), (1.0, 2.0));
+        // σ halves: the cross terms halve, x and y stay.
+        assert_eq!(
+            out.covariance,
+            [4.0, 0.5, 0.1, 0.5, 1.0, 0.05, 0.1, 0.05, 0.01]
+        );
+        assert_eq!(out.roll_pitch, Some([0.01, -0.02]));
+    }
+}
