@@ -183,7 +183,7 @@ impl TrolleyHead {
 
     /// The edge's configuration for this trolley: the rig's trolley `edge.toml`
     /// ([`trolley_edge_toml_text`]: the mounts, no stepper) with these links, the I2C bus
-    /// handed over in-process.
+    /// handed over in-process, and the magnetometer calibrated (the true iron).
     pub fn edge_config(
         &self,
         state_dir: &Path,
@@ -202,6 +202,15 @@ impl TrolleyHead {
             .context("the trolley's edge.toml")?;
         config.i2c = Default::default();
         config.uplink = uplink;
+        // The operator has calibrated the magnetometer (`scan3d-edge calibrate mag`, pasted
+        // into edge.toml): the iron a perfect calibration finds. Uncalibrated, the trolley's
+        // hard and soft iron turn Madgwick's yaw by tens of degrees.
+        if let (Some(imu), Some((hard, soft))) =
+            (config.imu.as_mut(), self.imu.expected_calibration())
+        {
+            imu.driver.mag_hard_iron_ut = hard.map(|v| v as f32);
+            imu.driver.mag_soft_iron = soft.map(|row| row.map(|v| v as f32));
+        }
         Ok(config)
     }
 
