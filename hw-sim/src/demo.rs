@@ -850,9 +850,9 @@ fn pass_summary(s: &mut String, pass: &PassResult) {
     let totals = &pass.totals;
     let _ = writeln!(
         s,
-        "  offline assembly: {} Sweep revolutions, {} samples placed, {} outside the \
-         pass-through box",
-        totals.revolutions, totals.placed, totals.filtered_out
+        "  offline assembly (scan3d assemble --moving --pass {PASS_NAME}): {} Sweep revolutions, \
+         {} samples placed, {} unplaced, {} points after the pass-through box",
+        totals.revolutions, totals.samples, totals.unplaced_samples, totals.points
     );
     let mm = |a: &Option<Accuracy>| {
         a.map_or_else(

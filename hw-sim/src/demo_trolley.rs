@@ -12,8 +12,8 @@
 //!
 //! map1 itself: the live server's snapshot products of the pass (`passes/map1/cloud.ply`,
 //! `map.bt`) when the live moving stage makes them; otherwise the recording assembled offline
-//! as `scan3d assemble --moving SESSION --pass map1` does (the pose stage's room-frame
-//! trajectory, each Sweep sample at its own time; [`MapSource`] says which). Table II's
+//! as `scan3d assemble --moving SESSION --pass map1` does (`assemble_moving_sessions`, the
+//! same stages; [`MapSource`] says which). Both are scored against the true surface. Table II's
 //! filters for point cloud 1: the pass-through box only ([`PASS_THROUGH_BOX`]).
 
 use std::path::{Path, PathBuf};
@@ -27,21 +27,18 @@ use scan3d_edge::config::{EdgeConfig, UplinkSection};
 use scan3d_map::cloud::RayBundle;
 use scan3d_map::cloud::filter::Filter;
 use scan3d_map::cloud::io;
-use scan3d_map::cloud::moving::{
-    MovingAssembler, MovingSettings, MovingTotals, PlanarTrajectory, RigidTransform,
-    TrajectoryPoint,
-};
-use scan3d_map::octree::{Resolution, VoxelMap};
+use scan3d_map::cloud::moving::{PlanarTrajectory, TrajectoryPoint};
 use scan3d_protocol::{Body, Command, SensorId};
-use scan3d_server::cli::assemble_moving::session_trajectory;
+use scan3d_server::cli::assemble_moving::{assemble_moving_sessions, session_trajectory};
 use scan3d_server::ingest::control::{
     CommandRequest, ProductRequest, request_command, request_products, request_snapshot,
     socket_path,
 };
 use scan3d_server::ingest::server::IngestEvent;
+use scan3d_server::pipeline::PassStatus;
 use scan3d_server::pipeline::live::LiveSettings;
 use scan3d_server::pipeline::{FusedRun, PipelineSettings, fuse_session};
-use scan3d_server::recording::{session_dir, visit_session};
+use scan3d_server::recording::session_dir;
 use scan3d_server::yaw_plot::{SourceRmse, rmse, write_fig5, yaw_errors};
 use scan3d_slam::tum::{TrajectoryError, read_tum, trajectory_error};
 
@@ -281,8 +278,8 @@ pub struct PassResult {
     pub source: MapSource,
     /// map1's cloud (Table II: pass-through box only), with per-bundle origins.
     pub cloud: Vec<RayBundle>,
-    /// The offline assembly's counts.
-    pub totals: MovingTotals,
+    /// The offline assembly's counts of the pass.
+    pub totals: PassStatus,
     /// map1's points against the true surface.
     pub accuracy: Option<Accuracy>,
     /// The offline assembly's points against the true surface (map1's when offline).
@@ -468,8 +465,23 @@ pub fn run_pass(setup: &PassSetup<'_>) -> anyhow::Result<PassResult> {
                 .flat_map(|b| b.points.iter().map(|p| p.map(f64::from))),
         )
     };
-    // The offline assembly always, so that both are measured when the live one exists.
-    let (offline_cloud, totals) = assemble_pass(&session, &placing, span_ns, setup.resolution_m)?;
+    // The offline assembly always, so that both are measured when the live one exists: the
+    // server's own (`scan3d assemble --moving SESSION --pass map1`, the live pipeline's stages).
+    let offline = assemble_moving_sessions(
+        std::slice::from_ref(&session),
+        &map1_pipeline(setup.resolution_m),
+        Some(PASS_NAME),
+        false,
+        true,
+    )
+    .context("scan3d assemble --moving of the pass")?;
+    let totals = offline
+        .sessions
+        .first()
+        .and_then(|s| s.placed.clone())
+        .context("the offline assembly placed nothing of the pass")?;
+    let offline_cloud = offline.cloud;
+    let offline_tree = offline.octree;
     let offline_accuracy = score(&offline_cloud);
     let (source, cloud, live_accuracy) = if live_cloud.is_file() && live_map.is_file() {
         let cloud = io::load(&live_cloud, None)?;
@@ -503,12 +515,8 @@ pub fn run_pass(setup: &PassSetup<'_>) -> anyhow::Result<PassResult> {
             })?;
         }
         MapSource::Offline => {
-            let res = Resolution::new(setup.resolution_m)?;
-            let mut map = VoxelMap::new(res, PipelineSettings::default().sensor);
-            for bundle in &cloud {
-                map.insert_bundle(bundle, -1.0);
-            }
-            std::fs::write(&octree, map.to_octree().to_bt_bytes())
+            let tree = offline_tree.context("the offline assembly made no octree")?;
+            std::fs::write(&octree, tree.to_bt_bytes())
                 .with_context(|| format!("cannot write {}", octree.display()))?;
         }
     }
@@ -664,65 +672,6 @@ fn truth_lines(head: &TrolleyHead, span_ns: (u64, u64)) -> Vec<u8> {
         t_ns += step_ns;
     }
     out
-}
-
-/// The Sweep's samples of the pass (within `span_ns`) of `session_dir` placed along
-/// `trajectory` with the recorded Sweep mount, through Table II's pass-through box: what
-/// `scan3d assemble --moving SESSION --pass map1` places, filtered. Fails without a recorded
-/// Sweep mount.
-pub fn assemble_pass(
-    session_dir: &Path,
-    trajectory: &PlanarTrajectory,
-    span_ns: (u64, u64),
-    resolution_m: f64,
-) -> anyhow::Result<(Vec<RayBundle>, MovingTotals)> {
-    let mut settings = MovingSettings::for_resolution(resolution_m);
-    settings.filters = vec![map1_filter()];
-    let mut assembler: Option<MovingAssembler> = None;
-    let mut failure: Option<anyhow::Error> = None;
-    let _report = visit_session(session_dir, |recorded| {
-        match &recorded.frame.body {
-            Body::Mounts(mounts) if assembler.is_none() => {
-                if let Some(mount) = mounts.get(SensorId::SWEEP) {
-                    match MovingAssembler::new(
-                        RigidTransform::from_sensor_mount(mount),
-                        settings.clone(),
-                    ) {
-                        Ok(new) => assembler = Some(new),
-                        Err(e) => failure = Some(anyhow::anyhow!("the Sweep's mount: {e}")),
-                    }
-                }
-            }
-            Body::Revolution(rev) if rev.sensor == SensorId::SWEEP => {
-                if let Some(assembler) = &mut assembler {
-                    let mut kept = rev.clone();
-                    kept.samples.clear();
-                    for (sample, t_ns) in rev.samples.iter().zip(rev.sample_times_ns()) {
-                        if (span_ns.0..=span_ns.1).contains(&t_ns) {
-                            kept.samples.push(*sample);
-                        }
-                    }
-                    if !kept.samples.is_empty() {
-                        assembler.add_revolution(&kept, trajectory);
-                    }
-                }
-            }
-            _ => {}
-        }
-        Ok(())
-    })
-    .with_context(|| format!("cannot read the session {}", session_dir.display()))?;
-    if let Some(e) = failure {
-        return Err(e);
-    }
-    let assembler = assembler.with_context(|| {
-        format!(
-            "{}: no Sweep mount recorded, so its samples cannot be placed",
-            session_dir.display()
-        )
-    })?;
-    let totals = assembler.totals();
-    Ok((assembler.finish(), totals))
 }
 
 /// Sends a pass command as `scan3d trolley start|stop` does; returns the edge time of the
