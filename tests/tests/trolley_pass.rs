@@ -88,10 +88,14 @@ fn a_trolley_pass_is_recorded_with_the_mounts_and_both_markers_at_edge_times() {
         let Ok((frames, _)) = read_session_report(&dir_of_session) else {
             return false;
         };
+        // An RPLidar and a whole Sweep revolution after the start: the live moving stage
+        // then has samples of the pass to place.
         started_ns(&frames).is_some_and(|t| {
-            frames.iter().any(|f| {
-                matches!(&f.frame.body, Body::Revolution(rev)
-                    if rev.sensor == SensorId::RPLIDAR && rev.t0_ns > t)
+            [SensorId::RPLIDAR, SensorId::SWEEP].iter().all(|&sensor| {
+                frames.iter().any(|f| {
+                    matches!(&f.frame.body, Body::Revolution(rev)
+                        if rev.sensor == sensor && rev.t0_ns > t)
+                })
             })
         })
     });
@@ -182,5 +186,62 @@ fn a_trolley_pass_is_recorded_with_the_mounts_and_both_markers_at_edge_times() {
     assert!(
         markers[0].t_ns < markers[1].t_ns,
         "edge times must increase: {markers:?}"
+    );
+
+    // The live daemon placed the pass's Sweep samples along the trajectory (the moving stage
+    // after the poses) and timed its poses.
+    let session_id = format!("{session:016x}");
+    let mut last = serde_json::Value::Null;
+    wait_until("the pass's points in the live status", DEADLINE, || {
+        let out = rig.scan3d(&["status", "--json"]);
+        let Ok(status) = serde_json::from_slice::<serde_json::Value>(&out.stdout) else {
+            return false;
+        };
+        let found = status["edges"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .flat_map(|edge| edge["sessions"].as_array().cloned().unwrap_or_default())
+            .find(|s| s["id"] == session_id.as_str());
+        let Some(found) = found else { return false };
+        last = found.clone();
+        found["passes"].as_array().is_some_and(|passes| {
+            passes.iter().any(|p| {
+                p["name"] == "pass-1" && p["stopped"] == true && p["points"].as_u64() > Some(0)
+            })
+        })
+    });
+    let latency = &last["revolution_to_pose"];
+    assert!(
+        latency["count"].as_u64() > Some(0) && latency["p50_ms"].as_f64().is_some(),
+        "no revolution-to-pose latency in the status: {last}"
+    );
+    let snapshot = dir.path().join("snapshot");
+    let out = rig.scan3d(&[
+        "snapshot",
+        "--edge",
+        EDGE,
+        "--session",
+        &session_id,
+        "--out",
+        snapshot.to_str().expect("utf-8 path"),
+    ]);
+    assert!(
+        out.status.success(),
+        "snapshot: {}{}",
+        text(&out.stdout),
+        text(&out.stderr)
+    );
+    let pass_dir = snapshot.join("passes").join("pass-1");
+    let ply = std::fs::read(pass_dir.join("cloud.ply")).expect("passes/pass-1/cloud.ply");
+    assert!(ply.starts_with(b"ply\n"), "not a PLY file");
+    let bt = std::fs::read(pass_dir.join("map.bt")).expect("passes/pass-1/map.bt");
+    assert!(
+        bt.starts_with(b"# Octomap OcTree binary file"),
+        "not a .bt file"
+    );
+    assert!(
+        pass_dir.join("trajectory.tum").exists(),
+        "no trajectory.tum"
     );
 }

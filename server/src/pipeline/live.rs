@@ -267,6 +267,11 @@ pub struct LiveSessionStatus {
     /// share of [`sample_to_voxel`](Self::sample_to_voxel): queue and processing), frames from
     /// the queue only, over the last [`LATENCY_WINDOW`] insertions.
     pub accept_to_voxel: Option<LatencySummary>,
+    /// How long after the end of an RPLidar revolution (its last sample, mapped to server time
+    /// by the clock model) the pose matched from it was made, over the last
+    /// [`LATENCY_WINDOW`] poses (needs a time-sync estimate): transport, queue, the pose lane's
+    /// wait for the IMU, and the matcher.
+    pub revolution_to_pose: Option<LatencySummary>,
 }
 
 /// Insertions [`LiveSessionStatus::sample_to_voxel`] summarises.
@@ -541,6 +546,8 @@ struct WorkerShared {
     latencies: Mutex<std::collections::VecDeque<i64>>,
     /// Accept-to-voxel latencies, ns, the last [`LATENCY_WINDOW`].
     server_latencies: Mutex<std::collections::VecDeque<i64>>,
+    /// Revolution-to-pose latencies, ns, the last [`LATENCY_WINDOW`].
+    pose_latencies: Mutex<std::collections::VecDeque<i64>>,
     /// What `status` shows of the pipeline (`None` until it is built).
     published: Mutex<Option<Arc<Published>>>,
     /// When `status` last asked.
@@ -594,6 +601,7 @@ impl WorkerShared {
             clock_models: Mutex::new(crate::pose::timesync::SessionClock::new()),
             latencies: Mutex::new(std::collections::VecDeque::with_capacity(LATENCY_WINDOW)),
             server_latencies: Mutex::new(std::collections::VecDeque::with_capacity(LATENCY_WINDOW)),
+            pose_latencies: Mutex::new(std::collections::VecDeque::with_capacity(LATENCY_WINDOW)),
             published: Mutex::new(None),
             status_asked: Mutex::new(None),
             retired: Mutex::new(false),
@@ -873,6 +881,9 @@ impl LivePipelines {
                 accept_to_voxel: LatencySummary::of(
                     lock(&shared.server_latencies).make_contiguous(),
                 ),
+                revolution_to_pose: LatencySummary::of(
+                    lock(&shared.pose_latencies).make_contiguous(),
+                ),
             };
             match edges.iter_mut().find(|e| e.name == shared.edge) {
                 Some(edge) => edge.sessions.push(session),
@@ -1077,6 +1088,8 @@ struct WorkerRun {
     last_snapshot: Instant,
     /// `(start, end)` edge times (ns) of the latest Sweep revolutions processed, oldest first.
     recent_sweeps: std::collections::VecDeque<(u64, u64)>,
+    /// `(start, end)` edge times (ns) of the latest RPLidar revolutions processed, oldest first.
+    recent_rplidar: std::collections::VecDeque<(u64, u64)>,
     /// Frames put through the pipeline.
     processed: u64,
     /// Frames taken from the queue since the last [`WorkerRun::publish`] (they count in the
@@ -1111,6 +1124,7 @@ impl WorkerRun {
             changed: false,
             last_snapshot: Instant::now(),
             recent_sweeps: std::collections::VecDeque::with_capacity(RECENT_SWEEPS),
+            recent_rplidar: std::collections::VecDeque::with_capacity(RECENT_SWEEPS),
             processed: 0,
             taken: 0,
             last_activity: Instant::now(),
@@ -1377,14 +1391,28 @@ impl WorkerRun {
             }
             self.recent_sweeps.push_back((rev.t0_ns, rev.t1_ns));
         }
-        let grew = {
+        if let Body::Revolution(rev) = &frame.body
+            && rev.sensor == SensorId::RPLIDAR
+        {
+            if self.recent_rplidar.len() == RECENT_SWEEPS {
+                self.recent_rplidar.pop_front();
+            }
+            self.recent_rplidar.push_back((rev.t0_ns, rev.t1_ns));
+        }
+        let (grew, new_pose_s) = {
             let mut slot = lock(&self.shared.pipeline);
             let Some(pipeline) = slot.running() else {
                 return;
             };
             let before = pipeline.maps().points();
+            let poses_before = pipeline.pose().map_or(0, |stage| stage.poses().len());
             pipeline.on_frame(frame);
-            pipeline.maps().points() > before
+            let newest_pose = pipeline
+                .pose()
+                .filter(|stage| stage.poses().len() > poses_before)
+                .and_then(|stage| stage.poses().last())
+                .map(|pose| pose.timestamp.seconds);
+            (pipeline.maps().points() > before, newest_pose)
         };
         self.changed = true;
         self.processed += 1;
@@ -1401,6 +1429,22 @@ impl WorkerRun {
         if grew && let Some(accepted_at) = accepted_at {
             let latency = i64::try_from(accepted_at.elapsed().as_nanos()).unwrap_or(i64::MAX);
             push_latency(&self.shared.server_latencies, latency);
+        }
+        // Revolution-to-pose latency, for frames from the queue only (a catch-up's are as old
+        // as the gap it fills): from the end of the revolution the newest pose was matched
+        // from (the one whose span holds the pose's time) to now.
+        if let (Some(pose_s), Some(clock), Some(_)) = (new_pose_s, clock, accepted_at) {
+            let pose_ns = (pose_s * 1e9).round().max(0.0) as u64;
+            if let Some(&(_, end_ns)) = self
+                .recent_rplidar
+                .iter()
+                .rev()
+                .find(|&&(t0, t1)| t0 <= pose_ns && pose_ns <= t1)
+            {
+                let latency = i128::from(unix_now_ns()) - i128::from(clock.to_server_ns(end_ns));
+                let latency = latency.clamp(i128::from(i64::MIN), i128::from(i64::MAX)) as i64;
+                push_latency(&self.shared.pose_latencies, latency);
+            }
         }
     }
 
