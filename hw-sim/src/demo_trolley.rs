@@ -437,25 +437,32 @@ pub fn run_pass(setup: &PassSetup<'_>) -> anyhow::Result<PassResult> {
     head.shutdown();
 
     let session = session_dir(setup.data_dir, EDGE_NAME, session_id);
-    let tracked = session_trajectory(&session, false)?;
-    anyhow::ensure!(
-        tracked.anchored,
-        "{}: the pass start did not anchor the trajectory in the room",
-        session.display()
-    );
     // The CI yaw fusion of the recorded session (the pose lane's fusion stage, offline): the
-    // trajectory map1 is placed with and written as, when it gives one.
+    // trajectory written as map1's, when it gives one; the matcher's is the same run's yaw.
     let (fused, fusion_failure) = match fuse_session(&session) {
         Ok(run) if !run.trajectory.is_empty() => (Some(run), None),
         Ok(_) => (None, Some("the fusion gave no pose".to_string())),
         Err(e) => (None, Some(format!("{e:#}"))),
     };
-    if let Some(why) = &fusion_failure {
-        tracing::warn!("no fused trajectory, map1 uses the matcher's: {why}");
-    }
+    let matcher = match &fused {
+        Some(run) => matcher_trajectory(run),
+        None => {
+            tracing::warn!(
+                "no fused trajectory, map1's is the matcher's: {}",
+                fusion_failure.as_deref().unwrap_or_default()
+            );
+            let tracked = session_trajectory(&session, false)?;
+            anyhow::ensure!(
+                tracked.anchored,
+                "{}: the pass start did not anchor the trajectory in the room",
+                session.display()
+            );
+            tracked.trajectory
+        }
+    };
     let placing = fused
         .as_ref()
-        .map_or_else(|| tracked.trajectory.clone(), fused_trajectory);
+        .map_or_else(|| matcher.clone(), fused_trajectory);
     let live_dir = snapshot_dir.join("passes").join(PASS_NAME);
     let (live_cloud, live_map) = (live_dir.join("cloud.ply"), live_dir.join("map.bt"));
     let score = |cloud: &[RayBundle]| {
@@ -521,7 +528,7 @@ pub fn run_pass(setup: &PassSetup<'_>) -> anyhow::Result<PassResult> {
         }
     }
     files.push(octree.clone());
-    let matcher_tum = trajectory_tum(&tracked.trajectory, span_ns);
+    let matcher_tum = trajectory_tum(&matcher, span_ns);
     let estimate = trajectory_tum(&placing, span_ns);
     let trajectory_file = setup
         .out
@@ -587,6 +594,26 @@ pub fn fused_trajectory(run: &FusedRun) -> PlanarTrajectory {
             yaw_rad: p.yaw,
             roll_rad: p.roll,
             pitch_rad: p.pitch,
+        });
+    }
+    trajectory
+}
+
+/// The fused run's trajectory with the matcher's yaw instead of the fused one (x and y are the
+/// matcher's in both): the scan matcher alone, from the same run of the pose stage (the fused
+/// yaw where the run has no source row at a pose's time).
+pub fn matcher_trajectory(run: &FusedRun) -> PlanarTrajectory {
+    let yaw: std::collections::HashMap<u64, f64> =
+        run.sources.iter().map(|s| (s.t_ns, s.matcher)).collect();
+    let mut trajectory = PlanarTrajectory::new();
+    for p in &run.trajectory {
+        let _ = trajectory.push(TrajectoryPoint {
+            t_ns: p.t_ns,
+            x_m: p.x,
+            y_m: p.y,
+            yaw_rad: yaw.get(&p.t_ns).copied().unwrap_or(p.yaw),
+            roll_rad: 0.0,
+            pitch_rad: 0.0,
         });
     }
     trajectory
