@@ -38,6 +38,8 @@ sleep 2
 $B/scan3d snapshot --config server.toml --edge edge-sim-01 --out "$R/snap" > snap.log 2>&1
 $B/scan3d traj-eval "$R/snap/passes/loop/trajectory.tum" "$R/truth.tum" > eval.txt 2>&1
 $B/scan3d traj-eval "$R/snap/trajectory.tum" "$R/truth.tum" > eval-all.txt 2>&1
+$B/scan3d traj-eval "$R/snap/passes/loop/trajectory_fused.tum" "$R/truth.tum" > eval-fused.txt 2>&1
 kill $(cat edge.pid) $(cat rig.pid) $(cat serve.pid) 2>/dev/null
 wait 2>/dev/null
-cat start.log stop.log eval.txt eval-all.txt
+cat start.log stop.log eval.txt eval-all.txt eval-fused.txt
+ls -l "$R/snap/passes/loop"
