@@ -126,6 +126,12 @@ pub fn table(report: &Value) -> String {
         }
         for session in &sessions {
             let sync = &session["timesync"];
+            // A retired worker's numbers are its last; its snapshots come from disk.
+            let state = if session["retired"] == Value::Bool(true) {
+                "retired"
+            } else {
+                state
+            };
             rows.push(vec![
                 name.clone(),
                 state.to_owned(),
@@ -206,6 +212,49 @@ pub fn table(report: &Value) -> String {
                     (c(0) + c(4)).sqrt() * 1e3,
                     c(8).sqrt().to_degrees(),
                     pose["path_m"].as_f64().unwrap_or(f64::NAN),
+                );
+                let latency = &session["revolution_to_pose"];
+                if latency.is_object() {
+                    let _ = writeln!(
+                        s,
+                        "    pose {} after its revolution's end (p50), {} (p99), over {} poses",
+                        fixed(&latency["p50_ms"], 1.0, 0) + " ms",
+                        fixed(&latency["p99_ms"], 1.0, 0) + " ms",
+                        num(&latency["count"]),
+                    );
+                }
+            }
+        }
+        let passes: Vec<(&str, &Value)> = sessions
+            .iter()
+            .flat_map(|session| {
+                let id = session["id"].as_str().unwrap_or("?");
+                session["passes"]
+                    .as_array()
+                    .into_iter()
+                    .flatten()
+                    .map(move |pass| (id, pass))
+            })
+            .collect();
+        if !passes.is_empty() {
+            let _ = writeln!(
+                s,
+                "\n{name}: trolley passes (placed live along the trajectory)"
+            );
+            for (id, pass) in passes {
+                let state = if pass["stopped"] == Value::Bool(true) {
+                    "stopped"
+                } else {
+                    "running"
+                };
+                let _ = writeln!(
+                    s,
+                    "  {:?} ({id}): {state}, {} Sweep revolutions, {} points, {} held, {} dropped",
+                    pass["name"].as_str().unwrap_or("?"),
+                    num(&pass["revolutions"]),
+                    num(&pass["points"]),
+                    num(&pass["held"]),
+                    num(&pass["dropped"]),
                 );
             }
         }
@@ -313,5 +362,46 @@ mod tests {
         );
         let empty = super::table(&serde_json::json!({"edges": []}));
         assert!(empty.contains("no edge connected"), "{empty}");
+    }
+
+    #[test]
+    fn the_table_shows_retired_sessions_passes_and_the_pose_latency() {
+        let report = serde_json::json!({"edges": [
+            {"name": "pi", "connected": true, "sensors": [], "static_scans": [], "sessions": [
+                {"id": "00000000000000ab", "retired": true, "frames": 3, "samples": 0,
+                 "revolutions": 0, "occupied_voxels": 0, "free_voxels": 0, "lag_ms": 0,
+                 "lag_frames": 0, "timesync": null, "metrics": null},
+                {"id": "00000000000000cd", "retired": false, "frames": 9, "samples": 10,
+                 "revolutions": 2, "occupied_voxels": 1, "free_voxels": 2, "lag_ms": 0,
+                 "lag_frames": 0, "timesync": null, "metrics": null,
+                 "pose": {"x": 0.0, "y": 0.0, "yaw_deg": 0.0, "covariance": [0, 0, 0, 0, 0, 0, 0, 0, 0],
+                          "path_m": 0.0, "revolutions": 2, "anchored": true},
+                 "revolution_to_pose": {"count": 475, "p50_ms": 99.07, "p99_ms": 161.9,
+                                        "max_ms": 219.5},
+                 "passes": [{"name": "loop", "stopped": false, "revolutions": 400,
+                             "samples": 43015, "unplaced_samples": 0, "points": 43015,
+                             "held": 1, "dropped": 0}]}]}]});
+        let table = table(&report);
+        let lines: Vec<&str> = table.lines().collect();
+        assert!(
+            lines[1].starts_with("pi    retired    00000000000000ab"),
+            "{table}"
+        );
+        assert!(
+            lines[2].starts_with("pi    connected  00000000000000cd"),
+            "{table}"
+        );
+        assert!(
+            table.contains(
+                "pose 99 ms after its revolution's end (p50), 162 ms (p99), over 475 poses"
+            ),
+            "{table}"
+        );
+        assert!(
+            table.contains(
+                "\"loop\" (00000000000000cd): running, 400 Sweep revolutions, 43015 points, 1 held, 0 dropped"
+            ),
+            "{table}"
+        );
     }
 }
