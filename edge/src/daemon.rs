@@ -1025,7 +1025,10 @@ fn lidar_worker(
             }
             pause = submit_in_order(
                 sensor,
-                &mut |body| submit_frame(context, sensor, body),
+                // At once: the server matches the live pose of the head from each RPLidar
+                // revolution as it comes (the IMU readings read so far, deferred, ride in the
+                // same write), and builds a static scan's live map from the Sweep's.
+                &mut |body| context.submit(body),
                 &mut refused,
                 &mut bodies,
             );
@@ -1087,18 +1090,6 @@ fn lidar_worker(
         }
     }
     report
-}
-
-/// Submits a lidar worker's frame. The RPLidar's revolutions ride with the uplink's next batch
-/// ([`UplinkHandle::submit_deferred`]: nothing on the server waits on them within 100 ms);
-/// the Sweep's go at once (the live map of a static scan is built from them), and so do
-/// status, hello and static-scan frames.
-fn submit_frame(context: &Context, sensor: SensorId, body: Body) -> Result<(), SubmitError> {
-    if sensor == SensorId::RPLIDAR && matches!(body, Body::Revolution(_)) {
-        context.submit_deferred(body)
-    } else {
-        context.submit(body)
-    }
 }
 
 fn status_body(

@@ -347,6 +347,14 @@ pub trait Stage: std::any::Any + Send {
     fn streams(&self) -> &'static [StreamId] {
         &[]
     }
+    /// The time its lane orders `frame` by, given the pipeline's (`default_ns`: a revolution's
+    /// end, a sample's time). Only the first stage of a lane is asked; a stage that needs a
+    /// revolution before the other streams reach its end (the pose stage: its pose is for the
+    /// middle of the beams) keys it earlier, so it leaves sooner.
+    fn key_ns(&self, frame: &Frame, default_ns: u64) -> u64 {
+        let _ = frame;
+        default_ns
+    }
     /// Takes one frame and what the earlier stages of its lane handed on for it in `ctx`.
     fn on_frame(&mut self, ctx: &mut StageContext, frame: &Frame);
     /// Takes one pose of `base` handed on by an earlier lane, in sample-time order among the
@@ -775,9 +783,12 @@ impl SessionPipeline {
             if !self.lanes[index].takes(stream) {
                 continue;
             }
-            let lane = &mut self.lanes[index];
+            let lane = &self.lanes[index];
             // An untimed frame takes its place at the lane's newest time.
-            let t = t_ns.unwrap_or_else(|| lane.queue.frontier_ns().unwrap_or(0));
+            let t = match t_ns {
+                Some(t) => self.stages[lane.stages[0]].key_ns(&frame, t),
+                None => lane.queue.frontier_ns().unwrap_or(0),
+            };
             self.push_item(index, stream, t, LaneItem::Frame(Arc::clone(&frame)));
         }
     }

@@ -68,6 +68,11 @@ pub const GYRO_BIAS_MEMORY_S: f64 = 60.0;
 /// samples at the edge's 200 Hz. A longer one and the interval gets no gyro prior.
 pub const GYRO_MAX_GAP_S: f64 = 0.05;
 
+/// How far past the middle of an RPLidar revolution's span the pose lane keys it, ns: three
+/// IMU samples at 200 Hz, so the sample at or after the pose's time (the middle of the beams,
+/// at or before the span's middle) has been taken when the revolution is matched.
+pub const POSE_KEY_MARGIN_NS: u64 = 15_000_000;
+
 /// IMU samples kept waiting for the next revolution at most (20 s at 200 Hz): without
 /// revolutions the oldest are dropped.
 const GYRO_MAX_SAMPLES: usize = 4096;
@@ -634,6 +639,20 @@ impl Stage for PoseStage {
         &[StreamId::Rplidar, StreamId::Imu, StreamId::Pass]
     }
 
+    /// An RPLidar revolution is keyed at the middle of its span plus [`POSE_KEY_MARGIN_NS`]
+    /// (at most its end): its pose is for the middle of its beams, and the gyro's prior needs
+    /// the IMU only a sample past that, so the revolution need not wait until the IMU has
+    /// reached its end (the edge reads the IMU's FIFO in batches, ~37 ms apart).
+    fn key_ns(&self, frame: &Frame, default_ns: u64) -> u64 {
+        match &frame.body {
+            Body::Revolution(rev) if rev.sensor == scan3d_protocol::SensorId::RPLIDAR => {
+                let middle = rev.t0_ns + rev.t1_ns.saturating_sub(rev.t0_ns) / 2;
+                middle.saturating_add(POSE_KEY_MARGIN_NS).min(default_ns)
+            }
+            _ => default_ns,
+        }
+    }
+
     fn on_frame(&mut self, ctx: &mut StageContext, frame: &Frame) {
         let revolution = match &frame.body {
             Body::Revolution(revolution) => revolution,
@@ -714,6 +733,22 @@ impl Stage for PoseStage {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_rplidar_revolution_is_keyed_past_its_middle_and_others_as_given() {
+        let stage = PoseStage::new(MapperConfig::default(), Pose2::default());
+        let frame = |rev: scan3d_protocol::LidarRevolution| Frame::new(1, 0, rev);
+        let ms = 1_000_000;
+        // 180 ms: middle at 90 ms, keyed 15 ms past it.
+        let long = scan3d_protocol::LidarRevolution::new(SensorId::RPLIDAR, 1000 * ms, 1180 * ms);
+        assert_eq!(stage.key_ns(&frame(long), 1180 * ms), 1105 * ms);
+        // 20 ms: the margin would pass the end, so the end.
+        let short = scan3d_protocol::LidarRevolution::new(SensorId::RPLIDAR, 1000 * ms, 1020 * ms);
+        assert_eq!(stage.key_ns(&frame(short), 1020 * ms), 1020 * ms);
+        // Not an RPLidar revolution: the pipeline's key.
+        let sweep = scan3d_protocol::LidarRevolution::new(SensorId::SWEEP, 1000 * ms, 1180 * ms);
+        assert_eq!(stage.key_ns(&frame(sweep), 1180 * ms), 1180 * ms);
+    }
 
     #[test]
     fn an_anchor_carries_the_whole_trajectory_into_the_room_frame() {
