@@ -410,7 +410,7 @@ impl Mount {
 
     /// Checks every value is finite and in range; `key` is the section (`sweep.mount`).
     fn validate(&self, key: &str) -> Result<(), InvalidSetting> {
-        for (name, value) in [("x", self.x), ("y", self.y), ("z", self.z)] {
+        for (name, value) in [("x", self.x), ("y", self.y)] {
             check_f64(
                 &format!("{key}.{name}"),
                 value,
@@ -418,6 +418,13 @@ impl Mount {
                 "a finite distance of at most 100 m",
             )?;
         }
+        // `base`'s origin is at floor level: a sensor under it is a sign error.
+        check_f64(
+            &format!("{key}.z"),
+            self.z,
+            0.0..=100.0,
+            "a finite height above the floor (base's origin is on it), at most 100 m",
+        )?;
         for (name, value) in [
             ("roll", self.roll),
             ("pitch", self.pitch),
@@ -1089,6 +1096,12 @@ mod tests {
         let message = parse(rplidar).unwrap_err();
         assert!(
             message.starts_with("e: line 6: `rplidar.mount.yaw` = NaN"),
+            "{message}"
+        );
+        let below = format!("{SWEEP}[sweep.mount]\nz = -0.3\n");
+        let message = parse(&below).unwrap_err();
+        assert!(
+            message.contains("`sweep.mount.z` = -0.3") && message.contains("above the floor"),
             "{message}"
         );
         let imu = "[imu]\n[imu.mount]\nx = 0.1\nroll = -inf\n";
