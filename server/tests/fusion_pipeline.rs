@@ -6,6 +6,7 @@
 
 mod pipeline_support;
 
+use nalgebra::{UnitQuaternion, Vector3};
 use pipeline_support::{DEMO_ROOM, SessionBuilder};
 use scan3d_protocol::{ImuSample, SensorId, SensorMount, SensorMounts};
 use scan3d_server::pipeline::fusion_stage::fuse_session_into;
@@ -77,34 +78,13 @@ struct ImuFaults {
     late: bool,
 }
 
-type Quaternion = [f64; 4];
-
-fn mul(a: Quaternion, b: Quaternion) -> Quaternion {
-    [
-        a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3],
-        a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2],
-        a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1],
-        a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0],
-    ]
+fn from_euler(roll: f64, pitch: f64, yaw: f64) -> UnitQuaternion<f64> {
+    UnitQuaternion::from_euler_angles(roll, pitch, yaw)
 }
 
-fn from_euler(roll: f64, pitch: f64, yaw: f64) -> Quaternion {
-    let (sr, cr) = (roll / 2.0).sin_cos();
-    let (sp, cp) = (pitch / 2.0).sin_cos();
-    let (sy, cy) = (yaw / 2.0).sin_cos();
-    [
-        cr * cp * cy + sr * sp * sy,
-        sr * cp * cy - cr * sp * sy,
-        cr * sp * cy + sr * cp * sy,
-        cr * cp * sy - sr * sp * cy,
-    ]
-}
-
-/// `v` (earth frame) in the frame `q` rotates into the earth: qᶜ v q.
-fn to_sensor(q: Quaternion, v: [f64; 3]) -> [f64; 3] {
-    let c = [q[0], -q[1], -q[2], -q[3]];
-    let r = mul(mul(c, [0.0, v[0], v[1], v[2]]), q);
-    [r[1], r[2], r[3]]
+/// `v` (earth frame) in the frame `q` rotates into the earth.
+fn to_sensor(q: UnitQuaternion<f64>, v: [f64; 3]) -> [f64; 3] {
+    q.inverse_transform_vector(&Vector3::from(v)).into()
 }
 
 /// A deterministic normal-ish draw (sum of uniforms) per (seed, k).
@@ -158,8 +138,8 @@ fn record(faults: ImuFaults, dir: &std::path::Path) -> (std::path::PathBuf, Vec<
                     let error = 0.8f64.to_radians() * (0.3 * t_ns as f64 * 1e-9).sin()
                         + 0.3f64.to_radians() * noise(faults.seed, tick)
                         + if disturbed { 20f64.to_radians() } else { 0.0 };
-                    let true_imu = mul(from_euler(0.0, 0.0, yaw - NORTH), mount);
-                    let reported = mul(from_euler(0.0, 0.0, yaw - NORTH + error), mount);
+                    let true_imu = from_euler(0.0, 0.0, yaw - NORTH) * mount;
+                    let reported = from_euler(0.0, 0.0, yaw - NORTH + error) * mount;
                     let magnitude = FIELD_UT * if disturbed { 1.15 } else { 1.0 };
                     let field = [magnitude * DIP.cos(), 0.0, -magnitude * DIP.sin()];
                     let mag = to_sensor(true_imu, field);
@@ -175,7 +155,9 @@ fn record(faults: ImuFaults, dir: &std::path::Path) -> (std::path::PathBuf, Vec<
                         } else {
                             [f32::NAN; 3]
                         },
-                        orientation: Some(reported.map(|v| v as f32)),
+                        orientation: Some(
+                            [reported.w, reported.i, reported.j, reported.k].map(|v| v as f32),
+                        ),
                     });
                 }
             }

@@ -28,6 +28,7 @@
 
 use std::collections::VecDeque;
 
+use nalgebra::UnitQuaternion;
 use serde::Serialize;
 
 use scan3d_protocol::{ImuSample, SensorId, SensorMounts};
@@ -56,37 +57,17 @@ const MAX_PENDING: usize = 1024;
 /// The longest IMU gap (s) the gyro-alone yaw integrates over; a longer one stops it.
 const GYRO_MAX_GAP_S: f64 = 0.2;
 
-/// A quaternion `[w, x, y, z]`.
+/// A quaternion `[w, x, y, z]`, as the wire carries the edge's orientation.
 type Quaternion = [f64; 4];
 
-fn quat_mul(a: Quaternion, b: Quaternion) -> Quaternion {
-    [
-        a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3],
-        a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2],
-        a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1],
-        a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0],
-    ]
-}
-
-/// The rotation `Rz(yaw) Ry(pitch) Rx(roll)` as a quaternion.
-fn quat_from_euler(roll: f64, pitch: f64, yaw: f64) -> Quaternion {
-    let (sr, cr) = (roll / 2.0).sin_cos();
-    let (sp, cp) = (pitch / 2.0).sin_cos();
-    let (sy, cy) = (yaw / 2.0).sin_cos();
-    [
-        cr * cp * cy + sr * sp * sy,
-        sr * cp * cy - cr * sp * sy,
-        cr * sp * cy + sr * cp * sy,
-        cr * cp * sy - sr * sp * cy,
-    ]
+/// `q` as nalgebra's unit quaternion (normalised).
+fn unit(q: Quaternion) -> UnitQuaternion<f64> {
+    UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q[0], q[1], q[2], q[3]))
 }
 
 /// Roll, pitch, yaw (rad) of `q` read as `Rz(yaw) Ry(pitch) Rx(roll)`.
 pub fn euler_from_quaternion(q: Quaternion) -> [f64; 3] {
-    let [w, x, y, z] = q;
-    let roll = (2.0 * (w * x + y * z)).atan2(1.0 - 2.0 * (x * x + y * y));
-    let pitch = (2.0 * (w * y - z * x)).clamp(-1.0, 1.0).asin();
-    let yaw = (2.0 * (w * z + x * y)).atan2(1.0 - 2.0 * (y * y + z * z));
+    let (roll, pitch, yaw) = unit(q).euler_angles();
     [roll, pitch, wrap_angle(yaw)]
 }
 
@@ -204,7 +185,7 @@ pub struct FusionCounts {
 pub struct PoseFusion {
     fuser: YawFuser,
     /// q_mount⁻¹ (base → IMU).
-    mount_inverse: Quaternion,
+    mount_inverse: UnitQuaternion<f64>,
     /// `base`'s z axis in the IMU's frame.
     axis: [f64; 3],
     /// The IMU samples of the last [`HISTORY_S`] seconds.
@@ -232,7 +213,7 @@ impl PoseFusion {
     pub fn new(config: FuserConfig) -> Result<Self, FusionError> {
         Ok(Self {
             fuser: YawFuser::new(config)?,
-            mount_inverse: [1.0, 0.0, 0.0, 0.0],
+            mount_inverse: UnitQuaternion::identity(),
             axis: [0.0, 0.0, 1.0],
             history: VecDeque::new(),
             last_imu_t: None,
@@ -266,8 +247,7 @@ impl PoseFusion {
                 tracing::warn!("the IMU's mount is not finite: the fusion keeps the previous one");
                 return;
             }
-            let q = quat_from_euler(roll, pitch, yaw);
-            self.mount_inverse = [q[0], -q[1], -q[2], -q[3]];
+            self.mount_inverse = UnitQuaternion::from_euler_angles(roll, pitch, yaw).inverse();
             let (sr, cr) = roll.sin_cos();
             let (sp, cp) = pitch.sin_cos();
             self.axis = [-sp, cp * sr, cp * cr];
@@ -302,10 +282,10 @@ impl PoseFusion {
         let mut settled = Vec::new();
         if let Some(q) = orientation {
             self.orientation_seen = true;
-            let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
-            let q = q.map(|v| v / norm);
-            let base = quat_mul(q, self.mount_inverse);
-            let [roll, pitch, yaw] = euler_from_quaternion(base);
+            let imu = unit(q);
+            let q = [imu.w, imu.i, imu.j, imu.k];
+            let (roll, pitch, yaw) = (imu * self.mount_inverse).euler_angles();
+            let yaw = wrap_angle(yaw);
             roll_pitch = Some([roll, pitch]);
             let mag = sample.mag_ut.map(f64::from);
             let field = if mag.iter().all(|v| v.is_finite()) {
@@ -554,9 +534,20 @@ mod tests {
 
     /// `v` (earth frame) in the frame `q` rotates into the earth.
     fn to_sensor(q: Quaternion, v: [f64; 3]) -> [f64; 3] {
-        let c = [q[0], -q[1], -q[2], -q[3]];
-        let r = quat_mul(quat_mul(c, [0.0, v[0], v[1], v[2]]), q);
-        [r[1], r[2], r[3]]
+        unit(q)
+            .inverse_transform_vector(&nalgebra::Vector3::from(v))
+            .into()
+    }
+
+    /// The rotation `Rz(yaw) Ry(pitch) Rx(roll)` as `[w, x, y, z]`.
+    fn quat_from_euler(roll: f64, pitch: f64, yaw: f64) -> Quaternion {
+        let q = UnitQuaternion::from_euler_angles(roll, pitch, yaw);
+        [q.w, q.i, q.j, q.k]
+    }
+
+    fn quat_mul(a: Quaternion, b: Quaternion) -> Quaternion {
+        let q = unit(a) * unit(b);
+        [q.w, q.i, q.j, q.k]
     }
 
     fn noise(seed: u64, k: u64) -> f64 {
