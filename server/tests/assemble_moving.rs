@@ -5,64 +5,18 @@
 //! its revolution's start pose) puts them.
 
 mod pipeline_support;
+mod trolley_support;
 
 use std::path::{Path, PathBuf};
 
-use clap::Parser;
-use pipeline_support::{DEMO_ROOM, SessionBuilder, range_to_walls};
+use pipeline_support::{DEMO_ROOM, SessionBuilder};
 use scan3d_map::cloud::moving::{BaseTrajectory, FnTrajectory, RigidTransform, place_revolution};
-use scan3d_protocol::{
-    Body, LidarRevolution, PassEvent, PassMarker, SensorId, SensorMount, SensorMounts,
-};
+use scan3d_protocol::{Body, PassEvent, PassMarker, SensorId, SensorMounts};
 use scan3d_server::cli::assemble_moving::session_trajectory;
-use scan3d_server::cli::{Cli, execute};
-
-/// A revolution of both lidars, ns (as [`SessionBuilder::rplidar_moving`] makes them).
-const REVOLUTION_NS: u64 = 180_000_000;
-
-/// The Sweep on the trolley: 1 m up, 0.1 m ahead of `base`, its scan plane vertical across the
-/// direction of travel (pitch −90°: azimuth 0 up, 90° along `base` +y).
-const SWEEP_MOUNT: SensorMount = SensorMount {
-    sensor: SensorId::SWEEP,
-    x_m: 0.1,
-    y_m: 0.0,
-    z_m: 1.0,
-    roll_deg: 0.0,
-    pitch_deg: -90.0,
-    yaw_deg: 0.0,
-};
+use trolley_support::{REVOLUTION_NS, SWEEP_MOUNT, scan3d, sweep_revolution, to_surface};
 
 /// Samples per Sweep revolution.
 const SWEEP_SAMPLES: usize = 360;
-
-/// One Sweep revolution from `t0`, `base` moving from `pose` (x, y, heading) at `velocity`:
-/// each sample ray-cast against the room from where the Sweep was at its own time. The beam at
-/// azimuth α points along (0, sin α, cos α) in `base` (the mount above, written out by hand).
-fn sweep_revolution(t0: u64, pose: [f64; 3], velocity: [f64; 3]) -> LidarRevolution {
-    let mut rev = LidarRevolution::new(SensorId::SWEEP, t0, t0 + REVOLUTION_NS);
-    for i in 0..SWEEP_SAMPLES {
-        let dt_ns = i as u64 * REVOLUTION_NS / SWEEP_SAMPLES as u64;
-        let dt = dt_ns as f64 * 1e-9;
-        let [x, y, heading] = [0, 1, 2].map(|k| pose[k] + velocity[k] * dt);
-        let (s, c) = heading.sin_cos();
-        let alpha = (360.0 * i as f64 / SWEEP_SAMPLES as f64).to_radians();
-        let d_base = [0.0, alpha.sin(), alpha.cos()];
-        let d = [
-            c * d_base[0] - s * d_base[1],
-            s * d_base[0] + c * d_base[1],
-            d_base[2],
-        ];
-        let o = [
-            x + c * SWEEP_MOUNT.x_m,
-            y + s * SWEEP_MOUNT.x_m,
-            SWEEP_MOUNT.z_m,
-        ];
-        let range = range_to_walls(DEMO_ROOM, o, d);
-        rev.push(alpha.to_degrees() as f32, range as f32, 200, t0 + dt_ns)
-            .expect("sample time");
-    }
-    rev
-}
 
 /// What to put in the recording.
 struct Options {
@@ -104,7 +58,7 @@ fn record(dir: &Path, options: &Options) -> PathBuf {
                 s.rplidar_moving(1, 360, pose, velocity);
                 assert_eq!(s.now_ns(), t0 + REVOLUTION_NS);
             }
-            s.push(sweep_revolution(t0, pose, velocity));
+            s.push(sweep_revolution(t0, pose, velocity, SWEEP_SAMPLES));
             t0 += REVOLUTION_NS;
             for k in 0..3 {
                 pose[k] += velocity[k] * REVOLUTION_NS as f64 * 1e-9;
@@ -118,23 +72,6 @@ fn record(dir: &Path, options: &Options) -> PathBuf {
         },
     });
     s.record(dir, "trolley")
-}
-
-/// Runs `scan3d ARGS…` in-process: its output, or its error as one line.
-fn scan3d(args: &[&str]) -> Result<String, String> {
-    let cli = Cli::try_parse_from(std::iter::once("scan3d").chain(args.iter().copied()))
-        .map_err(|e| e.to_string())?;
-    let mut out = Vec::new();
-    execute(cli, &mut out).map_err(|e| format!("{e:#}"))?;
-    Ok(String::from_utf8(out).expect("utf-8"))
-}
-
-/// Distance of `p` from the nearest of the room's six surfaces, m.
-fn to_surface(p: [f64; 3]) -> f64 {
-    let (lo, hi) = DEMO_ROOM;
-    (0..3)
-        .flat_map(|a| [(p[a] - lo[a]).abs(), (hi[a] - p[a]).abs()])
-        .fold(f64::INFINITY, f64::min)
 }
 
 /// Mean distance to the room's surfaces of every point of `bundles`.

@@ -8,29 +8,10 @@ mod trolley_support;
 
 use std::path::Path;
 
-use clap::Parser;
-use pipeline_support::{DEMO_ROOM, SessionBuilder, position};
+use pipeline_support::{SessionBuilder, position};
 use scan3d_protocol::{Body, Frame, Hello, SensorId, SensorInfo};
-use scan3d_server::cli::{Cli, execute};
 use scan3d_server::pipeline::{PipelineSettings, SessionPipeline};
-use trolley_support::{SWEEP_SAMPLES, Trolley, trolley_session};
-
-/// Runs `scan3d ARGS…` in-process: its output, or its error as one line.
-fn scan3d(args: &[&str]) -> Result<String, String> {
-    let cli = Cli::try_parse_from(std::iter::once("scan3d").chain(args.iter().copied()))
-        .map_err(|e| e.to_string())?;
-    let mut out = Vec::new();
-    execute(cli, &mut out).map_err(|e| format!("{e:#}"))?;
-    Ok(String::from_utf8(out).expect("utf-8"))
-}
-
-/// Distance of `p` from the nearest of the demo room's six surfaces, m.
-fn to_surface(p: [f64; 3]) -> f64 {
-    let (lo, hi) = DEMO_ROOM;
-    (0..3)
-        .flat_map(|a| [(p[a] - lo[a]).abs(), (hi[a] - p[a]).abs()])
-        .fold(f64::INFINITY, f64::min)
-}
+use trolley_support::{SWEEP_SAMPLES, Trolley, scan3d, to_surface, trolley_session};
 
 /// A live daemon's pipeline fed `frames` one by one (no flush: a live session goes on).
 fn live(frames: impl IntoIterator<Item = Frame>) -> SessionPipeline {

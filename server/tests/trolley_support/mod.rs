@@ -24,19 +24,26 @@ pub const SWEEP_MOUNT: SensorMount = SensorMount {
     yaw_deg: 0.0,
 };
 
-/// Samples per Sweep revolution.
+/// Samples per Sweep revolution of [`trolley_session`].
 pub const SWEEP_SAMPLES: usize = 120;
 
-/// One Sweep revolution from `t0`, `base` moving from `pose` (x, y, heading) at `velocity`:
-/// each sample ray-cast against the room from where the Sweep was at its own time.
-pub fn sweep_revolution(t0: u64, pose: [f64; 3], velocity: [f64; 3]) -> LidarRevolution {
+/// One Sweep revolution of `samples` samples from `t0`, `base` moving from `pose` (x, y,
+/// heading) at `velocity`: each sample ray-cast against the room from where the Sweep was at
+/// its own time. The beam at azimuth α points along (0, sin α, cos α) in `base` (the mount
+/// above, written out by hand).
+pub fn sweep_revolution(
+    t0: u64,
+    pose: [f64; 3],
+    velocity: [f64; 3],
+    samples: usize,
+) -> LidarRevolution {
     let mut rev = LidarRevolution::new(SensorId::SWEEP, t0, t0 + REVOLUTION_NS);
-    for i in 0..SWEEP_SAMPLES {
-        let dt_ns = i as u64 * REVOLUTION_NS / SWEEP_SAMPLES as u64;
+    for i in 0..samples {
+        let dt_ns = i as u64 * REVOLUTION_NS / samples as u64;
         let dt = dt_ns as f64 * 1e-9;
         let [x, y, heading] = [0, 1, 2].map(|k| pose[k] + velocity[k] * dt);
         let (s, c) = heading.sin_cos();
-        let alpha = (360.0 * i as f64 / SWEEP_SAMPLES as f64).to_radians();
+        let alpha = (360.0 * i as f64 / samples as f64).to_radians();
         let d_base = [0.0, alpha.sin(), alpha.cos()];
         let d = [
             c * d_base[0] - s * d_base[1],
@@ -149,7 +156,7 @@ pub fn trolley_session(options: Trolley) -> SessionBuilder {
             if options.rplidar {
                 s.rplidar_moving(1, 360, pose, velocity);
             }
-            s.push(sweep_revolution(t0, pose, velocity));
+            s.push(sweep_revolution(t0, pose, velocity, SWEEP_SAMPLES));
             t0 += REVOLUTION_NS;
             for k in 0..3 {
                 pose[k] += velocity[k] * REVOLUTION_NS as f64 * 1e-9;
@@ -157,4 +164,24 @@ pub fn trolley_session(options: Trolley) -> SessionBuilder {
         }
     }
     s
+}
+
+/// Runs `scan3d ARGS…` in-process: its output, or its error as one line.
+pub fn scan3d(args: &[&str]) -> Result<String, String> {
+    use clap::Parser;
+    let cli = scan3d_server::cli::Cli::try_parse_from(
+        std::iter::once("scan3d").chain(args.iter().copied()),
+    )
+    .map_err(|e| e.to_string())?;
+    let mut out = Vec::new();
+    scan3d_server::cli::execute(cli, &mut out).map_err(|e| format!("{e:#}"))?;
+    Ok(String::from_utf8(out).expect("utf-8"))
+}
+
+/// Distance of `p` from the nearest of the demo room's six surfaces, m.
+pub fn to_surface(p: [f64; 3]) -> f64 {
+    let (lo, hi) = DEMO_ROOM;
+    (0..3)
+        .flat_map(|a| [(p[a] - lo[a]).abs(), (hi[a] - p[a]).abs()])
+        .fold(f64::INFINITY, f64::min)
 }
