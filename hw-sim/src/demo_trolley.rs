@@ -603,8 +603,11 @@ pub fn fused_trajectory(run: &FusedRun) -> PlanarTrajectory {
 /// matcher's in both): the scan matcher alone, from the same run of the pose stage (the fused
 /// yaw where the run has no source row at a pose's time).
 pub fn matcher_trajectory(run: &FusedRun) -> PlanarTrajectory {
-    let yaw: std::collections::HashMap<u64, f64> =
-        run.sources.iter().map(|s| (s.t_ns, s.matcher)).collect();
+    let yaw: std::collections::HashMap<u64, f64> = run
+        .sources
+        .iter()
+        .map(|s| (s.yaws.t_ns, s.yaws.matcher))
+        .collect();
     let mut trajectory = PlanarTrajectory::new();
     for p in &run.trajectory {
         let _ = trajectory.push(TrajectoryPoint {
@@ -629,7 +632,7 @@ fn yaw_of(pose: &Isometry3<f64>) -> f64 {
 pub fn on_edge_clock(run: &FusedRun) -> FusedRun {
     let mut run = run.clone();
     for s in &mut run.sources {
-        s.t_s = s.t_ns as f64 * 1e-9;
+        s.t_s = s.yaws.t_ns as f64 * 1e-9;
     }
     for p in &mut run.trajectory {
         p.t_s = p.t_ns as f64 * 1e-9;
@@ -647,12 +650,12 @@ fn truth_yaw_at_poses(
 ) -> Vec<(u64, f64)> {
     let mut truth: Vec<(u64, f64)> = Vec::new();
     for s in &run.sources {
-        if s.t_ns < span_ns.0 || s.t_ns > span_ns.1 {
+        if s.yaws.t_ns < span_ns.0 || s.yaws.t_ns > span_ns.1 {
             continue;
         }
         let t = (s.t_s * 1e9).round().max(0.0) as u64;
         if truth.last().is_none_or(|last| t > last.0) {
-            truth.push((t, yaw_at(s.t_ns)));
+            truth.push((t, yaw_at(s.yaws.t_ns)));
         }
     }
     truth

@@ -58,7 +58,8 @@ pub fn yaw_errors(run: &FusedRun, truth: &[(u64, f64)]) -> Vec<Fig5Series> {
             continue;
         };
         let t = s.t_s - t0;
-        for (k, yaw) in [s.gyro, s.madgwick, Some(s.matcher), Some(s.fused)]
+        let y = &s.yaws;
+        for (k, yaw) in [y.gyro, y.madgwick, Some(y.matcher), Some(y.fused)]
             .into_iter()
             .enumerate()
         {
@@ -178,17 +179,19 @@ mod tests {
     #[test]
     fn fig5_is_written_with_the_errors_against_the_truth() {
         let pose = |t_s: f64, yaw: f64| PoseYaws {
-            t_ns: 0,
             t_s,
-            matcher: yaw + 0.01,
-            matcher_variance: 1e-4,
-            madgwick: Some(yaw - 0.02),
-            madgwick_variance: Some(4e-4),
-            gyro: Some(yaw + 0.03 * t_s),
-            gyro_variance: Some(1e-3),
-            fused: yaw,
-            fused_variance: 1e-4,
-            omega: Some(0.4),
+            yaws: crate::pose::fusion::YawSources {
+                t_ns: 0,
+                matcher: yaw + 0.01,
+                matcher_variance: 1e-4,
+                madgwick: Some(yaw - 0.02),
+                madgwick_variance: Some(4e-4),
+                gyro: Some(yaw + 0.03 * t_s),
+                gyro_variance: Some(1e-3),
+                fused: yaw,
+                fused_variance: 1e-4,
+                omega: Some(0.4),
+            },
             fused_from_both: true,
         };
         let run = FusedRun {

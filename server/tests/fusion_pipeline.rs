@@ -199,7 +199,7 @@ fn errors(run: &FusedRun, truth: &[f64]) -> Vec<(f64, Option<f64>, f64)> {
         .map(|(s, t)| {
             let want = t - truth[0];
             let e = |yaw: f64| wrap_angle(yaw - want).to_degrees();
-            (e(s.matcher), s.madgwick.map(e), e(s.fused))
+            (e(s.yaws.matcher), s.yaws.madgwick.map(e), e(s.yaws.fused))
         })
         .collect()
 }
@@ -247,12 +247,12 @@ fn the_fused_yaw_is_no_worse_than_the_better_source_and_base_stays_level() {
         );
         // The stage rewrote the poses it handed on with the fused yaw.
         for (pose, s) in run.trajectory.iter().zip(&run.sources) {
-            assert_eq!(pose.yaw, s.fused);
+            assert_eq!(pose.yaw, s.yaws.fused);
         }
         assert!(
             run.sources
                 .iter()
-                .any(|s| (s.fused - s.matcher).abs() > 1e-6),
+                .any(|s| (s.yaws.fused - s.yaws.matcher).abs() > 1e-6),
             "Madgwick never moved the yaw"
         );
         // Upside down and turned on base: base itself is level.
@@ -324,9 +324,9 @@ fn frames_that_arrive_late_are_joined_by_their_sample_time() {
         b.counts
     );
     for (x, y) in a.sources.iter().zip(&b.sources) {
-        assert_eq!(x.t_ns, y.t_ns);
+        assert_eq!(x.yaws.t_ns, y.yaws.t_ns);
         assert!(
-            (x.fused - y.fused).abs() < 1e-9 && x.madgwick == y.madgwick,
+            (x.yaws.fused - y.yaws.fused).abs() < 1e-9 && x.yaws.madgwick == y.yaws.madgwick,
             "{x:?} against {y:?}"
         );
     }

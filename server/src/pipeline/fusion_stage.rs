@@ -239,17 +239,14 @@ impl FusionStage {
             .map(|r| {
                 let s = &r.sources;
                 PoseYaws {
-                    t_ns: s.t_ns,
                     t_s: tum_time(&self.clock, s.t_ns as f64 * 1e-9),
-                    matcher: room(s.matcher),
-                    matcher_variance: s.matcher_variance,
-                    madgwick: s.madgwick.map(room),
-                    madgwick_variance: s.madgwick_variance,
-                    gyro: s.gyro.map(room),
-                    gyro_variance: s.gyro_variance,
-                    fused: room(s.fused),
-                    fused_variance: s.fused_variance,
-                    omega: s.omega,
+                    yaws: YawSources {
+                        matcher: room(s.matcher),
+                        madgwick: s.madgwick.map(room),
+                        gyro: s.gyro.map(room),
+                        fused: room(s.fused),
+                        ..*s
+                    },
                     fused_from_both: r.unfused.is_none(),
                 }
             })
@@ -379,28 +376,11 @@ impl FusionStage {
 /// Every source's yaw at one pose, in the reported (room) frame, rad and rad².
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct PoseYaws {
-    /// The pose's time, edge ns.
-    pub t_ns: u64,
     /// Its time as in the TUM files: UNIX s of the server's clock (edge s without a model).
     pub t_s: f64,
-    /// The matcher's yaw.
-    pub matcher: f64,
-    /// rad².
-    pub matcher_variance: f64,
-    /// Madgwick's, aligned (once aligned, with samples).
-    pub madgwick: Option<f64>,
-    /// rad².
-    pub madgwick_variance: Option<f64>,
-    /// The gyro integrated alone from the first pose (no bias correction).
-    pub gyro: Option<f64>,
-    /// rad².
-    pub gyro_variance: Option<f64>,
-    /// The fusion's (the matcher's when unfused).
-    pub fused: f64,
-    /// rad².
-    pub fused_variance: f64,
-    /// The weight on the matcher's information, when fused.
-    pub omega: Option<f64>,
+    /// The sources' yaws (and the pose's edge time), turned into the room frame.
+    #[serde(flatten)]
+    pub yaws: YawSources,
     /// Whether both sources went in.
     pub fused_from_both: bool,
 }
