@@ -45,8 +45,13 @@ pub struct LaserScan {
     /// odom_theta`, `ROBOTLASER1`'s robot pose).
     pub odometry: Pose2,
     /// The laser in the robot frame. `ROBOTLASER1`: robot pose⁻¹ ⊕ laser pose; `FLASER` has no
-    /// offset of its own (CARMEN keeps it in a parameter), so the identity.
+    /// offset of its own: CARMEN keeps it in the `robot_frontlaser_*offset` parameters, which
+    /// [`read_log`] applies when the log has them (otherwise the identity, until
+    /// [`CarmenLog::set_front_laser_offset`]).
     pub laser_offset: Pose2,
+    /// Whether the line itself states where the laser sits on the robot (`ROBOTLASER1`), so a
+    /// configured offset does not replace it.
+    pub offset_in_line: bool,
     /// The line's first pose triple (CARMEN's "laser pose": raw odometry in the benchmark logs,
     /// the corrected pose in "corrected" logs) — the script's `--pose estimate`.
     pub laser_pose: Pose2,
@@ -87,9 +92,16 @@ pub struct SkipCounts {
 /// A whole log: its scans and odometry in file order, and what was skipped.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct CarmenLog {
+    /// The laser lines, in file order.
     pub scans: Vec<LaserScan>,
+    /// The `ODOM` lines, in file order.
     pub odometry: Vec<OdometryReading>,
+    /// Lines that gave neither.
     pub skipped: SkipCounts,
+    /// The front laser's pose on the robot from the log's `PARAM robot_frontlaser_offset`,
+    /// `robot_frontlaser_side_offset` and `robot_frontlaser_angular_offset` lines (CARMEN's
+    /// names; missing ones are 0), `None` when it has none of them.
+    pub front_laser_param: Option<Pose2>,
 }
 
 /// Reads a CARMEN log. Strict by default: the first malformed line is the error, naming its
@@ -112,6 +124,14 @@ pub fn read_log(reader: impl BufRead, options: &ReadOptions) -> Result<CarmenLog
             Ok(Message::Comment) => log.skipped.comments += 1,
             Ok(Message::RearLaser) => log.skipped.rear_laser += 1,
             Ok(Message::Other) => log.skipped.other_messages += 1,
+            Ok(Message::FrontLaserParam(axis, value)) => {
+                let pose = log.front_laser_param.get_or_insert_with(Pose2::default);
+                match axis {
+                    OffsetAxis::Forward => pose.x = value,
+                    OffsetAxis::Side => pose.y = value,
+                    OffsetAxis::Angle => pose.theta = value,
+                }
+            }
             Err(e) if options.lenient => {
                 log.skipped.malformed += 1;
                 if log.skipped.first_malformed.len() < MALFORMED_KEPT {
@@ -121,10 +141,22 @@ pub fn read_log(reader: impl BufRead, options: &ReadOptions) -> Result<CarmenLog
             Err(e) => return Err(e),
         }
     }
+    if let Some(offset) = log.front_laser_param {
+        log.set_front_laser_offset(offset);
+    }
     Ok(log)
 }
 
 impl CarmenLog {
+    /// Puts the front laser at `offset` in the robot frame on every scan whose line does not
+    /// state its own (`FLASER`): the mapper then matches the laser where it is and reports the
+    /// robot's pose, the one the benchmark relations refer to.
+    pub fn set_front_laser_offset(&mut self, offset: Pose2) {
+        for scan in self.scans.iter_mut().filter(|s| !s.offset_in_line) {
+            scan.laser_offset = offset;
+        }
+    }
+
     /// One odometry pose per scan: the laser line's own odometry triple. This is what the
     /// reference script's `--carmen-to-traj` writes (its default `--pose odom`), so the raw
     /// odometry baselines of the benchmark notes are reproduced from it.
@@ -190,7 +222,15 @@ enum Message {
     Odometry(OdometryReading),
     Comment,
     RearLaser,
+    FrontLaserParam(OffsetAxis, f64),
     Other,
+}
+
+/// Which part of the front laser's pose a CARMEN parameter gives.
+enum OffsetAxis {
+    Forward,
+    Side,
+    Angle,
 }
 
 fn parse_line(line: usize, text: &str) -> Result<Message, String> {
@@ -206,8 +246,27 @@ fn parse_line(line: usize, text: &str) -> Result<Message, String> {
         "ROBOTLASER1" => parse_robotlaser1(line, rest).map(Message::Scan),
         "ODOM" => parse_odom(line, rest).map(Message::Odometry),
         "RLASER" => Ok(Message::RearLaser),
+        "PARAM" => parse_param(rest),
         _ => Ok(Message::Other),
     }
+}
+
+/// `PARAM name value [hostname [logger_timestamp]]`: the front laser's offset parameters are
+/// kept (a non-numeric value is an error), every other parameter is skipped.
+fn parse_param(rest: &[&str]) -> Result<Message, String> {
+    let axis = match rest.first() {
+        Some(&"robot_frontlaser_offset") => OffsetAxis::Forward,
+        Some(&"robot_frontlaser_side_offset") => OffsetAxis::Side,
+        Some(&"robot_frontlaser_angular_offset") => OffsetAxis::Angle,
+        _ => return Ok(Message::Other),
+    };
+    let value = rest
+        .get(1)
+        .ok_or_else(|| format!("PARAM {} has no value", rest[0]))?;
+    Ok(Message::FrontLaserParam(
+        axis,
+        parse_finite(value, &format!("PARAM {}", rest[0]))?,
+    ))
 }
 
 /// A reading count from the log, refused above [`MAX_READINGS`] before anything is sized by it.
@@ -277,6 +336,7 @@ fn parse_flaser(line: usize, rest: &[&str]) -> Result<LaserScan, String> {
         max_range: None,
         odometry,
         laser_offset: Pose2::default(),
+        offset_in_line: false,
         laser_pose,
     })
 }
@@ -356,6 +416,7 @@ fn parse_robotlaser1(line: usize, rest: &[&str]) -> Result<LaserScan, String> {
         max_range: Some(max_range),
         odometry,
         laser_offset: odometry.between(&laser_pose),
+        offset_in_line: true,
         laser_pose,
     })
 }
@@ -445,6 +506,38 @@ mod tests {
         assert!((scan.laser_offset.x - 0.1).abs() < 1e-12);
         assert!(scan.laser_offset.y.abs() < 1e-12 && scan.laser_offset.theta.abs() < 1e-12);
         assert_eq!(scan.timestamp.text, "1.5");
+    }
+
+    #[test]
+    fn the_front_laser_offset_comes_from_carmen_params_or_the_caller_and_spares_robotlaser1() {
+        let ranges = vec!["1.5"; 360].join(" ");
+        let text = format!(
+            "PARAM robot_frontlaser_offset -0.04 nohost 0.0\n\
+             PARAM robot_frontlaser_angular_offset 0.01 nohost 0.0\n{}\n",
+            flaser(360, &ranges, TAIL)
+        );
+        let mut log = strict(&text).unwrap();
+        assert_eq!(log.front_laser_param, Some(Pose2::new(-0.04, 0.0, 0.01)));
+        let scan = &log.scans[0];
+        assert_eq!(scan.ranges.len(), 360);
+        assert!((scan.angle_increment.to_degrees() - 0.5).abs() < 1e-12);
+        assert_eq!(scan.laser_offset, Pose2::new(-0.04, 0.0, 0.01));
+        assert!(!scan.offset_in_line);
+        assert_eq!(log.skipped.other_messages, 0);
+
+        let robotlaser = "ROBOTLASER1 0 -1.557706 3.141593 0.017453 81.9 0 0 2 1.0 2.0 0 \
+                          1.22 0.0 0.0 1.0 0.0 0.0 0 0 0 0 0 1.5 nohost 0.0";
+        let mut mixed = strict(&format!("{text}{robotlaser}\n")).unwrap();
+        mixed.set_front_laser_offset(Pose2::new(0.04, 0.0, 0.0));
+        assert_eq!(mixed.scans[0].laser_offset, Pose2::new(0.04, 0.0, 0.0));
+        let own = mixed.scans[1].laser_offset;
+        assert!((own.x - 0.22).abs() < 1e-12 && own.y.abs() < 1e-12 && own.theta.abs() < 1e-12);
+        assert_eq!(mixed.scans[1].angle_min, -1.557706);
+
+        log.set_front_laser_offset(Pose2::default());
+        assert_eq!(log.scans[0].laser_offset, Pose2::default());
+        let err = strict("PARAM robot_frontlaser_offset ahead nohost 0").unwrap_err();
+        assert!(err.to_string().contains("robot_frontlaser_offset"), "{err}");
     }
 
     #[test]

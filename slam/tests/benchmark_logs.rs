@@ -5,7 +5,7 @@
 
 mod common;
 
-use common::load;
+use common::{excerpt, load};
 use scan3d_slam::carmen::CarmenLog;
 use scan3d_slam::mapper::MapperConfig;
 use scan3d_slam::odometry::OdometrySource;
@@ -26,22 +26,6 @@ fn score(
         evaluate(&run.trajectory, relations, &EvalOptions::default()),
         odometry,
     )
-}
-
-/// The first `scans` laser lines of a log and the relations with both ends among them.
-fn excerpt(log: &CarmenLog, relations: &Relations, scans: usize) -> (CarmenLog, Relations) {
-    let mut part = log.clone();
-    part.scans.truncate(scans);
-    let end = part.scans.last().unwrap().timestamp.seconds;
-    let inside = Relations {
-        relations: relations
-            .relations
-            .iter()
-            .filter(|r| r.t1.seconds <= end && r.t2.seconds <= end)
-            .cloned()
-            .collect(),
-    };
-    (part, inside)
 }
 
 #[test]

@@ -24,3 +24,20 @@ pub fn load(name: &str) -> (CarmenLog, Relations) {
     let rel = std::fs::File::open(testdata(&format!("{name}.relations"))).unwrap();
     (log, read_relations(BufReader::new(rel)).unwrap())
 }
+
+/// The first `scans` laser lines of a log and the relations with both ends among them.
+#[allow(dead_code)] // not every test binary that includes this module uses it
+pub fn excerpt(log: &CarmenLog, relations: &Relations, scans: usize) -> (CarmenLog, Relations) {
+    let mut part = log.clone();
+    part.scans.truncate(scans);
+    let end = part.scans.last().unwrap().timestamp.seconds;
+    let inside = Relations {
+        relations: relations
+            .relations
+            .iter()
+            .filter(|r| r.t1.seconds <= end && r.t2.seconds <= end)
+            .cloned()
+            .collect(),
+    };
+    (part, inside)
+}
