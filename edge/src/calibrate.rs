@@ -1,9 +1,10 @@
 //! Field calibration of the IMU (`scan3d-edge calibrate gyro|mag`): the gyro bias at rest and
 //! the magnetometer's hard and soft iron from a slow turn.
 //!
-//! The fits are pure ([`gyro_bias`], [`fit_mag`]: samples in, calibration out); the edges are
-//! [`collect`] (readings through the driver on any embedded-hal bus) and [`set_imu_keys`] (the
-//! `[imu]` keys of an `edge.toml`, the rest of the file kept byte for byte).
+//! The fits are pure ([`gyro_bias`], [`fit_mag`]: samples in, calibration out; [`MagSettings`]:
+//! the `[imu]` values a fit gives); the edges are [`collect`] (readings through the driver on
+//! any embedded-hal bus; [`collect_on_clock`] on a simulation's clock) and [`set_imu_keys`]
+//! (the `[imu]` keys of an `edge.toml`, the rest of the file kept byte for byte).
 //!
 //! Magnetometer model: raw = A · m + b with `m` the field at the chip. The fit returns the
 //! hard-iron offset `b` and a symmetric soft-iron matrix `S` with m = S · (raw − b) on a sphere
@@ -27,6 +28,7 @@ use embedded_hal::delay::DelayNs;
 use embedded_hal::i2c::I2c;
 use nalgebra::{DMatrix, DVector, Matrix2, Matrix3, Vector2, Vector3};
 
+use crate::clock::Clock;
 use crate::drivers::imu::{ImuConfig, ImuReading, Mpu9250};
 
 /// Default bound of the gyro rate's standard deviation at rest, °/s: about 4× the MPU-9250's
@@ -608,12 +610,47 @@ pub fn raw_config(config: &ImuConfig) -> ImuConfig {
 
 /// Initialises the IMU on `bus` with [`raw_config`] of `config` and reads it for `duration`
 /// (wall clock) at its sample rate; `progress` is called about once a second with the seconds
-/// elapsed. At most `max_samples` readings are kept.
+/// elapsed. At most `max_samples` readings are kept. (The command line's reading:
+/// [`collect_on_clock`] on the wall clock.)
 pub fn collect<I: I2c, D: DelayNs>(
     bus: I,
     delay: &mut D,
     config: &ImuConfig,
     duration: Duration,
+    max_samples: usize,
+    progress: impl FnMut(u64),
+) -> anyhow::Result<Collected> {
+    let wall = WallClock(Instant::now());
+    let duration_ns = u64::try_from(duration.as_nanos()).unwrap_or(u64::MAX);
+    collect_on_clock(
+        bus,
+        delay,
+        config,
+        &wall,
+        duration_ns,
+        max_samples,
+        progress,
+    )
+}
+
+/// The wall clock since an instant, for [`collect`].
+struct WallClock(Instant);
+
+impl Clock for WallClock {
+    fn now_ns(&self) -> u64 {
+        u64::try_from(self.0.elapsed().as_nanos()).unwrap_or(u64::MAX)
+    }
+}
+
+/// [`collect`] on `clock`'s time: reads for `duration_ns` of it, one reading per sample period
+/// of it (a simulation's scaled clock reads a simulated turn in a fraction of the real time;
+/// `delay` should wait on the same clock). `progress` gets the clock's whole seconds elapsed.
+pub fn collect_on_clock<I: I2c, D: DelayNs>(
+    bus: I,
+    delay: &mut D,
+    config: &ImuConfig,
+    clock: &dyn Clock,
+    duration_ns: u64,
     max_samples: usize,
     mut progress: impl FnMut(u64),
 ) -> anyhow::Result<Collected> {
@@ -621,12 +658,13 @@ pub fn collect<I: I2c, D: DelayNs>(
     imu.init(delay)
         .map_err(|e| anyhow::anyhow!("IMU init failed: {e}"))?;
     imu.set_gyro_bias([0.0; 3]);
-    let period = Duration::from_nanos(u64::from(config.sample_period_ns()));
-    let start = Instant::now();
-    let mut next = start;
+    let period_ns = u64::from(config.sample_period_ns()).max(1);
+    let start_ns = clock.now_ns();
+    let elapsed_ns = || clock.now_ns().saturating_sub(start_ns);
+    let mut next_ns = 0u64;
     let mut reported = 0;
     let mut out = Collected::default();
-    while start.elapsed() < duration && out.rates.len() < max_samples {
+    while elapsed_ns() < duration_ns && out.rates.len() < max_samples {
         let reading: ImuReading = imu
             .read()
             .map_err(|e| anyhow::anyhow!("IMU read failed: {e}"))?;
@@ -634,19 +672,58 @@ pub fn collect<I: I2c, D: DelayNs>(
         if let Some(mag) = reading.mag_ut {
             out.fields.push(mag.map(f64::from));
         }
-        let seconds = start.elapsed().as_secs();
+        let seconds = elapsed_ns() / 1_000_000_000;
         if seconds > reported {
             reported = seconds;
             progress(seconds);
         }
-        next += period;
-        if let Some(wait) = next.checked_duration_since(Instant::now()) {
-            std::thread::sleep(wait);
+        next_ns += period_ns;
+        let now_ns = elapsed_ns();
+        if next_ns > now_ns {
+            std::thread::sleep(clock.real_duration(next_ns - now_ns));
         } else {
-            next = Instant::now();
+            next_ns = now_ns;
         }
     }
     Ok(out)
+}
+
+/// The `[imu]` settings a magnetometer fit gives, as `scan3d-edge calibrate mag` writes them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MagSettings {
+    /// `mag_hard_iron_ut`: the fit's offset; a z the fit could not see (a 2D fit without the
+    /// local field) is the configured one.
+    pub hard_iron_ut: [f64; 3],
+    /// `mag_soft_iron`.
+    pub soft_iron: [[f64; 3]; 3],
+    /// `mag_field_ut`: the calibrated fields' median magnitude, the daemon's reference.
+    pub field_ut: f64,
+}
+
+impl MagSettings {
+    /// The settings from `fit` of the raw `fields` it was fitted to, keeping `configured_z_ut`
+    /// where the fit has no z offset.
+    pub fn from_fit(fit: &MagCalibration, fields: &[[f64; 3]], configured_z_ut: f64) -> Self {
+        let hard_iron_ut = [
+            fit.hard_iron_ut[0].unwrap_or_default(),
+            fit.hard_iron_ut[1].unwrap_or_default(),
+            fit.hard_iron_ut[2].unwrap_or(configured_z_ut),
+        ];
+        let field_ut =
+            calibrated_magnitude(fields, hard_iron_ut, &fit.soft_iron).unwrap_or(fit.radius_ut);
+        Self {
+            hard_iron_ut,
+            soft_iron: fit.soft_iron,
+            field_ut,
+        }
+    }
+
+    /// `config` with these settings, as the daemon loads them from the written `edge.toml`.
+    pub fn apply(&self, config: &mut ImuConfig) {
+        config.mag_hard_iron_ut = self.hard_iron_ut.map(|v| v as f32);
+        config.mag_soft_iron = self.soft_iron.map(|row| row.map(|v| v as f32));
+        config.mag_field_ut = Some(self.field_ut as f32);
+    }
 }
 
 /// A TOML value for a float array, with enough digits.

@@ -59,6 +59,11 @@ use crate::trolley::TrolleyPath;
 use crate::truth::{Accuracy, GroundTruth, truth_map, write_world_description};
 use crate::world::World;
 
+/// Simulated seconds of the trolley's turn in place for `scan3d-edge calibrate mag` before the
+/// pass: one turn at 15 °/s on average (30 °/s at most), a slow push by hand; at the pass's
+/// time scale a few real seconds.
+pub const MAG_TURN_S: f64 = 24.0;
+
 /// Options of `scan3d-sim demo`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct DemoArgs {
@@ -226,8 +231,9 @@ pub fn run_demo(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         if with_pass {
             let path = Arc::new(TrolleyPath::demo_room());
             println!(
-                "trolley pass: {PASS_NAME} ({:.1} m around the table in {:.0} s after {:.0} s at \
-                 rest, erroneous IMU; time x{}) ...",
+                "trolley pass: {PASS_NAME} (the magnetometer calibrated over a {MAG_TURN_S:.0} s \
+                 turn in place, then {:.1} m around the table in {:.0} s after {:.0} s at rest, \
+                 erroneous IMU; time x{}) ...",
                 path.length_m(),
                 path.motion_s(),
                 path.rest_s(),
@@ -245,7 +251,9 @@ pub fn run_demo(args: &DemoArgs) -> anyhow::Result<DemoReport> {
                 seed: args.seed,
                 resolution_m: args.resolution,
                 queue_frames: 256,
+                mag_turn_s: MAG_TURN_S,
             })?;
+            println!("  {}", pass.mag_calibration.summary());
             report.truth_files.push(pass.truth_file.clone());
             report.octrees.push(pass.octree.clone());
             report.pass = Some(pass);
@@ -846,6 +854,7 @@ fn pass_summary(s: &mut String, pass: &PassResult) {
         pass.imu_frames,
         pass.session_dir.display()
     );
+    let _ = writeln!(s, "  {}", pass.mag_calibration.summary());
     let _ = writeln!(s, "  map1 is {}", pass.source);
     let totals = &pass.totals;
     let _ = writeln!(

@@ -10,6 +10,15 @@
 //! demo's two trajectories, `trajectories/map1.tum` and `truth/trolley.tum`, are both in
 //! edge-clock seconds (the clock the server's own `trajectory.tum` falls back to), room frame.
 //!
+//! Before the pass the operator calibrates the magnetometer as on a real trolley: the trolley
+//! turns once in place, slowly ([`CalibrationTurn`], [`TurnInPlace`]), while
+//! `scan3d-edge calibrate mag`'s code reads the emulated chip through the edge's driver
+//! ([`calibrate::collect_on_clock`] on the head's clock) and fits the horizontal ellipse
+//! ([`calibrate::fit_mag`] with the site's field); the edge then runs with what it found
+//! ([`MagSettings`]), never with the emulator's true iron. The gyro bias at rest is the
+//! driver's own start-up estimate (the trolley rests after the turn), fresher than a saved
+//! `calibrate gyro` bias would be.
+//!
 //! map1 itself: the live server's snapshot products of the pass (`passes/map1/cloud.ply`,
 //! `map.bt`) when the live moving stage makes them; otherwise the recording assembled offline
 //! as `scan3d assemble --moving SESSION --pass map1` does (`assemble_moving_sessions`, the
@@ -22,7 +31,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use nalgebra::Isometry3;
-use scan3d_edge::clock::{Clock, ScaledClock, SharedClock};
+use scan3d_edge::calibrate::{self, LocalField, MagCalibration, MagSettings};
+use scan3d_edge::clock::{Clock, ClockDelay, ScaledClock, SharedClock};
 use scan3d_edge::config::{EdgeConfig, UplinkSection};
 use scan3d_map::cloud::RayBundle;
 use scan3d_map::cloud::filter::Filter;
@@ -55,7 +65,9 @@ use crate::rig::{
 };
 use crate::rplidar::{RplidarEmulator, RplidarEmulatorConfig};
 use crate::sweep::{SweepEmulator, SweepEmulatorConfig};
-use crate::trolley::{BaseTrajectory, BumpyTrolley, OnBase, TROLLEY_CLEARANCE_M, TrolleyPath};
+use crate::trolley::{
+    BaseTrajectory, BumpyTrolley, OnBase, TROLLEY_CLEARANCE_M, TrolleyPath, TurnInPlace,
+};
 use crate::truth::{Accuracy, GroundTruth};
 use crate::turntable_head::head_bus;
 use crate::world::World;
@@ -65,6 +77,98 @@ pub const PASS_NAME: &str = "map1";
 
 /// Simulated seconds the pass stays open after the trolley has come to rest at its path's end.
 const REST_AT_END_S: f64 = 1.0;
+
+/// When the calibration turn starts, simulated s since the head's start (the chip is up).
+pub const MAG_TURN_START_S: f64 = 1.0;
+/// Simulated seconds at rest between the calibration turn and the daemon's start.
+const AFTER_MAG_TURN_S: f64 = 1.0;
+/// Most readings a calibration keeps (as the command line).
+const MAX_CALIBRATION_SAMPLES: usize = 600_000;
+
+/// The operator's slow turn in place for `scan3d-edge calibrate mag`, before the pass: one
+/// full turn about the trolley's vertical ([`TurnInPlace`]), read for its whole length.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CalibrationTurn {
+    /// When it starts, simulated s since the head's start.
+    pub start_s: f64,
+    /// How long the turn takes, simulated s (its mean rate is 360° over this).
+    pub duration_s: f64,
+}
+
+impl CalibrationTurn {
+    /// A turn of `duration_s` from [`MAG_TURN_START_S`].
+    pub fn lasting(duration_s: f64) -> Self {
+        Self {
+            start_s: MAG_TURN_START_S,
+            duration_s,
+        }
+    }
+
+    /// When it ends, simulated s.
+    pub fn end_s(&self) -> f64 {
+        self.start_s + self.duration_s
+    }
+}
+
+/// What the demo's `scan3d-edge calibrate mag` found, beside the emulator's true iron.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MagCalibrationRun {
+    /// The turn read.
+    pub turn: CalibrationTurn,
+    /// The fit (a horizontal ellipse: the trolley turns about its vertical only).
+    pub fit: MagCalibration,
+    /// The `[imu]` values the edge runs with.
+    pub settings: MagSettings,
+    /// Gyro readings taken during the turn (the fields are `fit.samples`).
+    pub readings: usize,
+    /// The emulator's hard iron b, µT.
+    pub true_hard_iron_ut: [f64; 3],
+    /// What a turn about z can see of it: b_x, b_y with the soft iron's xz, yz terms times the
+    /// vertical field absorbed ([`calibrate`]'s module docs), and b_z.
+    pub observable_hard_iron_ut: [f64; 3],
+    /// The largest error of the fitted soft iron's xy block against the inverse of the
+    /// emulator's.
+    pub soft_iron_xy_error: f64,
+}
+
+impl MagCalibrationRun {
+    /// |fitted − true| hard iron, µT.
+    pub fn hard_iron_error_ut(&self) -> f64 {
+        distance(self.settings.hard_iron_ut, self.true_hard_iron_ut)
+    }
+
+    /// |fitted − observable| hard iron, µT.
+    pub fn observable_error_ut(&self) -> f64 {
+        distance(self.settings.hard_iron_ut, self.observable_hard_iron_ut)
+    }
+
+    /// One line: the fitted hard-iron offset and its error against the emulator's true iron.
+    pub fn summary(&self) -> String {
+        let [x, y, z] = self.settings.hard_iron_ut;
+        let [tx, ty, tz] = self.true_hard_iron_ut;
+        format!(
+            "magnetometer calibrated by scan3d-edge calibrate mag's code over a {:.0} s turn in \
+             place ({} fields, {}° covered, residual {:.2} %): hard iron ({x:.2}, {y:.2}, {z:.2}) \
+             µT vs the emulator's true ({tx:.2}, {ty:.2}, {tz:.2}): error {:.2} µT ({:.2} µT \
+             against what a turn about z can see); soft iron xy max error {:.4}",
+            self.turn.duration_s,
+            self.fit.samples,
+            self.fit.covered.0 * 10,
+            self.fit.residual_rms * 100.0,
+            self.hard_iron_error_ut(),
+            self.observable_error_ut(),
+            self.soft_iron_xy_error
+        )
+    }
+}
+
+fn distance(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(a, b)| (a - b).powi(2))
+        .sum::<f64>()
+        .sqrt()
+}
 
 /// The rig's trolley for the in-process edge: the lidars on ptys and the IMU on an I2C bus
 /// handed to the edge directly, all on one time-scaled clock (the rig's are at ×1).
@@ -81,15 +185,26 @@ pub struct TrolleyHead {
 impl TrolleyHead {
     /// Starts the trolley on `path` in `world` at `time_scale`, links in `links_dir`, with the
     /// IMU's default errors ([`ImuErrors::beside_path`]: drifting gyro bias, hard and soft
-    /// iron, the cabinet beside the path, floor bumps that tilt the trolley). A path closer
-    /// than [`TROLLEY_CLEARANCE_M`] to the room is refused.
+    /// iron, the cabinet beside the path, floor bumps that tilt the trolley), turning once in
+    /// place during `turn` (which must end before the path's rest does). A path closer than
+    /// [`TROLLEY_CLEARANCE_M`] to the room is refused.
     pub fn start(
         links_dir: &Path,
         world: Arc<World>,
         path: Arc<TrolleyPath>,
+        turn: Option<CalibrationTurn>,
         time_scale: f64,
         seed: u64,
     ) -> anyhow::Result<Self> {
+        if let Some(turn) = turn {
+            anyhow::ensure!(
+                turn.start_s >= 0.0 && turn.duration_s > 0.0 && turn.end_s() < path.rest_s(),
+                "the calibration turn ({:.1}–{:.1} s) must lie within the path's rest (0–{:.1} s)",
+                turn.start_s,
+                turn.end_s(),
+                path.rest_s()
+            );
+        }
         let clearance = path.clearance(&world);
         anyhow::ensure!(
             clearance.distance_m >= TROLLEY_CLEARANCE_M,
@@ -102,7 +217,15 @@ impl TrolleyHead {
         let errors = ImuErrors::beside_path(&path);
         let base = Arc::new(BumpyTrolley::new(path.clone(), &errors.floor_bumps));
         let clock = ScaledClock::new(time_scale);
-        let dyn_base: Arc<dyn BaseTrajectory> = base.clone();
+        let mut dyn_base: Arc<dyn BaseTrajectory> = base.clone();
+        if let Some(turn) = turn {
+            dyn_base = Arc::new(TurnInPlace {
+                base: dyn_base,
+                start_s: turn.start_s,
+                duration_s: turn.duration_s,
+                angle_rad: std::f64::consts::TAU,
+            });
+        }
         let truth = MountedImuTruth {
             base: dyn_base.clone(),
             mount: mount_pose(IMU_MOUNT),
@@ -178,13 +301,82 @@ impl TrolleyHead {
         self.base.motion_at(t_ns).pose
     }
 
+    /// Calibrates the magnetometer as `scan3d-edge calibrate mag --field-ut F
+    /// --inclination-deg I` does (the site's field from a model: the emulator's Earth field),
+    /// reading through the edge's driver with `config`'s `[imu]` for the whole of `turn`: waits
+    /// for the turn's start, reads on the head's clock, fits. Refused as the command refuses
+    /// (too little of the circle, a tilted turn, too few fields).
+    pub fn calibrate_mag(
+        &self,
+        config: &EdgeConfig,
+        turn: CalibrationTurn,
+    ) -> anyhow::Result<MagCalibrationRun> {
+        let imu = config
+            .imu
+            .as_ref()
+            .context("the trolley's edge.toml has no [imu]")?;
+        let start_ns = (turn.start_s * 1e9) as u64;
+        let now_ns = self.clock.now_ns();
+        if start_ns > now_ns {
+            std::thread::sleep(self.clock.real_duration(start_ns - now_ns));
+        }
+        let shared: SharedClock = Arc::new(self.clock);
+        let collected = calibrate::collect_on_clock(
+            self.bus(),
+            &mut ClockDelay(shared),
+            &imu.driver,
+            &self.clock,
+            (turn.duration_s * 1e9) as u64,
+            MAX_CALIBRATION_SAMPLES,
+            |_| {},
+        )
+        .context("scan3d-edge calibrate mag: reading the IMU")?;
+        let field = EarthField::default();
+        let local = LocalField {
+            total_ut: Some(field.total_ut),
+            inclination_deg: Some(field.inclination_deg),
+        };
+        let fit = calibrate::fit_mag(&collected.fields, local)
+            .context("scan3d-edge calibrate mag over the demo's turn")?;
+        let settings = MagSettings::from_fit(
+            &fit,
+            &collected.fields,
+            f64::from(imu.driver.mag_hard_iron_ut[2]),
+        );
+        let errors = self.imu.errors();
+        let a = nalgebra::Matrix3::from_fn(|r, c| errors.soft_iron[r][c]);
+        let b = errors.hard_iron_ut;
+        let vertical_ut = field.in_level_body(0.0)[2];
+        let observable_hard_iron_ut = [
+            b[0] + a[(0, 2)] * vertical_ut,
+            b[1] + a[(1, 2)] * vertical_ut,
+            b[2],
+        ];
+        let soft_xy = a.fixed_view::<2, 2>(0, 0).into_owned().try_inverse();
+        let soft_iron_xy_error = soft_xy.map_or(f64::NAN, |want| {
+            let got = nalgebra::Matrix2::from_fn(|r, c| settings.soft_iron[r][c]);
+            (got - want).abs().max()
+        });
+        Ok(MagCalibrationRun {
+            turn,
+            fit,
+            settings,
+            readings: collected.rates.len(),
+            true_hard_iron_ut: b,
+            observable_hard_iron_ut,
+            soft_iron_xy_error,
+        })
+    }
+
     /// The edge's configuration for this trolley: the rig's trolley `edge.toml`
     /// ([`trolley_edge_toml_text`]: the mounts, no stepper) with these links, the I2C bus
-    /// handed over in-process, and the magnetometer calibrated (the true iron).
+    /// handed over in-process, and `mag` (what [`TrolleyHead::calibrate_mag`] found) as its
+    /// magnetometer's calibration, when given.
     pub fn edge_config(
         &self,
         state_dir: &Path,
         uplink: Option<UplinkSection>,
+        mag: Option<&MagSettings>,
     ) -> anyhow::Result<EdgeConfig> {
         let text = format!(
             "device_name = {EDGE_NAME:?}\nstate_dir = {:?}\n{}",
@@ -199,14 +391,10 @@ impl TrolleyHead {
             .context("the trolley's edge.toml")?;
         config.i2c = Default::default();
         config.uplink = uplink;
-        // The operator has calibrated the magnetometer (`scan3d-edge calibrate mag`, pasted
-        // into edge.toml): the iron a perfect calibration finds. Uncalibrated, the trolley's
-        // hard and soft iron turn Madgwick's yaw by tens of degrees.
-        if let (Some(imu), Some((hard, soft))) =
-            (config.imu.as_mut(), self.imu.expected_calibration())
-        {
-            imu.driver.mag_hard_iron_ut = hard.map(|v| v as f32);
-            imu.driver.mag_soft_iron = soft.map(|row| row.map(|v| v as f32));
+        // What `scan3d-edge calibrate mag --write edge.toml` put there. Uncalibrated, the
+        // trolley's hard and soft iron turn Madgwick's yaw by tens of degrees.
+        if let (Some(imu), Some(mag)) = (config.imu.as_mut(), mag) {
+            mag.apply(&mut imu.driver);
         }
         Ok(config)
     }
@@ -243,6 +431,9 @@ pub struct PassSetup<'a> {
     pub resolution_m: f64,
     /// The live pipeline's queue per session.
     pub queue_frames: usize,
+    /// Simulated seconds of the magnetometer's calibration turn before the pass (the path's
+    /// rest is lengthened by it, [`CalibrationTurn`]).
+    pub mag_turn_s: f64,
 }
 
 /// Which products map1 is.
@@ -268,8 +459,11 @@ impl std::fmt::Display for MapSource {
 /// What the pass produced.
 #[derive(Debug, Clone)]
 pub struct PassResult {
-    /// The path the trolley followed.
+    /// The path the trolley followed (the setup's, its rest lengthened by the calibration
+    /// turn).
     pub path: Arc<TrolleyPath>,
+    /// The magnetometer's calibration the edge ran with.
+    pub mag_calibration: MagCalibrationRun,
     /// The recorded session.
     pub session_dir: PathBuf,
     /// The pass's span, edge ns (its start and stop markers).
@@ -359,22 +553,33 @@ pub fn run_pass(setup: &PassSetup<'_>) -> anyhow::Result<PassResult> {
     let mut server =
         ServerThread::start_live(installation::ingest_config(&pki, setup.data_dir, 0), live)?;
     let socket = socket_path(setup.data_dir);
+    // The path waits for the operator's calibration turn, then rests as long as it said.
+    let turn = CalibrationTurn::lasting(setup.mag_turn_s);
+    let path = Arc::new(
+        setup
+            .path
+            .with_rest_s(setup.path.rest_s() + turn.end_s() + AFTER_MAG_TURN_S),
+    );
     let head = TrolleyHead::start(
         &work.join("links"),
         setup.world.clone(),
-        setup.path.clone(),
+        path.clone(),
+        Some(turn),
         setup.time_scale,
         setup.seed,
     )?;
     let clock = head.clock();
     let shared: SharedClock = Arc::new(clock);
-    let config = head.edge_config(
-        &work.join("edge-state"),
-        Some(installation::uplink_section(server.addr(), &bundle)),
-    )?;
+    let state_dir = work.join("edge-state");
+    let uplink = Some(installation::uplink_section(server.addr(), &bundle));
+    // `scan3d-edge calibrate mag` with the daemon stopped, its keys written to edge.toml, then
+    // the daemon started with them.
+    let uncalibrated = head.edge_config(&state_dir, uplink.clone(), None)?;
+    let mag_calibration = head.calibrate_mag(&uncalibrated, turn)?;
+    tracing::info!("{}", mag_calibration.summary());
+    let config = head.edge_config(&state_dir, uplink, Some(&mag_calibration.settings))?;
     let session_id = rand::random::<u64>();
     let edge = EdgeThread::start_with_i2c(config, shared, session_id, Some(head.bus()))?;
-    let path = setup.path.clone();
     let now_s = || clock.now_ns() as f64 * 1e-9;
     let mut imu_frames = 0u64;
 
@@ -558,6 +763,7 @@ pub fn run_pass(setup: &PassSetup<'_>) -> anyhow::Result<PassResult> {
     }
     Ok(PassResult {
         path,
+        mag_calibration,
         session_dir: session,
         span_ns,
         source,

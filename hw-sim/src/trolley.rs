@@ -701,6 +701,20 @@ impl TrolleyPath {
         self.rest_s
     }
 
+    /// The same path resting `rest_s` seconds from the rig's start instead (the motion, and so
+    /// everything after the rest, moves by the difference): room for an operator's calibration
+    /// turn before the push. A negative or non-finite `rest_s` is taken as 0.
+    pub fn with_rest_s(&self, rest_s: f64) -> Self {
+        Self {
+            rest_s: if rest_s.is_finite() {
+                rest_s.max(0.0)
+            } else {
+                0.0
+            },
+            ..self.clone()
+        }
+    }
+
     /// Seconds of motion.
     pub fn motion_s(&self) -> f64 {
         self.motion_s
@@ -977,6 +991,64 @@ impl BaseTrajectory for BumpyTrolley {
             angular_velocity_rad_s: rate,
             angular_accel_rad_s2: alpha,
             accel_m_s2: Vector3::new(st.accel_m_s2[0], st.accel_m_s2[1], 0.0),
+        }
+    }
+}
+
+/// A base that turns in place about its own vertical (z of `base` through its origin) while
+/// the base underneath rests: the operator's slow turn for `scan3d-edge calibrate mag`. The
+/// extra yaw rises smoothly from 0 to `angle_rad` over `duration_s` from `start_s`,
+/// ψ(u) = angle·(u − sin(2πu)/2π) with u the fraction of the turn done: the yaw rate
+/// angle/T·(1 − cos 2πu) starts and ends at zero, peaks at twice the mean halfway. A whole
+/// number of turns leaves the base as it was. The base underneath must be at rest during the
+/// turn (the cross terms of a turn on a moving base are not modelled).
+#[derive(Debug, Clone)]
+pub struct TurnInPlace {
+    /// The base that turns (at rest while it does).
+    pub base: Arc<dyn BaseTrajectory>,
+    /// When the turn starts, s since the rig's start.
+    pub start_s: f64,
+    /// How long it lasts, s (positive).
+    pub duration_s: f64,
+    /// The angle turned, rad (positive: counter-clockwise seen from above).
+    pub angle_rad: f64,
+}
+
+impl TurnInPlace {
+    /// When the turn ends, s since the rig's start.
+    pub fn end_s(&self) -> f64 {
+        self.start_s + self.duration_s
+    }
+
+    /// The extra yaw, its rate and its acceleration at `t_s`.
+    fn yaw_at(&self, t_s: f64) -> [f64; 3] {
+        if self.duration_s.is_nan() || self.duration_s <= 0.0 || t_s <= self.start_s {
+            return [0.0; 3];
+        }
+        if t_s >= self.end_s() {
+            return [self.angle_rad, 0.0, 0.0];
+        }
+        let u = (t_s - self.start_s) / self.duration_s;
+        let phase = 2.0 * PI * u;
+        let mean_rate = self.angle_rad / self.duration_s;
+        [
+            self.angle_rad * (u - phase.sin() / (2.0 * PI)),
+            mean_rate * (1.0 - phase.cos()),
+            mean_rate * 2.0 * PI / self.duration_s * phase.sin(),
+        ]
+    }
+}
+
+impl BaseTrajectory for TurnInPlace {
+    fn motion_at(&self, t_ns: u64) -> BaseMotion {
+        let under = self.base.motion_at(t_ns);
+        let [yaw, rate, accel] = self.yaw_at(t_ns as f64 * 1e-9);
+        let axis = under.pose.rotation * Vector3::z();
+        BaseMotion {
+            pose: under.pose * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw),
+            angular_velocity_rad_s: under.angular_velocity_rad_s + axis * rate,
+            angular_accel_rad_s2: under.angular_accel_rad_s2 + axis * accel,
+            accel_m_s2: under.accel_m_s2,
         }
     }
 }
@@ -1371,5 +1443,49 @@ speed_m_s = 0.2
             tilted > 40,
             "only {tilted} of 400 poses tilted by more than 0.1°"
         );
+    }
+
+    #[test]
+    fn a_turn_in_place_turns_the_resting_base_once_about_its_vertical_and_stops() {
+        let path = Arc::new(TrolleyPath::demo_room());
+        let rest: Arc<dyn BaseTrajectory> =
+            Arc::new(BumpyTrolley::new(path.clone(), &FloorBumps::default()));
+        let turn = TurnInPlace {
+            base: rest.clone(),
+            start_s: 2.0,
+            duration_s: 10.0,
+            angle_rad: 2.0 * PI,
+        };
+        let ns = |t: f64| (t * 1e9) as u64;
+        let heading = |t: f64| turn.motion_at(ns(t)).pose.rotation.euler_angles().2;
+        let start = path.start_pose();
+        // Before, after: the resting base; halfway: half a turn; the origin never moves.
+        for t in [0.0, 1.9, 12.1, 15.0] {
+            let (a, b) = (turn.motion_at(ns(t)).pose, rest.motion_at(ns(t)).pose);
+            assert!((a.translation.vector - b.translation.vector).norm() < 1e-9);
+            assert!(a.rotation.angle_to(&b.rotation) < 1e-9, "at {t} s");
+        }
+        let half = heading(7.0) - start[2].to_radians();
+        assert!(
+            half.sin().abs() < 1e-2 && half.cos() < 0.0,
+            "halfway {half}"
+        );
+        // The rate integrates to the angle, starts and ends at zero, peaks at twice the mean.
+        let rate = |t: f64| turn.motion_at(ns(t)).angular_velocity_rad_s.z;
+        let (mut sum, dt) = (0.0, 0.001);
+        let mut peak: f64 = 0.0;
+        for k in 0..10_000 {
+            let r = rate(2.0 + (f64::from(k) + 0.5) * dt);
+            sum += r * dt;
+            peak = peak.max(r);
+        }
+        assert!((sum - 2.0 * PI).abs() < 1e-3, "{sum}");
+        assert!((peak - 2.0 * 2.0 * PI / 10.0).abs() < 1e-3, "{peak}");
+        assert!(rate(2.0001).abs() < 1e-3 && rate(11.9999).abs() < 1e-3);
+        // A longer rest moves the motion, not the path.
+        let later = path.with_rest_s(path.rest_s() + 15.0);
+        assert_eq!(later.end_of_path_s(), path.end_of_path_s() + 15.0);
+        let (a, b) = (later.state_at(50.0), path.state_at(35.0));
+        assert_eq!(a.position_m, b.position_m);
     }
 }
