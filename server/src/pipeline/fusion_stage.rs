@@ -21,10 +21,11 @@ use std::path::Path;
 
 use serde::Serialize;
 
-use scan3d_protocol::{Body, Frame, PassEvent};
+use scan3d_protocol::{Body, Frame};
 use scan3d_slam::fusion::FuserConfig;
 use scan3d_slam::pose::{Pose2, wrap_angle};
 
+use super::passes::PassSpans;
 use super::pose_stage::{path_safe, tum_time, write_tum};
 use super::snapshot::SnapshotWriter;
 use super::{BasePose, PipelineError, PipelineSettings, Products, Stage, StageContext};
@@ -39,14 +40,6 @@ struct Record {
     pose: BasePose,
     sources: YawSources,
     unfused: Option<UnfusedReason>,
-}
-
-/// One trolley pass's span of edge time.
-#[derive(Debug, Clone, PartialEq)]
-struct PassSpan {
-    name: String,
-    start_ns: u64,
-    stop_ns: Option<u64>,
 }
 
 /// The fusion's part of `scan3d status`.
@@ -68,7 +61,8 @@ pub struct FusionStage {
     records: Vec<Record>,
     /// The newest session → room transform the poses carried.
     anchor: Option<Pose2>,
-    passes: Vec<PassSpan>,
+    /// The passes (the pose stage before it logs the markers ignored).
+    passes: PassSpans,
     clock: SessionClock,
 }
 
@@ -89,7 +83,7 @@ impl FusionStage {
             waiting: VecDeque::new(),
             records: Vec::new(),
             anchor: None,
-            passes: Vec::new(),
+            passes: PassSpans::new(),
             clock: SessionClock::new(),
         })
     }
@@ -155,41 +149,20 @@ impl FusionStage {
         }
     }
 
-    fn on_pass(&mut self, t_ns: u64, event: &PassEvent) {
-        match event {
-            PassEvent::Started { name, .. } => self.passes.push(PassSpan {
-                name: name.clone(),
-                start_ns: t_ns,
-                stop_ns: None,
-            }),
-            PassEvent::Stopped { name } => {
-                if let Some(pass) = self
-                    .passes
-                    .iter_mut()
-                    .rev()
-                    .find(|p| &p.name == name && p.stop_ns.is_none())
-                {
-                    pass.stop_ns = Some(t_ns);
-                }
-            }
-        }
-    }
-
-    /// Writes the fused trajectory from edge time `from_ns` to `to_ns` as TUM lines.
-    fn write_tum_between(
+    /// Writes the fused trajectory's poses whose edge ns `keep` takes as TUM lines.
+    fn write_fused_tum(
         &self,
         out: &mut dyn Write,
-        from_ns: u64,
-        to_ns: u64,
+        keep: impl Fn(u64) -> bool,
     ) -> std::io::Result<()> {
-        let poses = self.records.iter().map(|r| {
+        let poses = self.records.iter().filter(|r| keep(r.pose.t_ns)).map(|r| {
             (
                 r.pose.t_ns as f64 * 1e-9,
                 self.reported(&r.pose.pose),
                 r.pose.roll_pitch,
             )
         });
-        write_tum(out, &self.clock, poses, from_ns, to_ns)
+        write_tum(out, &self.clock, poses)
     }
 
     /// Writes `yaw_sources.csv`: per pose, t (as in the TUM files), then the matcher's,
@@ -308,7 +281,7 @@ impl Stage for FusionStage {
             }
             Body::Imu(sample) => self.fusion.on_imu(sample),
             Body::Pass(marker) => {
-                self.on_pass(marker.t_ns, &marker.event);
+                self.passes.apply(marker.t_ns, &marker.event);
                 Vec::new()
             }
             _ => Vec::new(),
@@ -349,27 +322,16 @@ impl FusionStage {
         if out.snapshot.position.is_some() || self.records.is_empty() {
             return Ok(());
         }
-        let dir = out.snapshot.dir.clone();
-        let failed = |name: &str, source: std::io::Error| PipelineError::Write {
-            path: dir.join(name),
-            source,
-        };
-        let mut tum = Vec::new();
-        self.write_tum_between(&mut tum, 0, u64::MAX)
-            .map_err(|e| failed("trajectory_fused.tum", e))?;
-        out.write_file("trajectory_fused.tum", &tum)?;
-        for pass in &self.passes {
-            let subdir = Path::new("passes").join(path_safe(&pass.name));
-            let mut tum = Vec::new();
-            self.write_tum_between(&mut tum, pass.start_ns, pass.stop_ns.unwrap_or(u64::MAX))
-                .map_err(|e| failed("passes", e))?;
-            out.write_file_in(&subdir, "trajectory_fused.tum", &tum)?;
+        out.render("trajectory_fused.tum", |tum| {
+            self.write_fused_tum(tum, |_| true)
+        })?;
+        for name in self.passes.names() {
+            let subdir = Path::new("passes").join(path_safe(&name));
+            out.render_in(&subdir, "trajectory_fused.tum", |tum| {
+                self.write_fused_tum(tum, |t_ns| self.passes.covers(&name, t_ns))
+            })?;
         }
-        let mut csv = Vec::new();
-        self.write_yaw_sources(&mut csv)
-            .map_err(|e| failed("yaw_sources.csv", e))?;
-        out.write_file("yaw_sources.csv", &csv)?;
-        Ok(())
+        out.render("yaw_sources.csv", |csv| self.write_yaw_sources(csv))
     }
 }
 

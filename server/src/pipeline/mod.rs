@@ -58,6 +58,7 @@ mod metrics;
 pub mod moving_stage;
 pub mod offline;
 pub mod order;
+pub mod passes;
 pub mod pose_stage;
 mod snapshot;
 mod stages;

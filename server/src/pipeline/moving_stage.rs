@@ -13,7 +13,8 @@
 //! (with the anchor of the newest pose used: a pass start re-anchors the trajectory), roll and
 //! pitch from [`super::BasePose::roll_pitch`] when a fusion stage gave them (else level), the
 //! Sweep's mount from the session's `Body::Mounts`. Samples outside every pass are not placed:
-//! static scans stay the assembly stage's.
+//! static scans stay the assembly stage's. A pass covers the sample times [start, stop), by the
+//! rules the pose and fusion stages follow too ([`super::passes`]).
 //!
 //! **Where it runs.** In the assembly lane, after the [`super::AssemblyStage`]: that lane then
 //! takes the Sweep, the static-scan messages, the pass markers and the poses, and the placed
@@ -40,6 +41,7 @@ use scan3d_map::cloud::moving::{
 use scan3d_map::octree::Resolution;
 use scan3d_protocol::{Body, Frame, LidarRevolution, PassEvent, SensorId};
 
+use super::passes::{PassChange, PassSpans};
 use super::{BasePose, NewBundle, RaySource, Stage, StageContext};
 
 /// Which Sweep samples the stage places.
@@ -109,14 +111,6 @@ pub struct PassStatus {
     pub dropped: u64,
 }
 
-/// A pass's span of edge time.
-#[derive(Debug, Clone)]
-struct PassSpan {
-    name: String,
-    start_ns: u64,
-    stop_ns: Option<u64>,
-}
-
 /// A Sweep revolution waiting for the poses: its parts per pass.
 #[derive(Debug)]
 struct Held {
@@ -137,7 +131,9 @@ pub struct MovingStage {
     assembler: Option<MovingAssembler>,
     poses: VecDeque<BasePose>,
     held: VecDeque<Held>,
-    spans: Vec<PassSpan>,
+    /// The passes (the pose stage logs the markers ignored).
+    spans: PassSpans,
+    /// Per pass name, what was placed (`stopped` filled in from `spans` when asked).
     passes: Vec<PassStatus>,
     /// The last sample time of the newest revolution placed, ns.
     placed_to_ns: Option<u64>,
@@ -145,8 +141,6 @@ pub struct MovingStage {
     unmounted: u64,
     /// Poses forgotten because the window was full.
     forgotten_poses: u64,
-    /// Stray pass stops (no open start of that name).
-    stray_stops: u64,
     trajectory: Vec<TrajectoryPoint>,
     logged_unmounted: bool,
     logged_drop: bool,
@@ -166,12 +160,11 @@ impl MovingStage {
             assembler: None,
             poses: VecDeque::new(),
             held: VecDeque::new(),
-            spans: Vec::new(),
+            spans: PassSpans::new(),
             passes: Vec::new(),
             placed_to_ns: None,
             unmounted: 0,
             forgotten_poses: 0,
-            stray_stops: 0,
             trajectory: Vec::new(),
             logged_unmounted: false,
             logged_drop: false,
@@ -192,15 +185,18 @@ impl MovingStage {
     /// The passes seen, in first-start order (the map stage's points not filled in:
     /// [`super::SessionPipeline::passes`] does).
     pub fn passes(&self) -> Vec<PassStatus> {
-        self.passes.clone()
+        self.passes
+            .iter()
+            .map(|status| PassStatus {
+                stopped: self.spans.stopped(&status.name).unwrap_or(false),
+                ..status.clone()
+            })
+            .collect()
     }
 
     /// The passes as (name, start, stop) in edge ns, in start order.
     pub fn pass_spans(&self) -> Vec<(String, u64, Option<u64>)> {
-        self.spans
-            .iter()
-            .map(|s| (s.name.clone(), s.start_ns, s.stop_ns))
-            .collect()
+        self.spans.as_tuples()
     }
 
     /// Sweep revolutions to be placed that came before the Sweep's mount: not placed.
@@ -215,7 +211,7 @@ impl MovingStage {
 
     /// Pass stops without an open start of their name: ignored.
     pub fn stray_stops(&self) -> u64 {
-        self.stray_stops
+        self.spans.stray_stops()
     }
 
     /// Poses forgotten because the window was full.
@@ -243,46 +239,10 @@ impl MovingStage {
         &mut self.passes[index]
     }
 
+    /// A pass marker ([`PassSpans`]' rules): a pass is listed from its start.
     fn on_pass(&mut self, t_ns: u64, event: &PassEvent) {
-        match event {
-            PassEvent::Started {
-                name,
-                x_m,
-                y_m,
-                heading_deg,
-            } => {
-                // As the pose stage: a start it cannot anchor is no pass.
-                if ![*x_m, *y_m, *heading_deg].iter().all(|v| v.is_finite()) {
-                    return;
-                }
-                self.spans.push(PassSpan {
-                    name: name.clone(),
-                    start_ns: t_ns,
-                    stop_ns: None,
-                });
-                self.status_mut(name).stopped = false;
-            }
-            PassEvent::Stopped { name } => {
-                match self
-                    .spans
-                    .iter_mut()
-                    .rev()
-                    .find(|s| &s.name == name && s.stop_ns.is_none())
-                {
-                    Some(span) => {
-                        span.stop_ns = Some(t_ns.max(span.start_ns));
-                        self.status_mut(name).stopped = true;
-                    }
-                    None => {
-                        self.stray_stops += 1;
-                        tracing::warn!(
-                            pass = %name,
-                            t_ns,
-                            "a pass stop without its start: ignored, nothing is cut"
-                        );
-                    }
-                }
-            }
+        if let PassChange::Started { .. } = self.spans.apply(t_ns, event) {
+            self.status_mut(event.name());
         }
     }
 
@@ -292,9 +252,10 @@ impl MovingStage {
             MovingScope::Whole => vec![(String::new(), rev.clone())],
             MovingScope::Passes => self
                 .spans
+                .spans()
                 .iter()
                 .filter_map(|span| {
-                    within(rev, span.start_ns, span.stop_ns.unwrap_or(u64::MAX))
+                    within(rev, span.start_ns, span.end_ns())
                         .map(|piece| (span.name.clone(), piece))
                 })
                 .collect(),

@@ -17,8 +17,10 @@
 //! trajectory, before and after, is reported through that one transform (a later pass's start
 //! re-anchors it). A snapshot writes `trajectory.tum` (TUM lines `t x y z qx qy qz qw`, t in
 //! UNIX seconds of the server's clock through the session's time-sync models), each pass's
-//! `passes/NAME/trajectory.tum` (its poses from start to stop), and the scan matcher's grid as
-//! map_server `grid.pgm` + `grid.yaml` and `grid.png` (in the session's frame).
+//! `passes/NAME/trajectory.tum` (its poses in [start, stop), by [`super::passes`]' rules), and the scan matcher's grid as
+//! map_server `grid.pgm` + `grid.yaml` and `grid.png` (in the session's frame). The snapshot
+//! copies what it needs (poses, passes, clock, the grid's cells) while the pipeline is held and
+//! renders the files after ([`Stage::snapshot_job`]).
 
 use std::io::Write;
 
@@ -34,8 +36,9 @@ use scan3d_slam::pose::Pose2;
 use scan3d_slam::relations::TrajectoryPose;
 
 use super::order::StreamId;
+use super::passes::{PassChange, PassSpans};
 use super::snapshot::SnapshotWriter;
-use super::{BasePose, PipelineError, Stage, StageContext};
+use super::{BasePose, PipelineError, SnapshotJob, Stage, StageContext};
 use crate::pose::scan_matching::revolution_scan;
 use crate::pose::timesync::SessionClock;
 
@@ -350,16 +353,9 @@ pub struct PoseStage {
     path_m: f64,
     /// Session frame → room frame, once anchored.
     anchor: Option<Pose2>,
-    passes: Vec<Pass>,
+    /// The passes; this stage logs the markers it ignores (the others after it do not).
+    passes: PassSpans,
     clock: SessionClock,
-}
-
-/// One trolley pass: a name and its span of edge time.
-#[derive(Debug, Clone, PartialEq)]
-struct Pass {
-    name: String,
-    start_ns: u64,
-    stop_ns: Option<u64>,
 }
 
 impl std::fmt::Debug for PoseStage {
@@ -380,7 +376,7 @@ impl PoseStage {
             poses: Vec::new(),
             path_m: 0.0,
             anchor: None,
-            passes: Vec::new(),
+            passes: PassSpans::logging(),
             clock: SessionClock::new(),
         }
     }
@@ -416,18 +412,15 @@ impl PoseStage {
         self.anchor = Some(room.compose(&at.inverse()));
     }
 
-    /// Names of the passes seen, in start order.
+    /// Names of the passes seen, each once, in the order of their first start.
     pub fn passes(&self) -> Vec<String> {
-        self.passes.iter().map(|p| p.name.clone()).collect()
+        self.passes.names()
     }
 
     /// The passes seen as (name, start, stop) in edge ns (stop `None` while open), in start
     /// order: the spans assembly along movement keeps for `--pass NAME`.
     pub fn pass_spans(&self) -> Vec<(String, u64, Option<u64>)> {
-        self.passes
-            .iter()
-            .map(|p| (p.name.clone(), p.start_ns, p.stop_ns))
-            .collect()
+        self.passes.as_tuples()
     }
 
     /// Whether a pass start anchored the trajectory in the room frame.
@@ -440,43 +433,14 @@ impl PoseStage {
     pub fn room_poses(&self) -> Vec<(u64, Pose2)> {
         self.poses
             .iter()
-            .map(|p| {
-                let t_ns = (p.timestamp.seconds * 1e9).round().max(0.0) as u64;
-                (t_ns, self.reported(&p.pose))
-            })
+            .map(|p| (edge_ns(p.timestamp.seconds), self.reported(&p.pose)))
             .collect()
     }
 
+    /// A pass marker: a start ([`PassSpans`]' rules) anchors the trajectory in the room.
     fn on_pass(&mut self, t_ns: u64, event: &PassEvent) {
-        match event {
-            PassEvent::Started {
-                name,
-                x_m,
-                y_m,
-                heading_deg,
-            } => {
-                let room = Pose2 {
-                    x: *x_m,
-                    y: *y_m,
-                    theta: heading_deg.to_radians(),
-                };
-                if ![room.x, room.y, room.theta].iter().all(|v| v.is_finite()) {
-                    tracing::warn!(pass = %name, "a pass start with a non-finite pose: not anchored");
-                    return;
-                }
-                self.anchor(t_ns, room);
-                self.passes.push(Pass {
-                    name: name.clone(),
-                    start_ns: t_ns,
-                    stop_ns: None,
-                });
-            }
-            PassEvent::Stopped { name } => {
-                match self.passes.iter_mut().rev().find(|p| &p.name == name) {
-                    Some(pass) if pass.stop_ns.is_none() => pass.stop_ns = Some(t_ns),
-                    _ => tracing::warn!(pass = %name, "a pass stop without its start"),
-                }
-            }
+        if let PassChange::Started { room, .. } = self.passes.apply(t_ns, event) {
+            self.anchor(t_ns, room);
         }
     }
 
@@ -487,7 +451,7 @@ impl PoseStage {
 
     /// A pose of the session's frame in the reported frame (the room's once anchored).
     fn reported(&self, pose: &Pose2) -> Pose2 {
-        self.anchor.map_or(*pose, |a| a.compose(pose))
+        reported(self.anchor, pose)
     }
 
     /// Where `base` is now; `None` before the first revolution.
@@ -512,26 +476,95 @@ impl PoseStage {
     /// Writes the trajectory as TUM lines: t in UNIX seconds of the server's clock when a
     /// time-sync model covers the session, else in edge-clock seconds (said in a comment).
     pub fn write_tum(&self, out: &mut dyn Write) -> std::io::Result<()> {
-        self.write_tum_between(out, 0, u64::MAX)
+        write_matcher_tum(out, &self.clock, self.anchor, &self.poses, |_| true)
     }
 
-    /// [`PoseStage::write_tum`] of the poses from edge time `from_ns` to `to_ns`.
-    fn write_tum_between(
-        &self,
-        out: &mut dyn Write,
-        from_ns: u64,
-        to_ns: u64,
-    ) -> std::io::Result<()> {
-        let poses = self
-            .poses
-            .iter()
-            .map(|p| (p.timestamp.seconds, self.reported(&p.pose), None));
-        write_tum(out, &self.clock, poses, from_ns, to_ns)
+    /// What the stage's part of a session snapshot needs, copied (`None` for a position's
+    /// snapshot, or before the first pose): the heavy work is [`PoseSnapshot::write`]'s.
+    fn take_snapshot(&self, position: Option<&str>) -> Option<PoseSnapshot> {
+        if position.is_some() || self.poses.is_empty() {
+            return None;
+        }
+        Some(PoseSnapshot {
+            poses: self.poses.clone(),
+            anchor: self.anchor,
+            passes: self.passes.clone(),
+            clock: self.clock.clone(),
+            grid: self.tracker.mapper().map().finest().clone(),
+        })
     }
 }
 
-/// Writes poses `(edge s, pose in the reported frame, roll and pitch if known)` from edge time
-/// `from_ns` to `to_ns` as TUM lines `t x y z qx qy qz qw` (z 0; the quaternion
+/// A pose of the session's frame in the reported frame: the room's through `anchor` once a
+/// pass anchored the trajectory, else the session's own.
+fn reported(anchor: Option<Pose2>, pose: &Pose2) -> Pose2 {
+    anchor.map_or(*pose, |a| a.compose(pose))
+}
+
+/// An edge time in seconds as edge ns (as the poses handed on carry it).
+fn edge_ns(edge_s: f64) -> u64 {
+    (edge_s * 1e9).round().max(0.0) as u64
+}
+
+/// Writes the matcher's `poses` (session frame) whose edge ns `keep` takes as TUM lines, in the
+/// reported frame of `anchor` ([`write_tum`]).
+fn write_matcher_tum(
+    out: &mut dyn Write,
+    clock: &SessionClock,
+    anchor: Option<Pose2>,
+    poses: &[TrajectoryPose],
+    keep: impl Fn(u64) -> bool,
+) -> std::io::Result<()> {
+    let poses = poses
+        .iter()
+        .filter(|p| keep(edge_ns(p.timestamp.seconds)))
+        .map(|p| (p.timestamp.seconds, reported(anchor, &p.pose), None));
+    write_tum(out, clock, poses)
+}
+
+/// The pose stage's part of a session snapshot, copied while the pipeline is held (the poses,
+/// the passes, the clock and the matcher's finest grid: a copy of its cells) so that the TUM
+/// files, the grid's raster and its PGM and PNG are made after the pipeline is released.
+struct PoseSnapshot {
+    poses: Vec<TrajectoryPose>,
+    anchor: Option<Pose2>,
+    passes: PassSpans,
+    clock: SessionClock,
+    grid: scan3d_slam::grid::Grid,
+}
+
+impl PoseSnapshot {
+    /// Writes `trajectory.tum`, each pass's `passes/NAME/trajectory.tum` (the poses in the
+    /// pass's spans, [`PassSpans`]' rules), and `grid.pgm`, `grid.yaml`, `grid.png` once a cell
+    /// of the grid was hit.
+    fn write(self, out: &mut SnapshotWriter) -> Result<(), PipelineError> {
+        let (clock, anchor, poses) = (&self.clock, self.anchor, &self.poses[..]);
+        out.render("trajectory.tum", |tum| {
+            write_matcher_tum(tum, clock, anchor, poses, |_| true)
+        })?;
+        for name in self.passes.names() {
+            let subdir = std::path::Path::new("passes").join(path_safe(&name));
+            let covers = |t_ns| self.passes.covers(&name, t_ns);
+            out.render_in(&subdir, "trajectory.tum", |tum| {
+                write_matcher_tum(tum, clock, anchor, poses, covers)
+            })?;
+        }
+        let Ok(raster) = raster(&self.grid) else {
+            // No cell was ever hit: no grid to write.
+            return Ok(());
+        };
+        let thresholds = Thresholds::default();
+        out.render("grid.pgm", |pgm| write_pgm(&raster, &thresholds, pgm))?;
+        out.render("grid.yaml", |yaml| write_yaml(&raster, "grid.pgm", yaml))?;
+        let session_poses: Vec<Pose2> = poses.iter().map(|p| p.pose).collect();
+        out.render("grid.png", |png| {
+            write_png_with_trajectory(&raster, &thresholds, &session_poses, png)
+        })
+    }
+}
+
+/// Writes poses `(edge s, pose in the reported frame, roll and pitch if known)` as TUM lines
+/// `t x y z qx qy qz qw` (z 0; the quaternion
 /// `Rz(yaw) Ry(pitch) Rx(roll)`, level without roll and pitch): t in UNIX seconds of the
 /// server's clock when a time-sync model covers the session (`clock`), else in edge-clock
 /// seconds (said in a comment). The pose stage's `trajectory.tum` and the fusion stage's
@@ -540,8 +573,6 @@ pub fn write_tum(
     out: &mut dyn Write,
     clock: &SessionClock,
     poses: impl Iterator<Item = (f64, Pose2, Option<[f64; 2]>)>,
-    from_ns: u64,
-    to_ns: u64,
 ) -> std::io::Result<()> {
     let on_server = !clock.models().is_empty();
     if !on_server {
@@ -550,11 +581,7 @@ pub fn write_tum(
             "# t: edge clock seconds (no time-sync model in this session)"
         )?;
     }
-    let (from, to) = (from_ns as f64 * 1e-9, to_ns as f64 * 1e-9);
     for (edge_s, pose, roll_pitch) in poses {
-        if edge_s < from || edge_s > to {
-            continue;
-        }
         let t = tum_time(clock, edge_s);
         let [roll, pitch] = roll_pitch.unwrap_or([0.0, 0.0]);
         let (sr, cr) = (roll / 2.0).sin_cos();
@@ -682,7 +709,7 @@ impl Stage for PoseStage {
         }
         self.poses.push(TrajectoryPose::of(&result));
         ctx.poses.push(BasePose {
-            t_ns: (result.time * 1e9).round().max(0.0) as u64,
+            t_ns: edge_ns(result.time),
             pose: result.pose,
             covariance: [0, 1, 2, 3, 4, 5, 6, 7, 8].map(|k| result.covariance[k / 3][k % 3]),
             roll_pitch: None,
@@ -691,42 +718,17 @@ impl Stage for PoseStage {
     }
 
     fn snapshot(&mut self, out: &mut SnapshotWriter) -> Result<(), PipelineError> {
-        if out.snapshot.position.is_some() || self.poses.is_empty() {
-            return Ok(());
-        }
-        let dir = out.snapshot.dir.clone();
-        let failed = |name: &str, source: std::io::Error| PipelineError::Write {
-            path: dir.join(name),
-            source,
-        };
-        let mut tum = Vec::new();
-        self.write_tum(&mut tum)
-            .map_err(|e| failed("trajectory.tum", e))?;
-        out.write_file("trajectory.tum", &tum)?;
-        for pass in &self.passes {
-            let subdir = std::path::Path::new("passes").join(path_safe(&pass.name));
-            let mut tum = Vec::new();
-            self.write_tum_between(&mut tum, pass.start_ns, pass.stop_ns.unwrap_or(u64::MAX))
-                .map_err(|e| failed("passes", e))?;
-            out.write_file_in(&subdir, "trajectory.tum", &tum)?;
-        }
-        let Ok(raster) = raster(self.tracker.mapper().map().finest()) else {
-            // No cell was ever hit: no grid to write.
-            return Ok(());
-        };
-        let thresholds = Thresholds::default();
-        let mut pgm = Vec::new();
-        write_pgm(&raster, &thresholds, &mut pgm).map_err(|e| failed("grid.pgm", e))?;
-        let mut yaml = Vec::new();
-        write_yaml(&raster, "grid.pgm", &mut yaml).map_err(|e| failed("grid.yaml", e))?;
-        let poses: Vec<Pose2> = self.poses.iter().map(|p| p.pose).collect();
-        let mut png = Vec::new();
-        write_png_with_trajectory(&raster, &thresholds, &poses, &mut png)
-            .map_err(|e| failed("grid.png", e))?;
-        out.write_file("grid.pgm", &pgm)?;
-        out.write_file("grid.yaml", &yaml)?;
-        out.write_file("grid.png", &png)?;
-        Ok(())
+        let position = out.snapshot.position.clone();
+        self.take_snapshot(position.as_deref())
+            .map_or(Ok(()), |snapshot| snapshot.write(out))
+    }
+
+    /// The poses, passes, clock and grid copied; the files made and written after.
+    fn snapshot_job(&self, position: Option<&str>) -> Option<SnapshotJob> {
+        let snapshot = self.take_snapshot(position)?;
+        Some(Box::new(move |out: &mut SnapshotWriter| {
+            snapshot.write(out)
+        }))
     }
 }
 

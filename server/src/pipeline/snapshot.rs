@@ -81,6 +81,42 @@ impl SnapshotWriter {
         })?;
         write_file(&dir, name, bytes, &mut self.snapshot.files)
     }
+
+    /// Writes `name` in the snapshot's directory with the bytes `render` makes; a failure to
+    /// make them is a write error of that file.
+    pub fn render(
+        &mut self,
+        name: &str,
+        render: impl FnOnce(&mut Vec<u8>) -> std::io::Result<()>,
+    ) -> Result<(), PipelineError> {
+        let bytes = self.rendered(Path::new(name), render)?;
+        self.write_file(name, &bytes)
+    }
+
+    /// [`SnapshotWriter::render`] into `subdir` of the snapshot's directory (created).
+    pub fn render_in(
+        &mut self,
+        subdir: &Path,
+        name: &str,
+        render: impl FnOnce(&mut Vec<u8>) -> std::io::Result<()>,
+    ) -> Result<(), PipelineError> {
+        let bytes = self.rendered(&subdir.join(name), render)?;
+        self.write_file_in(subdir, name, &bytes)
+    }
+
+    /// The bytes `render` makes, its failure a write error of `relative` in the directory.
+    fn rendered(
+        &self,
+        relative: &Path,
+        render: impl FnOnce(&mut Vec<u8>) -> std::io::Result<()>,
+    ) -> Result<Vec<u8>, PipelineError> {
+        let mut bytes = Vec::new();
+        render(&mut bytes).map_err(|source| PipelineError::Write {
+            path: self.snapshot.dir.join(relative),
+            source,
+        })?;
+        Ok(bytes)
+    }
 }
 
 impl SnapshotWriter {
