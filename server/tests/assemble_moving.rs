@@ -9,11 +9,10 @@ mod trolley_support;
 
 use std::path::{Path, PathBuf};
 
-use pipeline_support::{DEMO_ROOM, SessionBuilder};
 use scan3d_map::cloud::moving::{BaseTrajectory, FnTrajectory, RigidTransform, place_revolution};
-use scan3d_protocol::{Body, PassEvent, PassMarker, SensorId, SensorMounts};
+use scan3d_protocol::{Body, SensorId};
 use scan3d_server::cli::assemble_moving::session_trajectory;
-use trolley_support::{REVOLUTION_NS, SWEEP_MOUNT, scan3d, sweep_revolution, to_surface};
+use trolley_support::{SWEEP_MOUNT, Trolley, scan3d, to_surface, trolley_session};
 
 /// Samples per Sweep revolution.
 const SWEEP_SAMPLES: usize = 360;
@@ -26,52 +25,18 @@ struct Options {
 
 /// Standing 10 revolutions, the pass "aisle" started where the trolley stands, 12 revolutions
 /// straight at 0.5 m/s diagonally to the walls, 12 turning at 0.6 rad/s while moving, the pass
-/// stopped. Returns the session directory.
+/// stopped (no `Hello`). Returns the session directory.
 fn record(dir: &Path, options: &Options) -> PathBuf {
-    let mut s = SessionBuilder::in_room(0x0213, DEMO_ROOM);
-    if options.sweep_mount {
-        s.push(SensorMounts {
-            sensors: vec![SWEEP_MOUNT],
-        });
-    }
-    let start = [2.5, 2.0, 0.6];
-    let straight = [0.5 * 0.6f64.cos(), 0.5 * 0.6f64.sin(), 0.0];
-    let turning = [0.3 * 0.6f64.cos(), 0.3 * 0.6f64.sin(), 0.6];
-    let mut pose = start;
-    // The edge time, kept here as the session has no RPLidar to move the builder's on.
-    let mut t0 = s.now_ns();
-    let stretches = [([0.0; 3], 10), (straight, 12), (turning, 12)];
-    for (n, (velocity, revolutions)) in stretches.into_iter().enumerate() {
-        if n == 1 {
-            s.push(PassMarker {
-                t_ns: t0,
-                event: PassEvent::Started {
-                    name: "aisle".into(),
-                    x_m: start[0],
-                    y_m: start[1],
-                    heading_deg: start[2].to_degrees(),
-                },
-            });
-        }
-        for _ in 0..revolutions {
-            if options.rplidar {
-                s.rplidar_moving(1, 360, pose, velocity);
-                assert_eq!(s.now_ns(), t0 + REVOLUTION_NS);
-            }
-            s.push(sweep_revolution(t0, pose, velocity, SWEEP_SAMPLES));
-            t0 += REVOLUTION_NS;
-            for k in 0..3 {
-                pose[k] += velocity[k] * REVOLUTION_NS as f64 * 1e-9;
-            }
-        }
-    }
-    s.push(PassMarker {
-        t_ns: t0,
-        event: PassEvent::Stopped {
-            name: "aisle".into(),
-        },
-    });
-    s.record(dir, "trolley")
+    trolley_session(Trolley {
+        rplidar: options.rplidar,
+        hello: false,
+        sweep_mount: options.sweep_mount,
+        sweep_samples: SWEEP_SAMPLES,
+        stretches: [10, 12, 12],
+        after: 0,
+        stray_stop: false,
+    })
+    .record(dir, "trolley")
 }
 
 /// Mean distance to the room's surfaces of every point of `bundles`.

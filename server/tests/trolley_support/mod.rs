@@ -24,7 +24,7 @@ pub const SWEEP_MOUNT: SensorMount = SensorMount {
     yaw_deg: 0.0,
 };
 
-/// Samples per Sweep revolution of [`trolley_session`].
+/// Samples per Sweep revolution of [`trolley_session`] by default.
 pub const SWEEP_SAMPLES: usize = 120;
 
 /// One Sweep revolution of `samples` samples from `t0`, `base` moving from `pose` (x, y,
@@ -69,6 +69,12 @@ pub struct Trolley {
     pub rplidar: bool,
     /// A `Hello` declaring the sensors first.
     pub hello: bool,
+    /// The Sweep's mount (`Body::Mounts`) first: without it the samples cannot be placed.
+    pub sweep_mount: bool,
+    /// Samples per Sweep revolution.
+    pub sweep_samples: usize,
+    /// Revolutions standing before the pass, then straight and turning within it.
+    pub stretches: [usize; 3],
     /// Standing revolutions after the pass stops.
     pub after: usize,
     /// A stray "stop" of a pass never started, before the real pass.
@@ -76,19 +82,24 @@ pub struct Trolley {
 }
 
 impl Default for Trolley {
+    /// Declared, mounted, [`SWEEP_SAMPLES`] a revolution, standing 6, straight 8, turning 8,
+    /// standing 4 after.
     fn default() -> Self {
         Trolley {
             rplidar: true,
             hello: true,
+            sweep_mount: true,
+            sweep_samples: SWEEP_SAMPLES,
+            stretches: [6, 8, 8],
             after: 4,
             stray_stop: false,
         }
     }
 }
 
-/// Standing 6 revolutions, the pass "aisle" started where the trolley stands, 8 revolutions
-/// straight at 0.5 m/s, 8 turning at 0.6 rad/s while moving, the pass stopped, then standing
-/// `after` revolutions.
+/// Standing (`stretches[0]` revolutions), the pass "aisle" started where the trolley stands,
+/// `stretches[1]` revolutions straight at 0.5 m/s diagonally to the walls, `stretches[2]`
+/// turning at 0.6 rad/s while moving, the pass stopped, then standing `after` revolutions.
 pub fn trolley_session(options: Trolley) -> SessionBuilder {
     let mut s = SessionBuilder::in_room(0x0215, DEMO_ROOM);
     if options.hello {
@@ -110,13 +121,16 @@ pub fn trolley_session(options: Trolley) -> SessionBuilder {
                 .collect(),
         ));
     }
-    s.push(SensorMounts {
-        sensors: vec![SWEEP_MOUNT],
-    });
+    if options.sweep_mount {
+        s.push(SensorMounts {
+            sensors: vec![SWEEP_MOUNT],
+        });
+    }
     let start = [2.5, 2.0, 0.6];
     let straight = [0.5 * 0.6f64.cos(), 0.5 * 0.6f64.sin(), 0.0];
     let turning = [0.3 * 0.6f64.cos(), 0.3 * 0.6f64.sin(), 0.6];
     let mut pose = start;
+    // The edge time, kept here as a session without RPLidar does not move the builder's on.
     let mut t0 = s.now_ns();
     if options.stray_stop {
         s.push(PassMarker {
@@ -126,10 +140,11 @@ pub fn trolley_session(options: Trolley) -> SessionBuilder {
             },
         });
     }
+    let [standing, straight_n, turning_n] = options.stretches;
     let stretches = [
-        ([0.0; 3], 6),
-        (straight, 8),
-        (turning, 8),
+        ([0.0; 3], standing),
+        (straight, straight_n),
+        (turning, turning_n),
         ([0.0; 3], options.after),
     ];
     for (n, (velocity, revolutions)) in stretches.into_iter().enumerate() {
@@ -155,8 +170,13 @@ pub fn trolley_session(options: Trolley) -> SessionBuilder {
         for _ in 0..revolutions {
             if options.rplidar {
                 s.rplidar_moving(1, 360, pose, velocity);
+                assert_eq!(
+                    s.now_ns(),
+                    t0 + REVOLUTION_NS,
+                    "both lidars' revolutions agree"
+                );
             }
-            s.push(sweep_revolution(t0, pose, velocity, SWEEP_SAMPLES));
+            s.push(sweep_revolution(t0, pose, velocity, options.sweep_samples));
             t0 += REVOLUTION_NS;
             for k in 0..3 {
                 pose[k] += velocity[k] * REVOLUTION_NS as f64 * 1e-9;
