@@ -177,3 +177,51 @@ fn a_pass_stopped_without_its_start_is_ignored_and_nothing_is_lost() {
     assert!(!stray.maps().pass_cloud("aisle").is_empty());
     assert!(stray.maps().pass_cloud("aisle") == clean.maps().pass_cloud("aisle"));
 }
+
+#[test]
+fn a_prepared_snapshot_writes_the_pose_stages_files_as_they_were_when_taken() {
+    let tmp = tempfile::tempdir().unwrap();
+    let frames: Vec<Frame> = trolley_session(Trolley::default())
+        .frames()
+        .cloned()
+        .collect();
+    // Into the pass: the trajectory, the pass's and the grid are there, and will change.
+    let (now, later) = frames.split_at(frames.len() * 2 / 3);
+    let mut pipeline = live(now.iter().cloned());
+    let at_once = tmp.path().join("at-once");
+    pipeline.write_snapshot(&at_once, None).unwrap();
+    let prepared = pipeline
+        .prepare_snapshot(&tmp.path().join("prepared"), None)
+        .unwrap();
+    for frame in later {
+        pipeline.on_frame(frame);
+    }
+    let written = prepared.write().unwrap();
+    let after = tmp.path().join("after");
+    pipeline.write_snapshot(&after, None).unwrap();
+    let files = [
+        "trajectory.tum",
+        "passes/aisle/trajectory.tum",
+        "grid.pgm",
+        "grid.yaml",
+        "grid.png",
+        "trajectory_fused.tum",
+    ];
+    for file in files {
+        assert!(
+            written.files.contains(&written.dir.join(file)),
+            "{file} listed: {:?}",
+            written.files
+        );
+        assert!(
+            read(&written.dir.join(file)) == read(&at_once.join(file)),
+            "{file}: the prepared snapshot's bytes are not those of the moment it was taken"
+        );
+    }
+    for file in ["trajectory.tum", "grid.png"] {
+        assert!(
+            read(&after.join(file)) != read(&at_once.join(file)),
+            "{file}: the later frames changed nothing, the test proves nothing"
+        );
+    }
+}

@@ -792,6 +792,35 @@ mod tests {
     }
 
     #[test]
+    fn a_snapshot_job_owns_a_copy_and_a_positions_snapshot_has_no_part() {
+        let mut stage = PoseStage::new(MapperConfig::default(), Pose2::default());
+        let pose = |t: f64| {
+            TrajectoryPose::new(
+                scan3d_slam::text::Timestamp::from_seconds(t),
+                Pose2::default(),
+            )
+        };
+        assert!(stage.snapshot_job(None).is_none(), "no pose yet: no part");
+        stage.poses.extend([pose(1.0), pose(2.0)]);
+        assert!(stage.snapshot_job(Some("p1")).is_none());
+        let job = stage.snapshot_job(None).expect("a part");
+        // Poses after the job was taken are not in its files.
+        stage.poses.push(pose(3.0));
+        let tmp = tempfile::tempdir().unwrap();
+        let mut out = SnapshotWriter::new(tmp.path(), None);
+        job(&mut out).unwrap();
+        let tum = std::fs::read_to_string(tmp.path().join("trajectory.tum")).unwrap();
+        let times: Vec<&str> = tum
+            .lines()
+            .filter(|l| !l.starts_with('#'))
+            .map(|l| l.split(' ').next().unwrap())
+            .collect();
+        assert_eq!(times, ["1.000000", "2.000000"]);
+        // No revolution was matched: no grid.
+        assert_eq!(out.snapshot.files, [tmp.path().join("trajectory.tum")]);
+    }
+
+    #[test]
     fn the_gyros_turn_between_two_revolutions_is_its_rate_over_their_times_less_the_bias() {
         // Mounted upside down (roll 180°): the IMU's z reads the opposite of base's.
         let mut gyro = GyroYaw::default();
