@@ -35,6 +35,7 @@ fn record(dir: &Path, options: &Options) -> PathBuf {
         stretches: [10, 12, 12],
         after: 0,
         stray_stop: false,
+        second_start: false,
     })
     .record(dir, "trolley")
 }

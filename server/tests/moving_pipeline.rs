@@ -225,3 +225,72 @@ fn a_prepared_snapshot_writes_the_pose_stages_files_as_they_were_when_taken() {
         );
     }
 }
+
+/// The edge times of a TUM file's lines, s.
+fn tum_times(path: &Path) -> Vec<f64> {
+    String::from_utf8(read(path))
+        .unwrap()
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .map(|l| l.split(' ').next().unwrap().parse().unwrap())
+        .collect()
+}
+
+#[test]
+fn a_start_while_a_pass_is_open_closes_it_there_in_every_stage() {
+    let tmp = tempfile::tempdir().unwrap();
+    let options = Trolley {
+        second_start: true,
+        ..Trolley::default()
+    };
+    let mut pipeline = live(trolley_session(options).frames().cloned());
+    pipeline.flush();
+    let [standing, straight, turning] = options.stretches;
+    let start_of = |revolutions: usize| {
+        SessionBuilder::new(0).now_ns() + (revolutions as u64) * trolley_support::REVOLUTION_NS
+    };
+    let (aisle_ns, turn_ns) = (start_of(standing), start_of(standing + straight));
+    let pose = pipeline.pose().unwrap();
+    let moving = pipeline.moving().unwrap();
+    let spans = vec![
+        ("aisle".to_string(), aisle_ns, Some(turn_ns)),
+        ("turn".to_string(), turn_ns, None),
+    ];
+    assert_eq!(pose.pass_spans(), spans);
+    assert_eq!(moving.pass_spans(), spans);
+    // "aisle"'s own stop came after "turn" closed it: ignored.
+    assert_eq!(moving.stray_stops(), 1);
+
+    // Each Sweep sample placed once, in the pass its time is in ([start, stop)).
+    let passes = pipeline.passes();
+    let [aisle, turn] = [&passes[0], &passes[1]];
+    assert_eq!((aisle.name.as_str(), aisle.stopped), ("aisle", true));
+    assert_eq!((turn.name.as_str(), turn.stopped), ("turn", false));
+    assert_eq!(
+        aisle.samples,
+        (straight * SWEEP_SAMPLES) as u64,
+        "{aisle:?}"
+    );
+    let turn_samples = ((turning + options.after) * SWEEP_SAMPLES) as u64;
+    assert_eq!(
+        turn.samples + turn.unplaced_samples,
+        turn_samples,
+        "{turn:?}"
+    );
+
+    // The pose and fusion stages cut their per-pass trajectories at the same times.
+    let snap = tmp.path().join("snap");
+    pipeline.write_snapshot(&snap, None).unwrap();
+    for (name, from, to) in [("aisle", aisle_ns, turn_ns), ("turn", turn_ns, u64::MAX)] {
+        let dir = snap.join("passes").join(name);
+        let matcher = tum_times(&dir.join("trajectory.tum"));
+        let fused = tum_times(&dir.join("trajectory_fused.tum"));
+        assert!(!matcher.is_empty());
+        assert_eq!(matcher, fused, "{name}");
+        let (from, to) = (from as f64 * 1e-9, to as f64 * 1e-9);
+        assert!(
+            matcher.iter().all(|&t| from <= t && t < to),
+            "{name}: {matcher:?}"
+        );
+    }
+}

@@ -79,6 +79,9 @@ pub struct Trolley {
     pub after: usize,
     /// A stray "stop" of a pass never started, before the real pass.
     pub stray_stop: bool,
+    /// A second pass, "turn", started where the turning stretch begins while "aisle" is open
+    /// (so "aisle"'s stop comes when it is closed already).
+    pub second_start: bool,
 }
 
 impl Default for Trolley {
@@ -93,6 +96,7 @@ impl Default for Trolley {
             stretches: [6, 8, 8],
             after: 4,
             stray_stop: false,
+            second_start: false,
         }
     }
 }
@@ -156,6 +160,17 @@ pub fn trolley_session(options: Trolley) -> SessionBuilder {
                     x_m: start[0],
                     y_m: start[1],
                     heading_deg: start[2].to_degrees(),
+                },
+            });
+        }
+        if n == 2 && options.second_start {
+            s.push(PassMarker {
+                t_ns: t0,
+                event: PassEvent::Started {
+                    name: "turn".into(),
+                    x_m: pose[0],
+                    y_m: pose[1],
+                    heading_deg: pose[2].to_degrees(),
                 },
             });
         }
