@@ -266,7 +266,8 @@ pub fn search(grid: &Grid, points: &[(f64, f64)], start: Pose2, window: &SearchW
         .clamp(0.0, 20.0) as i32;
     // Every other endpoint is enough to rank candidates.
     let sample: Vec<(f64, f64)> = points.iter().step_by(2).copied().collect();
-    let mut best = (f64::NEG_INFINITY, start);
+    // (score, distance from the start in search steps, pose)
+    let mut best = (f64::NEG_INFINITY, f64::INFINITY, start);
     for a in -steps..=steps {
         let theta = start.theta + f64::from(a) * window.angle_step;
         let (s, c) = theta.sin_cos();
@@ -282,14 +283,18 @@ pub fn search(grid: &Grid, points: &[(f64, f64)], start: Pose2, window: &SearchW
                     .iter()
                     .map(|&(rx, ry)| grid.interpolate(x + rx, y + ry).value)
                     .sum();
-                // Ties go to the candidate nearest the start (the loops visit it first).
-                if score > best.0 + 1e-9 {
-                    best = (score, Pose2::new(x, y, theta));
+                // Ties (within rounding) go to the candidate nearest the start, counted in
+                // search steps: where the map cannot tell candidates apart (along a corridor,
+                // on an empty map) the prediction stands.
+                let steps_away = f64::from(i).hypot(f64::from(j)).hypot(f64::from(a));
+                let tied = (score - best.0).abs() <= 1e-9;
+                if score > best.0 + 1e-9 || (tied && steps_away < best.1) {
+                    best = (score.max(best.0), steps_away, Pose2::new(x, y, theta));
                 }
             }
         }
     }
-    best.1
+    best.2
 }
 
 /// Mean interpolated occupancy at the endpoints placed at `pose`.
@@ -524,14 +529,7 @@ mod tests {
     #[test]
     fn the_covariance_is_largest_along_a_corridor() {
         // Two long parallel walls along x: the scan pins y and ψ, not x.
-        let mut p = GridPyramid::new(0.05, 3, &UpdateModel::default());
-        let walls: Vec<(f64, f64)> = (0..400)
-            .flat_map(|k| {
-                let x = -10.025 + 0.05 * f64::from(k);
-                [(x, 1.025), (x, -1.025)]
-            })
-            .collect();
-        p.integrate(&Pose2::default(), &walls, &[]);
+        let (p, walls) = corridor();
         let near: Vec<(f64, f64)> = walls
             .iter()
             .copied()
@@ -543,6 +541,40 @@ mod tests {
             "{:?}",
             m.covariance
         );
+    }
+
+    /// Two long parallel walls along x, 2.05 m apart, mapped from the origin.
+    fn corridor() -> (GridPyramid, Vec<(f64, f64)>) {
+        let mut p = GridPyramid::new(0.05, 2, &UpdateModel::default());
+        let walls: Vec<(f64, f64)> = (0..400)
+            .flat_map(|k| {
+                let x = -10.025 + 0.05 * f64::from(k);
+                [(x, 1.025), (x, -1.025)]
+            })
+            .collect();
+        p.integrate(&Pose2::default(), &walls, &[]);
+        (p, walls)
+    }
+
+    #[test]
+    fn the_window_search_breaks_ties_nearest_the_start() {
+        let (map, walls) = corridor();
+        let window = SearchWindow::default();
+        // On an empty map every candidate ties: the start stands.
+        let empty = GridPyramid::new(0.05, 2, &UpdateModel::default());
+        let start = Pose2::new(0.3, -0.2, 0.1);
+        assert_eq!(search(&empty.levels()[1], &walls, start, &window), start);
+        // Seen from 0.1 m off the corridor's axis, the scan pins y and the heading, not x: the
+        // search corrects y and keeps x where the prediction put it (not the window's corner).
+        let near: Vec<(f64, f64)> = walls
+            .iter()
+            .filter(|(x, _)| x.abs() < 4.0)
+            .map(|&(x, y)| (x, y - 0.1))
+            .collect();
+        let found = search(&map.levels()[1], &near, Pose2::new(0.0, 0.0, 0.0), &window);
+        assert_eq!(found.x, 0.0, "{found:?}");
+        assert!((found.y - 0.1).abs() < 0.051, "{found:?}");
+        assert!(found.theta.abs() < 0.011, "{found:?}");
     }
 
     #[test]

@@ -22,6 +22,10 @@ use scan3d_slam::relations::{
 
 use crate::pose::scan_matching::map_session;
 
+/// The largest `--laser-offset` accepted (m): a laser further than this from the robot's
+/// origin is a typo, not a mount.
+const MAX_LASER_OFFSET: f64 = 2.0;
+
 /// Options of `scan3d slam`.
 #[derive(Debug, clap::Args)]
 pub struct SlamArgs {
@@ -58,6 +62,11 @@ pub struct SlamArgs {
     /// Drop readings closer than this (m).
     #[arg(long, value_name = "M", default_value_t = 0.1)]
     pub min_range: f64,
+    /// Where a log's front laser sits ahead of the robot's origin (m, negative: behind), for
+    /// `FLASER` lines, which carry no offset (FR079: 0.04 m; its sources disagree on the sign).
+    /// Overrides the log's `PARAM robot_frontlaser_offset`; `ROBOTLASER1` lines keep their own.
+    #[arg(long, value_name = "M", allow_negative_numbers = true)]
+    pub laser_offset: Option<f64>,
     /// Every mapper parameter (see `deploy/slam.toml` for the keys and defaults).
     #[arg(long, value_name = "slam.toml")]
     pub config: Option<PathBuf>,
@@ -262,7 +271,7 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         }
         (run, "session revolutions")
     } else {
-        let log = read_log(
+        let mut log = read_log(
             open_log(&args.input)?,
             &ReadOptions {
                 lenient: args.lenient,
@@ -287,6 +296,12 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
                 "{}: no laser scans (FLASER or ROBOTLASER1 lines)",
                 args.input.display()
             );
+        }
+        if let Some(forward) = args.laser_offset {
+            if !(forward.is_finite() && forward.abs() <= MAX_LASER_OFFSET) {
+                bail!("--laser-offset must be within ±{MAX_LASER_OFFSET} m, not {forward}");
+            }
+            log.set_front_laser_offset(Pose2::new(forward, 0.0, 0.0));
         }
         let limits = RangeLimits::for_log(&log, args.min_range, args.max_range);
         let fixed = match (args.odometry_latency, args.laser_odometry) {
