@@ -137,9 +137,11 @@ impl MagCalibrationRun {
         distance(self.settings.hard_iron_ut, self.true_hard_iron_ut)
     }
 
-    /// |fitted − observable| hard iron, µT.
-    pub fn observable_error_ut(&self) -> f64 {
-        distance(self.settings.hard_iron_ut, self.observable_hard_iron_ut)
+    /// |fitted − observable| hard iron in x, y (the heading's), µT.
+    pub fn horizontal_error_ut(&self) -> f64 {
+        let [x, y, _] = self.settings.hard_iron_ut;
+        let [ox, oy, _] = self.observable_hard_iron_ut;
+        distance([x, y, 0.0], [ox, oy, 0.0])
     }
 
     /// One line: the fitted hard-iron offset and its error against the emulator's true iron.
@@ -149,14 +151,16 @@ impl MagCalibrationRun {
         format!(
             "magnetometer calibrated by scan3d-edge calibrate mag's code over a {:.0} s turn in \
              place ({} fields, {}° covered, residual {:.2} %): hard iron ({x:.2}, {y:.2}, {z:.2}) \
-             µT vs the emulator's true ({tx:.2}, {ty:.2}, {tz:.2}): error {:.2} µT ({:.2} µT \
-             against what a turn about z can see); soft iron xy max error {:.4}",
+             µT vs the emulator's true ({tx:.2}, {ty:.2}, {tz:.2}): |error| {:.2} µT; x, y {:.2} \
+             µT off what a turn about z can see, z {:+.2} µT (from the site's vertical field); \
+             soft iron xy max error {:.4}",
             self.turn.duration_s,
             self.fit.samples,
             self.fit.covered.0 * 10,
             self.fit.residual_rms * 100.0,
             self.hard_iron_error_ut(),
-            self.observable_error_ut(),
+            self.horizontal_error_ut(),
+            z - tz,
             self.soft_iron_xy_error
         )
     }

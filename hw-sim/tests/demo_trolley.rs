@@ -37,9 +37,9 @@ const TIME_SCALE: f64 = 1.0;
 
 /// The calibration turn, simulated (= real) seconds: a full turn, quicker than the demo's.
 const MAG_TURN_S: f64 = 10.0;
-/// The fitted hard iron against what a turn about z can see of the emulator's, µT (the fit
-/// through the emulator is within 0.7 µT per axis in `imu_calibrate.rs`).
-const HARD_IRON_ERROR_MAX_UT: f64 = 1.0;
+/// The fitted hard iron's x, y against what a turn about z can see of the emulator's, µT (the
+/// fit through the emulator is within 0.7 µT per axis in `imu_calibrate.rs`).
+const HARD_IRON_XY_ERROR_MAX_UT: f64 = 0.7;
 
 /// Margins over the demo's goals (3 cm, 0.5°): a short pass on a loaded machine.
 const POSITION_RMSE_MAX_M: f64 = 0.05;
@@ -89,11 +89,12 @@ fn a_short_trolley_pass_follows_the_truth_and_its_points_lie_on_the_surface() {
     );
     assert!(mag.fit.covered.0 >= 30, "{:?}", mag.fit.covered);
     assert!(
-        mag.observable_error_ut() < HARD_IRON_ERROR_MAX_UT,
+        mag.horizontal_error_ut() < HARD_IRON_XY_ERROR_MAX_UT,
         "{}",
         mag.summary()
     );
-    assert!(mag.soft_iron_xy_error < 0.03, "{}", mag.summary());
+    // (A 10 s turn's thousand fields: 0.029 in one run; the demo's 24 s turn, 0.011.)
+    assert!(mag.soft_iron_xy_error < 0.04, "{}", mag.summary());
     assert_ne!(
         mag.settings.hard_iron_ut, mag.true_hard_iron_ut,
         "a fit is never exactly the truth"
