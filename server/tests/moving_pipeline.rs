@@ -124,7 +124,8 @@ fn a_sweep_revolution_waits_for_the_poses_that_cover_it() {
     }
     assert_eq!(waited, 1);
     // The pass's last revolutions have no pose after them in this session: they wait (in the
-    // lane for the Poses stream, or held by the stage) until the end, then are placed with the poses there are (extrapolated at most 50 ms, the rest counted).
+    // lane for the Poses stream, or held by the stage) until the end, then are placed with the
+    // poses there are (extrapolated at most 50 ms, the rest counted).
     let pass = &pipeline.passes()[0];
     assert!(pass.revolutions < 16, "{pass:?}");
     pipeline.flush();

@@ -101,7 +101,11 @@ impl PassSpans {
                 if ![*x_m, *y_m, *heading_deg].iter().all(|v| v.is_finite()) {
                     self.refused_starts += 1;
                     if self.logs {
-                        tracing::warn!(pass = %name, t_ns, "a pass start with a non-finite pose: no pass");
+                        tracing::warn!(
+                            pass = %name,
+                            t_ns,
+                            "a pass start with a non-finite pose: no pass"
+                        );
                     }
                     return PassChange::RefusedStart;
                 }

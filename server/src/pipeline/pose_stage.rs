@@ -17,10 +17,10 @@
 //! trajectory, before and after, is reported through that one transform (a later pass's start
 //! re-anchors it). A snapshot writes `trajectory.tum` (TUM lines `t x y z qx qy qz qw`, t in
 //! UNIX seconds of the server's clock through the session's time-sync models), each pass's
-//! `passes/NAME/trajectory.tum` (its poses in [start, stop), by [`super::passes`]' rules), and the scan matcher's grid as
-//! map_server `grid.pgm` + `grid.yaml` and `grid.png` (in the session's frame). The snapshot
-//! copies what it needs (poses, passes, clock, the grid's cells) while the pipeline is held and
-//! renders the files after ([`Stage::snapshot_job`]).
+//! `passes/NAME/trajectory.tum` (its poses in [start, stop), by [`super::passes`]' rules), and
+//! the scan matcher's grid as map_server `grid.pgm` + `grid.yaml` and `grid.png` (in the
+//! session's frame). The snapshot copies what it needs (poses, passes, clock, the grid's cells)
+//! while the pipeline is held and renders the files after ([`Stage::snapshot_job`]).
 
 use std::io::Write;
 
