@@ -317,7 +317,13 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         let calibrating = fixed.is_none() && config.motion.use_odometry && !log.odometry.is_empty();
         let passes = if calibrating { 2 } else { 1 };
         let bar = progress_bar((passes * log.scans.len()) as u64, args.quiet);
+        // Each scan's matching time (over both passes when calibrating), for the p50 / p99 line.
+        let mut per_scan = Vec::with_capacity(passes * log.scans.len());
+        let mut scan_started = Instant::now();
         let progress = |done: usize| {
+            let now = Instant::now();
+            per_scan.push((now - scan_started).as_secs_f64());
+            scan_started = now;
             if let Some(bar) = &bar
                 && done.is_multiple_of(256)
             {
@@ -349,6 +355,15 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         if config.motion.use_odometry {
             writeln!(out, "odometry: {odometry}")?;
         }
+        per_scan.sort_by(f64::total_cmp);
+        writeln!(
+            out,
+            "time per scan: p50 {:.2} ms, p99 {:.2} ms, max {:.2} ms over {} matches",
+            1e3 * nearest_rank(&per_scan, 0.50),
+            1e3 * nearest_rank(&per_scan, 0.99),
+            1e3 * per_scan.last().copied().unwrap_or(0.0),
+            per_scan.len()
+        )?;
         (run, "laser lines")
     };
     let elapsed = started.elapsed().as_secs_f64();
@@ -383,6 +398,15 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         write_fused(&args.input, dir, args.truth.as_deref(), out)?;
     }
     Ok(())
+}
+
+/// The `q` quantile (0..1) of sorted `values` by the nearest-rank rule; 0 when there are none.
+fn nearest_rank(sorted: &[f64], q: f64) -> f64 {
+    if sorted.is_empty() {
+        return 0.0;
+    }
+    let rank = (q * sorted.len() as f64).ceil() as usize;
+    sorted[rank.clamp(1, sorted.len()) - 1]
 }
 
 /// `--fused DIR [--truth TRUTH.tum]`: the session through the pose and fusion stages; with a
@@ -621,6 +645,16 @@ pub fn run_eval(args: &SlamEvalArgs, out: &mut dyn Write) -> anyhow::Result<()> 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_nearest_rank_quantile_is_a_value_of_the_list() {
+        let values: Vec<f64> = (1..=100).map(f64::from).collect();
+        assert_eq!(nearest_rank(&values, 0.5), 50.0);
+        assert_eq!(nearest_rank(&values, 0.99), 99.0);
+        assert_eq!(nearest_rank(&values, 1.0), 100.0);
+        assert_eq!(nearest_rank(&values, 0.0), 1.0);
+        assert_eq!(nearest_rank(&[], 0.5), 0.0);
+    }
 
     #[test]
     fn the_documented_slam_toml_is_exactly_the_defaults() {
