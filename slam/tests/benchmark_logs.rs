@@ -1,7 +1,9 @@
 //! The mapper on the vendored benchmark logs, scored by the relations metric against the
 //! logs' reference relations (Kümmerle et al. 2009). These hold the issue's accuracy goals
 //! (with odometry, no loop closure: Intel ≤ 0.10 m, ACES ≤ 0.08 m mean translational error)
-//! and fail when a change to the grid, matcher, mapper or odometry calibration loses them.
+//! and fail when a change to the grid, matcher, mapper or odometry calibration loses them. One
+//! run is one draw: each log is also mapped at map-update distances 0.3 and 0.5 m, and the
+//! median and the worst of the three are bounded with margin (issue 22).
 
 mod common;
 
@@ -61,22 +63,54 @@ fn the_first_800_intel_scans_beat_odometry_on_their_relations() {
     );
 }
 
+/// The errors at map-update distances 0.3 / 0.4 (the default) / 0.5, in that order: one run is
+/// one draw of a chaotic system, so the tests bound the median and the worst of the three.
+fn over_map_update_distances(
+    log: &CarmenLog,
+    relations: &Relations,
+) -> Vec<(EvalReport, OdometrySource)> {
+    [0.3, 0.4, 0.5]
+        .iter()
+        .map(|&d| {
+            let config = MapperConfig {
+                map_update_distance: d,
+                ..MapperConfig::default()
+            };
+            score(log, relations, &config, None)
+        })
+        .collect()
+}
+
+/// The median and the worst of the runs' mean translational errors.
+fn median_and_worst(runs: &[(EvalReport, OdometrySource)]) -> (f64, f64) {
+    let mut errors: Vec<f64> = runs.iter().map(|r| r.0.all.abs_trans_m.mean).collect();
+    errors.sort_by(f64::total_cmp);
+    (errors[errors.len() / 2], errors[errors.len() - 1])
+}
+
 #[test]
 fn intel_with_odometry_and_no_loop_closure_is_within_10_cm() {
     let (log, relations) = load("intel");
-    let (report, odometry) = score(&log, &relations, &MapperConfig::default(), None);
+    let runs = over_map_update_distances(&log, &relations);
+    let (report, odometry) = &runs[1];
     assert_eq!(report.all.used, 2984);
     // Intel's laser lines carry odometry for their own time: its ODOM lines agree less at
     // every latency.
-    assert_eq!(odometry, OdometrySource::LaserLines);
+    assert_eq!(*odometry, OdometrySource::LaserLines);
+    let (median, worst) = median_and_worst(&runs);
     println!(
-        "Intel: relations' mean translation error {:.4} m (docs/slam.md: 0.0196)",
+        "Intel: relations' mean translation error {:.4} m at the default, median {median:.4}, \
+         worst {worst:.4} (docs/slam.md: 0.0196 / 0.0196 / 0.114)",
         report.all.abs_trans_m.mean
     );
     assert!(
         report.all.abs_trans_m.mean <= 0.10,
         "{:.4} m",
         report.all.abs_trans_m.mean
+    );
+    assert!(
+        median <= 0.05 && worst <= 0.20,
+        "median {median:.4} worst {worst:.4}"
     );
 }
 
@@ -86,15 +120,18 @@ fn aces_with_odometry_and_no_loop_closure_is_within_8_cm() {
     // re-attaches to the older map when it comes back: map-update distances of 0.35–0.5 m give
     // 3.8–8.9 cm (README, "2D scan matching"); the default gives 3.8 cm.
     let (log, relations) = load("aces");
-    let (report, odometry) = score(&log, &relations, &MapperConfig::default(), None);
+    let runs = over_map_update_distances(&log, &relations);
+    let (report, odometry) = &runs[1];
     assert_eq!(report.all.used, 1279);
     // ACES's laser lines carry the last ODOM pose, and its laser stamps run 0.09 s late.
-    let OdometrySource::Track { latency } = odometry else {
+    let OdometrySource::Track { latency } = *odometry else {
         panic!("ACES mapped with {odometry:?}");
     };
     assert!((0.07..=0.11).contains(&latency), "{latency} s");
+    let (median, worst) = median_and_worst(&runs);
     println!(
-        "ACES: relations' mean translation error {:.4} m (docs/slam.md: 0.0378), short {:.4} m",
+        "ACES: relations' mean translation error {:.4} m at the default, median {median:.4}, \
+         worst {worst:.4} (docs/slam.md: 0.0378 / 0.0413 / 0.0646), short {:.4} m",
         report.all.abs_trans_m.mean, report.short.abs_trans_m.mean
     );
     assert!(
@@ -102,10 +139,16 @@ fn aces_with_odometry_and_no_loop_closure_is_within_8_cm() {
         "{:.4} m",
         report.all.abs_trans_m.mean
     );
-    // The short relations (< 5 s) measure the matcher itself, not the drift between visits.
     assert!(
-        report.short.abs_trans_m.mean <= 0.036,
-        "{:.4} m",
-        report.short.abs_trans_m.mean
+        median <= 0.06 && worst <= 0.10,
+        "median {median:.4} worst {worst:.4}"
     );
+    // The short relations (< 5 s) measure the matcher itself, not the drift between visits.
+    for (run, _) in &runs {
+        assert!(
+            run.short.abs_trans_m.mean <= 0.036,
+            "{:.4} m",
+            run.short.abs_trans_m.mean
+        );
+    }
 }
