@@ -180,7 +180,7 @@ fn a_pass_stopped_without_its_start_is_ignored_and_nothing_is_lost() {
 }
 
 #[test]
-fn a_prepared_snapshot_writes_the_pose_stages_files_as_they_were_when_taken() {
+fn a_prepared_snapshot_writes_the_pose_lanes_files_as_they_were_when_taken() {
     let tmp = tempfile::tempdir().unwrap();
     let frames: Vec<Frame> = trolley_session(Trolley::default())
         .frames()
@@ -207,6 +207,8 @@ fn a_prepared_snapshot_writes_the_pose_stages_files_as_they_were_when_taken() {
         "grid.yaml",
         "grid.png",
         "trajectory_fused.tum",
+        "passes/aisle/trajectory_fused.tum",
+        "yaw_sources.csv",
     ];
     for file in files {
         assert!(
@@ -219,7 +221,7 @@ fn a_prepared_snapshot_writes_the_pose_stages_files_as_they_were_when_taken() {
             "{file}: the prepared snapshot's bytes are not those of the moment it was taken"
         );
     }
-    for file in ["trajectory.tum", "grid.png"] {
+    for file in ["trajectory.tum", "grid.png", "trajectory_fused.tum"] {
         assert!(
             read(&after.join(file)) != read(&at_once.join(file)),
             "{file}: the later frames changed nothing, the test proves nothing"

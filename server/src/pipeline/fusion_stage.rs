@@ -12,7 +12,8 @@
 //! A snapshot writes `trajectory_fused.tum` (the room frame, the clock of `trajectory.tum`,
 //! roll and pitch in the quaternion), each pass's `passes/NAME/trajectory_fused.tum` and
 //! `yaw_sources.csv` (each pose's yaw from the matcher, Madgwick, the gyro alone and the
-//! fusion, in degrees, with variances and ω). [`fuse_session`] runs a recorded session through
+//! fusion, in degrees, with variances and ω), from a copy taken while the pipeline is held
+//! ([`Stage::snapshot_job`]). [`fuse_session`] runs a recorded session through
 //! the same stage offline.
 
 use std::collections::VecDeque;
@@ -28,7 +29,9 @@ use scan3d_slam::pose::{Pose2, wrap_angle};
 use super::passes::PassSpans;
 use super::pose_stage::{path_safe, tum_time, write_tum};
 use super::snapshot::SnapshotWriter;
-use super::{BasePose, PipelineError, PipelineSettings, Products, Stage, StageContext};
+use super::{
+    BasePose, PipelineError, PipelineSettings, Products, SnapshotJob, Stage, StageContext,
+};
 use crate::pose::fusion::{
     FusedPoseYaw, FusionCounts, MatcherPoseYaw, PoseFusion, UnfusedReason, YawSources,
 };
@@ -58,6 +61,13 @@ pub struct FusionStage {
     fusion: PoseFusion,
     /// Matcher poses handed on by the pose stage and not settled yet, time order.
     waiting: VecDeque<BasePose>,
+    products: FusedProducts,
+}
+
+/// What the stage's products are made of: copied whole for a snapshot, so the files are made
+/// after the pipeline is released ([`Stage::snapshot_job`]).
+#[derive(Debug, Clone)]
+struct FusedProducts {
     records: Vec<Record>,
     /// The newest session → room transform the poses carried.
     anchor: Option<Pose2>,
@@ -69,7 +79,7 @@ pub struct FusionStage {
 impl std::fmt::Debug for FusionStage {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("FusionStage")
-            .field("records", &self.records.len())
+            .field("records", &self.products.records.len())
             .field("counts", &self.fusion.counts())
             .finish_non_exhaustive()
     }
@@ -81,16 +91,18 @@ impl FusionStage {
         Ok(Self {
             fusion: PoseFusion::new(config)?,
             waiting: VecDeque::new(),
-            records: Vec::new(),
-            anchor: None,
-            passes: PassSpans::new(),
-            clock: SessionClock::new(),
+            products: FusedProducts {
+                records: Vec::new(),
+                anchor: None,
+                passes: PassSpans::new(),
+                clock: SessionClock::new(),
+            },
         })
     }
 
     /// The time-sync models the snapshot maps edge times with.
     pub fn set_clock(&mut self, clock: SessionClock) {
-        self.clock = clock;
+        self.products.clock = clock;
     }
 
     /// Counts and alignment for `scan3d status`.
@@ -103,6 +115,7 @@ impl FusionStage {
                 .alignment()
                 .map(|a| a.offset.to_degrees()),
             last: self
+                .products
                 .records
                 .last()
                 .map(|r| r.unfused.map_or("fused", |reason| reason.as_str())),
@@ -116,12 +129,7 @@ impl FusionStage {
 
     /// The poses handed on so far (session frame, the fused yaw), with every source's yaw.
     pub fn poses(&self) -> impl Iterator<Item = (&BasePose, &YawSources)> {
-        self.records.iter().map(|r| (&r.pose, &r.sources))
-    }
-
-    /// A session-frame pose in the reported frame (the room's once a pass anchored it).
-    fn reported(&self, pose: &Pose2) -> Pose2 {
-        self.anchor.map_or(*pose, |a| a.compose(pose))
+        self.products.records.iter().map(|r| (&r.pose, &r.sources))
     }
 
     /// Hands on the settled poses: each waiting matcher pose rewritten with its outcome.
@@ -138,7 +146,7 @@ impl FusionStage {
                     break;
                 }
                 let pose = rewrite(pose, &outcome);
-                self.records.push(Record {
+                self.products.records.push(Record {
                     pose,
                     sources: outcome.sources,
                     unfused: outcome.unfused,
@@ -149,70 +157,26 @@ impl FusionStage {
         }
     }
 
-    /// Writes the fused trajectory's poses whose edge ns `keep` takes as TUM lines.
-    fn write_fused_tum(
-        &self,
-        out: &mut dyn Write,
-        keep: impl Fn(u64) -> bool,
-    ) -> std::io::Result<()> {
-        let poses = self.records.iter().filter(|r| keep(r.pose.t_ns)).map(|r| {
-            (
-                r.pose.t_ns as f64 * 1e-9,
-                self.reported(&r.pose.pose),
-                r.pose.roll_pitch,
-            )
-        });
-        write_tum(out, &self.clock, poses)
-    }
-
     /// Writes `yaw_sources.csv`: per pose, t (as in the TUM files), then the matcher's,
     /// Madgwick's, the gyro-alone and the fused yaw (degrees, the reported frame) each with its
     /// standard deviation (degrees), ω and the fused pose's source.
     pub fn write_yaw_sources(&self, out: &mut dyn Write) -> std::io::Result<()> {
-        writeln!(
-            out,
-            "t,matcher_deg,matcher_sigma_deg,madgwick_deg,madgwick_sigma_deg,gyro_deg,\
-             gyro_sigma_deg,fused_deg,fused_sigma_deg,omega,source"
-        )?;
-        let offset = self.anchor.map_or(0.0, |a| a.theta);
-        let deg = |yaw: f64| wrap_angle(yaw + offset).to_degrees();
-        let sigma = |v: f64| v.max(0.0).sqrt().to_degrees();
-        let opt = |v: Option<f64>, f: &dyn Fn(f64) -> f64| {
-            v.map_or(String::new(), |v| format!("{:.4}", f(v)))
-        };
-        for r in &self.records {
-            let s = &r.sources;
-            writeln!(
-                out,
-                "{:.6},{:.4},{:.4},{},{},{},{},{:.4},{:.4},{},{}",
-                tum_time(&self.clock, s.t_ns as f64 * 1e-9),
-                deg(s.matcher),
-                sigma(s.matcher_variance),
-                opt(s.madgwick, &deg),
-                opt(s.madgwick_variance, &sigma),
-                opt(s.gyro, &deg),
-                opt(s.gyro_variance, &sigma),
-                deg(s.fused),
-                sigma(s.fused_variance),
-                s.omega.map_or(String::new(), |w| format!("{w:.4}")),
-                r.unfused.map_or("fused", |reason| reason.as_str()),
-            )?;
-        }
-        Ok(())
+        self.products.write_yaw_sources(out)
     }
 
     /// The run so far in the reported frame: every source's yaw per pose and the fused
     /// trajectory, times as in the TUM files.
     pub fn run(&self) -> FusedRun {
-        let offset = self.anchor.map_or(0.0, |a| a.theta);
+        let offset = self.products.anchor.map_or(0.0, |a| a.theta);
         let room = |yaw: f64| wrap_angle(yaw + offset);
         let sources = self
+            .products
             .records
             .iter()
             .map(|r| {
                 let s = &r.sources;
                 PoseYaws {
-                    t_s: tum_time(&self.clock, s.t_ns as f64 * 1e-9),
+                    t_s: tum_time(&self.products.clock, s.t_ns as f64 * 1e-9),
                     yaws: YawSources {
                         matcher: room(s.matcher),
                         madgwick: s.madgwick.map(room),
@@ -225,14 +189,15 @@ impl FusionStage {
             })
             .collect();
         let trajectory = self
+            .products
             .records
             .iter()
             .map(|r| {
-                let pose = self.reported(&r.pose.pose);
+                let pose = self.products.reported(&r.pose.pose);
                 let [roll, pitch] = r.pose.roll_pitch.unwrap_or([0.0, 0.0]);
                 FusedRoomPose {
                     t_ns: r.pose.t_ns,
-                    t_s: tum_time(&self.clock, r.pose.t_ns as f64 * 1e-9),
+                    t_s: tum_time(&self.products.clock, r.pose.t_ns as f64 * 1e-9),
                     x: pose.x,
                     y: pose.y,
                     yaw: pose.theta,
@@ -245,7 +210,7 @@ impl FusionStage {
             sources,
             trajectory,
             counts: self.fusion.counts(),
-            on_server_clock: !self.clock.models().is_empty(),
+            on_server_clock: !self.products.clock.models().is_empty(),
         }
     }
 }
@@ -281,14 +246,14 @@ impl Stage for FusionStage {
             }
             Body::Imu(sample) => self.fusion.on_imu(sample),
             Body::Pass(marker) => {
-                self.passes.apply(marker.t_ns, &marker.event);
+                self.products.passes.apply(marker.t_ns, &marker.event);
                 Vec::new()
             }
             _ => Vec::new(),
         };
         for pose in std::mem::take(&mut ctx.poses) {
             if pose.room_from_session.is_some() {
-                self.anchor = pose.room_from_session;
+                self.products.anchor = pose.room_from_session;
             }
             self.waiting.push_back(pose);
             settled.extend(self.fusion.on_pose(MatcherPoseYaw {
@@ -311,14 +276,81 @@ impl Stage for FusionStage {
     }
 
     fn snapshot(&mut self, out: &mut SnapshotWriter) -> Result<(), PipelineError> {
-        self.write_products(out)
+        self.products.write(out)
+    }
+
+    /// The records, anchor, passes and clock copied; the files made and written after.
+    fn snapshot_job(&self, position: Option<&str>) -> Option<SnapshotJob> {
+        if position.is_some() || self.products.records.is_empty() {
+            return None;
+        }
+        let products = self.products.clone();
+        Some(Box::new(move |out: &mut SnapshotWriter| {
+            products.write(out)
+        }))
     }
 }
 
-impl FusionStage {
+impl FusedProducts {
+    /// A session-frame pose in the reported frame (the room's once a pass anchored it).
+    fn reported(&self, pose: &Pose2) -> Pose2 {
+        self.anchor.map_or(*pose, |a| a.compose(pose))
+    }
+
+    /// Writes the fused trajectory's poses whose edge ns `keep` takes as TUM lines.
+    fn write_fused_tum(
+        &self,
+        out: &mut dyn Write,
+        keep: impl Fn(u64) -> bool,
+    ) -> std::io::Result<()> {
+        let poses = self.records.iter().filter(|r| keep(r.pose.t_ns)).map(|r| {
+            (
+                r.pose.t_ns as f64 * 1e-9,
+                self.reported(&r.pose.pose),
+                r.pose.roll_pitch,
+            )
+        });
+        write_tum(out, &self.clock, poses)
+    }
+
+    /// Writes `yaw_sources.csv`: per pose, t (as in the TUM files), then the matcher's,
+    /// Madgwick's, the gyro-alone and the fused yaw (degrees, the reported frame) each with its
+    /// standard deviation (degrees), ω and the fused pose's source.
+    fn write_yaw_sources(&self, out: &mut dyn Write) -> std::io::Result<()> {
+        writeln!(
+            out,
+            "t,matcher_deg,matcher_sigma_deg,madgwick_deg,madgwick_sigma_deg,gyro_deg,\
+             gyro_sigma_deg,fused_deg,fused_sigma_deg,omega,source"
+        )?;
+        let offset = self.anchor.map_or(0.0, |a| a.theta);
+        let deg = |yaw: f64| wrap_angle(yaw + offset).to_degrees();
+        let sigma = |v: f64| v.max(0.0).sqrt().to_degrees();
+        let opt = |v: Option<f64>, f: &dyn Fn(f64) -> f64| {
+            v.map_or(String::new(), |v| format!("{:.4}", f(v)))
+        };
+        for r in &self.records {
+            let s = &r.sources;
+            writeln!(
+                out,
+                "{:.6},{:.4},{:.4},{},{},{},{},{:.4},{:.4},{},{}",
+                tum_time(&self.clock, s.t_ns as f64 * 1e-9),
+                deg(s.matcher),
+                sigma(s.matcher_variance),
+                opt(s.madgwick, &deg),
+                opt(s.madgwick_variance, &sigma),
+                opt(s.gyro, &deg),
+                opt(s.gyro_variance, &sigma),
+                deg(s.fused),
+                sigma(s.fused_variance),
+                s.omega.map_or(String::new(), |w| format!("{w:.4}")),
+                r.unfused.map_or("fused", |reason| reason.as_str()),
+            )?;
+        }
+        Ok(())
+    }
     /// Writes the stage's part of a session snapshot (nothing for a position's, or before the
     /// first pose).
-    fn write_products(&self, out: &mut SnapshotWriter) -> Result<(), PipelineError> {
+    fn write(&self, out: &mut SnapshotWriter) -> Result<(), PipelineError> {
         if out.snapshot.position.is_some() || self.records.is_empty() {
             return Ok(());
         }
@@ -416,7 +448,7 @@ pub fn fuse_session_into(
     let stage = pipeline
         .fusion()
         .ok_or_else(|| anyhow::anyhow!("the pipeline has no fusion stage"))?;
-    stage.write_products(&mut writer)?;
+    stage.products.write(&mut writer)?;
     Ok((stage.run(), writer.snapshot.files))
 }
 
