@@ -253,7 +253,6 @@ pub fn run_demo(args: &DemoArgs) -> anyhow::Result<DemoReport> {
                 queue_frames: 256,
                 mag_turn_s: MAG_TURN_S,
             })?;
-            println!("  {}", pass.mag_calibration.summary());
             report.truth_files.push(pass.truth_file.clone());
             report.octrees.push(pass.octree.clone());
             report.pass = Some(pass);
