@@ -31,7 +31,7 @@ use scan3d_map::cloud::ply::write_ply_bundles;
 use scan3d_map::cloud::scans_file::write_scans;
 use scan3d_map::octree::{Resolution, SensorModel, VoxelMap};
 use scan3d_protocol::{
-    Ack, Body, Command, DeviceStatus, Frame, Heartbeat, Hello, ImuSample, LidarRevolution, MountInfo, SensorId, SensorInfo, StaticScan, StaticScanEnd, StaticScanOutcome, StaticScanProblem, StaticScanStart, StaticScanWarning, StaticScanYaws, StatusEvent, StepperState, TimePing, TimePong, YawRun, encode, ClockModel, CommandOutcome, CommandReply,
+    Ack, Body, Command, DeviceStatus, Frame, Heartbeat, Hello, ImuSample, LidarRevolution, MountInfo, PassEvent, PassMarker, SensorId, SensorMount, SensorMounts, SensorInfo, StaticScan, StaticScanEnd, StaticScanOutcome, StaticScanProblem, StaticScanStart, StaticScanWarning, StaticScanYaws, StatusEvent, StepperState, TimePing, TimePong, YawRun, encode, ClockModel, CommandOutcome, CommandReply,
 };
 use scan3d_server::ingest::control::ControlRequest;
 use scan3d_server::recording::{ServerRecord, SessionRecorder};
@@ -185,6 +185,66 @@ fn frames() -> Vec<(&'static str, Frame)> {
             Command::SetMotorSpeed {
                 sensor: SensorId::SWEEP,
                 hz: 2.0,
+            }
+            .into(),
+        ),
+        (
+            "command_start_pass",
+            Command::StartPass {
+                name: Some("loop".into()),
+                x_m: 1.6,
+                y_m: 0.85,
+                heading_deg: -90.0,
+            }
+            .into(),
+        ),
+        ("command_stop_pass", Command::StopPass.into()),
+        (
+            "mounts",
+            SensorMounts {
+                sensors: vec![
+                    SensorMount {
+                        sensor: SensorId::RPLIDAR,
+                        x_m: 0.1,
+                        y_m: 0.0,
+                        z_m: 0.4,
+                        roll_deg: 180.0,
+                        pitch_deg: 0.0,
+                        yaw_deg: 0.0,
+                    },
+                    SensorMount {
+                        sensor: SensorId::SWEEP,
+                        x_m: -0.2,
+                        y_m: 0.0,
+                        z_m: 1.0,
+                        roll_deg: 90.0,
+                        pitch_deg: 0.0,
+                        yaw_deg: 90.0,
+                    },
+                ],
+            }
+            .into(),
+        ),
+        (
+            "pass_started",
+            PassMarker {
+                t_ns: 16,
+                event: PassEvent::Started {
+                    name: "loop".into(),
+                    x_m: 1.6,
+                    y_m: 0.85,
+                    heading_deg: -90.0,
+                },
+            }
+            .into(),
+        ),
+        (
+            "pass_stopped",
+            PassMarker {
+                t_ns: 17,
+                event: PassEvent::Stopped {
+                    name: "loop".into(),
+                },
             }
             .into(),
         ),

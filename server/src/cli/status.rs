@@ -215,9 +215,19 @@ pub fn table(report: &Value) -> String {
                 );
                 let latency = &session["revolution_to_pose"];
                 if latency.is_object() {
+                    let server = &session["accept_to_pose"];
+                    let server = if server.is_object() {
+                        format!(
+                            "; on the server {} (p50), {} (p99)",
+                            fixed(&server["p50_ms"], 1.0, 0) + " ms",
+                            fixed(&server["p99_ms"], 1.0, 0) + " ms",
+                        )
+                    } else {
+                        String::new()
+                    };
                     let _ = writeln!(
                         s,
-                        "    pose {} after its revolution's end (p50), {} (p99), over {} poses",
+                        "    pose {} after its revolution's end (p50), {} (p99), over {} poses{server}",
                         fixed(&latency["p50_ms"], 1.0, 0) + " ms",
                         fixed(&latency["p99_ms"], 1.0, 0) + " ms",
                         num(&latency["count"]),
@@ -378,6 +388,7 @@ mod tests {
                           "path_m": 0.0, "revolutions": 2, "anchored": true},
                  "revolution_to_pose": {"count": 475, "p50_ms": 99.07, "p99_ms": 161.9,
                                         "max_ms": 219.5},
+                 "accept_to_pose": {"count": 475, "p50_ms": 4.2, "p99_ms": 11.6, "max_ms": 30.0},
                  "passes": [{"name": "loop", "stopped": false, "revolutions": 400,
                              "samples": 43015, "unplaced_samples": 0, "points": 43015,
                              "held": 1, "dropped": 0}]}]}]});
@@ -393,7 +404,8 @@ mod tests {
         );
         assert!(
             table.contains(
-                "pose 99 ms after its revolution's end (p50), 162 ms (p99), over 475 poses"
+                "pose 99 ms after its revolution's end (p50), 162 ms (p99), over 475 poses; \
+                 on the server 4 ms (p50), 12 ms (p99)"
             ),
             "{table}"
         );

@@ -269,9 +269,13 @@ pub struct LiveSessionStatus {
     pub accept_to_voxel: Option<LatencySummary>,
     /// How long after the end of an RPLidar revolution (its last sample, mapped to server time
     /// by the clock model) the pose matched from it was made, over the last
-    /// [`LATENCY_WINDOW`] poses (needs a time-sync estimate): transport, queue, the pose lane's
-    /// wait for the IMU, and the matcher.
+    /// [`LATENCY_WINDOW`] poses (needs a time-sync estimate): the edge's read and send,
+    /// transport, queue, the pose lane's wait for the IMU, and the matcher.
     pub revolution_to_pose: Option<LatencySummary>,
+    /// From the recorder's acceptance of an RPLidar revolution to the pose matched from it (the
+    /// server's share of [`revolution_to_pose`](Self::revolution_to_pose): queue, the wait for
+    /// the IMU, the matcher), revolutions from the queue only.
+    pub accept_to_pose: Option<LatencySummary>,
 }
 
 /// Insertions [`LiveSessionStatus::sample_to_voxel`] summarises.
@@ -548,6 +552,8 @@ struct WorkerShared {
     server_latencies: Mutex<std::collections::VecDeque<i64>>,
     /// Revolution-to-pose latencies, ns, the last [`LATENCY_WINDOW`].
     pose_latencies: Mutex<std::collections::VecDeque<i64>>,
+    /// Accept-to-pose latencies, ns, the last [`LATENCY_WINDOW`].
+    pose_server_latencies: Mutex<std::collections::VecDeque<i64>>,
     /// What `status` shows of the pipeline (`None` until it is built).
     published: Mutex<Option<Arc<Published>>>,
     /// When `status` last asked.
@@ -602,6 +608,9 @@ impl WorkerShared {
             latencies: Mutex::new(std::collections::VecDeque::with_capacity(LATENCY_WINDOW)),
             server_latencies: Mutex::new(std::collections::VecDeque::with_capacity(LATENCY_WINDOW)),
             pose_latencies: Mutex::new(std::collections::VecDeque::with_capacity(LATENCY_WINDOW)),
+            pose_server_latencies: Mutex::new(std::collections::VecDeque::with_capacity(
+                LATENCY_WINDOW,
+            )),
             published: Mutex::new(None),
             status_asked: Mutex::new(None),
             retired: Mutex::new(false),
@@ -884,6 +893,9 @@ impl LivePipelines {
                 revolution_to_pose: LatencySummary::of(
                     lock(&shared.pose_latencies).make_contiguous(),
                 ),
+                accept_to_pose: LatencySummary::of(
+                    lock(&shared.pose_server_latencies).make_contiguous(),
+                ),
             };
             match edges.iter_mut().find(|e| e.name == shared.edge) {
                 Some(edge) => edge.sessions.push(session),
@@ -1089,7 +1101,7 @@ struct WorkerRun {
     /// `(start, end)` edge times (ns) of the latest Sweep revolutions processed, oldest first.
     recent_sweeps: std::collections::VecDeque<(u64, u64)>,
     /// `(start, end)` edge times (ns) of the latest RPLidar revolutions processed, oldest first.
-    recent_rplidar: std::collections::VecDeque<(u64, u64)>,
+    recent_rplidar: std::collections::VecDeque<RecentRevolution>,
     /// Frames put through the pipeline.
     processed: u64,
     /// Frames taken from the queue since the last [`WorkerRun::publish`] (they count in the
@@ -1136,6 +1148,14 @@ impl WorkerRun {
 
 /// Sweep revolutions [`WorkerRun`] remembers to date the static-scan samples that refer to them.
 const RECENT_SWEEPS: usize = 16;
+
+/// An RPLidar revolution the worker processed lately: its span on the edge clock, and when the
+/// recorder accepted it (`None`: read from the recording), for the pose latencies.
+struct RecentRevolution {
+    t0_ns: u64,
+    t1_ns: u64,
+    accepted_at: Option<Instant>,
+}
 
 /// Whether [`WorkerRun::publish`] recomputes the metrics first.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -1397,7 +1417,11 @@ impl WorkerRun {
             if self.recent_rplidar.len() == RECENT_SWEEPS {
                 self.recent_rplidar.pop_front();
             }
-            self.recent_rplidar.push_back((rev.t0_ns, rev.t1_ns));
+            self.recent_rplidar.push_back(RecentRevolution {
+                t0_ns: rev.t0_ns,
+                t1_ns: rev.t1_ns,
+                accepted_at,
+            });
         }
         let (grew, new_pose_s) = {
             let mut slot = lock(&self.shared.pipeline);
@@ -1435,15 +1459,21 @@ impl WorkerRun {
         // from (the one whose span holds the pose's time) to now.
         if let (Some(pose_s), Some(clock), Some(_)) = (new_pose_s, clock, accepted_at) {
             let pose_ns = (pose_s * 1e9).round().max(0.0) as u64;
-            if let Some(&(_, end_ns)) = self
+            if let Some(revolution) = self
                 .recent_rplidar
                 .iter()
                 .rev()
-                .find(|&&(t0, t1)| t0 <= pose_ns && pose_ns <= t1)
+                .find(|r| r.t0_ns <= pose_ns && pose_ns <= r.t1_ns)
             {
-                let latency = i128::from(unix_now_ns()) - i128::from(clock.to_server_ns(end_ns));
+                let end_server_ns = clock.to_server_ns(revolution.t1_ns);
+                let latency = i128::from(unix_now_ns()) - i128::from(end_server_ns);
                 let latency = latency.clamp(i128::from(i64::MIN), i128::from(i64::MAX)) as i64;
                 push_latency(&self.shared.pose_latencies, latency);
+                if let Some(accepted_at) = revolution.accepted_at {
+                    let latency =
+                        i64::try_from(accepted_at.elapsed().as_nanos()).unwrap_or(i64::MAX);
+                    push_latency(&self.shared.pose_server_latencies, latency);
+                }
             }
         }
     }
