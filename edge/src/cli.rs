@@ -554,11 +554,7 @@ fn run_calibrate(command: CalibrateCommand, out: &mut dyn Write) -> anyhow::Resu
             };
             let fit = calibrate::fit_mag(&collected.fields, local)?;
             let configured_z = f64::from(imu.driver.mag_hard_iron_ut[2]);
-            let hard = [
-                fit.hard_iron_ut[0].unwrap_or_default(),
-                fit.hard_iron_ut[1].unwrap_or_default(),
-                fit.hard_iron_ut[2].unwrap_or(configured_z),
-            ];
+            let settings = calibrate::MagSettings::from_fit(&fit, &collected.fields, configured_z);
             let mut comments = vec![match fit.kind {
                 MagFitKind::Ellipsoid => format!(
                     "3D fit (ellipsoid) of {} fields covering {} of {} parts of the sphere; \
@@ -579,9 +575,7 @@ fn run_calibrate(command: CalibrateCommand, out: &mut dyn Write) -> anyhow::Resu
                     fit.residual_rms * 100.0
                 ),
             }];
-            let reference =
-                calibrate::calibrated_magnitude(&collected.fields, hard, &fit.soft_iron)
-                    .unwrap_or(fit.radius_ut);
+            let reference = settings.field_ut;
             comments.push(format!(
                 "mag_field_ut: the calibrated field's magnitude ({reference:.1} µT), which the \
                  daemon warns about leaving by more than mag_field_tolerance"
@@ -595,8 +589,11 @@ fn run_calibrate(command: CalibrateCommand, out: &mut dyn Write) -> anyhow::Resu
             (
                 comments,
                 vec![
-                    ("mag_hard_iron_ut", calibrate::toml_array(&hard)),
-                    ("mag_soft_iron", calibrate::toml_matrix(&fit.soft_iron)),
+                    (
+                        "mag_hard_iron_ut",
+                        calibrate::toml_array(&settings.hard_iron_ut),
+                    ),
+                    ("mag_soft_iron", calibrate::toml_matrix(&settings.soft_iron)),
                     ("mag_field_ut", format!("{reference:.3}")),
                 ],
             )
