@@ -53,7 +53,7 @@ pub fn yaw_errors(run: &FusedRun, truth: &[(u64, f64)]) -> Vec<Fig5Series> {
         return series;
     };
     for s in &run.sources {
-        let t_ns = (s.t_s * 1e9).round().max(0.0) as u64;
+        let t_ns = crate::pipeline::pose_stage::edge_ns(s.t_s);
         let Some(truth) = truth_at(truth, t_ns) else {
             continue;
         };

@@ -1458,7 +1458,7 @@ impl WorkerRun {
         // as the gap it fills): from the end of the revolution the newest pose was matched
         // from (the one whose span holds the pose's time) to now.
         if let (Some(pose_s), Some(clock), Some(_)) = (new_pose_s, clock, accepted_at) {
-            let pose_ns = (pose_s * 1e9).round().max(0.0) as u64;
+            let pose_ns = super::pose_stage::edge_ns(pose_s);
             if let Some(revolution) = self
                 .recent_rplidar
                 .iter()

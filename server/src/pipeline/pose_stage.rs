@@ -501,8 +501,8 @@ fn reported(anchor: Option<Pose2>, pose: &Pose2) -> Pose2 {
     anchor.map_or(*pose, |a| a.compose(pose))
 }
 
-/// An edge time in seconds as edge ns (as the poses handed on carry it).
-fn edge_ns(edge_s: f64) -> u64 {
+/// An edge time in seconds as edge ns (as the poses handed on carry it; negative as 0).
+pub(crate) fn edge_ns(edge_s: f64) -> u64 {
     (edge_s * 1e9).round().max(0.0) as u64
 }
 
@@ -612,9 +612,8 @@ pub fn tum_time(clock: &SessionClock, edge_s: f64) -> f64 {
     if clock.models().is_empty() {
         return edge_s;
     }
-    let edge_ns = (edge_s * 1e9).round().max(0.0) as u64;
     clock
-        .to_server_ns(edge_ns)
+        .to_server_ns(edge_ns(edge_s))
         .map_or(edge_s, |ns| ns as f64 * 1e-9)
 }
 
