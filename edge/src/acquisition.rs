@@ -33,8 +33,8 @@ pub enum AcquisitionEvent {
     /// wakes once for a batch.
     Samples(Vec<StampedSample>),
     /// Any other driver event: info, health, scanning, warnings, and `Failed` (after which the
-    /// thread restarts the handshake following a pause). Samples never come this way: they
-    /// arrive assembled as [`AcquisitionEvent::Revolution`]s.
+    /// thread restarts the handshake following a pause). Samples and revolution ends never
+    /// come this way: they arrive assembled as [`AcquisitionEvent::Revolution`]s.
     Driver(LidarEvent),
 }
 
@@ -195,6 +195,10 @@ fn forward(
                 None => return ControlFlow::Continue(()),
             }
         }
+        SerialEvent::Driver(LidarEvent::RevolutionComplete) => match assembler.complete() {
+            Some(rev) => AcquisitionEvent::Revolution(rev),
+            None => return ControlFlow::Continue(()),
+        },
         SerialEvent::Drained => {
             return if send_samples(forwarding, tx) {
                 ControlFlow::Continue(())

@@ -106,6 +106,12 @@ pub enum LidarEvent {
     },
     /// One decoded, validated sample.
     Sample(ArrivedSample),
+    /// The sample just emitted was the last of its revolution: the driver has seen, in bytes
+    /// it cannot decode yet, that the next sample starts a new one (an RPLidar express capsule
+    /// whose start angle wrapped past 360°). Decided from the bytes alone, so a replay of the
+    /// same bytes closes the same revolutions; the revolution can be closed now instead of
+    /// when the next one's first sample is decoded, a capsule (8 ms) later.
+    RevolutionComplete,
     /// A recoverable problem (retrying, resyncing, device busy…), for the log.
     Warning(String),
     /// The driver gave up: no answer, wrong device, or a device error. It stays idle until
@@ -166,6 +172,15 @@ pub trait LidarDriver {
     fn handle_timeout(&mut self, now_ns: u64);
     /// The next deadline at which [`LidarDriver::handle_timeout`] must be called, if any.
     fn poll_timeout(&self) -> Option<u64>;
+    /// When (edge clock, ns) the bytes that complete the current revolution are expected, if
+    /// the driver can tell: the I/O shell reads then even if its pace
+    /// ([`crate::serial::SerialOptions::read_coalesce`]) would let the bytes gather longer, so
+    /// a revolution leaves the edge as soon as it is complete without reading fast all the
+    /// time. Only the time of reads depends on it, never what is decoded. `None` by default
+    /// (the Sweep's reads keep their pace).
+    fn poll_read_deadline(&self) -> Option<u64> {
+        None
+    }
     /// The next serial-line action, if any.
     fn poll_transmit(&mut self) -> Option<Transmit>;
     /// The next event, if any.

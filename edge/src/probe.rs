@@ -146,6 +146,12 @@ impl Probe {
                     self.revolutions_seen += 1;
                 }
             }
+            SerialEvent::Driver(LidarEvent::RevolutionComplete) => {
+                if let Some(rev) = self.assembler.complete() {
+                    out.push(rev.into());
+                    self.revolutions_seen += 1;
+                }
+            }
             SerialEvent::Driver(LidarEvent::Warning(text)) => tracing::warn!("{text}"),
             SerialEvent::Driver(LidarEvent::Scanning { sample_period_ns }) => {
                 tracing::info!(sample_period_ns, "scanning");

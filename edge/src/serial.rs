@@ -2,6 +2,9 @@
 //!
 //! It owns the port and the loop: write what the driver wants written, read with a timeout no
 //! longer than the driver's next deadline, feed bytes with their arrival time, fire timers.
+//! Reads are paced ([`SerialOptions::read_coalesce`]), but a read the driver asks for
+//! ([`LidarDriver::poll_read_deadline`]: the bytes completing a revolution are due) happens
+//! then, not at the next paced read ([`next_read_at`]).
 //! When the device vanishes (USB unplug, pty removed) it reports [`SerialEvent::Lost`], retries
 //! opening with exponential backoff, and on success restarts the driver's handshake.
 
@@ -32,7 +35,8 @@ pub struct SerialOptions {
     /// streaming at full rate costs about 100 reads a second instead of one per few bytes;
     /// [`crate::timing`]'s lower-envelope fit takes the measurement times back from the
     /// least-delayed sample of each batch, and a sample reaches the static-scan controller at
-    /// most this much later. Shared: the owner may change it while the port runs.
+    /// most this much later. A driver's read deadline ([`LidarDriver::poll_read_deadline`])
+    /// brings a read forward. Shared: the owner may change it while the port runs.
     pub read_coalesce: ReadPace,
     /// Reopen the port after it disappears (daemon). When `false`, the first failure to open or
     /// a lost device ends [`run`] with an error (one-shot tools such as `probe`).
@@ -218,7 +222,7 @@ fn session<D: LidarDriver + ?Sized>(
             driver.handle_timeout(now);
             continue;
         }
-        if let Some(at) = next_read_ns {
+        if let Some(at) = next_read_at(next_read_ns, driver.poll_read_deadline()) {
             if at > now {
                 // Pacing: let the bytes gather, but never past the driver's next deadline
                 // (already in the future here) or the longest wait (shutdown).
@@ -248,6 +252,16 @@ fn session<D: LidarDriver + ?Sized>(
             Err(e) if e.kind() == ErrorKind::Interrupted => {}
             Err(e) => return Err(e.to_string()),
         }
+    }
+}
+
+/// When the next read is due (edge clock, ns): the paced time `paced` (`None`: now), brought
+/// forward to the driver's `read_deadline` when that is earlier. A read deadline never delays
+/// a read, and without a pace pending it changes nothing: the read happens at once.
+pub fn next_read_at(paced: Option<u64>, read_deadline: Option<u64>) -> Option<u64> {
+    match (paced, read_deadline) {
+        (Some(paced), Some(deadline)) => Some(paced.min(deadline)),
+        (paced, _) => paced,
     }
 }
 
@@ -529,6 +543,20 @@ mod tests {
             "{e}"
         );
         assert_eq!(PathKind::of(dir.path()), PathKind::Other("a directory"));
+    }
+
+    #[test]
+    fn a_read_deadline_brings_a_paced_read_forward_but_never_delays_one() {
+        // Paced at 20 ms after a read at 100 ms: the revolution's bytes are due at 107 ms.
+        assert_eq!(next_read_at(Some(120), Some(107)), Some(107));
+        // Due later than the paced read (or already past): the earlier one wins.
+        assert_eq!(next_read_at(Some(120), Some(150)), Some(120));
+        assert_eq!(next_read_at(Some(120), Some(90)), Some(90));
+        // No deadline (the Sweep, standard nodes): the pace alone.
+        assert_eq!(next_read_at(Some(120), None), Some(120));
+        // Nothing paced (a full buffer was just read): read at once either way.
+        assert_eq!(next_read_at(None, Some(150)), None);
+        assert_eq!(next_read_at(None, None), None);
     }
 
     #[test]

@@ -52,7 +52,10 @@ pub struct Revolution {
     /// Time of the first sample: names the revolution (strictly increasing from one revolution
     /// to the next of the same assembler).
     pub t0_ns: u64,
-    /// Time of the sample that started the next revolution.
+    /// Time of the sample that started the next revolution; for a revolution closed as soon as
+    /// the driver said it was complete ([`RevolutionAssembler::complete`]), before that sample
+    /// was decoded, one mean sample spacing after its last sample (the next revolution starts
+    /// no earlier).
     pub t1_ns: u64,
     /// The samples in angle order, with the times they were stamped with as they arrived.
     pub samples: Vec<TimedSample>,
@@ -238,14 +241,18 @@ impl SampleClock {
 /// as it arrives ([`SampleClock`]).
 ///
 /// A revolution starts at a sample flagged `new_revolution`; an angle wrap without the flag
-/// (the flagged sample was lost to corruption) also closes it. Samples before the first
-/// boundary belong to a partial revolution and are dropped.
+/// (the flagged sample was lost to corruption) also closes it. When the driver knows from the
+/// bytes that the last sample ended its revolution ([`crate::lidar::LidarEvent::RevolutionComplete`]),
+/// [`RevolutionAssembler::complete`] closes it at once and the next sample starts the next
+/// one. Samples before the first boundary belong to a partial revolution and are dropped.
 #[derive(Debug, Clone)]
 pub struct RevolutionAssembler {
     config: TimingConfig,
     clock: SampleClock,
     current: Vec<TimedSample>,
     in_revolution: bool,
+    /// The last revolution was closed by [`Self::complete`]: the next sample starts one.
+    completed: bool,
     /// `t0_ns` of the last revolution started, so the next one's is strictly later.
     last_t0_ns: Option<u64>,
     dropped_samples: u64,
@@ -259,6 +266,7 @@ impl RevolutionAssembler {
             clock: SampleClock::new(config.latency_ns),
             current: Vec::new(),
             in_revolution: false,
+            completed: false,
             last_t0_ns: None,
             dropped_samples: 0,
         }
@@ -269,6 +277,7 @@ impl RevolutionAssembler {
         self.dropped_samples += self.current.len() as u64;
         self.current.clear();
         self.in_revolution = false;
+        self.completed = false;
         self.clock.reset();
     }
 
@@ -282,10 +291,35 @@ impl RevolutionAssembler {
         self.stamp(sample).finished
     }
 
+    /// The driver said the last sample pushed was the last of its revolution
+    /// ([`crate::lidar::LidarEvent::RevolutionComplete`]): closes that revolution now, with
+    /// [`Revolution::t1_ns`] one mean sample spacing after its last sample, and returns it
+    /// (unless it is too short, or no revolution was in progress: a partial one is dropped).
+    /// The next sample starts the next revolution, flagged or not; it is timed no earlier than
+    /// this `t1_ns`, so revolutions never overlap.
+    pub fn complete(&mut self) -> Option<Revolution> {
+        if self.completed {
+            return None;
+        }
+        self.completed = true;
+        if !self.in_revolution {
+            self.dropped_samples += self.current.len() as u64;
+            self.current.clear();
+            return None;
+        }
+        let (first, last) = (self.current.first()?.t_ns, self.current.last()?.t_ns);
+        let gaps = self.current.len().saturating_sub(1).max(1) as u64;
+        let t1_ns = last.saturating_add((last.saturating_sub(first) / gaps).max(1));
+        self.clock.floor(t1_ns);
+        self.finish(t1_ns)
+    }
+
     /// Add a sample: its measurement time, its place in the revolution, and the revolution it
     /// completed, if any.
     pub fn stamp(&mut self, sample: ArrivedSample) -> Stamped {
-        let boundary = sample.sample.new_revolution || self.wraps_without_flag(&sample);
+        let completed = std::mem::take(&mut self.completed);
+        let boundary =
+            sample.sample.new_revolution || completed || self.wraps_without_flag(&sample);
         let mut t_ns = self
             .clock
             .estimate(f64::from(sample.sample.angle_deg), sample.arrival_ns);
@@ -687,6 +721,59 @@ mod tests {
         assert_eq!(out.len(), 1);
         assert_eq!(out[0].samples.len(), angles.len());
         assert!(out[0].samples.windows(2).all(|w| w[0].t_ns <= w[1].t_ns));
+    }
+
+    #[test]
+    fn a_revolution_the_driver_says_is_complete_closes_before_the_next_start_flag() {
+        let mut asm = RevolutionAssembler::new(TimingConfig {
+            latency_ns: 0,
+            min_samples: 2,
+        });
+        // Before any start flag: the partial revolution is dropped, nothing is emitted.
+        asm.push(sample(300.0, false, 500));
+        assert_eq!(asm.complete(), None);
+        assert_eq!(asm.dropped_samples(), 1);
+        // A revolution of 8 samples 1 µs apart (one arrival each: the times are the arrivals).
+        let mut out = Vec::new();
+        for k in 0..8u64 {
+            out.extend(asm.push(sample(k as f32 * 45.0, k == 0, 1_000 + 1_000 * k)));
+        }
+        assert!(out.is_empty(), "no start flag has closed it");
+        let rev = asm.complete().expect("closed by the driver's word");
+        assert_eq!(rev.samples.len(), 8);
+        assert_eq!(rev.t0_ns, 1_000);
+        // One mean spacing after the last sample (8 µs).
+        assert_eq!(rev.t1_ns, 9_000);
+        assert_eq!(asm.complete(), None, "said twice, closed once");
+        // The next revolution's flagged sample starts it, and closes nothing more; it is timed
+        // no earlier than the closed revolution's end although it arrived earlier.
+        assert_eq!(asm.push(sample(0.5, true, 8_500)), None);
+        for k in 1..8u64 {
+            assert_eq!(
+                asm.push(sample(k as f32 * 45.0, false, 9_000 + 1_000 * k)),
+                None
+            );
+        }
+        let next = asm
+            .push(sample(1.0, true, 17_000))
+            .expect("the next start flag");
+        assert_eq!(next.t0_ns, 9_000);
+        assert!(next.t0_ns >= rev.t1_ns);
+        assert_eq!(next.samples.len(), 8);
+        // Unflagged, a sample after the driver's word still starts the next revolution.
+        for k in 1..8u64 {
+            asm.push(sample(k as f32 * 45.0, false, 17_000 + 1_000 * k));
+        }
+        let third = asm.complete().expect("complete");
+        assert_eq!(third.samples.len(), 8);
+        assert_eq!(asm.push(sample(2.0, false, 25_000)), None);
+        let position = asm.stamp(sample(45.0, false, 26_000)).sample.position;
+        assert_eq!(
+            position.map(|p| p.index),
+            Some(1),
+            "the unflagged sample started one"
+        );
+        assert_eq!(asm.dropped_samples(), 1);
     }
 
     #[test]

@@ -26,6 +26,18 @@
 //! `θ_k` because the per-sample correction `dθ_k/8` (up to 7.9°) makes consecutive `θ` values
 //! go backwards inside a revolution. (The SDK flags the sample *before* the wrap instead.)
 //!
+//! # Revolution end
+//!
+//! A revolution is complete once its last sample is decoded. When the wrap falls inside a
+//! capsule, the flagged sample comes with that capsule's other samples and closes it. When it
+//! falls between two capsules (the next capsule's `ω` is below the last base angle: about one
+//! revolution in 32), the flagged sample would only be decoded when the capsule after next
+//! arrives, 8 ms later; the parser knows from `ω_{i+1}` alone that `P_i`'s last sample ends the
+//! revolution, and says so ([`CapsuleOutput::RevolutionComplete`]) right after it. From the
+//! held capsule's `ω` and the last `diff` it also tells how many more bytes the revolution
+//! needs ([`CapsuleParser::bytes_to_revolution_end`]), which the driver turns into a read
+//! deadline.
+//!
 //! # Errors
 //!
 //! On a sync or checksum failure the parser slides one byte. A capsule with S = 1 (the device
@@ -50,6 +62,16 @@ const FULL_TURN_Q6: u32 = 360 * 64;
 const MAX_DIFF_Q6: u32 = 45 * 64;
 /// Express samples have no quality; the SDK reports 47 << 2 (we keep the 6-bit scale).
 const EXPRESS_QUALITY: u8 = 47;
+
+/// What [`CapsuleParser::parse`] hands out, in stream order.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum CapsuleOutput {
+    /// A decoded sample.
+    Sample(RawSample),
+    /// The sample before this was the last of its revolution: the next capsule's start angle
+    /// wrapped (see the module doc, "Revolution end").
+    RevolutionComplete,
+}
 
 /// A capsule that passed the sync and checksum checks.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -106,14 +128,14 @@ impl CapsuleParser {
         }
     }
 
-    /// Parses as much of `buf` as possible. `emit(sample, end)` gets every decoded sample with
-    /// the offset in `buf` just past the capsule whose arrival allowed decoding it. Returns
-    /// `(bytes consumed, capsules accepted)`.
+    /// Parses as much of `buf` as possible. `emit(output, end)` gets every decoded sample (and
+    /// every revolution end) with the offset in `buf` just past the capsule whose arrival
+    /// allowed decoding it. Returns `(bytes consumed, capsules accepted)`.
     pub fn parse(
         &mut self,
         buf: &[u8],
         stats: &mut DriverStats,
-        mut emit: impl FnMut(RawSample, usize),
+        mut emit: impl FnMut(CapsuleOutput, usize),
     ) -> (usize, u64) {
         let mut pos = 0;
         let mut accepted = 0;
@@ -143,7 +165,26 @@ impl CapsuleParser {
         (pos, accepted)
     }
 
-    fn accept(&mut self, next: Capsule, mut emit: impl FnMut(RawSample)) {
+    /// Bytes that must still arrive, counted from just past the held capsule, before the last
+    /// sample of the revolution in progress is decoded; `None` while that cannot be told (out
+    /// of sync, no capsule held, no `diff` yet). The held capsule's samples and those of the
+    /// capsules after it continue at the last `diff` per capsule; the last one below 360° is
+    /// decoded when the capsule after its own has arrived.
+    pub fn bytes_to_revolution_end(&self) -> Option<usize> {
+        if !self.in_sync || self.held_damaged {
+            return None;
+        }
+        let held = self.held?;
+        let diff = u64::from(self.last_diff_q6.filter(|&d| d > 0)?);
+        // Sample j after the held capsule's first has base angle ω + diff·j/32 (q6): the last
+        // one of the revolution is the largest j with diff·j < 32·(360° − ω).
+        let before_wrap = 32 * u64::from(FULL_TURN_Q6 - held.start_q6.min(FULL_TURN_Q6 - 1));
+        let last = (before_wrap - 1) / diff;
+        let capsules = last / SAMPLES_PER_CAPSULE as u64 + 1;
+        usize::try_from(capsules).ok()?.checked_mul(CAPSULE_LEN)
+    }
+
+    fn accept(&mut self, next: Capsule, mut emit: impl FnMut(CapsuleOutput)) {
         let held = self.held.replace(next);
         let damaged = std::mem::replace(&mut self.held_damaged, false);
         let Some(held) = held else { return };
@@ -164,10 +205,16 @@ impl CapsuleParser {
         if let Some(diff) = diff {
             self.decode(&held, diff, &mut emit);
             self.last_diff_q6 = Some(diff);
+            // The next capsule's first sample has base angle ω_{i+1}: below the last one, it
+            // will be flagged, so the revolution ended with the sample just decoded.
+            let next_base = f64::from(next.start_q6) / 64.0;
+            if self.last_base_deg.is_some_and(|last| next_base < last) {
+                emit(CapsuleOutput::RevolutionComplete);
+            }
         }
     }
 
-    fn decode(&mut self, capsule: &Capsule, diff_q6: u32, emit: &mut impl FnMut(RawSample)) {
+    fn decode(&mut self, capsule: &Capsule, diff_q6: u32, emit: &mut impl FnMut(CapsuleOutput)) {
         let omega = f64::from(capsule.start_q6) / 64.0;
         let diff = f64::from(diff_q6) / 64.0;
         for (j, cabin) in capsule.cabins.chunks_exact(5).enumerate() {
@@ -184,12 +231,12 @@ impl CapsuleParser {
                 let angle = wrap_deg(base - f64::from(dtheta_q3) / 8.0);
                 let new_revolution = self.last_base_deg.is_some_and(|prev| base < prev);
                 self.last_base_deg = Some(base);
-                emit(RawSample {
+                emit(CapsuleOutput::Sample(RawSample {
                     angle_deg: to_f32_deg(angle),
                     range_m: f32::from(distance_mm) / 1000.0,
                     quality: if distance_mm != 0 { EXPRESS_QUALITY } else { 0 },
                     new_revolution,
-                });
+                }));
             }
         }
     }
@@ -259,7 +306,11 @@ pub(super) mod tests {
         // Odd-sized reads to exercise partial capsules.
         for chunk in bytes.chunks(37) {
             buf.extend_from_slice(chunk);
-            let (consumed, _) = parser.parse(&buf, &mut stats, |s, end| out.push((s, base + end)));
+            let (consumed, _) = parser.parse(&buf, &mut stats, |output, end| {
+                if let CapsuleOutput::Sample(s) = output {
+                    out.push((s, base + end));
+                }
+            });
             buf.drain(..consumed);
             base += consumed;
         }
@@ -330,6 +381,87 @@ pub(super) mod tests {
         assert_eq!(out[3].0.angle_deg, 342.4375);
         // k = 23: base 1.5625, dθ 2.875 → 358.6875.
         assert_eq!(out[23].0.angle_deg, 358.6875);
+    }
+
+    /// Every output of `bytes` fed in one piece, revolution ends included.
+    fn outputs(parser: &mut CapsuleParser, bytes: &[u8]) -> Vec<CapsuleOutput> {
+        let mut out = Vec::new();
+        let mut stats = DriverStats::default();
+        let (consumed, _) = parser.parse(bytes, &mut stats, |output, _| out.push(output));
+        assert_eq!(consumed, bytes.len());
+        out
+    }
+
+    /// Capsule `i` of a rotor turning 30° a capsule from `offset_deg`, wrapped into [0°, 360°).
+    fn turning(i: u16, offset_deg: u16) -> [u8; 84] {
+        encode(((offset_deg + 30 * i) % 360) * 64, false, &samples(i))
+    }
+
+    #[test]
+    fn a_wrap_between_capsules_ends_the_revolution_before_its_flagged_sample_is_decoded() {
+        let mut parser = CapsuleParser::new();
+        assert_eq!(parser.bytes_to_revolution_end(), None, "nothing held");
+        let head: Vec<u8> = (0..2).flat_map(|i| turning(i, 0)).collect();
+        assert_eq!(outputs(&mut parser, &head).len(), 32);
+        // Capsule 1 (30°) is held; the revolution's last sample (359.06°) is capsule 11's
+        // last, decoded once capsule 12 is in: 11 more capsules.
+        assert_eq!(parser.bytes_to_revolution_end(), Some(11 * CAPSULE_LEN));
+        let body: Vec<u8> = (2..12).flat_map(|i| turning(i, 0)).collect();
+        let out = outputs(&mut parser, &body);
+        assert_eq!(out.len(), 10 * 32);
+        assert!(!out.contains(&CapsuleOutput::RevolutionComplete));
+        assert_eq!(parser.bytes_to_revolution_end(), Some(CAPSULE_LEN));
+        // Capsule 12 starts at 0°: capsule 11 decodes, and its last sample ends the revolution
+        // although the flagged sample (capsule 12's first) waits for capsule 13.
+        let out = outputs(&mut parser, &turning(12, 0));
+        assert_eq!(out.len(), 33);
+        assert_eq!(out[32], CapsuleOutput::RevolutionComplete);
+        assert!(
+            out.iter()
+                .all(|o| !matches!(o, CapsuleOutput::Sample(s) if s.new_revolution))
+        );
+        // The next revolution ends 12 capsules after capsule 12 (whose successor is needed).
+        assert_eq!(parser.bytes_to_revolution_end(), Some(12 * CAPSULE_LEN));
+        let out = outputs(&mut parser, &turning(13, 0));
+        assert!(matches!(out[0], CapsuleOutput::Sample(s) if s.new_revolution));
+        assert!(!out.contains(&CapsuleOutput::RevolutionComplete));
+    }
+
+    #[test]
+    fn a_wrap_inside_a_capsule_is_ended_by_the_flagged_sample_alone() {
+        // From 15°: capsule 11 covers 345°..374°, the wrap is at its sample 16.
+        let mut parser = CapsuleParser::new();
+        let head: Vec<u8> = (0..2).flat_map(|i| turning(i, 15)).collect();
+        outputs(&mut parser, &head);
+        // Held at 45°: the last sample below 360° is the 336th after it, in capsule 11.
+        assert_eq!(parser.bytes_to_revolution_end(), Some(11 * CAPSULE_LEN));
+        let body: Vec<u8> = (2..13).flat_map(|i| turning(i, 15)).collect();
+        let out = outputs(&mut parser, &body);
+        assert_eq!(out.len(), 11 * 32);
+        assert!(!out.contains(&CapsuleOutput::RevolutionComplete));
+        let flagged: Vec<usize> = out
+            .iter()
+            .enumerate()
+            .filter(|(_, o)| matches!(o, CapsuleOutput::Sample(s) if s.new_revolution))
+            .map(|(k, _)| k)
+            .collect();
+        // Capsules 1 to 11 came out: capsule 11's sample 16.
+        assert_eq!(flagged, [10 * 32 + 16]);
+        // Held capsule 12 at 15°: this revolution ends in capsule 23, 12 capsules on.
+        assert_eq!(parser.bytes_to_revolution_end(), Some(12 * CAPSULE_LEN));
+    }
+
+    #[test]
+    fn no_revolution_end_is_predicted_across_damaged_bytes() {
+        let mut parser = CapsuleParser::new();
+        let mut bytes: Vec<u8> = (0..2).flat_map(|i| turning(i, 0)).collect();
+        bytes.extend([0x00; 100]);
+        let mut stats = DriverStats::default();
+        parser.parse(&bytes, &mut stats, |_, _| {});
+        assert_eq!(parser.bytes_to_revolution_end(), None);
+        let next = turning(2, 0);
+        parser.parse(&next, &mut stats, |_, _| {});
+        assert!(parser.bytes_to_revolution_end().is_some(), "in sync again");
     }
 
     #[test]

@@ -30,6 +30,17 @@
 //!    `EXPRESS_SCAN` (working mode 0, legacy capsules; firmware < 1.17 falls back to standard).
 //!    The descriptor → [`LidarEvent::Scanning`], then [`LidarEvent::Sample`]s.
 //!
+//! # Revolution ends and read deadlines
+//!
+//! In express mode the driver says when a revolution is complete as soon as the bytes tell
+//! ([`LidarEvent::RevolutionComplete`], see [`capsules`]), and when the bytes that complete the
+//! revolution in progress will have arrived ([`LidarDriver::poll_read_deadline`]): the bytes
+//! still missing, at one capsule per `max(32 × express sample period, 84 bytes on the wire)`,
+//! after the last read, plus [`READ_DEADLINE_MARGIN_NS`]. The I/O shell reads then, so a
+//! revolution leaves the edge within about a millisecond of its last capsule, while the reads in
+//! between keep their slow pace. Standard-mode nodes carry the start flag on the node right
+//! after the revolution's last one (0.5 ms later), so they need neither.
+//!
 //! While scanning, a stream that yields no valid frame for [`RplidarConfig::answer_timeout_ms`]
 //! (or [`RplidarConfig::spinup_timeout_ms`] right after the descriptor, while the motor spins
 //! up) produces a warning and the handshake restarts from step 1: the device may have been
@@ -56,13 +67,37 @@ use serde::Deserialize;
 
 use crate::lidar::{
     ArrivedSample, DriverError, DriverStats, HealthStatus, LidarDriver, LidarEvent, LidarKind,
-    RawSample, Transmit,
+    Transmit,
 };
-use capsules::CapsuleParser;
+use capsules::{CAPSULE_LEN, CapsuleOutput, CapsuleParser, SAMPLES_PER_CAPSULE};
 use codec::{ExpectedAnswer, Hunt, InfoAnswer, SampleRate};
 use nodes::NodeParser;
 
 const MS: u64 = 1_000_000;
+
+/// How long after the predicted arrival of a revolution's last byte the read deadline falls:
+/// the bytes of a capsule trickle at the wire rate, and a USB adapter hands them over in
+/// packets; reading a little late costs one millisecond, reading early costs a read.
+pub const READ_DEADLINE_MARGIN_NS: u64 = MS;
+
+/// Edge-clock time by which `missing_bytes` more bytes have arrived after the read at
+/// `last_read_ns`, the device sending one capsule per `capsule_ns`, plus
+/// [`READ_DEADLINE_MARGIN_NS`] (saturating).
+pub fn revolution_read_deadline(last_read_ns: u64, missing_bytes: usize, capsule_ns: u64) -> u64 {
+    let missing = u128::try_from(missing_bytes).unwrap_or(u128::MAX);
+    let wait = missing.saturating_mul(u128::from(capsule_ns)) / CAPSULE_LEN as u128;
+    last_read_ns
+        .saturating_add(u64::try_from(wait).unwrap_or(u64::MAX))
+        .saturating_add(READ_DEADLINE_MARGIN_NS)
+}
+
+/// Edge-clock time one express capsule takes to come: its 32 samples at `sample_us` each, or
+/// its 84 bytes on a `baud` line (10 bits a byte), whichever is longer.
+pub fn capsule_period_ns(sample_us: u16, baud: u32) -> u64 {
+    let sampling = SAMPLES_PER_CAPSULE as u64 * u64::from(sample_us) * 1_000;
+    let wire = CAPSULE_LEN as u64 * 10 * 1_000_000_000 / u64::from(baud.max(1));
+    sampling.max(wire)
+}
 
 /// The deadline `ms` milliseconds after `now`, saturating: a configured timeout too long to
 /// represent means "not before the end of time", never an overflow (a panic in debug builds, a
@@ -96,7 +131,8 @@ pub struct RplidarConfig {
     pub motor_pwm: u16,
     /// Ask an A2 for GET_ACC_BOARD_FLAG before choosing PWM motor control (default true).
     pub query_acc_board: bool,
-    /// Serial baud rate. The driver never uses it: the I/O shell opens the port with it.
+    /// Serial baud rate. The I/O shell opens the port with it; the driver only uses it to
+    /// tell how long a capsule takes on the wire (read deadlines).
     /// 115200 for A1 and A2M4–M8 (default), 256000 for A2M7/A2M12/A3.
     pub baud: u32,
     /// Time to wait for a single answer or, while scanning, for the next valid frame (2 s).
@@ -254,6 +290,8 @@ enum Phase {
     Scanning {
         parser: StreamParser,
         deadline: u64,
+        /// Edge-clock time one capsule takes to come (express), for read deadlines.
+        capsule_ns: u64,
     },
 }
 
@@ -268,6 +306,8 @@ pub struct Rplidar {
     buf_offset: u64,
     /// `(stream offset just past a read, now_ns of that read)`, oldest first, for `arrival_ns`.
     reads: VecDeque<(u64, u64)>,
+    /// `now_ns` of the last read that brought bytes, for read deadlines.
+    last_read_ns: Option<u64>,
     transmits: VecDeque<Transmit>,
     events: VecDeque<LidarEvent>,
     stats: DriverStats,
@@ -287,6 +327,7 @@ impl Rplidar {
             buf: Vec::with_capacity(4096),
             buf_offset: 0,
             reads: VecDeque::new(),
+            last_read_ns: None,
             transmits: VecDeque::new(),
             events: VecDeque::new(),
             stats: DriverStats::default(),
@@ -523,6 +564,7 @@ impl Rplidar {
         self.phase = Phase::Scanning {
             parser,
             deadline: deadline_after(now, self.config.spinup_timeout_ms),
+            capsule_ns: capsule_period_ns(self.sample_rate.express_us, self.config.baud),
         };
     }
 
@@ -609,7 +651,10 @@ impl Rplidar {
     }
 
     fn parse_stream(&mut self, now: u64) {
-        let Phase::Scanning { parser, deadline } = &mut self.phase else {
+        let Phase::Scanning {
+            parser, deadline, ..
+        } = &mut self.phase
+        else {
             return;
         };
         let events = &mut self.events;
@@ -617,7 +662,14 @@ impl Rplidar {
         let base = self.buf_offset;
         let mut read_index = 0;
         let mut emitted = 0u64;
-        let mut emit = |sample: RawSample, end: usize| {
+        let mut emit = |output: CapsuleOutput, end: usize| {
+            let sample = match output {
+                CapsuleOutput::Sample(sample) => sample,
+                CapsuleOutput::RevolutionComplete => {
+                    events.push_back(LidarEvent::RevolutionComplete);
+                    return;
+                }
+            };
             let end = base + end as u64;
             while reads
                 .get(read_index)
@@ -630,7 +682,9 @@ impl Rplidar {
             emitted += 1;
         };
         let (consumed, frames) = match parser {
-            StreamParser::Nodes(p) => p.parse(&self.buf, &mut self.stats, &mut emit),
+            StreamParser::Nodes(p) => p.parse(&self.buf, &mut self.stats, |sample, end| {
+                emit(CapsuleOutput::Sample(sample), end)
+            }),
             StreamParser::Capsules(p) => p.parse(&self.buf, &mut self.stats, &mut emit),
         };
         if frames > 0 {
@@ -678,6 +732,7 @@ impl LidarDriver for Rplidar {
             return;
         }
         self.stats.bytes_in += bytes.len() as u64;
+        self.last_read_ns = Some(now_ns);
         self.buf.extend_from_slice(bytes);
         self.reads
             .push_back((self.buf_offset + self.buf.len() as u64, now_ns));
@@ -723,6 +778,24 @@ impl LidarDriver for Rplidar {
         }
     }
 
+    fn poll_read_deadline(&self) -> Option<u64> {
+        let Phase::Scanning {
+            parser: StreamParser::Capsules(parser),
+            capsule_ns,
+            ..
+        } = &self.phase
+        else {
+            return None;
+        };
+        let needed = parser.bytes_to_revolution_end()?;
+        let missing = needed.saturating_sub(self.buf.len());
+        Some(revolution_read_deadline(
+            self.last_read_ns?,
+            missing,
+            *capsule_ns,
+        ))
+    }
+
     fn poll_transmit(&mut self) -> Option<Transmit> {
         self.transmits.pop_front()
     }
@@ -739,7 +812,7 @@ impl LidarDriver for Rplidar {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::lidar::DeviceInfo;
+    use crate::lidar::{DeviceInfo, RawSample};
 
     const INFO_DESC: [u8; 7] = [0xA5, 0x5A, 0x14, 0x00, 0x00, 0x00, 0x04];
     const HEALTH_DESC: [u8; 7] = [0xA5, 0x5A, 0x03, 0x00, 0x00, 0x00, 0x06];
@@ -912,6 +985,81 @@ mod tests {
         d.stop(ms(200));
         assert_eq!(tx(&mut d), [w(&[0xA5, 0x25]), Transmit::SetDtr(true)]);
         assert_eq!(d.poll_timeout(), None);
+    }
+
+    /// An A1 (firmware 1.29, 250 µs a sample) streaming express capsules since 140 ms.
+    fn express_scanning() -> Rplidar {
+        let mut d = Rplidar::new(RplidarConfig::default());
+        to_get_info(&mut d);
+        d.handle_input(ms(111), &info_answer(0x18, 1, 29));
+        d.handle_input(ms(120), &answer(HEALTH_DESC, &[0, 0, 0]));
+        d.handle_input(ms(130), &answer(RATE_DESC, &[0xDC, 0x01, 0xFA, 0x00]));
+        d.handle_input(ms(140), &EXPRESS_DESC);
+        assert!(matches!(
+            ev(&mut d).last(),
+            Some(LidarEvent::Scanning { .. })
+        ));
+        tx(&mut d);
+        d
+    }
+
+    #[test]
+    fn a_capsule_takes_its_samples_time_or_its_wire_time() {
+        // 32 × 250 µs = 8 ms; 84 bytes at 115 200 Bd take 7.29 ms.
+        assert_eq!(capsule_period_ns(250, 115_200), ms(8));
+        // 32 × 100 µs = 3.2 ms, but the wire needs 7.29 ms.
+        assert_eq!(capsule_period_ns(100, 115_200), 7_291_666);
+        // Half a capsule missing after a read at 1 s: 4 ms, plus the margin.
+        assert_eq!(
+            revolution_read_deadline(ms(1000), 42, ms(8)),
+            ms(1004) + READ_DEADLINE_MARGIN_NS
+        );
+        assert_eq!(revolution_read_deadline(u64::MAX - 1, 84, ms(8)), u64::MAX);
+    }
+
+    #[test]
+    fn express_revolutions_close_and_are_read_when_their_last_capsule_is_in() {
+        let mut d = express_scanning();
+        assert_eq!(d.poll_read_deadline(), None, "no capsule yet");
+        // A rotor turning 30° a capsule (8 ms): capsule 12 starts at 0° again, so the wrap
+        // falls between capsules 11 and 12.
+        let samples: [(u16, u8); 32] = std::array::from_fn(|k| (2000 + k as u16, 0));
+        let capsule = |i: u64| capsules::tests::encode((i % 12) as u16 * 30 * 64, false, &samples);
+        // The way crate::acquisition assembles them: `feed` returns the revolutions closed.
+        let mut assembler = crate::timing::RevolutionAssembler::new(Default::default());
+        let mut feed = |d: &mut Rplidar, at: u64, bytes: &[u8]| {
+            d.handle_input(at, bytes);
+            let mut closed = Vec::new();
+            for event in ev(d) {
+                match event {
+                    LidarEvent::Sample(s) => closed.extend(assembler.push(s)),
+                    LidarEvent::RevolutionComplete => closed.extend(assembler.complete()),
+                    other => panic!("unexpected {other:?}"),
+                }
+            }
+            closed
+        };
+        feed(&mut d, ms(150), &capsule(0));
+        feed(&mut d, ms(158), &capsule(1));
+        // Capsule 1 held: the revolution's last sample is capsule 11's, decoded once capsule
+        // 12 is in: 11 capsules of 8 ms after this read.
+        assert_eq!(d.poll_read_deadline(), Some(ms(158 + 88) + MS));
+        feed(&mut d, ms(162), &capsule(2)[..42]);
+        assert_eq!(d.poll_read_deadline(), Some(ms(162 + 84) + MS));
+        feed(&mut d, ms(166), &capsule(2)[42..]);
+        // The first revolution: from the flagged sample of capsule 12 to capsule 23's last.
+        for i in 3..24 {
+            assert!(feed(&mut d, ms(150 + 8 * i), &capsule(i)).is_empty());
+        }
+        assert_eq!(d.poll_read_deadline(), Some(ms(150 + 8 * 23 + 8) + MS));
+        // Capsule 24 (0°) completes the revolution with this read, not with capsule 25's.
+        let closed = feed(&mut d, ms(150 + 8 * 24), &capsule(24));
+        assert_eq!(closed.len(), 1);
+        assert_eq!(closed[0].samples.len(), 12 * 32);
+        assert!(closed[0].t1_ns > closed[0].samples[383].t_ns);
+        // The next one is due 12 capsules on; capsule 25 closes nothing more.
+        assert_eq!(d.poll_read_deadline(), Some(ms(150 + 8 * 36) + MS));
+        assert!(feed(&mut d, ms(150 + 8 * 25), &capsule(25)).is_empty());
     }
 
     #[test]
