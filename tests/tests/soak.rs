@@ -3,9 +3,12 @@
 //! at full sensor rate for N minutes to one server, a real `scan3d serve` process on loopback,
 //! through a seeded impairing UDP relay (loss, delay ± jitter, reordering). Midway the server is
 //! killed with SIGKILL and restarted on the same port and data directory. At the end every frame
-//! every edge produced must be in the recordings (read back from disk), and the server's RSS and
-//! open file descriptors, sampled over time from `/proc/<pid>/status` and `/proc/<pid>/fd`, are
-//! printed as a table.
+//! every edge produced must be in the recordings (read back from disk), and the server's RSS,
+//! open file descriptors and CPU, sampled over time from `/proc/<pid>/status`, `/proc/<pid>/fd`
+//! and `/proc/<pid>/stat` (utime + stime), are printed as a table, with the CPU of this test
+//! process (the simulated edges and the relay) beside the server's. At the end the server's
+//! `status` says what its live pipeline did with each session: every session's pose stage must
+//! have matched RPLidar revolutions.
 //!
 //! ```text
 //! SOAK_MINUTES=10 SOAK_EDGES=16 \
@@ -17,6 +20,8 @@
 //! a round trip costs twice), `SOAK_REORDER` [1], `SOAK_SEED` [1], `SOAK_KILL_AT` [0.5, the
 //! fraction of the run at which the server is killed], `SOAK_SAMPLE_S` [10, the sampling period],
 //! `SOAK_DRAIN_S` [300, how long the edges may take to deliver their backlog after producing],
+//! `SOAK_PIPELINE_S` [600, how long the restarted server's pipeline may take after that to process
+//! all it recorded: it rebuilds every session from its recording],
 //! `SOAK_CC` [unset: the edge's own QUIC settings (BBR); `cubic`: quinn's default Cubic, to
 //! compare],
 //! `SOAK_KEEP` [unset: the work directory with recordings, spools and server logs is kept only
@@ -66,6 +71,8 @@ struct Plan {
     kill_at: f64,
     sample_every: Duration,
     drain_limit: Duration,
+    /// How long the server's pipeline may take to process everything recorded, after the drain.
+    pipeline_limit: Duration,
     /// `SOAK_CC=cubic`: the edges' QUIC connections use quinn's default Cubic instead of the
     /// edge's BBR, to compare; unset, the edges run with the edge's own transport settings.
     cubic: bool,
@@ -101,6 +108,7 @@ impl Plan {
             kill_at: env_or("SOAK_KILL_AT", 0.5)?,
             sample_every: Duration::from_secs(env_or("SOAK_SAMPLE_S", 10)?),
             drain_limit: Duration::from_secs(env_or("SOAK_DRAIN_S", 300)?),
+            pipeline_limit: Duration::from_secs(env_or("SOAK_PIPELINE_S", 600)?),
             cubic: match std::env::var("SOAK_CC").as_deref() {
                 Err(_) | Ok("") | Ok("default") | Ok("bbr") => false,
                 Ok("cubic") => true,
@@ -221,6 +229,32 @@ struct Sample {
     acked: u64,
     /// Edges with at least one connection since the last server start.
     connected: usize,
+    /// The server's CPU time so far (utime + stime), clock ticks; `None` if it was not there.
+    server_cpu_ticks: Option<u64>,
+    /// This process's (the simulated edges', the relay's) CPU time so far, clock ticks.
+    own_cpu_ticks: Option<u64>,
+}
+
+/// Clock ticks per second of `/proc/<pid>/stat`'s times: `sysconf(_SC_CLK_TCK)`, which is
+/// Linux's `USER_HZ`, 100 on every architecture (`proc(5)`; checked against the process CPU
+/// clock by `proc_cpu_ticks_agree_with_the_process_cpu_clock`).
+const CLOCK_TICKS_PER_S: f64 = 100.0;
+
+/// CPU time `pid` has used (utime + stime, all its threads, not its children), clock ticks.
+fn cpu_ticks(pid: &str) -> Option<u64> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    // `pid (comm) state ppid …`: comm may hold spaces and parentheses, so split after the last
+    // `)`; utime and stime are fields 14 and 15, the 12th and 13th after it.
+    let after_comm = &stat[stat.rfind(')')? + 1..];
+    let mut fields = after_comm.split_whitespace().skip(11);
+    let utime: u64 = fields.next()?.parse().ok()?;
+    let stime: u64 = fields.next()?.parse().ok()?;
+    Some(utime + stime)
+}
+
+/// The CPU a process used between two readings of its ticks, as % of one core over `wall`.
+fn cpu_percent(from_ticks: u64, to_ticks: u64, wall: Duration) -> f64 {
+    to_ticks.saturating_sub(from_ticks) as f64 / CLOCK_TICKS_PER_S / wall.as_secs_f64() * 100.0
 }
 
 /// `VmRSS` of `pid` in KiB.
@@ -272,6 +306,8 @@ fn sample_server(
                 .zip(&baseline)
                 .filter(|(e, b)| e.uplink.stats().connections > **b)
                 .count(),
+            server_cpu_ticks: cpu_ticks(&pid.to_string()),
+            own_cpu_ticks: cpu_ticks("self"),
         };
         // As it happens too, so a run that hangs at its end is not blind.
         eprintln!("soak sample: {sample:?}");
@@ -364,19 +400,52 @@ fn mib(kib: Option<u64>) -> String {
     kib.map_or("-".into(), |k| format!("{:.1}", k as f64 / 1024.0))
 }
 
-fn print_samples(samples: &[Sample], kill_at: Duration, restart_at: Duration) {
+/// The server's and this process's CPU over the sampling period ending at `s`, % of one core
+/// (`None` for the server across its restart: a new process, a new count).
+fn period_cpu(previous: Option<&Sample>, s: &Sample) -> (Option<f64>, Option<f64>) {
+    let Some(p) = previous else {
+        return (None, None);
+    };
+    let wall = s.at - p.at;
+    let server = match (p.server_cpu_ticks, s.server_cpu_ticks) {
+        (Some(from), Some(to)) if p.pid == s.pid => Some(cpu_percent(from, to, wall)),
+        _ => None,
+    };
+    let own = match (p.own_cpu_ticks, s.own_cpu_ticks) {
+        (Some(from), Some(to)) => Some(cpu_percent(from, to, wall)),
+        _ => None,
+    };
+    (server, own)
+}
+
+fn print_samples(samples: &[Sample], edges: usize, kill_at: Duration, restart_at: Duration) {
     println!(
-        "  server process over time (RSS from /proc/PID/status VmRSS, fds = entries of /proc/PID/fd):"
+        "  server process over time (RSS from /proc/PID/status VmRSS, fds = entries of /proc/PID/fd,"
     );
     println!(
-        "  {:>7} {:>8} {:>8} {:>5} {:>9} {:>9} {:>9}",
-        "t s", "pid", "RSS MiB", "fds", "pending", "acked/s", "connected"
+        "  CPU = utime + stime from /proc/PID/stat over the period, % of one core; edges = this test"
     );
+    println!("  process: the simulated edges, the relay and the sampler):");
+    println!(
+        "  {:>7} {:>8} {:>8} {:>5} {:>9} {:>9} {:>9} {:>8} {:>8} {:>8}",
+        "t s",
+        "pid",
+        "RSS MiB",
+        "fds",
+        "pending",
+        "acked/s",
+        "connected",
+        "srv CPU%",
+        "%/edge",
+        "edges%"
+    );
+    let percent = |v: Option<f64>| v.map_or("-".into(), |v| format!("{v:.1}"));
     let mut previous: Option<&Sample> = None;
     for s in samples {
         let rate = previous.map_or(f64::NAN, |p| {
             s.acked.saturating_sub(p.acked) as f64 / (s.at - p.at).as_secs_f64()
         });
+        let (server, own) = period_cpu(previous, s);
         previous = Some(s);
         let note = if s.at >= kill_at && s.at < restart_at + Duration::from_secs(1) {
             "  (killed / restarting)"
@@ -384,14 +453,17 @@ fn print_samples(samples: &[Sample], kill_at: Duration, restart_at: Duration) {
             ""
         };
         println!(
-            "  {:>7.0} {:>8} {:>8} {:>5} {:>9} {:>9.1} {:>9}{note}",
+            "  {:>7.0} {:>8} {:>8} {:>5} {:>9} {:>9.1} {:>9} {:>8} {:>8} {:>8}{note}",
             s.at.as_secs_f64(),
             s.pid,
             mib(s.rss_kib),
             s.fds.map_or("-".into(), |f| f.to_string()),
             s.pending,
             rate,
-            s.connected
+            s.connected,
+            percent(server),
+            percent(server.map(|c| c / edges as f64)),
+            percent(own),
         );
     }
     let max_rss = samples.iter().filter_map(|s| s.rss_kib).max();
@@ -401,6 +473,151 @@ fn print_samples(samples: &[Sample], kill_at: Duration, restart_at: Duration) {
         mib(max_rss),
         max_fds.map_or("-".into(), |f| f.to_string())
     );
+}
+
+/// The median of `values` (`None` if empty).
+fn median(mut values: Vec<f64>) -> Option<f64> {
+    values.sort_by(f64::total_cmp);
+    (!values.is_empty()).then(|| values[values.len() / 2])
+}
+
+/// The server's CPU while the edges produced at their steady rate: the median over the sampling
+/// periods that end before `produced_at` and neither contain the restart nor follow it within
+/// `settle` (the restarted server catches up what it missed), % of one core.
+fn steady_server_cpu(
+    samples: &[Sample],
+    restart_at: Duration,
+    settle: Duration,
+    produced_at: Duration,
+) -> Option<f64> {
+    let periods = samples.windows(2).filter_map(|w| {
+        let (p, s) = (&w[0], &w[1]);
+        let after_settling = p.at >= restart_at + settle;
+        let before_kill = s.pid == samples[0].pid;
+        ((before_kill || after_settling) && s.at <= produced_at)
+            .then(|| period_cpu(Some(p), s).0)
+            .flatten()
+    });
+    median(periods.collect())
+}
+
+/// The server's live status (`scan3d status --json`'s report) through its control socket.
+fn server_status(data_dir: &Path) -> anyhow::Result<serde_json::Value> {
+    use scan3d_server::ingest::control::{ProductRequest, request_products, socket_path};
+    let reply = request_products(&socket_path(data_dir), &ProductRequest::Status)?;
+    if !reply.ok {
+        bail!("status refused: {}", reply.detail);
+    }
+    reply.data.context("the status reply carries no report")
+}
+
+/// Polls the server's status every second until its live pipeline has processed every frame it
+/// recorded of `edges` sessions, each with poses matched (fails after `limit`). The restarted
+/// server rebuilds each session from its recording, so this can be well after the last
+/// acknowledgement.
+fn wait_for_pipeline(
+    data_dir: &Path,
+    edges: usize,
+    limit: Duration,
+) -> anyhow::Result<serde_json::Value> {
+    let start = Instant::now();
+    loop {
+        let status = server_status(data_dir)?;
+        let lines = pipeline_lines(&status);
+        let done = lines.len() == edges
+            && lines
+                .iter()
+                .all(|l| l.lag_frames == 0 && l.pose_revolutions.is_some_and(|r| r > 0));
+        if done || start.elapsed() > limit {
+            return Ok(status);
+        }
+        std::thread::sleep(Duration::from_secs(1));
+    }
+}
+
+/// What the server's live pipeline did with one session, from its status.
+#[derive(Debug, Default)]
+struct PipelineLine {
+    edge: String,
+    revolutions: u64,
+    /// `pose.revolutions`: RPLidar revolutions the pose stage matched (`None`: no pose stage).
+    pose_revolutions: Option<u64>,
+    path_m: f64,
+    worker_cpu_ms: u64,
+    /// Frames recorded and not yet processed.
+    lag_frames: u64,
+    catch_ups: u64,
+    max_lag_ms: u64,
+    missing_frames: u64,
+    stream_releases: u64,
+    accept_to_pose_p50_ms: Option<f64>,
+    accept_to_pose_p99_ms: Option<f64>,
+}
+
+/// Every session's line in a status report.
+fn pipeline_lines(status: &serde_json::Value) -> Vec<PipelineLine> {
+    let u = |v: &serde_json::Value, key: &str| v.get(key).and_then(|x| x.as_u64()).unwrap_or(0);
+    let mut lines = Vec::new();
+    for edge in status["edges"].as_array().into_iter().flatten() {
+        for session in edge["sessions"].as_array().into_iter().flatten() {
+            let pose = session.get("pose").filter(|p| !p.is_null());
+            let accept = session.get("accept_to_pose").filter(|p| !p.is_null());
+            lines.push(PipelineLine {
+                edge: edge["name"].as_str().unwrap_or("?").to_owned(),
+                revolutions: u(session, "revolutions"),
+                pose_revolutions: pose.map(|p| u(p, "revolutions")),
+                path_m: pose.and_then(|p| p["path_m"].as_f64()).unwrap_or(0.0),
+                worker_cpu_ms: u(session, "worker_cpu_ms"),
+                lag_frames: u(session, "lag_frames"),
+                catch_ups: u(session, "catch_ups"),
+                max_lag_ms: u(session, "max_lag_ms"),
+                missing_frames: u(session, "missing_frames"),
+                stream_releases: u(session, "stream_releases"),
+                accept_to_pose_p50_ms: accept.and_then(|a| a["p50_ms"].as_f64()),
+                accept_to_pose_p99_ms: accept.and_then(|a| a["p99_ms"].as_f64()),
+            });
+        }
+    }
+    lines
+}
+
+fn print_pipeline(lines: &[PipelineLine]) {
+    println!(
+        "  pipeline (the restarted server's `status` once it processed all it recorded; it rebuilt each session from its recording):"
+    );
+    println!(
+        "  {:<14} {:>6} {:>5} {:>9} {:>7} {:>8} {:>6} {:>8} {:>7} {:>8} {:>9} {:>9}",
+        "edge",
+        "revs",
+        "lag",
+        "pose revs",
+        "path m",
+        "wkr CPU s",
+        "catch",
+        "max lag",
+        "missing",
+        "releases",
+        "a→pose 50",
+        "a→pose 99"
+    );
+    let ms = |v: Option<f64>| v.map_or("-".into(), |v| format!("{v:.1}"));
+    for l in lines {
+        println!(
+            "  {:<14} {:>6} {:>5} {:>9} {:>7.3} {:>8.1} {:>6} {:>8} {:>7} {:>8} {:>9} {:>9}",
+            l.edge,
+            l.revolutions,
+            l.lag_frames,
+            l.pose_revolutions.map_or("-".into(), |r| r.to_string()),
+            l.path_m,
+            l.worker_cpu_ms as f64 / 1e3,
+            l.catch_ups,
+            l.max_lag_ms,
+            l.missing_frames,
+            l.stream_releases,
+            ms(l.accept_to_pose_p50_ms),
+            ms(l.accept_to_pose_p99_ms),
+        );
+    }
 }
 
 #[test]
@@ -429,7 +646,9 @@ fn a_fleet_through_a_lossy_network_and_a_killed_server_loses_no_frame() -> anyho
             plan.edges + 4
         ),
     )?;
+    let load_before = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
     let mut server = ServerProcess::spawn(&config, &logs)?;
+    let first_spawned = Instant::now();
     let server_pid = Arc::new(AtomicU32::new(server.pid()));
     let relay = UdpRelay::start_impaired(server_addr, plan.impairment)?;
 
@@ -468,6 +687,7 @@ fn a_fleet_through_a_lossy_network_and_a_killed_server_loses_no_frame() -> anyho
     let world = Arc::new(World::conference_room());
     let streams = LidarStream::both(&world)?;
     let start = Instant::now();
+    let own_cpu_at_start = cpu_ticks("self");
     let begin = tokio::time::Instant::from_std(start);
     let duration = plan.duration();
     let producers = Producers::start(&runtime, &handles, &streams, begin, begin + duration);
@@ -489,11 +709,15 @@ fn a_fleet_through_a_lossy_network_and_a_killed_server_loses_no_frame() -> anyho
     let kill_at = duration.mul_f64(plan.kill_at);
     std::thread::sleep(kill_at.saturating_sub(start.elapsed()));
     let killed_pid = server.pid();
+    // Its CPU just before it dies (a reaped process has no /proc entry).
+    let killed_cpu_ticks = cpu_ticks(&killed_pid.to_string());
     server.kill()?;
+    let first_alive = first_spawned.elapsed();
     let kill_at = start.elapsed();
     std::thread::sleep(Duration::from_secs(2));
     *baseline.lock().unwrap_or_else(|e| e.into_inner()) = connections(&handles);
     server.restart()?;
+    let restarted = Instant::now();
     server_pid.store(server.pid(), Ordering::SeqCst);
     let restart_at = start.elapsed();
     let reconnected = wait_for(Duration::from_secs(120), "every edge to reconnect", || {
@@ -531,7 +755,14 @@ fn a_fleet_through_a_lossy_network_and_a_killed_server_loses_no_frame() -> anyho
     })?;
     let relay_stats = relay.stats();
     relay.shutdown();
+    let own_cpu_at_end = cpu_ticks("self");
+    let own_wall = start.elapsed();
     let server_pid_end = server.pid();
+    // What the live pipeline did, and the server's CPU, before it is asked to stop.
+    let status = wait_for_pipeline(&data, plan.edges, plan.pipeline_limit);
+    let pipeline_done_at = start.elapsed();
+    let final_cpu_ticks = cpu_ticks(&server_pid_end.to_string());
+    let second_alive = restarted.elapsed();
     let terminated = server.terminate();
 
     let mut lost = 0usize;
@@ -611,9 +842,72 @@ fn a_fleet_through_a_lossy_network_and_a_killed_server_loses_no_frame() -> anyho
     for line in &lost_detail {
         println!("           {line}");
     }
-    print_samples(&samples, kill_at, restart_at);
+    print_samples(&samples, plan.edges, kill_at, restart_at);
+    let per_edge = |percent: f64| percent / plan.edges as f64;
+    match (killed_cpu_ticks, final_cpu_ticks) {
+        (Some(first), Some(second)) => {
+            let alive = first_alive + second_alive;
+            let total = cpu_percent(0, first + second, alive);
+            println!(
+                "  CPU      server {:.1} s in {:.1} s alive (pid {killed_pid} {:.1} s, pid {server_pid_end} {:.1} s): {total:.1} % of one core, {:.2} % per edge",
+                (first + second) as f64 / CLOCK_TICKS_PER_S,
+                alive.as_secs_f64(),
+                first as f64 / CLOCK_TICKS_PER_S,
+                second as f64 / CLOCK_TICKS_PER_S,
+                per_edge(total)
+            );
+            // Everything the server did for the run (ingest, recording, the pipeline, the
+            // restarted server's rebuild from the recordings) per second of one edge's data.
+            let edge_seconds = plan.edges as f64 * produced_at.as_secs_f64();
+            println!(
+                "           per second of one edge's data ({:.0} edge-seconds produced): {:.2} % of one core",
+                edge_seconds,
+                (first + second) as f64 / CLOCK_TICKS_PER_S / edge_seconds * 100.0
+            );
+        }
+        _ => println!("  CPU      server: a /proc/PID/stat reading failed"),
+    }
+    // Settling: twice the sampling period after the restart, for the catch-up.
+    let settle = plan.sample_every * 2;
+    if let Some(steady) = steady_server_cpu(&samples, restart_at, settle, produced_at) {
+        println!(
+            "           server while producing (median of the periods, the restart and {:.0} s after it left out): {steady:.1} % of one core, {:.2} % per edge",
+            settle.as_secs_f64(),
+            per_edge(steady)
+        );
+    }
+    if let (Some(from), Some(to)) = (own_cpu_at_start, own_cpu_at_end) {
+        let own = cpu_percent(from, to, own_wall);
+        println!(
+            "           this process (the {} simulated edges, the relay, the sampler) {:.1} s in {:.1} s: {own:.1} % of one core",
+            plan.edges,
+            to.saturating_sub(from) as f64 / CLOCK_TICKS_PER_S,
+            own_wall.as_secs_f64()
+        );
+    }
+    let pipeline = match &status {
+        Ok(report) => {
+            let lines = pipeline_lines(report);
+            println!(
+                "           status read at {:.1} s, once the pipeline had processed all it recorded (or after SOAK_PIPELINE_S)",
+                pipeline_done_at.as_secs_f64()
+            );
+            print_pipeline(&lines);
+            lines
+        }
+        Err(e) => {
+            println!("  pipeline status not read: {e:#}");
+            Vec::new()
+        }
+    };
+    let unfinished: Vec<&str> = pipeline
+        .iter()
+        .filter(|l| l.lag_frames > 0 || l.pose_revolutions.is_none_or(|r| r == 0))
+        .map(|l| l.edge.as_str())
+        .collect();
+    println!("  load     load averages before: {}", load_before.trim());
     println!(
-        "  load     1-minute load average at the end: {}",
+        "           at the end: {}",
         std::fs::read_to_string("/proc/loadavg")
             .unwrap_or_default()
             .trim()
@@ -624,6 +918,9 @@ fn a_fleet_through_a_lossy_network_and_a_killed_server_loses_no_frame() -> anyho
 
     let failed = lost > 0
         || undelivered > 0
+        || status.is_err()
+        || pipeline.len() != plan.edges
+        || !unfinished.is_empty()
         || reconnected.is_err()
         || drained.is_err()
         || terminated.is_err();
@@ -639,5 +936,44 @@ fn a_fleet_through_a_lossy_network_and_a_killed_server_loses_no_frame() -> anyho
     reconnected?;
     drained?;
     terminated?;
+    status?;
+    assert_eq!(
+        pipeline.len(),
+        plan.edges,
+        "one live session per edge in the server's status"
+    );
+    assert!(
+        unfinished.is_empty(),
+        "sessions with frames not processed or no RPLidar revolution matched: {unfinished:?}"
+    );
     Ok(())
+}
+
+#[test]
+fn proc_cpu_ticks_agree_with_the_process_cpu_clock() {
+    use nix::time::ClockId;
+    let cpu_ns = || scan3d_hw_sim::fleet::clock_ns(ClockId::CLOCK_PROCESS_CPUTIME_ID);
+    let (ticks_before, ns_before) = (cpu_ticks("self").expect("own stat"), cpu_ns());
+    // Burn about half a second of CPU.
+    let mut x = 0u64;
+    while cpu_ns() - ns_before < 500_000_000 {
+        x = std::hint::black_box(x.wrapping_mul(6364136223846793005).wrapping_add(1));
+    }
+    let (ticks_after, ns_after) = (cpu_ticks("self").expect("own stat"), cpu_ns());
+    let from_ticks = (ticks_after - ticks_before) as f64 / CLOCK_TICKS_PER_S;
+    let from_clock = (ns_after - ns_before) as f64 / 1e9;
+    // Ticks are sampled at USER_HZ: a few of them either way, never a factor off.
+    assert!(
+        (from_ticks - from_clock).abs() < 0.1,
+        "/proc/self/stat says {from_ticks:.3} s, the process CPU clock {from_clock:.3} s"
+    );
+    assert_eq!(cpu_ticks("0"), None, "no process 0 in /proc");
+}
+
+#[test]
+fn cpu_percent_is_of_one_core_over_the_wall_time() {
+    // 250 ticks = 2.5 s of CPU in 10 s: a quarter of one core.
+    assert_eq!(cpu_percent(100, 350, Duration::from_secs(10)), 25.0);
+    // Two busy threads for 10 s: two cores.
+    assert_eq!(cpu_percent(0, 2000, Duration::from_secs(10)), 200.0);
 }
