@@ -380,7 +380,9 @@ where
         let driver_config = section.driver.clone();
         let serial = SerialOptions::new(&section.path, section.driver.baud);
         // Nothing waits on the RPLidar within a revolution: half the reads of the Sweep's pace
-        // (which the static-scan controller needs), the timing fit is the same.
+        // (which the static-scan controller needs), the timing fit is the same. The read that
+        // completes a revolution is not paced: the driver's read deadline brings it forward
+        // (`LidarDriver::poll_read_deadline`), so the pace does not delay the live pose.
         serial.read_coalesce.set(RPLIDAR_READ_PACE);
         let make: DriverFactory =
             Box::new(move || Ok(Box::new(Rplidar::new(driver_config.clone())) as Box<_>));
@@ -446,7 +448,8 @@ where
     Ok(report)
 }
 
-/// How long the RPLidar's reads let bytes gather ([`SerialOptions::read_coalesce`]), and the
+/// How long the RPLidar's reads let bytes gather ([`SerialOptions::read_coalesce`]; the read
+/// that completes an express revolution comes at the driver's deadline instead), and the
 /// Sweep's while no static scan runs or waits.
 const RPLIDAR_READ_PACE: Duration = Duration::from_millis(20);
 const SWEEP_IDLE_READ_PACE: Duration = Duration::from_millis(20);
