@@ -581,10 +581,8 @@ fn pipeline_lines(status: &serde_json::Value) -> Vec<PipelineLine> {
     lines
 }
 
-fn print_pipeline(lines: &[PipelineLine]) {
-    println!(
-        "  pipeline (the restarted server's `status` once it processed all it recorded; it rebuilt each session from its recording):"
-    );
+fn print_pipeline(title: &str, lines: &[PipelineLine]) {
+    println!("  {title}");
     println!(
         "  {:<14} {:>6} {:>5} {:>9} {:>7} {:>8} {:>6} {:>8} {:>7} {:>8} {:>9} {:>9}",
         "edge",
@@ -709,6 +707,8 @@ fn a_fleet_through_a_lossy_network_and_a_killed_server_loses_no_frame() -> anyho
     let kill_at = duration.mul_f64(plan.kill_at);
     std::thread::sleep(kill_at.saturating_sub(start.elapsed()));
     let killed_pid = server.pid();
+    // The first server's live pipeline, streaming: did it keep up?
+    let before_kill = server_status(&data);
     // Its CPU just before it dies (a reaped process has no /proc entry).
     let killed_cpu_ticks = cpu_ticks(&killed_pid.to_string());
     server.kill()?;
@@ -885,6 +885,13 @@ fn a_fleet_through_a_lossy_network_and_a_killed_server_loses_no_frame() -> anyho
             own_wall.as_secs_f64()
         );
     }
+    match &before_kill {
+        Ok(report) => print_pipeline(
+            "pipeline of the first server just before the kill (live; a→pose = accept_to_pose p50/p99 ms, lag = frames not processed yet, max lag ms):",
+            &pipeline_lines(report),
+        ),
+        Err(e) => println!("  pipeline status before the kill not read: {e:#}"),
+    }
     let pipeline = match &status {
         Ok(report) => {
             let lines = pipeline_lines(report);
@@ -892,7 +899,10 @@ fn a_fleet_through_a_lossy_network_and_a_killed_server_loses_no_frame() -> anyho
                 "           status read at {:.1} s, once the pipeline had processed all it recorded (or after SOAK_PIPELINE_S)",
                 pipeline_done_at.as_secs_f64()
             );
-            print_pipeline(&lines);
+            print_pipeline(
+                "pipeline (the restarted server's `status` once it processed all it recorded; it rebuilt each session from its recording):",
+                &lines,
+            );
             lines
         }
         Err(e) => {
