@@ -124,6 +124,9 @@ const SCATTER_AFTER: usize = 20;
 /// heading (standard deviations), so that a lidar without noise is not let go for a rounding.
 const SCATTER_FLOOR: Matrix3 = [[1e-6, 0.0, 0.0], [0.0, 1e-6, 0.0], [0.0, 0.0, 2.7e-7]];
 
+/// The weight of each trusted match in the running mean of scores ([`MotionConfig::poor_match_ratio`]).
+const RECENT_SCORE_WEIGHT: f64 = 0.1;
+
 /// How the pose is predicted before matching, and how much the prediction is trusted.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -151,6 +154,15 @@ pub struct MotionConfig {
     /// ...searched when the match from the prediction scores below this (≥ 1: always); the
     /// better of the two matches is kept.
     pub velocity_search_below: f64,
+    /// With odometry, a match scoring below this fraction of the recent matches' mean score is
+    /// poor: the constant-velocity prediction and the window search around the odometry's are
+    /// tried too, and the best fit kept (per scan: a bad stretch of odometry cannot drag the
+    /// matcher off the map).
+    pub poor_match_ratio: f64,
+    /// ...and the search's match replaces a poor one only when its score is higher by at least
+    /// this much (and not poor itself): scores are noisy, a marginal gain is no evidence that
+    /// the odometry was wrong.
+    pub poor_match_gain: f64,
 }
 
 impl Default for MotionConfig {
@@ -166,6 +178,8 @@ impl Default for MotionConfig {
             velocity_rotation_per_s: 1.0,
             velocity_search: SearchWindow::default(),
             velocity_search_below: 1.1,
+            poor_match_ratio: 0.85,
+            poor_match_gain: 0.0,
         }
     }
 }
@@ -316,6 +330,8 @@ pub struct Mapper {
     last_integrated: Option<Pose2>,
     refused: usize,
     standstill: Standstill,
+    /// A running mean of the trusted matches' scores, against which a poor match is judged.
+    recent_score: Option<f64>,
 }
 
 /// When a revolution's endpoints were seen: per endpoint, its time from the reference time
@@ -350,6 +366,7 @@ impl Mapper {
             last_integrated: None,
             refused: 0,
             standstill: Standstill::default(),
+            recent_score: None,
         }
     }
 
@@ -419,7 +436,8 @@ impl Mapper {
             };
         };
         let dt = reference - last.time;
-        let (motion, information, from_odometry) = self.predict(&last, scan, dt);
+        let (motion, information, from_odometry) =
+            self.predict(&last, scan, dt, self.config.motion.use_odometry);
         let predicted = last.pose.compose(&motion);
 
         let hits = if timed {
@@ -440,18 +458,63 @@ impl Mapper {
         );
         let mut matched: Match =
             match_scan(&self.map, &hits, start, Some(&prior), &self.config.matcher);
-        if !from_odometry && matched.score < self.config.motion.velocity_search_below {
-            // A poor fit from the prediction: the trolley may have turned. Search a window on
-            // the coarsest grid and keep whichever match fits better.
+        let mut prior = prior;
+        // With odometry, a match well below the recent ones is poor: the odometry may have
+        // slipped, and the window search may replace the match (the gate is per scan).
+        // Without, the search runs whenever the match is below `velocity_search_below`.
+        let normal = self.recent_score.map_or(f64::NEG_INFINITY, |recent| {
+            self.config.motion.poor_match_ratio * recent
+        });
+        let poor = from_odometry && matched.score < normal;
+        // A replacement must gain this much on the current match and not be poor itself.
+        let needed = |current: f64| (current + self.config.motion.poor_match_gain).max(normal);
+        if poor {
+            // Try the constant-velocity prediction too (what the scans alone say the robot
+            // was doing), with its own, looser prior.
+            let (guess, guess_information, _) = self.predict(&last, scan, dt, false);
+            let guess_start = last.pose.compose(&guess).compose(&scan.sensor_offset);
+            let guess_prior = Prior {
+                pose: guess_start,
+                information: guess_information,
+            };
+            let second = match_scan(
+                &self.map,
+                &hits,
+                guess_start,
+                Some(&guess_prior),
+                &self.config.matcher,
+            );
+            if second.score > matched.score && second.score >= needed(matched.score) {
+                matched = second;
+                prior = guess_prior;
+            }
+        }
+        let (search_wanted, needed) = if from_odometry {
+            (poor, needed(matched.score))
+        } else {
+            let below = matched.score < self.config.motion.velocity_search_below;
+            (below, matched.score)
+        };
+        if search_wanted {
+            // A poor fit from the prediction: the trolley may have turned, the odometry may
+            // have slipped. Search a window on the coarsest grid around the prediction and
+            // keep whichever match fits better; the prior is then centred on what the search
+            // found, no tighter than the search's own steps.
             let coarsest = self.map.levels().last().expect("at least one level");
-            let found = search(coarsest, &hits, start, &self.config.motion.velocity_search);
+            let window = &self.config.motion.velocity_search.around(
+                1.0 / information[0][0].sqrt(),
+                1.0 / information[2][2].sqrt(),
+            );
+            let loose = no_tighter_than(&information, coarsest.resolution(), window.angle_step);
+            let found = search(coarsest, &hits, start, window, Some(&loose));
             let wide = Prior {
                 pose: found,
-                information,
+                information: loose,
             };
             let second = match_scan(&self.map, &hits, found, Some(&wide), &self.config.matcher);
-            if second.score > matched.score {
+            if second.score > matched.score && second.score >= needed {
                 matched = second;
+                prior = wide;
             }
         }
         let mut pose = matched.pose.compose(&scan.sensor_offset.inverse());
@@ -531,6 +594,12 @@ impl Mapper {
             }
             None => (pose, covariance, last.pose.between(&pose)),
         };
+        if trusted {
+            self.recent_score = Some(match self.recent_score {
+                Some(recent) => recent + RECENT_SCORE_WEIGHT * (matched.score - recent),
+                None => matched.score,
+            });
+        }
         let integrated =
             trusted && held.is_none() && self.due(&pose) && self.integrate(scan, &pose, &hits);
         self.last = Some(Last {
@@ -634,9 +703,15 @@ impl Mapper {
 
     /// The predicted motion since the last scan (in its frame) and the prior's information
     /// matrix over the sensor pose.
-    fn predict(&self, last: &Last, scan: &Scan, dt: f64) -> (Pose2, Matrix3, bool) {
+    fn predict(
+        &self,
+        last: &Last,
+        scan: &Scan,
+        dt: f64,
+        use_odometry: bool,
+    ) -> (Pose2, Matrix3, bool) {
         let m = &self.config.motion;
-        let odometry = match (m.use_odometry, last.odometry, scan.odometry) {
+        let odometry = match (use_odometry, last.odometry, scan.odometry) {
             (true, Some(before), Some(now)) => Some(before.between(&now)),
             _ => None,
         };
@@ -940,6 +1015,17 @@ fn mahalanobis(a: &Pose2, b: &Pose2, covariance: &Matrix3) -> f64 {
 }
 
 /// `a + b`.
+/// `information` (diagonal) loosened so that no standard deviation is below `translation` (m)
+/// or `rotation` (rad): a prior centred on a search's result is no surer than its steps.
+fn no_tighter_than(information: &Matrix3, translation: f64, rotation: f64) -> Matrix3 {
+    let mut loose = *information;
+    let limits = [translation, translation, rotation];
+    for (k, limit) in limits.iter().enumerate() {
+        loose[k][k] = loose[k][k].min(1.0 / (limit * limit));
+    }
+    loose
+}
+
 fn add(a: &Matrix3, b: &Matrix3) -> Matrix3 {
     [0, 1, 2].map(|i| [0, 1, 2].map(|j| a[i][j] + b[i][j]))
 }
@@ -1107,6 +1193,53 @@ mod tests {
     fn want_diagonal(fit: &Fit, b: &Matrix3) -> [f64; 3] {
         let c = crate::matcher::invert(&add(&fit.information, b)).expect("invertible");
         [c[0][0], c[1][1], c[2][2]]
+    }
+
+    /// Driving along x at 0.2 m/s while the wheel odometry slips once between scans 5 and 6
+    /// (0.4 m sideways and 0.3 rad, then correct again): the poses the mapper reports, with
+    /// the per-scan odometry gate at `poor_match_ratio`, and the true ones.
+    fn through_a_slip(poor_match_ratio: f64) -> (Vec<ScanResult>, Vec<Pose2>) {
+        let truth: Vec<Pose2> = (0..12)
+            .map(|k| Pose2::new(-1.0 + 0.02 * f64::from(k), 0.1, 0.05))
+            .collect();
+        let slip = Pose2::new(0.0, 0.4, 0.3);
+        let mut scans = scans(&truth);
+        for (k, scan) in scans.iter_mut().enumerate() {
+            let odometry = if k >= 6 {
+                truth[k].compose(&slip)
+            } else {
+                truth[k]
+            };
+            scan.odometry = Some(odometry);
+        }
+        let mut config = MapperConfig::default();
+        config.motion.poor_match_ratio = poor_match_ratio;
+        let mut mapper = Mapper::new(config);
+        let results = scans.iter().map(|s| mapper.add_scan(s)).collect();
+        (results, truth)
+    }
+
+    #[test]
+    fn a_slip_of_the_odometry_does_not_drag_the_matcher_off_the_map() {
+        let (results, truth) = through_a_slip(MotionConfig::default().poor_match_ratio);
+        for (k, (result, truth)) in results.iter().zip(&truth).enumerate() {
+            let error = (result.pose.x - truth.x).hypot(result.pose.y - truth.y);
+            let heading = wrap_angle(result.pose.theta - truth.theta).abs();
+            assert!(
+                error < 0.03 && heading < 0.01,
+                "scan {k}: {:?} against {truth:?}",
+                result.pose
+            );
+        }
+        // Without the gate the slipped odometry holds the match away from the map.
+        let (ungated, truth) = through_a_slip(0.0);
+        let last = ungated.last().expect("results").pose;
+        let truth = truth.last().expect("poses");
+        assert!(
+            (last.x - truth.x).hypot(last.y - truth.y) > 0.1
+                || wrap_angle(last.theta - truth.theta).abs() > 0.05,
+            "{last:?}"
+        );
     }
 
     #[test]

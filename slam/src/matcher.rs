@@ -76,6 +76,24 @@ pub struct MatchConfig {
     pub residual_sigma: f64,
     /// Stop a level's iterations when a step moves less than this (m, and rad).
     pub converged_step: f64,
+    /// The scan term is weighed as if the scan had this many endpoints (0: as many as it has),
+    /// so that a 360-beam lidar does not weigh twice as much against the motion prior as a
+    /// 180-beam one, nor a scan clipped to a short range less than a full one.
+    pub reference_endpoints: f64,
+}
+
+impl MatchConfig {
+    /// The weight of one endpoint's squared residual in the scan term, for a scan of `endpoints`:
+    /// one over the residual variance, times [`reference_endpoints`](Self::reference_endpoints)
+    /// over `endpoints` when that is set.
+    fn endpoint_weight(&self, endpoints: usize) -> f64 {
+        let unit = 1.0 / (self.residual_sigma * self.residual_sigma);
+        if self.reference_endpoints > 0.0 && endpoints > 0 {
+            unit * self.reference_endpoints / endpoints as f64
+        } else {
+            unit
+        }
+    }
 }
 
 impl Default for MatchConfig {
@@ -86,6 +104,7 @@ impl Default for MatchConfig {
             loss: Loss::Huber { delta: 0.4 },
             residual_sigma: 0.25,
             converged_step: 1e-5,
+            reference_endpoints: 180.0,
         }
     }
 }
@@ -242,6 +261,38 @@ pub struct SearchWindow {
     pub angle_step: f64,
     /// Half-width of the translation window (m), searched in steps of the grid's cells.
     pub translation: f64,
+    /// How much a candidate's distance from the start costs, in mean occupancy per unit of the
+    /// prior's squared Mahalanobis distance (0: the window is flat). Along a corridor, where the
+    /// map cannot tell candidates apart, the one the prediction supports wins.
+    pub prior_weight: f64,
+    /// The window also reaches this many of the prediction's standard deviations (0: fixed),
+    /// up to `max_angle` and `max_translation`: after a long interval without odometry the
+    /// robot may have turned and moved farther than the fixed window.
+    pub sigmas: f64,
+    /// Largest heading half-width when the window grows with the prediction (rad); its step
+    /// grows in proportion, so a search costs at most as much as the fixed window's.
+    pub max_angle: f64,
+    /// Largest translation half-width when the window grows with the prediction (m).
+    pub max_translation: f64,
+}
+
+impl SearchWindow {
+    /// This window widened to `sigmas` of a prediction with standard deviations `translation`
+    /// (m) and `rotation` (rad), within the largest half-widths.
+    pub fn around(&self, translation: f64, rotation: f64) -> SearchWindow {
+        if self.sigmas <= 0.0 || self.angle <= 0.0 {
+            return *self;
+        }
+        let angle = (self.sigmas * rotation).clamp(self.angle, self.max_angle.max(self.angle));
+        let reach = (self.sigmas * translation)
+            .clamp(self.translation, self.max_translation.max(self.translation));
+        SearchWindow {
+            angle,
+            angle_step: self.angle_step * angle / self.angle,
+            translation: reach,
+            ..*self
+        }
+    }
 }
 
 impl Default for SearchWindow {
@@ -250,13 +301,26 @@ impl Default for SearchWindow {
             angle: 0.35,
             angle_step: 0.01,
             translation: 0.2,
+            prior_weight: 0.01,
+            sigmas: 0.0,
+            max_angle: std::f64::consts::PI,
+            max_translation: 1.0,
         }
     }
 }
 
 /// The pose in `window` around `start` whose endpoints land on the most occupancy in `grid`
 /// (the caller passes a coarse level: smooth, and cheap to search).
-pub fn search(grid: &Grid, points: &[(f64, f64)], start: Pose2, window: &SearchWindow) -> Pose2 {
+///
+/// With `information` (the prediction's, over x, y and ψ) each candidate's mean occupancy is
+/// lowered by [`SearchWindow::prior_weight`] times its squared Mahalanobis distance from `start`.
+pub fn search(
+    grid: &Grid,
+    points: &[(f64, f64)],
+    start: Pose2,
+    window: &SearchWindow,
+    information: Option<&Matrix3>,
+) -> Pose2 {
     if window.angle <= 0.0 || window.angle_step <= 0.0 || points.is_empty() {
         return start;
     }
@@ -279,10 +343,21 @@ pub fn search(grid: &Grid, points: &[(f64, f64)], start: Pose2, window: &SearchW
             for j in -cells..=cells {
                 let x = start.x + f64::from(i) * grid.resolution();
                 let y = start.y + f64::from(j) * grid.resolution();
-                let score: f64 = rotated
+                let occupancy: f64 = rotated
                     .iter()
                     .map(|&(rx, ry)| grid.interpolate(x + rx, y + ry).value)
                     .sum();
+                let mut score = occupancy / sample.len() as f64;
+                if let Some(l) = information.filter(|_| window.prior_weight > 0.0) {
+                    let e = [x - start.x, y - start.y, theta - start.theta];
+                    let mut distance = 0.0;
+                    for p in 0..3 {
+                        for q in 0..3 {
+                            distance += e[p] * l[p][q] * e[q];
+                        }
+                    }
+                    score -= window.prior_weight * distance;
+                }
                 // Ties (within rounding) go to the candidate nearest the start, counted in
                 // search steps: where the map cannot tell candidates apart (along a corridor,
                 // on an empty map) the prediction stands.
@@ -314,6 +389,11 @@ pub fn score(grid: &Grid, points: &[(f64, f64)], pose: &Pose2) -> f64 {
 
 /// The scan term's [`Fit`] at `pose` on `grid`.
 fn grid_fit(grid: &Grid, points: &[(f64, f64)], pose: &Pose2, config: &MatchConfig) -> Fit {
+    // What the scan says, endpoint by endpoint: not reweighed to a reference count.
+    let config = &MatchConfig {
+        reference_endpoints: 0.0,
+        ..*config
+    };
     let scan_only = normal_equations(grid, points, pose, None, config);
     let scale = 1.0 / (config.residual_sigma * config.residual_sigma);
     let weighted: f64 = points
@@ -358,7 +438,7 @@ fn normal_equations(
     config: &MatchConfig,
 ) -> Normal {
     let (s, c) = pose.theta.sin_cos();
-    let scale = 1.0 / (config.residual_sigma * config.residual_sigma);
+    let scale = config.endpoint_weight(points.len());
     let mut h = [[0.0; 3]; 3];
     let mut g = [0.0; 3];
     let mut total = 0.0;
@@ -397,7 +477,7 @@ fn cost(
     prior: Option<&Prior>,
     config: &MatchConfig,
 ) -> f64 {
-    let scale = 1.0 / (config.residual_sigma * config.residual_sigma);
+    let scale = config.endpoint_weight(points.len());
     let mut total: f64 = points
         .iter()
         .map(|&(x, y)| {
@@ -563,7 +643,10 @@ mod tests {
         // On an empty map every candidate ties: the start stands.
         let empty = GridPyramid::new(0.05, 2, &UpdateModel::default());
         let start = Pose2::new(0.3, -0.2, 0.1);
-        assert_eq!(search(&empty.levels()[1], &walls, start, &window), start);
+        assert_eq!(
+            search(&empty.levels()[1], &walls, start, &window, None),
+            start
+        );
         // Seen from 0.1 m off the corridor's axis, the scan pins y and the heading, not x: the
         // search corrects y and keeps x where the prediction put it (not the window's corner).
         let near: Vec<(f64, f64)> = walls
@@ -571,10 +654,107 @@ mod tests {
             .filter(|(x, _)| x.abs() < 4.0)
             .map(|&(x, y)| (x, y - 0.1))
             .collect();
-        let found = search(&map.levels()[1], &near, Pose2::new(0.0, 0.0, 0.0), &window);
+        let found = search(
+            &map.levels()[1],
+            &near,
+            Pose2::new(0.0, 0.0, 0.0),
+            &window,
+            None,
+        );
         assert_eq!(found.x, 0.0, "{found:?}");
         assert!((found.y - 0.1).abs() < 0.051, "{found:?}");
         assert!(found.theta.abs() < 0.011, "{found:?}");
+    }
+
+    #[test]
+    fn the_scan_weighs_the_same_against_the_prior_whatever_its_endpoint_count() {
+        let map = mapped_room();
+        let truth = Pose2::new(-0.2, 0.1, 0.35);
+        let scan = room_scan(&truth);
+        let twice: Vec<(f64, f64)> = scan.iter().flat_map(|&p| [p, p]).collect();
+        let held = Pose2::new(-0.17, 0.1, 0.35);
+        let prior = Prior {
+            pose: held,
+            information: [[4e3, 0.0, 0.0], [0.0, 4e3, 0.0], [0.0, 0.0, 4e3]],
+        };
+        let normalised = MatchConfig {
+            reference_endpoints: 180.0,
+            ..MatchConfig::default()
+        };
+        let once = match_scan(&map, &scan, held, Some(&prior), &normalised);
+        let doubled = match_scan(&map, &twice, held, Some(&prior), &normalised);
+        assert!(
+            (once.pose.x - doubled.pose.x).abs() < 1e-9
+                && (once.pose.theta - doubled.pose.theta).abs() < 1e-9,
+            "{:?} vs {:?}",
+            once.pose,
+            doubled.pose
+        );
+        // Counted endpoint by endpoint, the doubled scan pulls harder against the prior.
+        let plain = MatchConfig {
+            reference_endpoints: 0.0,
+            ..MatchConfig::default()
+        };
+        let once = match_scan(&map, &scan, held, Some(&prior), &plain);
+        let doubled = match_scan(&map, &twice, held, Some(&prior), &plain);
+        assert!(
+            (doubled.pose.x - held.x).abs() > (once.pose.x - held.x).abs() + 1e-4,
+            "{:?} vs {:?}",
+            once.pose,
+            doubled.pose
+        );
+        // What the scan says about the pose does not depend on the reweighing.
+        let fit = match_scan(&map, &scan, truth, None, &normalised).covariance;
+        let unweighed = match_scan(&map, &scan, truth, None, &plain).covariance;
+        assert!((fit[0][0] / unweighed[0][0] - 1.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn the_prior_weight_trades_the_maps_evidence_against_the_distance_from_the_prediction() {
+        let map = mapped_room();
+        let truth = Pose2::new(-0.2, 0.1, 0.35);
+        let scan = room_scan(&truth);
+        let start = Pose2::new(-0.05, 0.1, 0.45);
+        let information = [[100.0, 0.0, 0.0], [0.0, 100.0, 0.0], [0.0, 0.0, 1e4]];
+        let grid = &map.levels()[1];
+        let flat = SearchWindow {
+            prior_weight: 0.0,
+            ..SearchWindow::default()
+        };
+        let found = search(grid, &scan, start, &flat, Some(&information));
+        assert!((found.x - truth.x).abs() < 0.051 && (found.theta - truth.theta).abs() < 0.011);
+        let weighed = SearchWindow {
+            prior_weight: 1.0,
+            ..flat
+        };
+        assert_eq!(
+            search(grid, &scan, start, &weighed, Some(&information)),
+            start
+        );
+    }
+
+    #[test]
+    fn a_window_grows_with_the_prediction_within_its_limits() {
+        let fixed = SearchWindow::default();
+        assert_eq!(
+            fixed.around(5.0, 5.0),
+            fixed,
+            "sigmas 0: the window is fixed"
+        );
+        let growing = SearchWindow {
+            sigmas: 3.0,
+            max_angle: 1.4,
+            max_translation: 0.5,
+            ..fixed
+        };
+        // A sure prediction keeps the fixed window.
+        assert_eq!(growing.around(0.01, 0.01), growing);
+        let wide = growing.around(0.1, 0.2);
+        assert!((wide.angle - 0.6).abs() < 1e-12 && (wide.translation - 0.3).abs() < 1e-12);
+        // The heading step grows with the window: as many headings as the fixed window's.
+        assert!((wide.angle / wide.angle_step - fixed.angle / fixed.angle_step).abs() < 1e-9);
+        let capped = growing.around(10.0, 10.0);
+        assert_eq!((capped.angle, capped.translation), (1.4, 0.5));
     }
 
     #[test]

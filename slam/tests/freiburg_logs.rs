@@ -101,13 +101,17 @@ fn the_hospital_excerpt_with_its_laser_offset_stays_near_its_odometry() {
     );
 }
 
+/// The whole FR079 log, with odometry. Before the per-scan odometry gate (a poor match tries
+/// the constant-velocity prediction and a window search, `MotionConfig::poor_match_ratio`) the
+/// matcher lost the map near 183 s, led by the odometry, and never found it again: 1.07 / 0.95
+/// / 1.48 m at 0.4 / 0.3 / 0.5. Bounds are the goals for FR079.
 #[test]
-fn the_fr079_excerpt_with_odometry_is_within_bounds_over_map_update_distances() {
-    let (median, worst, used) =
-        median_and_worst("fr079", 900, Some(Pose2::new(-0.04, 0.0, 0.0)), None);
-    assert!(used > 100, "{used} relations");
+fn fr079_with_odometry_keeps_the_map_over_map_update_distances() {
+    let log = load("fr079").0;
+    let (median, worst, used) = median_and_worst("fr079", log.scans.len(), None, None);
+    assert!(used > 1000, "{used} relations");
     assert!(
-        median <= 0.15 && worst <= 0.30,
+        median <= 0.10 && worst <= 0.20,
         "median {median:.4} worst {worst:.4}"
     );
 }
