@@ -498,8 +498,7 @@ impl Mapper {
         if search_wanted {
             // A poor fit from the prediction: the trolley may have turned, the odometry may
             // have slipped. Search a window on the coarsest grid around the prediction and
-            // keep whichever match fits better; the prior is then centred on what the search
-            // found, no tighter than the search's own steps.
+            // keep whichever match fits better (with odometry: only one that is not poor).
             let coarsest = self.map.levels().last().expect("at least one level");
             let window = &self.config.motion.velocity_search.around(
                 1.0 / information[0][0].sqrt(),
@@ -507,9 +506,12 @@ impl Mapper {
             );
             let loose = no_tighter_than(&information, coarsest.resolution(), window.angle_step);
             let found = search(coarsest, &hits, start, window, Some(&loose));
+            // The odometry was wrong here: the prior is as loose as the search. A constant-
+            // velocity or gyro prediction keeps its own certainty, centred where the search
+            // found the scan.
             let wide = Prior {
                 pose: found,
-                information: loose,
+                information: if from_odometry { loose } else { information },
             };
             let second = match_scan(&self.map, &hits, found, Some(&wide), &self.config.matcher);
             if second.score > matched.score && second.score >= needed {
