@@ -162,6 +162,20 @@ fn validate(config: &MapperConfig) -> anyhow::Result<()> {
     if s.angle > 0.0 && (s.angle_step <= 0.0 || s.angle / s.angle_step > 1000.0) {
         bail!("motion.velocity_search: angle / angle_step must be at most 1000");
     }
+    if !(0.0..=std::f64::consts::PI).contains(&s.max_angle)
+        || !(0.0..=MAX_SEARCH_TRANSLATION).contains(&s.max_translation)
+    {
+        bail!(
+            "motion.velocity_search: max_angle must be within [0, π] and max_translation within \
+             [0, {MAX_SEARCH_TRANSLATION}] m"
+        );
+    }
+    if !(0.0..=1.0).contains(&config.motion.poor_match_ratio) {
+        bail!(
+            "motion.poor_match_ratio must be within [0, 1], not {}",
+            config.motion.poor_match_ratio
+        );
+    }
     for (name, v) in [
         ("map_update_distance", config.map_update_distance),
         ("map_update_angle", config.map_update_angle),
@@ -176,6 +190,10 @@ fn validate(config: &MapperConfig) -> anyhow::Result<()> {
         ("refine.sigma_floor", r.sigma_floor),
         ("refine.max_translation", r.max_translation),
         ("refine.max_rotation", r.max_rotation),
+        ("matcher.reference_endpoints", m.reference_endpoints),
+        ("motion.poor_match_gain", config.motion.poor_match_gain),
+        ("motion.velocity_search.prior_weight", s.prior_weight),
+        ("motion.velocity_search.sigmas", s.sigmas),
     ] {
         if !(v.is_finite() && v >= 0.0) {
             bail!("{name} must be a non-negative number, not {v}");
@@ -183,6 +201,10 @@ fn validate(config: &MapperConfig) -> anyhow::Result<()> {
     }
     Ok(())
 }
+
+/// Largest translation half-width of a grown search window (m): the search steps in coarse
+/// cells, at most 20 each way.
+const MAX_SEARCH_TRANSLATION: f64 = 2.0;
 
 /// Opens a log, through gzip when its name ends in `.gz`.
 fn open_log(path: &Path) -> anyhow::Result<Box<dyn BufRead>> {
@@ -686,6 +708,18 @@ mod tests {
             ),
             ("[refine]\nmin_points = 0\n", "refine.min_points"),
             ("[refine.loss]\nkind = \"cauchy\"\nc = 0.0\n", "refine.loss"),
+            (
+                "[motion]\npoor_match_ratio = 1.5\n",
+                "motion.poor_match_ratio",
+            ),
+            (
+                "[motion.velocity_search]\nmax_translation = 5.0\n",
+                "max_translation",
+            ),
+            (
+                "[matcher]\nreference_endpoints = -1.0\n",
+                "matcher.reference_endpoints",
+            ),
         ] {
             std::fs::write(&path, text).unwrap();
             let error = format!("{:#}", load_config(&path).unwrap_err());
