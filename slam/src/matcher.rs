@@ -140,6 +140,19 @@ impl Prior {
         cost
     }
 
+    /// The squared Mahalanobis distance of `pose` from the mean, (ξ − ξₚ)ᵀ Λ (ξ − ξₚ): this
+    /// prior's cost at `pose`.
+    pub(crate) fn squared_distance(&self, pose: &Pose2) -> f64 {
+        let e = self.error(pose);
+        (0..3)
+            .map(|a| {
+                (0..3)
+                    .map(|b| e[a] * self.information[a][b] * e[b])
+                    .sum::<f64>()
+            })
+            .sum()
+    }
+
     /// `pose − mean` in (x, y, ψ), the heading wrapped.
     fn error(&self, pose: &Pose2) -> [f64; 3] {
         [
@@ -348,14 +361,12 @@ pub fn search(
                     .map(|&(rx, ry)| grid.interpolate(x + rx, y + ry).value)
                     .sum();
                 let mut score = occupancy / sample.len() as f64;
-                if let Some(l) = information.filter(|_| window.prior_weight > 0.0) {
-                    let e = [x - start.x, y - start.y, theta - start.theta];
-                    let mut distance = 0.0;
-                    for p in 0..3 {
-                        for q in 0..3 {
-                            distance += e[p] * l[p][q] * e[q];
-                        }
-                    }
+                if let Some(&information) = information.filter(|_| window.prior_weight > 0.0) {
+                    let prediction = Prior {
+                        pose: start,
+                        information,
+                    };
+                    let distance = prediction.squared_distance(&Pose2::new(x, y, theta));
                     score -= window.prior_weight * distance;
                 }
                 // Ties (within rounding) go to the candidate nearest the start, counted in
@@ -486,12 +497,7 @@ fn cost(
         })
         .sum();
     if let Some(prior) = prior {
-        let e = prior.error(pose);
-        for a in 0..3 {
-            for b in 0..3 {
-                total += e[a] * prior.information[a][b] * e[b];
-            }
-        }
+        total += prior.squared_distance(pose);
     }
     total
 }
