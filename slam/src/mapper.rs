@@ -152,12 +152,15 @@ pub struct MotionConfig {
     /// coarsest grid) before matching: a hand-pushed trolley turns when it likes.
     pub velocity_search: SearchWindow,
     /// ...searched when the match from the prediction scores below this (≥ 1: always); the
-    /// better of the two matches is kept.
+    /// better of the two matches is kept. Only with neither odometry nor a measured turn: with
+    /// either, [`poor_match_ratio`](Self::poor_match_ratio) decides per scan.
     pub velocity_search_below: f64,
     /// With odometry, a match scoring below this fraction of the recent matches' mean score is
     /// poor: the constant-velocity prediction and the window search around the odometry's are
     /// tried too, and the best fit kept (per scan: a bad stretch of odometry cannot drag the
-    /// matcher off the map).
+    /// matcher off the map). With a measured turn (a gyro) and no odometry, a poor match is
+    /// searched around the prediction and a good one is not (the search is most of a live
+    /// pose's cost).
     pub poor_match_ratio: f64,
     /// ...and the search's match replaces a poor one only when its score is higher by at least
     /// this much (and not poor itself): scores are noisy, a marginal gain is no evidence that
@@ -459,16 +462,18 @@ impl Mapper {
         let mut matched: Match =
             match_scan(&self.map, &hits, start, Some(&prior), &self.config.matcher);
         let mut prior = prior;
-        // With odometry, a match well below the recent ones is poor: the odometry may have
-        // slipped, and the window search may replace the match (the gate is per scan).
-        // Without, the search runs whenever the match is below `velocity_search_below`.
+        // With odometry or a measured turn (a gyro), a match well below the recent ones is
+        // poor: the odometry may have slipped, the trolley may have been shoved, and the window
+        // search may replace the match (the gate is per scan). With neither, the search runs
+        // whenever the match is below `velocity_search_below`.
         let normal = self.recent_score.map_or(f64::NEG_INFINITY, |recent| {
             self.config.motion.poor_match_ratio * recent
         });
-        let poor = from_odometry && matched.score < normal;
+        let gated = from_odometry || scan.rotation.is_some();
+        let poor = gated && matched.score < normal;
         // A replacement must gain this much on the current match and not be poor itself.
         let needed = |current: f64| (current + self.config.motion.poor_match_gain).max(normal);
-        if poor {
+        if poor && from_odometry {
             // Try the constant-velocity prediction too (what the scans alone say the robot
             // was doing), with its own, looser prior.
             let (guess, guess_information, _) = self.predict(&last, scan, dt, false);
@@ -491,6 +496,8 @@ impl Mapper {
         }
         let (search_wanted, needed) = if from_odometry {
             (poor, needed(matched.score))
+        } else if gated {
+            (poor, matched.score)
         } else {
             let below = matched.score < self.config.motion.velocity_search_below;
             (below, matched.score)
@@ -506,9 +513,10 @@ impl Mapper {
             );
             let loose = no_tighter_than(&information, coarsest.resolution(), window.angle_step);
             let found = search(coarsest, &hits, start, window, Some(&loose));
-            // The odometry was wrong here: the prior is as loose as the search. A constant-
-            // velocity or gyro prediction keeps its own certainty, centred where the search
-            // found the scan.
+            // The prediction was wrong here: the prior is centred where the search found the
+            // scan for the matches that follow (the odometry's as loose as the search). A gyro's
+            // prediction keeps its own prior: re-centring its tight heading on the search's
+            // coarse step would pull the heading by up to a step.
             let wide = Prior {
                 pose: found,
                 information: if from_odometry { loose } else { information },
@@ -516,7 +524,9 @@ impl Mapper {
             let second = match_scan(&self.map, &hits, found, Some(&wide), &self.config.matcher);
             if second.score > matched.score && second.score >= needed {
                 matched = second;
-                prior = wide;
+                if from_odometry || scan.rotation.is_none() {
+                    prior = wide;
+                }
             }
         }
         let mut pose = matched.pose.compose(&scan.sensor_offset.inverse());
