@@ -208,6 +208,11 @@ pub struct MapperConfig {
     pub map_update_distance: f64,
     /// ...or turned this much (rad).
     pub map_update_angle: f64,
+    /// Endpoints farther than this from the lidar (m) are neither matched nor integrated: with
+    /// 1° between beams a wall 30 m away is sampled every half metre, too sparsely for a
+    /// 5 cm grid to hold, and such walls pulled the Freiburg hospital's matches sideways
+    /// (Hector SLAM and Cartographer cut at 30 m too).
+    pub max_range: f64,
     /// A match whose mean endpoint occupancy is below this is not trusted: the scan takes the
     /// predicted pose and is not integrated.
     pub min_score: f64,
@@ -228,6 +233,7 @@ impl Default for MapperConfig {
             refine: RefineConfig::default(),
             map_update_distance: 0.4,
             map_update_angle: 0.9,
+            max_range: 30.0,
             min_score: 0.0,
             covariance: CovarianceConfig::default(),
             standstill: StandstillConfig::default(),
@@ -398,9 +404,46 @@ impl Mapper {
     /// the opposite sign one revolution later (the de-skew uses the motion from the last pose,
     /// error included), and the pose at the stamp is an extrapolation half a revolution long.
     pub fn add_scan(&mut self, scan: &Scan) -> ScanResult {
-        let timed = scan.is_timed();
-        // The reference time within the scan, relative to its stamp.
+        // The pose is for the reference time of the scan as given, far endpoints or not (the
+        // caller's gyro increment ends there).
         let reference = scan.reference_time();
+        match self.within_range(scan) {
+            Some(near) => self.add_scan_at(&near, reference),
+            None => self.add_scan_at(scan, reference),
+        }
+    }
+
+    /// The scan without its endpoints beyond [`MapperConfig::max_range`], or `None` when it
+    /// has none.
+    fn within_range(&self, scan: &Scan) -> Option<Scan> {
+        let max = self.config.max_range;
+        let near = |&(x, y): &(f64, f64)| x.hypot(y) <= max;
+        if scan.hits.iter().all(near) {
+            return None;
+        }
+        let timed = scan.is_timed();
+        let mut hits = Vec::with_capacity(scan.hits.len());
+        let mut hit_times = Vec::new();
+        for (i, hit) in scan.hits.iter().enumerate() {
+            if near(hit) {
+                hits.push(*hit);
+                if timed {
+                    hit_times.push(scan.hit_times[i]);
+                }
+            }
+        }
+        Some(Scan {
+            time: scan.time,
+            hits,
+            hit_times,
+            odometry: scan.odometry,
+            sensor_offset: scan.sensor_offset,
+            rotation: scan.rotation,
+        })
+    }
+
+    fn add_scan_at(&mut self, scan: &Scan, reference: f64) -> ScanResult {
+        let timed = scan.is_timed();
         let middle = reference - scan.time;
         let relative: Vec<f64> = if timed {
             scan.hit_times.iter().map(|t| t - middle).collect()
@@ -639,11 +682,14 @@ impl Mapper {
     }
 
     /// Integrates a scan taken at a known robot `pose` (mapping with known poses, or a map
-    /// prepared before localising in it), its endpoints as given (`hit_times` are not used: a
+    /// prepared before localising in it), its endpoints within `max_range` (`hit_times` are not used: a
     /// revolution is integrated as if instantaneous at `pose`). Does not move the mapper's own
     /// pose. Returns whether it was integrated (see [`Mapper::refused_integrations`]).
     pub fn integrate_at(&mut self, scan: &Scan, pose: &Pose2) -> bool {
-        self.integrate(scan, pose, &scan.hits)
+        match self.within_range(scan) {
+            Some(near) => self.integrate(&near, pose, &near.hits),
+            None => self.integrate(scan, pose, &scan.hits),
+        }
     }
 
     /// Sets the robot's pose at `time` (a reference time, as [`ScanResult::time`]) to a known
@@ -1383,5 +1429,48 @@ mod tests {
         let turn = Pose2::new(0.0, 0.0, 1.0);
         let out = deskew(&[(2.0, 0.0)], &[0.1], &Pose2::default(), &turn, 1.0);
         assert!((out[0].1 - 2.0 * 0.1f64.sin()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn endpoints_beyond_the_range_limit_are_neither_matched_nor_integrated() {
+        // The room's walls, and one far wall 8 m ahead seen by a revolution's beams.
+        let mut hits = cast(&room(), &Pose2::default(), 720);
+        let far: Vec<(f64, f64)> = (0..40).map(|i| (8.0, -1.0 + 0.05 * f64::from(i))).collect();
+        hits.extend(&far);
+        let hit_times: Vec<f64> = (0..hits.len()).map(|i| 1e-4 * i as f64).collect();
+        let scan = Scan {
+            time: 10.0,
+            hits,
+            hit_times,
+            ..Scan::default()
+        };
+        let occupied = |mapper: &Mapper, (x, y): (f64, f64)| {
+            let grid = mapper.map().finest();
+            grid.probability(grid.cell_of(x, y)) > 0.5
+        };
+        for (max_range, far_wall) in [(5.0, false), (30.0, true)] {
+            let mut mapper = Mapper::new(MapperConfig {
+                max_range,
+                ..MapperConfig::default()
+            });
+            let first = mapper.add_scan(&scan);
+            // The pose is for the scan's reference time as given, far endpoints or not.
+            assert_eq!(first.time, scan.reference_time());
+            assert!(occupied(&mapper, (-3.0167, 0.0)), "the near wall is mapped");
+            assert_eq!(
+                occupied(&mapper, far[20]),
+                far_wall,
+                "max_range {max_range}"
+            );
+            let mut moved = scan.clone();
+            moved.time += 0.1;
+            let second = mapper.add_scan(&moved);
+            assert_eq!(second.time, moved.reference_time());
+            assert!(
+                second.pose.x.hypot(second.pose.y) < 0.02,
+                "{:?}",
+                second.pose
+            );
+        }
     }
 }

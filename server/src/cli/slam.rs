@@ -170,6 +170,9 @@ fn validate(config: &MapperConfig) -> anyhow::Result<()> {
              [0, {MAX_SEARCH_TRANSLATION}] m"
         );
     }
+    if config.max_range.is_nan() || config.max_range <= 0.0 {
+        bail!("max_range must be positive, not {}", config.max_range);
+    }
     if !(0.0..=1.0).contains(&config.motion.poor_match_ratio) {
         bail!(
             "motion.poor_match_ratio must be within [0, 1], not {}",
@@ -720,6 +723,7 @@ mod tests {
                 "[matcher]\nreference_endpoints = -1.0\n",
                 "matcher.reference_endpoints",
             ),
+            ("max_range = 0.0\n", "max_range must be positive"),
         ] {
             std::fs::write(&path, text).unwrap();
             let error = format!("{:#}", load_config(&path).unwrap_err());
