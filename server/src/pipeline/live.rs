@@ -656,6 +656,15 @@ impl WorkerShared {
         progress.max_lag_frames = progress.max_lag_frames.max(frames);
         progress.max_lag_ms = progress.max_lag_ms.max(ms);
     }
+
+    /// After a catch-up that began owing at `owed_since`: the oldest owed frame waited at least
+    /// that long before it was processed (or given up), so the largest lag is at least that,
+    /// although the lag is 0 again once the catch-up is over.
+    fn note_caught_up(&self, owed_since: Instant) {
+        let waited = owed_since.elapsed().as_millis() as u64;
+        let mut progress = lock(&self.progress);
+        progress.max_lag_ms = progress.max_lag_ms.max(waited);
+    }
 }
 
 impl LivePipelines {
@@ -1203,6 +1212,7 @@ impl WorkerRun {
                 self.shared.note_lag();
                 last_catch_up = Some(Instant::now());
                 self.catch_up();
+                self.shared.note_caught_up(since);
                 if self.sequencer.owed() == 0 {
                     owed_since = None;
                 } else if since.elapsed() >= self.settings.give_up_after {
@@ -1621,6 +1631,21 @@ mod tests {
         lock(&shared.waiting).clear();
         shared.progress.lock().unwrap().received = 3;
         assert_eq!(shared.lag(), (0, 0));
+    }
+
+    #[test]
+    fn the_largest_lag_keeps_a_catch_up_that_is_over() {
+        let shared = WorkerShared::new("e", 1);
+        // Frames owed since 4 s ago were caught up just now: nothing waits any more...
+        let since = Instant::now()
+            .checked_sub(Duration::from_secs(4))
+            .expect("uptime");
+        shared.note_caught_up(since);
+        shared.note_lag();
+        assert_eq!(shared.lag(), (0, 0));
+        // ...but the oldest of them waited 4 s.
+        let max = lock(&shared.progress).max_lag_ms;
+        assert!((4_000..60_000).contains(&max), "{max} ms");
     }
 
     #[test]
