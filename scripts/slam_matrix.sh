@@ -12,7 +12,9 @@
 # summary: per log and mode the default's (0.4) error, the median and the worst of the three.
 # Environment: SLAM_MATRIX_DATA overrides the data folder (e.g. full logs outside the
 # repository; each LOG then needs LOG.clf[.gz] and LOG.relations there); SLAM_MATRIX_MODES
-# restricts the modes (default "odometry no-odometry").
+# restricts the modes (default "odometry no-odometry"); SLAM_MATRIX_RANGES the ranges (default
+# "full 6"); SLAM_MATRIX_CONFIG names a slam.toml whose keys every run takes too (it must not
+# set map_update_distance).
 set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
 bin="${1:-$here/target/release/scan3d}"
@@ -28,9 +30,9 @@ for log in "${logs[@]}"; do
   clf="$data/$log.clf.gz"; [ -f "$clf" ] || clf="$data/$log.clf"
   rel="$data/$log.relations"
   for odo in ${SLAM_MATRIX_MODES:-odometry no-odometry}; do
-    for range in full 6; do
+    for range in ${SLAM_MATRIX_RANGES:-full 6}; do
       for d in 0.3 0.4 0.5; do
-        cfg="$out/mud_$d.toml"; echo "map_update_distance = $d" > "$cfg"
+        cfg="$out/mud_$d.toml"; { echo "map_update_distance = $d"; [ -z "${SLAM_MATRIX_CONFIG:-}" ] || cat "$SLAM_MATRIX_CONFIG"; } > "$cfg"
         traj="$out/${log}_${odo}_${range}_$d.txt"
         args=(slam "$clf" --out "$traj" --config "$cfg" --quiet "--$odo")
         [ "$range" = 6 ] && args+=(--max-range 6)

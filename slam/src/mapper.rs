@@ -4,8 +4,9 @@
 //! [`Mapper::add_scan`] is the whole front end: predict the pose (wheel odometry when there is
 //! some, a constant-velocity model otherwise), de-skew the scan when its beams carry their own
 //! times, match it coarse to fine with the prediction as a Gaussian prior, and update the map
-//! by Hector's distance/angle rule. The grid pyramid and the per-scan poses and covariances are
-//! what a pose-graph layer (submaps, loop closure) will build on.
+//! by Hector's distance/angle rule. With [`SubmapConfig`] the scan is matched against a local
+//! submap of the recent scans instead of the whole map: the unit a pose-graph layer (loop
+//! closure) will join, with the per-scan poses and covariances.
 //!
 //! Each pose comes with its covariance ([`ScanResult::covariance`]): the uncertainty of the
 //! reported pose itself, relative to the map, from what the scan says (its fit, scaled by its
@@ -13,6 +14,8 @@
 //! prediction said (the previous pose's covariance carried forward plus the motion model's), as
 //! the match weighed them. It does not include the map's drift from the world: without loop
 //! closure that grows with the distance travelled and is nobody's measurement.
+
+use std::collections::VecDeque;
 
 use crate::grid::{GridPyramid, UpdateModel};
 use crate::matcher::{Fit, Match, MatchConfig, Matrix3, Prior, SearchWindow, match_scan, search};
@@ -187,6 +190,25 @@ impl Default for MotionConfig {
     }
 }
 
+/// Local submaps, as Cartographer's local SLAM keeps them: each scan is matched against a map of
+/// the recent scans only, not against everything mapped so far. Walls mapped on an earlier pass
+/// through the same place carry that pass's drift; matched against them, a scan is pulled
+/// toward the old pass and away from what its own neighbours and its odometry say. Joining the
+/// passes is loop closure's work, on finished submaps.
+///
+/// Two submaps are active at a time: every integrated scan goes into both; when the newer one
+/// holds `scans` scans a new one is started and the older, now holding twice that, is finished
+/// (dropped: the whole map, [`Mapper::map`], keeps everything for output). A scan is matched
+/// against the older active submap, which holds between `scans` and twice `scans` scans, so
+/// the map it meets never starts from empty.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SubmapConfig {
+    /// Integrated scans per submap before the next one starts (0: no submaps, every scan is
+    /// matched against the whole map).
+    pub scans: usize,
+}
+
 /// Every parameter of the mapper. `slam.toml` is this, key for key.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -220,6 +242,8 @@ pub struct MapperConfig {
     pub covariance: CovarianceConfig,
     /// Holding a standing head's pose.
     pub standstill: StandstillConfig,
+    /// Matching against local submaps instead of the whole map.
+    pub submap: SubmapConfig,
 }
 
 impl Default for MapperConfig {
@@ -237,6 +261,7 @@ impl Default for MapperConfig {
             min_score: 0.0,
             covariance: CovarianceConfig::default(),
             standstill: StandstillConfig::default(),
+            submap: SubmapConfig::default(),
         }
     }
 }
@@ -333,8 +358,13 @@ pub struct ScanResult {
 #[derive(Debug, Clone)]
 pub struct Mapper {
     config: MapperConfig,
+    /// Every integrated scan: the map for output, and the one matched against without submaps.
     map: GridPyramid,
+    /// The refinement's endpoints of every integrated scan (kept only without submaps).
     surfaces: Surfaces,
+    /// With submaps ([`SubmapConfig`]), the active ones, oldest first; scans are matched
+    /// against the first.
+    active: VecDeque<Submap>,
     last: Option<Last>,
     last_integrated: Option<Pose2>,
     refused: usize,
@@ -350,6 +380,24 @@ struct Timing<'a> {
     offsets: &'a [f64],
     from: Pose2,
     interval: f64,
+}
+
+/// One local submap: its grids, the refinement's endpoints, and how many scans it holds.
+#[derive(Debug, Clone)]
+struct Submap {
+    map: GridPyramid,
+    surfaces: Surfaces,
+    scans: usize,
+}
+
+impl Submap {
+    fn new(config: &MapperConfig) -> Self {
+        Self {
+            map: GridPyramid::new(config.resolution, config.levels, &config.update),
+            surfaces: Surfaces::new(config.resolution, &config.refine),
+            scans: 0,
+        }
+    }
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -370,6 +418,11 @@ impl Mapper {
         Self {
             map: GridPyramid::new(config.resolution, config.levels, &config.update),
             surfaces: Surfaces::new(config.resolution, &config.refine),
+            active: if config.submap.scans > 0 {
+                VecDeque::from([Submap::new(&config)])
+            } else {
+                VecDeque::new()
+            },
             config,
             last: None,
             last_integrated: None,
@@ -382,6 +435,19 @@ impl Mapper {
     /// The grids built so far.
     pub fn map(&self) -> &GridPyramid {
         &self.map
+    }
+
+    /// The grids scans are matched against now: the oldest active submap's, or the whole map's
+    /// without submaps.
+    pub fn matching_map(&self) -> &GridPyramid {
+        self.active.front().map_or(&self.map, |submap| &submap.map)
+    }
+
+    /// The refinement's endpoints scans are matched against now (as [`Mapper::matching_map`]).
+    fn matching_surfaces(&self) -> &Surfaces {
+        self.active
+            .front()
+            .map_or(&self.surfaces, |submap| &submap.surfaces)
     }
 
     /// The configuration.
@@ -502,8 +568,13 @@ impl Mapper {
             &carry(&last.covariance, &last.pose, &start),
             &inverse_of_diagonal(&information),
         );
-        let mut matched: Match =
-            match_scan(&self.map, &hits, start, Some(&prior), &self.config.matcher);
+        let mut matched: Match = match_scan(
+            self.matching_map(),
+            &hits,
+            start,
+            Some(&prior),
+            &self.config.matcher,
+        );
         let mut prior = prior;
         // With odometry or a measured turn (a gyro), a match well below the recent ones is
         // poor: the odometry may have slipped, the trolley may have been shoved, and the window
@@ -526,7 +597,7 @@ impl Mapper {
                 information: guess_information,
             };
             let second = match_scan(
-                &self.map,
+                self.matching_map(),
                 &hits,
                 guess_start,
                 Some(&guess_prior),
@@ -549,7 +620,11 @@ impl Mapper {
             // A poor fit from the prediction: the trolley may have turned, the odometry may
             // have slipped. Search a window on the coarsest grid around the prediction and
             // keep whichever match fits better (with odometry: only one that is not poor).
-            let coarsest = self.map.levels().last().expect("at least one level");
+            let coarsest = self
+                .matching_map()
+                .levels()
+                .last()
+                .expect("at least one level");
             let window = &self.config.motion.velocity_search.around(
                 1.0 / information[0][0].sqrt(),
                 1.0 / information[2][2].sqrt(),
@@ -564,7 +639,13 @@ impl Mapper {
                 pose: found,
                 information: if from_odometry { loose } else { information },
             };
-            let second = match_scan(&self.map, &hits, found, Some(&wide), &self.config.matcher);
+            let second = match_scan(
+                self.matching_map(),
+                &hits,
+                found,
+                Some(&wide),
+                &self.config.matcher,
+            );
             if second.score > matched.score && second.score >= needed {
                 matched = second;
                 if from_odometry || scan.rotation.is_none() {
@@ -579,7 +660,7 @@ impl Mapper {
             let found = last.pose.between(&pose);
             hits = deskew(&scan.hits, &relative, &scan.sensor_offset, &found, dt);
             matched = match_scan(
-                &self.map,
+                self.matching_map(),
                 &hits,
                 matched.pose,
                 Some(&prior),
@@ -722,7 +803,14 @@ impl Mapper {
     ) -> (Refinement, Option<Vec<(f64, f64)>>) {
         let config = &self.config.refine;
         let Some(timing) = timing else {
-            let refined = refine(&self.surfaces, hits, *matched, None, Some(prior), config);
+            let refined = refine(
+                self.matching_surfaces(),
+                hits,
+                *matched,
+                None,
+                Some(prior),
+                config,
+            );
             return (refined, None);
         };
         // The sensor's velocity from the last pose to this grid match, in the map frame.
@@ -745,7 +833,7 @@ impl Mapper {
             ],
         };
         let refined = refine(
-            &self.surfaces,
+            self.matching_surfaces(),
             &scan.hits,
             *matched,
             Some(&sweep),
@@ -827,16 +915,34 @@ impl Mapper {
 
     fn integrate(&mut self, scan: &Scan, pose: &Pose2, hits: &[(f64, f64)]) -> bool {
         let sensor = pose.compose(&scan.sensor_offset);
-        if self.map.integrate(&sensor, hits, &[]) {
-            if self.config.refine.enabled {
-                self.surfaces.integrate(&sensor, hits);
-            }
-            self.last_integrated = Some(*pose);
-            true
-        } else {
+        if !self.map.integrate(&sensor, hits, &[]) {
             self.refused += 1;
-            false
+            return false;
         }
+        let refine = self.config.refine.enabled;
+        if self.active.is_empty() && refine {
+            self.surfaces.integrate(&sensor, hits);
+        }
+        for submap in &mut self.active {
+            // A submap covers less than the whole map, which just took the scan: it grows.
+            submap.map.integrate(&sensor, hits, &[]);
+            if refine {
+                submap.surfaces.integrate(&sensor, hits);
+            }
+            submap.scans += 1;
+        }
+        if self
+            .active
+            .back()
+            .is_some_and(|newest| newest.scans >= self.config.submap.scans)
+        {
+            self.active.push_back(Submap::new(&self.config));
+            if self.active.len() > 2 {
+                self.active.pop_front();
+            }
+        }
+        self.last_integrated = Some(*pose);
+        true
     }
 }
 
@@ -1512,5 +1618,62 @@ mod tests {
                 "scan {k}: {pose:?} against {truth:?}"
             );
         }
+    }
+
+    /// The room mapped first by `drifted` scans of a pass that drifted (placed 0.12 m off along
+    /// x and y), then by `honest` scans at their true poses; then one scan taken at
+    /// (0.3, −0.3, 0.2) and predicted there. Returns the mapper and the match's pose.
+    fn after_a_drifted_pass(
+        submap: SubmapConfig,
+        drifted: usize,
+        honest: usize,
+    ) -> (Mapper, Pose2) {
+        let mut mapper = Mapper::new(MapperConfig {
+            submap,
+            motion: MotionConfig {
+                use_odometry: false,
+                ..MotionConfig::default()
+            },
+            ..MapperConfig::default()
+        });
+        let drift = Pose2::new(0.12, 0.12, 0.0);
+        let poses: Vec<Pose2> = (0..6)
+            .map(|k| Pose2::new(-1.5 + 0.5 * f64::from(k), -0.5, 0.2))
+            .collect();
+        for (scan, pose) in scans(&poses).iter().zip(&poses).cycle().take(drifted) {
+            assert!(mapper.integrate_at(scan, &drift.compose(pose)));
+        }
+        for (scan, pose) in scans(&poses).iter().zip(&poses).take(honest) {
+            assert!(mapper.integrate_at(scan, pose));
+        }
+        let truth = Pose2::new(0.3, -0.3, 0.2);
+        mapper.start_at(
+            0.0,
+            truth,
+            [[1e-4, 0.0, 0.0], [0.0, 1e-4, 0.0], [0.0, 0.0, 1e-4]],
+        );
+        let mut scan = scans(&[truth]).remove(0);
+        scan.time = 0.1;
+        (mapper.clone(), mapper.add_scan(&scan).pose)
+    }
+
+    #[test]
+    fn a_scan_is_matched_against_the_recent_submap_not_an_earlier_drifted_pass() {
+        let truth = Pose2::new(0.3, -0.3, 0.2);
+        let off = |pose: Pose2| (pose.x - truth.x).hypot(pose.y - truth.y);
+        // Against the whole map, the drifted pass's walls, seen four times as often as the true
+        // ones, take the scan to their place (0.17 m off).
+        let (_, whole) = after_a_drifted_pass(SubmapConfig { scans: 0 }, 12, 3);
+        assert!(off(whole) > 0.1, "{whole:?}");
+        // With submaps of 3 scans, the drifted ones are in finished submaps, dropped from
+        // matching (the whole map keeps them): the scan meets only the three true ones.
+        let (mapper, local) = after_a_drifted_pass(SubmapConfig { scans: 3 }, 12, 3);
+        assert!(off(local) < 0.01, "{local:?}");
+        let drifted_wall = (2.9833 + 0.12, 0.0);
+        let occupied = |grid: &crate::grid::Grid| {
+            grid.probability(grid.cell_of(drifted_wall.0, drifted_wall.1)) > 0.5
+        };
+        assert!(occupied(mapper.map().finest()));
+        assert!(!occupied(mapper.matching_map().finest()));
     }
 }
