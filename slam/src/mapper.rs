@@ -192,9 +192,10 @@ impl Default for MotionConfig {
 
 /// Local submaps, as Cartographer's local SLAM keeps them: each scan is matched against a map of
 /// the recent scans only, not against everything mapped so far. Walls mapped on an earlier pass
-/// through the same place carry that pass's drift; matched against them, a scan is pulled
-/// toward the old pass and away from what its own neighbours and its odometry say. Joining the
-/// passes is loop closure's work, on finished submaps.
+/// through the same place carry that pass's drift, and can pull a scan toward the old pass;
+/// joining the passes is loop closure's work, on finished submaps. Off by default: without loop
+/// closure the benchmark logs that revisit their rooms lose the anchor a whole map gives them
+/// (`docs/slam.md`, "Local submaps").
 ///
 /// Two submaps are active at a time: every integrated scan goes into both; when the newer one
 /// holds `scans` scans a new one is started and the older, now holding twice that, is finished
@@ -358,10 +359,9 @@ pub struct ScanResult {
 #[derive(Debug, Clone)]
 pub struct Mapper {
     config: MapperConfig,
-    /// Every integrated scan: the map for output, and the one matched against without submaps.
-    map: GridPyramid,
-    /// The refinement's endpoints of every integrated scan (kept only without submaps).
-    surfaces: Surfaces,
+    /// Every integrated scan: the map for output, and the one matched against without submaps
+    /// (its refinement endpoints are kept only then).
+    whole: Submap,
     /// With submaps ([`SubmapConfig`]), the active ones, oldest first; scans are matched
     /// against the first.
     active: VecDeque<Submap>,
@@ -416,8 +416,7 @@ impl Mapper {
     /// A mapper with an empty map.
     pub fn new(config: MapperConfig) -> Self {
         Self {
-            map: GridPyramid::new(config.resolution, config.levels, &config.update),
-            surfaces: Surfaces::new(config.resolution, &config.refine),
+            whole: Submap::new(&config),
             active: if config.submap.scans > 0 {
                 VecDeque::from([Submap::new(&config)])
             } else {
@@ -434,20 +433,18 @@ impl Mapper {
 
     /// The grids built so far.
     pub fn map(&self) -> &GridPyramid {
-        &self.map
+        &self.whole.map
     }
 
     /// The grids scans are matched against now: the oldest active submap's, or the whole map's
     /// without submaps.
     pub fn matching_map(&self) -> &GridPyramid {
-        self.active.front().map_or(&self.map, |submap| &submap.map)
+        &self.matching().map
     }
 
-    /// The refinement's endpoints scans are matched against now (as [`Mapper::matching_map`]).
-    fn matching_surfaces(&self) -> &Surfaces {
-        self.active
-            .front()
-            .map_or(&self.surfaces, |submap| &submap.surfaces)
+    /// What scans are matched against now (see [`Mapper::matching_map`]).
+    fn matching(&self) -> &Submap {
+        self.active.front().unwrap_or(&self.whole)
     }
 
     /// The configuration.
@@ -804,7 +801,7 @@ impl Mapper {
         let config = &self.config.refine;
         let Some(timing) = timing else {
             let refined = refine(
-                self.matching_surfaces(),
+                &self.matching().surfaces,
                 hits,
                 *matched,
                 None,
@@ -833,7 +830,7 @@ impl Mapper {
             ],
         };
         let refined = refine(
-            self.matching_surfaces(),
+            &self.matching().surfaces,
             &scan.hits,
             *matched,
             Some(&sweep),
@@ -915,13 +912,13 @@ impl Mapper {
 
     fn integrate(&mut self, scan: &Scan, pose: &Pose2, hits: &[(f64, f64)]) -> bool {
         let sensor = pose.compose(&scan.sensor_offset);
-        if !self.map.integrate(&sensor, hits, &[]) {
+        if !self.whole.map.integrate(&sensor, hits, &[]) {
             self.refused += 1;
             return false;
         }
         let refine = self.config.refine.enabled;
         if self.active.is_empty() && refine {
-            self.surfaces.integrate(&sensor, hits);
+            self.whole.surfaces.integrate(&sensor, hits);
         }
         for submap in &mut self.active {
             // A submap covers less than the whole map, which just took the scan: it grows.
