@@ -13,7 +13,8 @@
 # Environment: SLAM_MATRIX_DATA overrides the data folder (e.g. full logs outside the
 # repository; each LOG then needs LOG.clf[.gz] and LOG.relations there); SLAM_MATRIX_MODES
 # restricts the modes (default "odometry no-odometry"); SLAM_MATRIX_RANGES the ranges (default
-# "full 6"); SLAM_MATRIX_CONFIG names a slam.toml whose keys every run takes too (it must not
+# "full 6"); SLAM_MATRIX_DISTANCES the map_update_distances (default "0.3 0.4 0.5");
+# SLAM_MATRIX_CONFIG names a slam.toml whose keys every run takes too (it must not
 # set map_update_distance).
 set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
@@ -31,7 +32,7 @@ for log in "${logs[@]}"; do
   rel="$data/$log.relations"
   for odo in ${SLAM_MATRIX_MODES:-odometry no-odometry}; do
     for range in ${SLAM_MATRIX_RANGES:-full 6}; do
-      for d in 0.3 0.4 0.5; do
+      for d in ${SLAM_MATRIX_DISTANCES:-0.3 0.4 0.5}; do
         cfg="$out/mud_$d.toml"; { echo "map_update_distance = $d"; [ -z "${SLAM_MATRIX_CONFIG:-}" ] || cat "$SLAM_MATRIX_CONFIG"; } > "$cfg"
         traj="$out/${log}_${odo}_${range}_$d.txt"
         args=(slam "$clf" --out "$traj" --config "$cfg" --quiet "--$odo")

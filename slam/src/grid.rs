@@ -23,6 +23,12 @@ pub struct UpdateModel {
     pub miss_probability: f32,
     /// Log-odds clamp, both ways, so a cell can change its mind when the world changes.
     pub clamp_log_odds: f32,
+    /// Consecutive endpoints closer than this (m), and in line with the endpoint before or
+    /// after them, are joined: the cells between them are hit too. A wall seen at a grazing
+    /// angle is sampled more sparsely than the cells, and a map that holds only its endpoints
+    /// is densest where it was seen from, which pulls a scan along a corridor back towards
+    /// where the wall was first seen (0: off).
+    pub join_endpoints_within: f32,
 }
 
 impl Default for UpdateModel {
@@ -31,6 +37,7 @@ impl Default for UpdateModel {
             hit_probability: 0.9,
             miss_probability: 0.4,
             clamp_log_odds: 8.0,
+            join_endpoints_within: 0.0,
         }
     }
 }
@@ -66,7 +73,13 @@ pub struct Grid {
     hit: f32,
     miss: f32,
     clamp: f32,
+    /// [`UpdateModel::join_endpoints_within`].
+    join_within: f64,
 }
+
+/// Three consecutive endpoints are in line when the second segment turns from the first by
+/// less than this (rad): a surface's samples, not a foreground edge against a background.
+const JOIN_ANGLE: f64 = 0.2;
 
 /// Cells added on every side when the grid grows, so a robot driving along an edge does not
 /// reallocate on every scan.
@@ -105,6 +118,7 @@ impl Grid {
             hit: log_odds(model.hit_probability),
             miss: log_odds(model.miss_probability),
             clamp: model.clamp_log_odds,
+            join_within: f64::from(model.join_endpoints_within.max(0.0)),
         }
     }
 
@@ -299,53 +313,96 @@ impl Grid {
         }
         self.scans += 1;
         let free_mark = 2 * self.scans;
-        let hit_mark = free_mark + 1;
         for (n, &(x, y)) in hits.iter().chain(misses).enumerate() {
             let end = self.cell_of(x, y);
             let is_hit = n < hits.len();
             self.trace(start, end, free_mark);
             if is_hit {
-                let k = self.index(end).expect("covered");
-                if self.mark[k] != hit_mark {
-                    if self.mark[k] == free_mark {
-                        // Undo this scan's free update: the endpoint wins.
-                        self.apply(k, -self.miss);
-                    }
-                    self.mark[k] = hit_mark;
-                    self.apply(k, self.hit);
+                self.hit_once(end, free_mark);
+            }
+        }
+        if self.join_within > 0.0 {
+            // Hits are in beam order: neighbours in the slice are neighbouring beams.
+            let within = self.join_within;
+            let near = |a: (f64, f64), b: (f64, f64)| (b.0 - a.0).hypot(b.1 - a.1) <= within;
+            let in_line = |a: (f64, f64), b: (f64, f64), c: (f64, f64)| {
+                let (u, v) = ((b.0 - a.0, b.1 - a.1), (c.0 - b.0, c.1 - b.1));
+                let cross = u.0 * v.1 - u.1 * v.0;
+                let dot = u.0 * v.0 + u.1 * v.1;
+                dot > 0.0 && cross.abs() <= JOIN_ANGLE.tan() * dot
+            };
+            for n in 0..hits.len().saturating_sub(1) {
+                let (a, b) = (hits[n], hits[n + 1]);
+                if !near(a, b) {
+                    continue;
+                }
+                let before = n > 0 && near(hits[n - 1], a) && in_line(hits[n - 1], a, b);
+                let after =
+                    n + 2 < hits.len() && near(b, hits[n + 2]) && in_line(a, b, hits[n + 2]);
+                if before || after {
+                    let (from, to) = (self.cell_of(a.0, a.1), self.cell_of(b.0, b.1));
+                    bresenham(from, to, |cell| self.hit_once(cell, free_mark));
                 }
             }
         }
         true
     }
 
+    /// An occupied update of `cell`, once per scan (`free_mark` is the scan's, see `mark`); it
+    /// undoes the scan's free update of the cell if there was one: the endpoint wins.
+    fn hit_once(&mut self, cell: (i32, i32), free_mark: u32) {
+        let hit_mark = free_mark + 1;
+        let k = self.index(cell).expect("covered");
+        if self.mark[k] != hit_mark {
+            if self.mark[k] == free_mark {
+                self.apply(k, -self.miss);
+            }
+            self.mark[k] = hit_mark;
+            self.apply(k, self.hit);
+        }
+    }
+
     /// Free updates along the cells from `start` to `end`, both excluded from nothing but the
     /// end cell (Bresenham, integer arithmetic).
     fn trace(&mut self, start: (i32, i32), end: (i32, i32), free_mark: u32) {
-        let (dx, dy) = ((end.0 - start.0).abs(), -(end.1 - start.1).abs());
-        let (sx, sy) = (
-            if start.0 < end.0 { 1 } else { -1 },
-            if start.1 < end.1 { 1 } else { -1 },
-        );
-        let mut err = dx + dy;
-        let (mut i, mut j) = start;
         let w = self.width as i32;
         let base = -(self.origin.1 * w + self.origin.0);
-        while (i, j) != end {
+        bresenham(start, end, |(i, j)| {
+            if (i, j) == end {
+                return;
+            }
             let k = (base + j * w + i) as usize;
             if self.mark[k] < free_mark {
                 self.mark[k] = free_mark;
                 self.apply(k, self.miss);
             }
-            let e2 = 2 * err;
-            if e2 >= dy {
-                err += dy;
-                i += sx;
-            }
-            if e2 <= dx {
-                err += dx;
-                j += sy;
-            }
+        });
+    }
+}
+
+/// Visits the cells of the line from `start` to `end`, both included (Bresenham, integer
+/// arithmetic).
+fn bresenham(start: (i32, i32), end: (i32, i32), mut visit: impl FnMut((i32, i32))) {
+    let (dx, dy) = ((end.0 - start.0).abs(), -(end.1 - start.1).abs());
+    let (sx, sy) = (
+        if start.0 < end.0 { 1 } else { -1 },
+        if start.1 < end.1 { 1 } else { -1 },
+    );
+    let mut err = dx + dy;
+    let (mut i, mut j) = start;
+    loop {
+        visit((i, j));
+        if (i, j) == end {
+            return;
+        }
+        let e2 = 2 * err;
+        if e2 >= dy {
+            err += dy;
+            i += sx;
+        }
+        if e2 <= dx {
+            err += dx;
+            j += sy;
         }
     }
 }
@@ -408,6 +465,39 @@ mod tests {
 
     fn grid() -> Grid {
         Grid::new(0.1, &UpdateModel::default())
+    }
+
+    #[test]
+    fn endpoints_in_line_are_joined_and_a_lone_pair_is_not() {
+        let model = UpdateModel {
+            join_endpoints_within: 0.25,
+            ..UpdateModel::default()
+        };
+        // A wall along y = 1.05 seen at a grazing angle: endpoints 0.2 m apart, cells 0.1 m.
+        let wall = [(1.05, 1.05), (1.25, 1.05), (1.45, 1.05), (1.65, 1.05)];
+        let between = [(11, 10), (13, 10), (15, 10)];
+        let mut joined = Grid::new(0.1, &model);
+        assert!(joined.integrate((0.05, 0.05), &wall, &[]));
+        let mut plain = grid();
+        assert!(plain.integrate((0.05, 0.05), &wall, &[]));
+        for cell in between {
+            assert!(
+                (joined.probability(cell) - 0.9).abs() < 1e-6,
+                "{cell:?} joined"
+            );
+            assert!(plain.probability(cell) <= 0.5, "{cell:?} without joining");
+        }
+        // Two endpoints as close, but with no third in line: a foreground edge and the
+        // background behind it, not a surface.
+        let mut edge = Grid::new(0.1, &model);
+        assert!(edge.integrate((0.05, 0.05), &[(1.05, 1.05), (1.15, 1.25)], &[]));
+        assert!(edge.probability((11, 11)) <= 0.5);
+        assert!(edge.probability((10, 11)) <= 0.5);
+        // Farther apart than the limit: not joined either.
+        let mut far = Grid::new(0.1, &model);
+        let sparse = [(1.05, 1.05), (1.35, 1.05), (1.65, 1.05)];
+        assert!(far.integrate((0.05, 0.05), &sparse, &[]));
+        assert!(far.probability((12, 10)) <= 0.5);
     }
 
     #[test]

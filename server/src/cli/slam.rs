@@ -128,6 +128,12 @@ fn validate(config: &MapperConfig) -> anyhow::Result<()> {
     if !(u.clamp_log_odds.is_finite() && u.clamp_log_odds > 0.0) {
         bail!("update.clamp_log_odds must be positive");
     }
+    if !(0.0..=1.0).contains(&u.join_endpoints_within) {
+        bail!(
+            "update.join_endpoints_within must be 0 to 1 m, not {}",
+            u.join_endpoints_within
+        );
+    }
     let m = &config.matcher;
     if m.coarse_iterations > 100 || m.fine_iterations > 100 || m.fine_iterations == 0 {
         bail!("matcher iterations must be 1 to 100 (fine) and 0 to 100 (coarse)");
@@ -710,6 +716,10 @@ mod tests {
                 "refine.velocity_rotation_sigma",
             ),
             ("[refine]\nmin_points = 0\n", "refine.min_points"),
+            (
+                "[update]\njoin_endpoints_within = 2.0\n",
+                "update.join_endpoints_within",
+            ),
             ("[refine.loss]\nkind = \"cauchy\"\nc = 0.0\n", "refine.loss"),
             (
                 "[motion]\npoor_match_ratio = 1.5\n",
