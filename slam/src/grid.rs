@@ -37,7 +37,7 @@ impl Default for UpdateModel {
             hit_probability: 0.9,
             miss_probability: 0.4,
             clamp_log_odds: 8.0,
-            join_endpoints_within: 0.0,
+            join_endpoints_within: 0.2,
         }
     }
 }
@@ -478,7 +478,13 @@ mod tests {
         let between = [(11, 10), (13, 10), (15, 10)];
         let mut joined = Grid::new(0.1, &model);
         assert!(joined.integrate((0.05, 0.05), &wall, &[]));
-        let mut plain = grid();
+        let mut plain = Grid::new(
+            0.1,
+            &UpdateModel {
+                join_endpoints_within: 0.0,
+                ..model
+            },
+        );
         assert!(plain.integrate((0.05, 0.05), &wall, &[]));
         for cell in between {
             assert!(

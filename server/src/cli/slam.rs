@@ -179,6 +179,12 @@ fn validate(config: &MapperConfig) -> anyhow::Result<()> {
     if config.max_range.is_nan() || config.max_range <= 0.0 {
         bail!("max_range must be positive, not {}", config.max_range);
     }
+    if !(0.0..=10.0).contains(&config.motion.velocity_window) {
+        bail!(
+            "motion.velocity_window must be 0 to 10 s, not {}",
+            config.motion.velocity_window
+        );
+    }
     if !(0.0..=1.0).contains(&config.motion.poor_match_ratio) {
         bail!(
             "motion.poor_match_ratio must be within [0, 1], not {}",
@@ -724,6 +730,10 @@ mod tests {
             (
                 "[motion]\npoor_match_ratio = 1.5\n",
                 "motion.poor_match_ratio",
+            ),
+            (
+                "[motion]\nvelocity_window = -1.0\n",
+                "motion.velocity_window",
             ),
             (
                 "[motion.velocity_search]\nmax_translation = 5.0\n",
