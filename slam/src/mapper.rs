@@ -133,6 +133,10 @@ const MAX_RECENT_POSES: usize = 256;
 /// The weight of each trusted match in the running mean of scores ([`MotionConfig::poor_match_ratio`]).
 const RECENT_SCORE_WEIGHT: f64 = 0.1;
 
+/// At most this many scans in a row are set aside as logged out of order
+/// ([`MotionConfig::out_of_order_poses`]): a robot that really moved is then followed.
+const MAX_OUT_OF_ORDER_IN_A_ROW: usize = 2;
+
 /// How the pose is predicted before matching, and how much the prediction is trusted.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -179,6 +183,13 @@ pub struct MotionConfig {
     /// this much (and not poor itself): scores are noisy, a marginal gain is no evidence that
     /// the odometry was wrong.
     pub poor_match_gain: f64,
+    /// With neither odometry nor a measured turn, a poor match (below
+    /// [`poor_match_ratio`](Self::poor_match_ratio) of the recent mean, after the window search)
+    /// is also tried at each of this many last poses. If one of them fits it better, and not
+    /// poorly, the scan was logged out of order (taken there, earlier): it takes that pose, and
+    /// is neither integrated nor carried into the velocity (Intel holds about 215 such lines;
+    /// docs/slam.md). 0: off. At most two scans in a row are set aside this way.
+    pub out_of_order_poses: usize,
 }
 
 impl Default for MotionConfig {
@@ -197,6 +208,7 @@ impl Default for MotionConfig {
             velocity_search_below: 1.1,
             poor_match_ratio: 0.85,
             poor_match_gain: 0.0,
+            out_of_order_poses: 24,
         }
     }
 }
@@ -364,6 +376,10 @@ pub struct ScanResult {
     pub score: f64,
     /// Whether the scan was integrated into the map.
     pub integrated: bool,
+    /// Whether the scan was set aside as logged out of order: `pose` is the earlier pose it
+    /// fits, and neither the map nor the next prediction used it
+    /// ([`MotionConfig::out_of_order_poses`]).
+    pub out_of_order: bool,
 }
 
 /// The incremental mapper: a grid pyramid and the last pose.
@@ -385,6 +401,10 @@ pub struct Mapper {
     /// The recent poses with their times, oldest first, back to the first one at least
     /// [`MotionConfig::velocity_window`] before the last.
     recent_poses: VecDeque<(f64, Pose2)>,
+    /// The last [`MotionConfig::out_of_order_poses`] poses, oldest first.
+    earlier_poses: VecDeque<Pose2>,
+    /// Scans set aside as out of order since the last one that was not.
+    out_of_order_in_a_row: usize,
 }
 
 /// When a revolution's endpoints were seen: per endpoint, its time from the reference time
@@ -443,6 +463,8 @@ impl Mapper {
             standstill: Standstill::default(),
             recent_score: None,
             recent_poses: VecDeque::new(),
+            earlier_poses: VecDeque::new(),
+            out_of_order_in_a_row: 0,
         }
     }
 
@@ -558,6 +580,7 @@ impl Mapper {
                 scan_covariance: None,
                 score: 0.0,
                 integrated: true,
+                out_of_order: false,
             };
         };
         let dt = reference - last.time;
@@ -666,6 +689,40 @@ impl Mapper {
                 }
             }
         }
+        // A poor match may be a scan logged out of order: taken earlier, where the robot was.
+        let late = !gated
+            && !from_odometry
+            && matched.score < normal
+            && self.out_of_order_in_a_row < MAX_OUT_OF_ORDER_IN_A_ROW;
+        if let Some(earlier) = late
+            .then(|| self.earlier_match(&hits, &scan.sensor_offset, &information))
+            .flatten()
+            .filter(|earlier| earlier.score >= normal && earlier.score > matched.score)
+        {
+            self.out_of_order_in_a_row += 1;
+            let pose = earlier.pose.compose(&scan.sensor_offset.inverse());
+            let floor = self.config.covariance.matrix();
+            let fit = Fit {
+                scale: earlier.fit.scale * self.config.covariance.fit_factor.max(1.0),
+                ..earlier.fit
+            }
+            .covariance();
+            let covariance = carry(&add(&fit, &floor), &earlier.pose, &pose);
+            return ScanResult {
+                time: reference,
+                pose,
+                matched: pose,
+                standing: false,
+                predicted,
+                velocity: last.velocity,
+                covariance,
+                match_covariance: covariance,
+                scan_covariance: Some(covariance),
+                score: earlier.score,
+                integrated: false,
+                out_of_order: true,
+            };
+        }
         let mut pose = matched.pose.compose(&scan.sensor_offset.inverse());
         let mut hits = hits;
         if timed && dt > 0.0 {
@@ -773,7 +830,47 @@ impl Mapper {
             scan_covariance,
             score: if trusted { matched.score } else { 0.0 },
             integrated,
+            out_of_order: false,
         }
+    }
+
+    /// The best match of `hits` started at each of the earlier poses (not the last), each with
+    /// the prediction's `information` around it; poses within 5 cm and 0.03 rad of one already
+    /// tried are skipped. `None` when there is none to try.
+    fn earlier_match(
+        &self,
+        hits: &[(f64, f64)],
+        sensor_offset: &Pose2,
+        information: &Matrix3,
+    ) -> Option<Match> {
+        let mut tried: Vec<Pose2> = Vec::new();
+        let mut best: Option<Match> = None;
+        for earlier in self.earlier_poses.iter().rev().skip(1) {
+            let near = |t: &Pose2| {
+                (t.x - earlier.x).hypot(t.y - earlier.y) < 0.05
+                    && wrap_angle(t.theta - earlier.theta).abs() < 0.03
+            };
+            if tried.iter().any(near) {
+                continue;
+            }
+            tried.push(*earlier);
+            let start = earlier.compose(sensor_offset);
+            let prior = Prior {
+                pose: start,
+                information: *information,
+            };
+            let candidate = match_scan(
+                self.matching_map(),
+                hits,
+                start,
+                Some(&prior),
+                &self.config.matcher,
+            );
+            if best.as_ref().is_none_or(|b| candidate.score > b.score) {
+                best = Some(candidate);
+            }
+        }
+        best
     }
 
     /// Integrates a scan taken at a known robot `pose` (mapping with known poses, or a map
@@ -802,6 +899,8 @@ impl Mapper {
             covariance,
         });
         self.recent_poses.clear();
+        self.earlier_poses.clear();
+        self.out_of_order_in_a_row = 0;
         self.remember(time, pose);
     }
 
@@ -954,6 +1053,11 @@ impl Mapper {
 
     /// Keeps `pose` at `time` among the recent poses, and drops those no longer needed.
     fn remember(&mut self, time: f64, pose: Pose2) {
+        self.out_of_order_in_a_row = 0;
+        self.earlier_poses.push_back(pose);
+        while self.earlier_poses.len() > self.config.motion.out_of_order_poses {
+            self.earlier_poses.pop_front();
+        }
         self.recent_poses.push_back((time, pose));
         let window = self.config.motion.velocity_window;
         while self.recent_poses.len() > 1
@@ -1467,6 +1571,56 @@ mod tests {
                 (p.x - t.x).hypot(p.y - t.y)
             })
             .fold(0.0, f64::max)
+    }
+
+    /// Turning on the spot at 0.8 rad/s without odometry, with scan 6 logged again after scan
+    /// 14 (as Intel's out-of-order laser lines are): the results, the scan logged late among
+    /// them at index 15, and the true poses of the scans in log order.
+    fn through_a_late_scan(out_of_order_poses: usize) -> (Vec<ScanResult>, Vec<Pose2>) {
+        let turning: Vec<Pose2> = (0..20)
+            .map(|k| Pose2::new(-1.0, 0.1, 0.08 * f64::from(k)))
+            .collect();
+        let in_order = scans(&turning);
+        let mut late = in_order[6].clone();
+        late.time = in_order[14].time + 0.05;
+        let mut logged = in_order[..15].to_vec();
+        logged.push(late);
+        logged.extend_from_slice(&in_order[15..]);
+        let mut truth = turning[..15].to_vec();
+        truth.push(turning[6]);
+        truth.extend_from_slice(&turning[15..]);
+        let mut config = MapperConfig::default();
+        config.motion.use_odometry = false;
+        config.motion.out_of_order_poses = out_of_order_poses;
+        let mut mapper = Mapper::new(config);
+        let results = logged.iter().map(|s| mapper.add_scan(s)).collect();
+        (results, truth)
+    }
+
+    #[test]
+    fn a_scan_logged_out_of_order_takes_its_earlier_pose_and_does_not_turn_the_map() {
+        let (results, truth) = through_a_late_scan(MotionConfig::default().out_of_order_poses);
+        let start = truth[0];
+        for (k, (result, truth)) in results.iter().zip(&truth).enumerate() {
+            // The map's frame is the first scan's.
+            let truth = start.between(truth);
+            let error = (result.pose.x - truth.x).hypot(result.pose.y - truth.y);
+            let heading = wrap_angle(result.pose.theta - truth.theta).abs();
+            assert!(
+                error < 0.03 && heading < 0.01,
+                "scan {k}: {:?} against {truth:?}",
+                result.pose
+            );
+            assert_eq!(result.out_of_order, k == 15, "scan {k}");
+        }
+        assert!(!results[15].integrated);
+        // Without the check the late scan is 0.72 rad from the prediction, beyond the window:
+        // it is matched somewhere else, and taken.
+        let (unchecked, truth) = through_a_late_scan(0);
+        assert!(unchecked.iter().all(|r| !r.out_of_order));
+        let heading =
+            wrap_angle(unchecked[15].pose.theta - truth[0].between(&truth[15]).theta).abs();
+        assert!(heading > 0.1, "{:?}", unchecked[15].pose);
     }
 
     #[test]

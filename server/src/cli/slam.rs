@@ -185,6 +185,12 @@ fn validate(config: &MapperConfig) -> anyhow::Result<()> {
             config.motion.velocity_window
         );
     }
+    if config.motion.out_of_order_poses > MAX_OUT_OF_ORDER_POSES {
+        bail!(
+            "motion.out_of_order_poses must be 0 to {MAX_OUT_OF_ORDER_POSES}, not {}",
+            config.motion.out_of_order_poses
+        );
+    }
     if !(0.0..=1.0).contains(&config.motion.poor_match_ratio) {
         bail!(
             "motion.poor_match_ratio must be within [0, 1], not {}",
@@ -216,6 +222,9 @@ fn validate(config: &MapperConfig) -> anyhow::Result<()> {
     }
     Ok(())
 }
+
+/// Most earlier poses a poor match may be tried at (each costs a match, on a poor scan).
+const MAX_OUT_OF_ORDER_POSES: usize = 256;
 
 /// Largest translation half-width of a grown search window (m): the search steps in coarse
 /// cells, at most 20 each way.
@@ -427,6 +436,14 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         },
         args.out.display()
     )?;
+    let out_of_order = run.results.iter().filter(|r| r.out_of_order).count();
+    if out_of_order > 0 {
+        writeln!(
+            out,
+            "{out_of_order} scan(s) set aside as logged out of order: each fits an earlier pose \
+             better than the predicted one, and was not mapped"
+        )?;
+    }
     if let Some(stem) = &args.map {
         write_map(mapper, trajectory, stem)?;
         writeln!(out, "map {0}.pgm, {0}.yaml, {0}.png", stem.display())?;
@@ -734,6 +751,10 @@ mod tests {
             (
                 "[motion]\nvelocity_window = -1.0\n",
                 "motion.velocity_window",
+            ),
+            (
+                "[motion]\nout_of_order_poses = 100000\n",
+                "motion.out_of_order_poses",
             ),
             (
                 "[motion.velocity_search]\nmax_translation = 5.0\n",
