@@ -1573,6 +1573,16 @@ mod tests {
             .fold(0.0, f64::max)
     }
 
+    /// Asserts that scan `k`'s pose is within 3 cm and 0.01 rad of `truth`.
+    fn assert_within_3_cm_and_10_mrad(k: usize, pose: &Pose2, truth: &Pose2) {
+        let error = (pose.x - truth.x).hypot(pose.y - truth.y);
+        let heading = wrap_angle(pose.theta - truth.theta).abs();
+        assert!(
+            error < 0.03 && heading < 0.01,
+            "scan {k}: {pose:?} against {truth:?}"
+        );
+    }
+
     /// Turning on the spot at 0.8 rad/s without odometry, with scan 6 logged again after scan
     /// 14 (as Intel's out-of-order laser lines are): the results, the scan logged late among
     /// them at index 15, and the true poses of the scans in log order.
@@ -1603,14 +1613,7 @@ mod tests {
         let start = truth[0];
         for (k, (result, truth)) in results.iter().zip(&truth).enumerate() {
             // The map's frame is the first scan's.
-            let truth = start.between(truth);
-            let error = (result.pose.x - truth.x).hypot(result.pose.y - truth.y);
-            let heading = wrap_angle(result.pose.theta - truth.theta).abs();
-            assert!(
-                error < 0.03 && heading < 0.01,
-                "scan {k}: {:?} against {truth:?}",
-                result.pose
-            );
+            assert_within_3_cm_and_10_mrad(k, &result.pose, &start.between(truth));
             assert_eq!(result.out_of_order, k == 15, "scan {k}");
         }
         assert!(!results[15].integrated);
@@ -1638,13 +1641,7 @@ mod tests {
     fn a_slip_of_the_odometry_does_not_drag_the_matcher_off_the_map() {
         let (results, truth) = through_a_slip(MotionConfig::default().poor_match_ratio);
         for (k, (result, truth)) in results.iter().zip(&truth).enumerate() {
-            let error = (result.pose.x - truth.x).hypot(result.pose.y - truth.y);
-            let heading = wrap_angle(result.pose.theta - truth.theta).abs();
-            assert!(
-                error < 0.03 && heading < 0.01,
-                "scan {k}: {:?} against {truth:?}",
-                result.pose
-            );
+            assert_within_3_cm_and_10_mrad(k, &result.pose, truth);
         }
         // Without the gate the slipped odometry holds the match away from the map.
         let (ungated, truth) = through_a_slip(0.0);
