@@ -398,11 +398,10 @@ pub struct Mapper {
     standstill: Standstill,
     /// A running mean of the trusted matches' scores, against which a poor match is judged.
     recent_score: Option<f64>,
-    /// The recent poses with their times, oldest first, back to the first one at least
-    /// [`MotionConfig::velocity_window`] before the last.
+    /// The recent poses with their times, oldest first: back to the first one at least
+    /// [`MotionConfig::velocity_window`] before the last, and at least the last
+    /// [`MotionConfig::out_of_order_poses`].
     recent_poses: VecDeque<(f64, Pose2)>,
-    /// The last [`MotionConfig::out_of_order_poses`] poses, oldest first.
-    earlier_poses: VecDeque<Pose2>,
     /// Scans set aside as out of order since the last one that was not.
     out_of_order_in_a_row: usize,
 }
@@ -463,7 +462,6 @@ impl Mapper {
             standstill: Standstill::default(),
             recent_score: None,
             recent_poses: VecDeque::new(),
-            earlier_poses: VecDeque::new(),
             out_of_order_in_a_row: 0,
         }
     }
@@ -702,12 +700,8 @@ impl Mapper {
             self.out_of_order_in_a_row += 1;
             let pose = earlier.pose.compose(&scan.sensor_offset.inverse());
             let floor = self.config.covariance.matrix();
-            let fit = Fit {
-                scale: earlier.fit.scale * self.config.covariance.fit_factor.max(1.0),
-                ..earlier.fit
-            }
-            .covariance();
-            let covariance = carry(&add(&fit, &floor), &earlier.pose, &pose);
+            let fit = self.scaled(earlier.fit);
+            let covariance = scan_alone(&fit, &floor, &earlier.pose, &pose);
             return ScanResult {
                 time: reference,
                 pose,
@@ -762,15 +756,12 @@ impl Mapper {
             (matched.pose, Some(matched.fit), None)
         };
         let floor = self.config.covariance.matrix();
-        let fit = fit.map(|fit| Fit {
-            scale: fit.scale * self.config.covariance.fit_factor.max(1.0),
-            ..fit
-        });
+        let fit = fit.map(|fit| self.scaled(fit));
         let sensor_covariance = fit.map_or(prior_covariance, |fit| {
             weighed(&fit, &floor, &information, &prior_covariance)
         });
         let covariance = carry(&sensor_covariance, &sensor, &pose);
-        let scan_covariance = fit.map(|fit| carry(&add(&fit.covariance(), &floor), &sensor, &pose));
+        let scan_covariance = fit.map(|fit| scan_alone(&fit, &floor, &sensor, &pose));
         let mut velocity = match sensor_velocity {
             Some(v) => robot_velocity(&v, &sensor, &pose),
             None if dt > 0.0 => Velocity2 {
@@ -834,6 +825,15 @@ impl Mapper {
         }
     }
 
+    /// `fit` with its scale multiplied by the configured `fit_factor` (endpoints are not
+    /// independent measurements; docs/slam.md).
+    fn scaled(&self, fit: Fit) -> Fit {
+        Fit {
+            scale: fit.scale * self.config.covariance.fit_factor.max(1.0),
+            ..fit
+        }
+    }
+
     /// The best match of `hits` started at each of the earlier poses (not the last), each with
     /// the prediction's `information` around it; poses within 5 cm and 0.03 rad of one already
     /// tried are skipped. `None` when there is none to try.
@@ -845,7 +845,11 @@ impl Mapper {
     ) -> Option<Match> {
         let mut tried: Vec<Pose2> = Vec::new();
         let mut best: Option<Match> = None;
-        for earlier in self.earlier_poses.iter().rev().skip(1) {
+        let earlier_poses = self.recent_poses.iter().rev().map(|(_, pose)| pose);
+        for earlier in earlier_poses
+            .take(self.config.motion.out_of_order_poses)
+            .skip(1)
+        {
             let near = |t: &Pose2| {
                 (t.x - earlier.x).hypot(t.y - earlier.y) < 0.05
                     && wrap_angle(t.theta - earlier.theta).abs() < 0.03
@@ -899,7 +903,6 @@ impl Mapper {
             covariance,
         });
         self.recent_poses.clear();
-        self.earlier_poses.clear();
         self.out_of_order_in_a_row = 0;
         self.remember(time, pose);
     }
@@ -1054,13 +1057,10 @@ impl Mapper {
     /// Keeps `pose` at `time` among the recent poses, and drops those no longer needed.
     fn remember(&mut self, time: f64, pose: Pose2) {
         self.out_of_order_in_a_row = 0;
-        self.earlier_poses.push_back(pose);
-        while self.earlier_poses.len() > self.config.motion.out_of_order_poses {
-            self.earlier_poses.pop_front();
-        }
         self.recent_poses.push_back((time, pose));
         let window = self.config.motion.velocity_window;
-        while self.recent_poses.len() > 1
+        let kept = self.config.motion.out_of_order_poses.max(1);
+        while self.recent_poses.len() > kept
             && (time - self.recent_poses[1].0 >= window
                 || self.recent_poses.len() > MAX_RECENT_POSES)
         {
@@ -1332,6 +1332,12 @@ impl Standstill {
 
 /// `(a − b)ᵀ C⁻¹ (a − b)` over x, y and the wrapped heading difference; infinite when `C` is
 /// singular.
+/// The robot pose's covariance from the scan alone: `fit`'s plus the `floor`, at the `sensor`
+/// pose, carried to the robot's `pose`.
+fn scan_alone(fit: &Fit, floor: &Matrix3, sensor: &Pose2, pose: &Pose2) -> Matrix3 {
+    carry(&add(&fit.covariance(), floor), sensor, pose)
+}
+
 fn mahalanobis(a: &Pose2, b: &Pose2, covariance: &Matrix3) -> f64 {
     let e = nalgebra::Vector3::new(a.x - b.x, a.y - b.y, wrap_angle(a.theta - b.theta));
     let c = nalgebra::Matrix3::from_fn(|i, j| covariance[i][j]);
