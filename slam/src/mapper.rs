@@ -165,6 +165,12 @@ pub struct MotionConfig {
     /// multiplies it. (The odometry gate's constant-velocity candidate keeps the last
     /// interval: with it, FR079 keeps its map; with the window, 0.04 → 0.28 m.)
     pub velocity_window: f64,
+    /// Without odometry, what the constant-velocity prediction scales the recent motion by:
+    /// the time since the last scan, the scans since, or (`auto`) whichever of the two has
+    /// predicted the recent matches better. Some logs keep a scan per distance travelled and
+    /// stamp it when it was written (Intel, the Freiburg hospital): a scan's motion there does
+    /// not grow with its interval, which may be 1 ms or 2 s.
+    pub velocity_clock: VelocityClock,
     /// Without odometry, the window searched around the constant-velocity prediction (on the
     /// coarsest grid) before matching: a hand-pushed trolley turns when it likes.
     pub velocity_search: SearchWindow,
@@ -204,12 +210,105 @@ impl Default for MotionConfig {
             velocity_translation_per_s: 0.5,
             velocity_rotation_per_s: 1.0,
             velocity_window: 1.0,
+            velocity_clock: VelocityClock::Auto,
             velocity_search: SearchWindow::default(),
             velocity_search_below: 1.1,
             poor_match_ratio: 0.85,
             poor_match_gain: 0.0,
             out_of_order_poses: 24,
         }
+    }
+}
+
+/// What a constant-velocity prediction scales the recent motion by ([`MotionConfig::velocity_clock`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum VelocityClock {
+    /// The time since the last scan: the robot moves at the recent velocity (a lidar turning
+    /// at its own rate, scans stamped when they were taken).
+    Time,
+    /// The count of scans: each scan moves as the recent ones did on average (a log that keeps
+    /// a scan per distance travelled).
+    Scans,
+    /// Whichever of the two has predicted the recent matches better, per scan.
+    Auto,
+}
+
+/// How well each clock of [`VelocityClock`] has predicted the recent matches (running means of
+/// the distance between each one's prediction and the match), and which one `auto` follows.
+#[derive(Debug, Clone, Copy, Default)]
+struct ClockErrors {
+    time: f64,
+    scans: f64,
+    by_scans: bool,
+}
+
+/// The weight of each match in [`ClockErrors`]' running means (about the last 50 scans).
+const CLOCK_ERROR_WEIGHT: f64 = 0.02;
+
+/// `auto` changes clocks when the other one's error is below this fraction of the followed
+/// one's: on a log stamped as scans were taken the two differ by noise (FR079's), and the
+/// prediction should not flip between them.
+const CLOCK_SWITCH_RATIO: f64 = 0.8;
+
+/// The lever (m) that turns a heading error into a distance in [`ClockErrors`].
+const CLOCK_ERROR_LEVER: f64 = 1.0;
+
+impl ClockErrors {
+    /// Adds how far each clock's prediction was from the motion the match found.
+    fn observe(&mut self, by_time: &Pose2, by_scans: &Pose2, found: &Pose2) {
+        let distance = |predicted: &Pose2| {
+            (predicted.x - found.x).hypot(predicted.y - found.y)
+                + CLOCK_ERROR_LEVER * wrap_angle(predicted.theta - found.theta).abs()
+        };
+        self.time += CLOCK_ERROR_WEIGHT * (distance(by_time) - self.time);
+        self.scans += CLOCK_ERROR_WEIGHT * (distance(by_scans) - self.scans);
+        let (followed, other) = if self.by_scans {
+            (self.scans, self.time)
+        } else {
+            (self.time, self.scans)
+        };
+        if other < CLOCK_SWITCH_RATIO * followed {
+            self.by_scans = !self.by_scans;
+        }
+    }
+
+    /// The clock to predict with: the configured one, or for `auto` the one followed now.
+    fn clock(&self, configured: VelocityClock) -> VelocityClock {
+        match configured {
+            VelocityClock::Auto if self.by_scans => VelocityClock::Scans,
+            VelocityClock::Auto => VelocityClock::Time,
+            fixed => fixed,
+        }
+    }
+}
+
+/// The recent motion a constant-velocity prediction extrapolates: in the frame of the last
+/// pose, over `time` seconds and `scans` scans.
+#[derive(Debug, Clone, Copy)]
+struct RecentMotion {
+    moved: Pose2,
+    time: f64,
+    scans: usize,
+}
+
+impl RecentMotion {
+    /// The predicted motion over the next `dt` seconds (one scan), by `clock`, and the time
+    /// its spread grows with.
+    fn predict(&self, dt: f64, clock: VelocityClock) -> (Pose2, f64) {
+        let (ratio, elapsed) = match clock {
+            VelocityClock::Scans if self.scans > 0 => {
+                let scans = self.scans as f64;
+                (1.0 / scans, self.time / scans)
+            }
+            _ if self.time > 0.0 => ((dt / self.time).clamp(0.0, 5.0), dt),
+            _ => (0.0, dt),
+        };
+        let m = &self.moved;
+        (
+            Pose2::new(m.x * ratio, m.y * ratio, m.theta * ratio),
+            elapsed.abs(),
+        )
     }
 }
 
@@ -404,6 +503,8 @@ pub struct Mapper {
     recent_poses: VecDeque<(f64, Pose2)>,
     /// Scans set aside as out of order since the last one that was not.
     out_of_order_in_a_row: usize,
+    /// How well each velocity clock has predicted the recent matches.
+    clock_errors: ClockErrors,
 }
 
 /// When a revolution's endpoints were seen: per endpoint, its time from the reference time
@@ -463,6 +564,7 @@ impl Mapper {
             recent_score: None,
             recent_poses: VecDeque::new(),
             out_of_order_in_a_row: 0,
+            clock_errors: ClockErrors::default(),
         }
     }
 
@@ -680,7 +782,21 @@ impl Mapper {
                 Some(&wide),
                 &self.config.matcher,
             );
-            if second.score > matched.score && second.score >= needed {
+            // Without odometry the two are weighed as the search weighs its candidates: a
+            // match away from the prediction must fit better by more than the distance costs
+            // (along a corridor the map cannot tell them apart, and the prediction stands).
+            let weighed = |m: &Match| {
+                if from_odometry {
+                    m.score
+                } else {
+                    let prediction = Prior {
+                        pose: start,
+                        information: loose,
+                    };
+                    m.score - window.prior_weight * prediction.squared_distance(&m.pose)
+                }
+            };
+            if weighed(&second) > weighed(&matched) && second.score >= needed {
                 matched = second;
                 if from_odometry || scan.rotation.is_none() {
                     prior = wide;
@@ -796,6 +912,14 @@ impl Mapper {
                 Some(recent) => recent + RECENT_SCORE_WEIGHT * (matched.score - recent),
                 None => matched.score,
             });
+        }
+        if trusted && self.windowed(scan) {
+            let recent = self.recent_motion(&last);
+            self.clock_errors.observe(
+                &recent.predict(dt, VelocityClock::Time).0,
+                &recent.predict(dt, VelocityClock::Scans).0,
+                &last.pose.between(&matched_pose),
+            );
         }
         let integrated =
             trusted && held.is_none() && self.due(&pose) && self.integrate(scan, &pose, &hits);
@@ -992,22 +1116,21 @@ impl Mapper {
             None => {
                 // With odometry at hand (the gate's constant-velocity candidate), the last
                 // interval's motion: what the scans alone said the robot was just doing.
-                let windowed = !(self.config.motion.use_odometry && scan.odometry.is_some());
-                let (motion, interval) = if windowed {
-                    self.recent_motion(last)
+                let (motion, elapsed) = if self.windowed(scan) {
+                    let clock = self.clock_errors.clock(m.velocity_clock);
+                    self.recent_motion(last).predict(dt, clock)
                 } else {
-                    (last.motion, last.interval)
+                    let last_interval = RecentMotion {
+                        moved: last.motion,
+                        time: last.interval,
+                        scans: 1,
+                    };
+                    last_interval.predict(dt, VelocityClock::Time)
                 };
-                let ratio = if interval > 0.0 {
-                    (dt / interval).clamp(0.0, 5.0)
-                } else {
-                    0.0
-                };
-                let motion = Pose2::new(motion.x * ratio, motion.y * ratio, motion.theta * ratio);
                 (
                     motion,
-                    m.velocity_translation_per_s * dt.abs(),
-                    m.velocity_rotation_per_s * dt.abs(),
+                    m.velocity_translation_per_s * elapsed,
+                    m.velocity_rotation_per_s * elapsed,
                 )
             }
         };
@@ -1028,29 +1151,41 @@ impl Mapper {
         (motion, information, odometry.is_some())
     }
 
-    /// The motion the constant-velocity prediction extrapolates, in the frame of the last pose,
-    /// and the time it took: over the recent poses back to [`MotionConfig::velocity_window`]
-    /// before the last, or the last interval's.
-    fn recent_motion(&self, last: &Last) -> (Pose2, f64) {
+    /// Whether a constant-velocity prediction takes its velocity over the recent poses
+    /// ([`MotionConfig::velocity_window`]): always but for the odometry gate's candidate.
+    fn windowed(&self, scan: &Scan) -> bool {
+        !(self.config.motion.use_odometry && scan.odometry.is_some())
+    }
+
+    /// The motion the constant-velocity prediction extrapolates: over the recent poses back to
+    /// [`MotionConfig::velocity_window`] before the last, or the last interval's.
+    fn recent_motion(&self, last: &Last) -> RecentMotion {
         let window = self.config.motion.velocity_window;
+        let newest = self.recent_poses.len().saturating_sub(1);
         let from = self
             .recent_poses
             .iter()
-            .rev()
-            .find(|(time, _)| last.time - time >= window)
-            .or(self.recent_poses.front());
-        match from {
-            Some(&(time, from)) if window > 0.0 && last.time - time > 0.0 => {
-                let moved = from.between(&last.pose);
+            .rposition(|(time, _)| last.time - time >= window)
+            .unwrap_or(0);
+        match self.recent_poses.get(from) {
+            Some(&(time, pose)) if window > 0.0 && from < newest => {
+                let moved = pose.between(&last.pose);
                 let (sin, cos) = moved.theta.sin_cos();
-                let motion = Pose2::new(
-                    cos * moved.x + sin * moved.y,
-                    -sin * moved.x + cos * moved.y,
-                    moved.theta,
-                );
-                (motion, last.time - time)
+                RecentMotion {
+                    moved: Pose2::new(
+                        cos * moved.x + sin * moved.y,
+                        -sin * moved.x + cos * moved.y,
+                        moved.theta,
+                    ),
+                    time: last.time - time,
+                    scans: newest - from,
+                }
             }
-            _ => (last.motion, last.interval),
+            _ => RecentMotion {
+                moved: last.motion,
+                time: last.interval,
+                scans: 1,
+            },
         }
     }
 
@@ -1551,26 +1686,48 @@ mod tests {
         (results, truth)
     }
 
-    /// Driving along x, 0.05 m per scan, with the scans logged in bursts (0.01 s, then 0.19 s
-    /// apart, 0.5 m/s on average): the largest translation error of the constant-velocity
-    /// predictions (no odometry) with the velocity taken over `window` seconds, once the
-    /// scans span more than a second.
-    fn bursty_prediction_error(window: f64) -> f64 {
-        let truth: Vec<Pose2> = (0..16)
-            .map(|k| Pose2::new(-1.0 + 0.05 * f64::from(k), 0.1, 0.05))
+    /// Driving along x with scans logged `gaps[0]`, then `gaps[1]` apart, 0.05 m per scan
+    /// (`per_scan`: a log that keeps a scan per distance travelled, stamped when written) or
+    /// at 0.25 m/s (a lidar stamping each scan when it was taken): the largest translation
+    /// error of the constant-velocity predictions (no odometry) by `clock` with the velocity
+    /// taken over `window` seconds, once the scans span more than a second.
+    fn worst_prediction_error(
+        gaps: [f64; 2],
+        per_scan: bool,
+        window: f64,
+        clock: VelocityClock,
+    ) -> f64 {
+        let times: Vec<f64> = (0..16)
+            .scan(0.0, |time, k| {
+                let stamp = *time;
+                *time += gaps[k % 2];
+                Some(stamp)
+            })
+            .collect();
+        let truth: Vec<Pose2> = times
+            .iter()
+            .enumerate()
+            .map(|(k, time)| {
+                let x = if per_scan {
+                    0.05 * k as f64
+                } else {
+                    0.25 * time
+                };
+                Pose2::new(-1.0 + x, 0.1, 0.05)
+            })
             .collect();
         let mut scans = scans(&truth);
-        let mut time = 0.0;
-        for (k, scan) in scans.iter_mut().enumerate() {
-            scan.time = time;
-            time += if k % 2 == 0 { 0.01 } else { 0.19 };
+        for (scan, time) in scans.iter_mut().zip(&times) {
+            scan.time = *time;
         }
         let mut config = MapperConfig::default();
         config.motion.use_odometry = false;
         config.motion.velocity_window = window;
+        config.motion.velocity_clock = clock;
         let mut mapper = Mapper::new(config);
         let results: Vec<ScanResult> = scans.iter().map(|s| mapper.add_scan(s)).collect();
-        (10..truth.len())
+        (0..truth.len())
+            .filter(|&k| times[k] > 1.0)
             .map(|k| {
                 // The map's frame is the first scan's.
                 let (p, t) = (&results[k].predicted, truth[0].between(&truth[k]));
@@ -1578,6 +1735,13 @@ mod tests {
             })
             .fold(0.0, f64::max)
     }
+
+    /// Scans logged in bursts, 0.01 s then 0.19 s apart, 0.05 m each (Intel's way).
+    const BURSTS: [f64; 2] = [0.01, 0.19];
+
+    /// Scans taken 0.05 s then 0.35 s apart (a lidar turning unevenly), their motion growing
+    /// with the time between them: 0.0125 m, then 0.0875 m.
+    const UNEVEN: [f64; 2] = [0.05, 0.35];
 
     /// Asserts that scan `k`'s pose is within 3 cm and 0.01 rad of `truth`.
     fn assert_within_3_cm_and_10_mrad(k: usize, pose: &Pose2, truth: &Pose2) {
@@ -1634,13 +1798,44 @@ mod tests {
 
     #[test]
     fn a_velocity_over_a_window_predicts_through_bursts_of_scans() {
-        let last_interval = bursty_prediction_error(0.0);
-        let windowed = bursty_prediction_error(0.5);
+        let error = |window| worst_prediction_error(BURSTS, true, window, VelocityClock::Time);
+        let last_interval = error(0.0);
+        let windowed = error(0.5);
         // After a burst, one interval's velocity is 5 m/s: a 0.19 s gap is predicted 0.25 m
         // (the ratio's cap) where the robot drove 0.05 m. Over 0.5 s it is 0.5 m/s: 0.095 m
         // over a gap, 0.005 m over a burst.
         assert!(last_interval > 0.15, "{last_interval}");
         assert!(windowed < 0.07, "{windowed}");
+    }
+
+    #[test]
+    fn counting_scans_predicts_a_log_that_keeps_a_scan_per_distance() {
+        // Each scan 0.05 m on: the scans' clock is right whatever the stamps say, time's is
+        // off by up to 0.045 m (above); `auto` finds the better one from the matches.
+        let error = |clock| worst_prediction_error(BURSTS, true, 0.5, clock);
+        let (time, scans, auto) = (
+            error(VelocityClock::Time),
+            error(VelocityClock::Scans),
+            error(VelocityClock::Auto),
+        );
+        assert!(time > 0.03, "{time}");
+        assert!(scans < 0.01, "{scans}");
+        assert!(auto < 0.01, "{auto}");
+    }
+
+    #[test]
+    fn timing_predicts_a_lidar_that_stamps_its_scans_when_taken() {
+        // The robot at 0.25 m/s and the scans 0.05 s or 0.35 s apart: time's clock is right,
+        // the scans' predicts each step as the recent average, 0.05 m, off by up to 0.0375 m.
+        let error = |clock| worst_prediction_error(UNEVEN, false, 0.5, clock);
+        let (time, scans, auto) = (
+            error(VelocityClock::Time),
+            error(VelocityClock::Scans),
+            error(VelocityClock::Auto),
+        );
+        assert!(time < 0.01, "{time}");
+        assert!(scans > 0.025, "{scans}");
+        assert!(auto < 0.01, "{auto}");
     }
 
     #[test]
