@@ -29,6 +29,11 @@ pub struct UpdateModel {
     /// is densest where it was seen from, which pulls a scan along a corridor back towards
     /// where the wall was first seen (0: off).
     pub join_endpoints_within: f32,
+    /// ...for a scan whose pose came without odometry (a constant-velocity prediction, a
+    /// gyro's turn): nothing else holds such a pose along a corridor, and walls seen at
+    /// grazing angles are joined across wider gaps. With odometry the wider joins cost more
+    /// than they give (they close doorways seen obliquely; docs/slam.md).
+    pub join_endpoints_within_without_odometry: f32,
 }
 
 impl Default for UpdateModel {
@@ -38,6 +43,7 @@ impl Default for UpdateModel {
             miss_probability: 0.4,
             clamp_log_odds: 8.0,
             join_endpoints_within: 0.2,
+            join_endpoints_within_without_odometry: 0.8,
         }
     }
 }
@@ -73,7 +79,7 @@ pub struct Grid {
     hit: f32,
     miss: f32,
     clamp: f32,
-    /// [`UpdateModel::join_endpoints_within`].
+    /// [`UpdateModel::join_endpoints_within`]: how far apart [`Grid::integrate`] joins.
     join_within: f64,
 }
 
@@ -301,6 +307,18 @@ impl Grid {
         hits: &[(f64, f64)],
         misses: &[(f64, f64)],
     ) -> bool {
+        self.integrate_joining(origin, hits, misses, self.join_within)
+    }
+
+    /// [`Grid::integrate`], joining consecutive endpoints up to `join_within` (m) apart instead
+    /// of the model's [`UpdateModel::join_endpoints_within`].
+    pub fn integrate_joining(
+        &mut self,
+        origin: (f64, f64),
+        hits: &[(f64, f64)],
+        misses: &[(f64, f64)],
+        join_within: f64,
+    ) -> bool {
         let start = self.cell_of(origin.0, origin.1);
         let (mut lo, mut hi) = (start, start);
         for &(x, y) in hits.iter().chain(misses) {
@@ -321,9 +339,9 @@ impl Grid {
                 self.hit_once(end, free_mark);
             }
         }
-        if self.join_within > 0.0 {
+        if join_within > 0.0 {
             // Hits are in beam order: neighbours in the slice are neighbouring beams.
-            let within = self.join_within;
+            let within = join_within;
             let near = |a: (f64, f64), b: (f64, f64)| (b.0 - a.0).hypot(b.1 - a.1) <= within;
             let in_line = |a: (f64, f64), b: (f64, f64), c: (f64, f64)| {
                 let (u, v) = ((b.0 - a.0, b.1 - a.1), (c.0 - b.0, c.1 - b.1));
@@ -443,6 +461,18 @@ impl GridPyramid {
         hits: &[(f64, f64)],
         misses: &[(f64, f64)],
     ) -> bool {
+        self.integrate_joining(sensor_pose, hits, misses, None)
+    }
+
+    /// [`GridPyramid::integrate`], joining consecutive endpoints up to `join_within` (m) apart
+    /// on every level (`None`: each level's model, [`UpdateModel::join_endpoints_within`]).
+    pub fn integrate_joining(
+        &mut self,
+        sensor_pose: &Pose2,
+        hits: &[(f64, f64)],
+        misses: &[(f64, f64)],
+        join_within: Option<f64>,
+    ) -> bool {
         let to_map = |points: &[(f64, f64)]| -> Vec<(f64, f64)> {
             points
                 .iter()
@@ -453,7 +483,8 @@ impl GridPyramid {
         let origin = (sensor_pose.x, sensor_pose.y);
         let mut all = true;
         for grid in &mut self.levels {
-            all &= grid.integrate(origin, &hits, &misses);
+            let within = join_within.unwrap_or(grid.join_within);
+            all &= grid.integrate_joining(origin, &hits, &misses, within);
         }
         all
     }

@@ -913,7 +913,7 @@ impl Mapper {
                 None => matched.score,
             });
         }
-        if trusted && self.windowed(scan) {
+        if trusted && self.without_odometry(scan) {
             let recent = self.recent_motion(&last);
             self.clock_errors.observe(
                 &recent.predict(dt, VelocityClock::Time).0,
@@ -1007,8 +1007,8 @@ impl Mapper {
     /// pose. Returns whether it was integrated (see [`Mapper::refused_integrations`]).
     pub fn integrate_at(&mut self, scan: &Scan, pose: &Pose2) -> bool {
         match self.within_range(scan) {
-            Some(near) => self.integrate(&near, pose, &near.hits),
-            None => self.integrate(scan, pose, &scan.hits),
+            Some(near) => self.integrate_joining(&near, pose, &near.hits, None),
+            None => self.integrate_joining(scan, pose, &scan.hits, None),
         }
     }
 
@@ -1116,7 +1116,7 @@ impl Mapper {
             None => {
                 // With odometry at hand (the gate's constant-velocity candidate), the last
                 // interval's motion: what the scans alone said the robot was just doing.
-                let (motion, elapsed) = if self.windowed(scan) {
+                let (motion, elapsed) = if self.without_odometry(scan) {
                     let clock = self.clock_errors.clock(m.velocity_clock);
                     self.recent_motion(last).predict(dt, clock)
                 } else {
@@ -1151,9 +1151,10 @@ impl Mapper {
         (motion, information, odometry.is_some())
     }
 
-    /// Whether a constant-velocity prediction takes its velocity over the recent poses
-    /// ([`MotionConfig::velocity_window`]): always but for the odometry gate's candidate.
-    fn windowed(&self, scan: &Scan) -> bool {
+    /// Whether `scan` is predicted without odometry: by a constant velocity over the recent
+    /// poses ([`MotionConfig::velocity_window`]; the odometry gate's constant-velocity
+    /// candidate takes the last interval's).
+    fn without_odometry(&self, scan: &Scan) -> bool {
         !(self.config.motion.use_odometry && scan.odometry.is_some())
     }
 
@@ -1211,8 +1212,37 @@ impl Mapper {
     }
 
     fn integrate(&mut self, scan: &Scan, pose: &Pose2, hits: &[(f64, f64)]) -> bool {
+        self.integrate_joining(scan, pose, hits, self.join_within(scan))
+    }
+
+    /// How far apart `scan`'s endpoints are joined when it is integrated: wider when its pose
+    /// came without odometry ([`UpdateModel::join_endpoints_within_without_odometry`]).
+    fn join_within(&self, scan: &Scan) -> Option<f64> {
+        self.without_odometry(scan).then(|| {
+            f64::from(
+                self.config
+                    .update
+                    .join_endpoints_within_without_odometry
+                    .max(0.0),
+            )
+        })
+    }
+
+    /// [`Mapper::integrate`], joining endpoints up to `join_within` apart (`None`: the model's
+    /// [`UpdateModel::join_endpoints_within`]).
+    fn integrate_joining(
+        &mut self,
+        scan: &Scan,
+        pose: &Pose2,
+        hits: &[(f64, f64)],
+        join_within: Option<f64>,
+    ) -> bool {
         let sensor = pose.compose(&scan.sensor_offset);
-        if !self.whole.map.integrate(&sensor, hits, &[]) {
+        if !self
+            .whole
+            .map
+            .integrate_joining(&sensor, hits, &[], join_within)
+        {
             self.refused += 1;
             return false;
         }
@@ -1222,7 +1252,9 @@ impl Mapper {
         }
         for submap in &mut self.active {
             // A submap covers less than the whole map, which just took the scan: it grows.
-            submap.map.integrate(&sensor, hits, &[]);
+            submap
+                .map
+                .integrate_joining(&sensor, hits, &[], join_within);
             if refine {
                 submap.surfaces.integrate(&sensor, hits);
             }
@@ -1836,6 +1868,26 @@ mod tests {
         assert!(time < 0.01, "{time}");
         assert!(scans > 0.025, "{scans}");
         assert!(auto < 0.01, "{auto}");
+    }
+
+    #[test]
+    fn a_scan_without_odometry_joins_its_wall_across_wider_gaps() {
+        // A wall 1 m ahead sampled every 0.5 m, as a far wall at a grazing angle is.
+        let wall: Vec<(f64, f64)> = (-4..=4).map(|k| (0.5 * f64::from(k), 1.0)).collect();
+        let between = |odometry: Option<Pose2>| {
+            let mut mapper = Mapper::new(MapperConfig::default());
+            let scan = Scan {
+                hits: wall.clone(),
+                odometry,
+                ..Scan::default()
+            };
+            mapper.add_scan(&scan);
+            let grid = mapper.map().finest();
+            grid.probability(grid.cell_of(0.25, 1.0))
+        };
+        // Between two endpoints: joined (hit) without odometry, never seen with it.
+        assert!(between(None) > 0.6, "{}", between(None));
+        assert!(between(Some(Pose2::default())) <= 0.5);
     }
 
     #[test]

@@ -128,11 +128,16 @@ fn validate(config: &MapperConfig) -> anyhow::Result<()> {
     if !(u.clamp_log_odds.is_finite() && u.clamp_log_odds > 0.0) {
         bail!("update.clamp_log_odds must be positive");
     }
-    if !(0.0..=1.0).contains(&u.join_endpoints_within) {
-        bail!(
-            "update.join_endpoints_within must be 0 to 1 m, not {}",
-            u.join_endpoints_within
-        );
+    for (key, value) in [
+        ("join_endpoints_within", u.join_endpoints_within),
+        (
+            "join_endpoints_within_without_odometry",
+            u.join_endpoints_within_without_odometry,
+        ),
+    ] {
+        if !(0.0..=1.0).contains(&value) {
+            bail!("update.{key} must be 0 to 1 m, not {value}");
+        }
     }
     let m = &config.matcher;
     if m.coarse_iterations > 100 || m.fine_iterations > 100 || m.fine_iterations == 0 {
@@ -742,6 +747,10 @@ mod tests {
             (
                 "[update]\njoin_endpoints_within = 2.0\n",
                 "update.join_endpoints_within",
+            ),
+            (
+                "[update]\njoin_endpoints_within_without_odometry = -0.1\n",
+                "update.join_endpoints_within_without_odometry",
             ),
             ("[refine.loss]\nkind = \"cauchy\"\nc = 0.0\n", "refine.loss"),
             (
