@@ -1768,6 +1768,16 @@ mod tests {
             .fold(0.0, f64::max)
     }
 
+    /// [`worst_prediction_error`] over a 0.5 s window by the clocks time, scans and auto.
+    fn errors_by_clock(gaps: [f64; 2], per_scan: bool) -> (f64, f64, f64) {
+        let error = |clock| worst_prediction_error(gaps, per_scan, 0.5, clock);
+        (
+            error(VelocityClock::Time),
+            error(VelocityClock::Scans),
+            error(VelocityClock::Auto),
+        )
+    }
+
     /// Scans logged in bursts, 0.01 s then 0.19 s apart, 0.05 m each (Intel's way).
     const BURSTS: [f64; 2] = [0.01, 0.19];
 
@@ -1844,12 +1854,7 @@ mod tests {
     fn counting_scans_predicts_a_log_that_keeps_a_scan_per_distance() {
         // Each scan 0.05 m on: the scans' clock is right whatever the stamps say, time's is
         // off by up to 0.045 m (above); `auto` finds the better one from the matches.
-        let error = |clock| worst_prediction_error(BURSTS, true, 0.5, clock);
-        let (time, scans, auto) = (
-            error(VelocityClock::Time),
-            error(VelocityClock::Scans),
-            error(VelocityClock::Auto),
-        );
+        let (time, scans, auto) = errors_by_clock(BURSTS, true);
         assert!(time > 0.03, "{time}");
         assert!(scans < 0.01, "{scans}");
         assert!(auto < 0.01, "{auto}");
@@ -1859,12 +1864,7 @@ mod tests {
     fn timing_predicts_a_lidar_that_stamps_its_scans_when_taken() {
         // The robot at 0.25 m/s and the scans 0.05 s or 0.35 s apart: time's clock is right,
         // the scans' predicts each step as the recent average, 0.05 m, off by up to 0.0375 m.
-        let error = |clock| worst_prediction_error(UNEVEN, false, 0.5, clock);
-        let (time, scans, auto) = (
-            error(VelocityClock::Time),
-            error(VelocityClock::Scans),
-            error(VelocityClock::Auto),
-        );
+        let (time, scans, auto) = errors_by_clock(UNEVEN, false);
         assert!(time < 0.01, "{time}");
         assert!(scans > 0.025, "{scans}");
         assert!(auto < 0.01, "{auto}");
