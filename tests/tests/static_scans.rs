@@ -36,7 +36,10 @@ fn run(name: &'static str, positions: Vec<Position>, noise: RangeNoise) -> Vec<C
         work: &dir.path().join("work"),
         data_dir: &dir.path().join("data"),
         clouds_dir: &clouds,
-        time_scale: 10.0,
+        // 4× real time, not faster: the blind sector is then 21 ms of real time, and a read
+        // stalled beyond it on a loaded machine can mis-tag samples (docs/robustness.md, "Known
+        // problem"); at 10× two busy loops beside the test failed it in 5 of 8 runs.
+        time_scale: 4.0,
         seed: 5,
         noise,
         resolution_m: 0.05,
@@ -121,7 +124,10 @@ fn check_one_timeline(session_dir: &std::path::Path) {
     })
     .expect("the session reads back");
     assert!(report.losses.is_empty(), "{:?}", report.losses);
-    assert!(yaw_frames >= 100, "{yaw_frames} yaw messages");
+    // One per revolution with a tagged sample: 100 revolutions, less any whose samples were
+    // all untrusted (a step late under load; measured 97–98 of 100 with two busy loops beside
+    // the test).
+    assert!(yaw_frames >= 90, "{yaw_frames} yaw messages");
     assert_eq!(
         run_samples, counted,
         "tagged samples sent = tagged samples counted"
