@@ -785,14 +785,14 @@ impl Mapper {
             // Without odometry the two are weighed as the search weighs its candidates: a
             // match away from the prediction must fit better by more than the distance costs
             // (along a corridor the map cannot tell them apart, and the prediction stands).
+            let prediction = Prior {
+                pose: start,
+                information: loose,
+            };
             let weighed = |m: &Match| {
                 if from_odometry {
                     m.score
                 } else {
-                    let prediction = Prior {
-                        pose: start,
-                        information: loose,
-                    };
                     m.score - window.prior_weight * prediction.squared_distance(&m.pose)
                 }
             };
