@@ -137,6 +137,14 @@ const RECENT_SCORE_WEIGHT: f64 = 0.1;
 /// ([`MotionConfig::out_of_order_poses`]): a robot that really moved is then followed.
 const MAX_OUT_OF_ORDER_IN_A_ROW: usize = 2;
 
+/// A predicted step shorter than this (m) has no direction to go back against
+/// ([`MotionConfig::out_of_order_back`]).
+const MIN_PREDICTED_STEP: f64 = 0.02;
+
+/// The lever (m) that turns a heading difference into a distance when a match is compared with
+/// the recent poses ([`MotionConfig::out_of_order_turn_back`]).
+const REVISIT_LEVER: f64 = 0.5;
+
 /// How the pose is predicted before matching, and how much the prediction is trusted.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -196,6 +204,13 @@ pub struct MotionConfig {
     /// is neither integrated nor carried into the velocity (Intel holds about 215 such lines;
     /// docs/slam.md). 0: off. At most two scans in a row are set aside this way.
     pub out_of_order_poses: usize,
+    /// ...and so is a match, however good, that went back from the last pose against the
+    /// prediction by more than this (m, along the predicted motion) to nearer one of those
+    /// poses than the last: it takes its pose but is not carried on (Intel's late lines
+    /// otherwise turn the next prediction around). 0: off.
+    pub out_of_order_back: f64,
+    /// ...or that turned against the predicted turn by more than this (rad). 0: off.
+    pub out_of_order_turn_back: f64,
 }
 
 impl Default for MotionConfig {
@@ -216,6 +231,8 @@ impl Default for MotionConfig {
             poor_match_ratio: 0.85,
             poor_match_gain: 0.0,
             out_of_order_poses: 24,
+            out_of_order_back: 0.05,
+            out_of_order_turn_back: 0.15,
         }
     }
 }
@@ -803,16 +820,35 @@ impl Mapper {
                 }
             }
         }
-        // A poor match may be a scan logged out of order: taken earlier, where the robot was.
-        let late = !gated
-            && !from_odometry
-            && matched.score < normal
-            && self.out_of_order_in_a_row < MAX_OUT_OF_ORDER_IN_A_ROW;
-        if let Some(earlier) = late
-            .then(|| self.earlier_match(&hits, &scan.sensor_offset, &information))
-            .flatten()
-            .filter(|earlier| earlier.score >= normal && earlier.score > matched.score)
-        {
+        // A poor match may be a scan logged out of order: taken earlier, where the robot was. So
+        // may a good one that went back against the prediction to where the robot was a few
+        // scans ago: it fits there, but the next scan is to be predicted from the last pose in
+        // order, not from it.
+        let unchecked =
+            !gated && !from_odometry && self.out_of_order_in_a_row < MAX_OUT_OF_ORDER_IN_A_ROW;
+        let poor_here = matched.score < normal;
+        let went_back = unchecked
+            && !poor_here
+            && self.went_back(
+                &last.pose,
+                &predicted,
+                &matched.pose.compose(&scan.sensor_offset.inverse()),
+            );
+        let set_aside = if unchecked && (poor_here || went_back) {
+            let earlier = self.earlier_match(&hits, &scan.sensor_offset, &information);
+            if went_back {
+                Some(
+                    earlier
+                        .filter(|e| e.score >= matched.score)
+                        .unwrap_or(matched),
+                )
+            } else {
+                earlier.filter(|e| e.score >= normal && e.score > matched.score)
+            }
+        } else {
+            None
+        };
+        if let Some(earlier) = set_aside {
             self.out_of_order_in_a_row += 1;
             let pose = earlier.pose.compose(&scan.sensor_offset.inverse());
             let floor = self.config.covariance.matrix();
@@ -956,6 +992,39 @@ impl Mapper {
             scale: fit.scale * self.config.covariance.fit_factor.max(1.0),
             ..fit
         }
+    }
+
+    /// Whether a match placing the robot `here` went back from the `last` pose against the
+    /// prediction (`predicted`): behind it along the predicted motion by more than
+    /// [`MotionConfig::out_of_order_back`], or turned against the predicted turn by more than
+    /// [`MotionConfig::out_of_order_turn_back`], and to nearer one of the earlier poses
+    /// than the last one.
+    fn went_back(&self, last: &Pose2, predicted: &Pose2, here: &Pose2) -> bool {
+        let motion = &self.config.motion;
+        let (ahead, step) = (last.between(predicted), last.between(here));
+        let length = ahead.x.hypot(ahead.y);
+        let drove_back = motion.out_of_order_back > 0.0
+            && length > MIN_PREDICTED_STEP
+            && (step.x * ahead.x + step.y * ahead.y) / length < -motion.out_of_order_back;
+        let turned_back = motion.out_of_order_turn_back > 0.0
+            && step.theta * ahead.theta < 0.0
+            && (step.theta - ahead.theta).abs() > motion.out_of_order_turn_back;
+        if !(drove_back || turned_back) {
+            return false;
+        }
+        let distance = |p: &Pose2| {
+            (p.x - here.x).hypot(p.y - here.y)
+                + REVISIT_LEVER * wrap_angle(p.theta - here.theta).abs()
+        };
+        let mut recent = self
+            .recent_poses
+            .iter()
+            .rev()
+            .take(motion.out_of_order_poses)
+            .map(|(_, pose)| distance(pose));
+        recent
+            .next()
+            .is_some_and(|to_last| recent.any(|to_earlier| to_earlier < to_last))
     }
 
     /// The best match of `hits` started at each of the earlier poses (not the last), each with
@@ -1795,47 +1864,81 @@ mod tests {
         );
     }
 
-    /// Turning on the spot at 0.8 rad/s without odometry, with scan 6 logged again after scan
-    /// 14 (as Intel's out-of-order laser lines are): the results, the scan logged late among
-    /// them at index 15, and the true poses of the scans in log order.
-    fn through_a_late_scan(out_of_order_poses: usize) -> (Vec<ScanResult>, Vec<Pose2>) {
+    /// Turning on the spot at 0.8 rad/s without odometry, with scan `repeated` logged again
+    /// after scan 14 (as Intel's out-of-order laser lines are), the motion configured by
+    /// `configure`: the results, the scan logged late among them at index 15, and the true
+    /// poses of the scans in log order.
+    fn through_a_late_scan(
+        repeated: usize,
+        configure: impl FnOnce(&mut MotionConfig),
+    ) -> (Vec<ScanResult>, Vec<Pose2>) {
         let turning: Vec<Pose2> = (0..20)
             .map(|k| Pose2::new(-1.0, 0.1, 0.08 * f64::from(k)))
             .collect();
         let in_order = scans(&turning);
-        let mut late = in_order[6].clone();
+        let mut late = in_order[repeated].clone();
         late.time = in_order[14].time + 0.05;
         let mut logged = in_order[..15].to_vec();
         logged.push(late);
         logged.extend_from_slice(&in_order[15..]);
         let mut truth = turning[..15].to_vec();
-        truth.push(turning[6]);
+        truth.push(turning[repeated]);
         truth.extend_from_slice(&turning[15..]);
         let mut config = MapperConfig::default();
         config.motion.use_odometry = false;
-        config.motion.out_of_order_poses = out_of_order_poses;
+        configure(&mut config.motion);
         let mut mapper = Mapper::new(config);
         let results = logged.iter().map(|s| mapper.add_scan(s)).collect();
         (results, truth)
     }
 
-    #[test]
-    fn a_scan_logged_out_of_order_takes_its_earlier_pose_and_does_not_turn_the_map() {
-        let (results, truth) = through_a_late_scan(MotionConfig::default().out_of_order_poses);
+    /// Asserts that every result is within 3 cm and 10 mrad of the truth (in the first
+    /// scan's frame) and that only the scan at index 15 was set aside as out of order.
+    fn assert_only_the_late_scan_set_aside(results: &[ScanResult], truth: &[Pose2]) {
         let start = truth[0];
-        for (k, (result, truth)) in results.iter().zip(&truth).enumerate() {
+        for (k, (result, truth)) in results.iter().zip(truth).enumerate() {
             // The map's frame is the first scan's.
             assert_within_3_cm_and_10_mrad(k, &result.pose, &start.between(truth));
             assert_eq!(result.out_of_order, k == 15, "scan {k}");
         }
         assert!(!results[15].integrated);
+    }
+
+    #[test]
+    fn a_scan_logged_out_of_order_takes_its_earlier_pose_and_does_not_turn_the_map() {
+        let (results, truth) = through_a_late_scan(6, |_| {});
+        assert_only_the_late_scan_set_aside(&results, &truth);
         // Without the check the late scan is 0.72 rad from the prediction, beyond the window:
         // it is matched somewhere else, and taken.
-        let (unchecked, truth) = through_a_late_scan(0);
+        let (unchecked, truth) = through_a_late_scan(6, |m| m.out_of_order_poses = 0);
         assert!(unchecked.iter().all(|r| !r.out_of_order));
         let heading =
             wrap_angle(unchecked[15].pose.theta - truth[0].between(&truth[15]).theta).abs();
         assert!(heading > 0.1, "{:?}", unchecked[15].pose);
+    }
+
+    #[test]
+    fn a_late_scan_that_fits_well_where_the_robot_was_is_set_aside_too() {
+        // Scan 12 logged after scan 14 is 0.24 rad from the prediction: inside the window, it
+        // matches well where it was taken, turned back against the turn.
+        let (results, truth) = through_a_late_scan(12, |_| {});
+        assert_only_the_late_scan_set_aside(&results, &truth);
+        let turned_back = results[14].pose.theta - results[15].pose.theta;
+        assert!((turned_back - 0.16).abs() < 0.01, "{turned_back}");
+        // Without the rule it is matched as well, and taken as the newest pose in order.
+        let (taken, _) = through_a_late_scan(12, |m| m.out_of_order_turn_back = 0.0);
+        assert!(taken.iter().all(|r| !r.out_of_order));
+        // A step against the predicted turn counts only when it lands nearer an earlier pose
+        // than the last: a turn that stopped and swung back while driving on is followed.
+        let mut mapper = Mapper::new(MapperConfig::default());
+        let last = Pose2::new(0.1, 0.0, 0.1);
+        mapper.remember(0.0, Pose2::default());
+        mapper.remember(0.1, last);
+        let predicted = last.compose(&Pose2::new(0.1, 0.0, 0.1));
+        let swung = last.compose(&Pose2::new(0.15, 0.0, -0.1));
+        assert!(!mapper.went_back(&last, &predicted, &swung));
+        let returned = Pose2::new(0.01, 0.0, 0.0);
+        assert!(mapper.went_back(&last, &predicted, &returned));
     }
 
     #[test]

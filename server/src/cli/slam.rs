@@ -196,6 +196,24 @@ fn validate(config: &MapperConfig) -> anyhow::Result<()> {
             config.motion.out_of_order_poses
         );
     }
+    for (key, value, limit, unit) in [
+        (
+            "out_of_order_back",
+            config.motion.out_of_order_back,
+            1.0,
+            "m",
+        ),
+        (
+            "out_of_order_turn_back",
+            config.motion.out_of_order_turn_back,
+            std::f64::consts::PI,
+            "rad",
+        ),
+    ] {
+        if !(0.0..=limit).contains(&value) {
+            bail!("motion.{key} must be 0 to {limit:.2} {unit}, not {value}");
+        }
+    }
     if !(0.0..=1.0).contains(&config.motion.poor_match_ratio) {
         bail!(
             "motion.poor_match_ratio must be within [0, 1], not {}",
@@ -446,7 +464,9 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         writeln!(
             out,
             "{out_of_order} scan(s) set aside as logged out of order: each fits an earlier pose \
-             better than the predicted one, and was not mapped"
+             better than the predicted one, or went back to one against the prediction; it \
+             keeps that pose, is not mapped, and the next scan is predicted from the last pose \
+             in order"
         )?;
     }
     if let Some(stem) = &args.map {
@@ -764,6 +784,14 @@ mod tests {
             (
                 "[motion]\nout_of_order_poses = 100000\n",
                 "motion.out_of_order_poses",
+            ),
+            (
+                "[motion]\nout_of_order_back = -0.05\n",
+                "motion.out_of_order_back",
+            ),
+            (
+                "[motion]\nout_of_order_turn_back = 4.0\n",
+                "motion.out_of_order_turn_back",
             ),
             (
                 "[motion.velocity_search]\nmax_translation = 5.0\n",
