@@ -824,17 +824,17 @@ impl Mapper {
         // may a good one that went back against the prediction to where the robot was a few
         // scans ago: it fits there, but the next scan is to be predicted from the last pose in
         // order, not from it.
-        let unchecked =
+        let may_set_aside =
             !gated && !from_odometry && self.out_of_order_in_a_row < MAX_OUT_OF_ORDER_IN_A_ROW;
         let poor_here = matched.score < normal;
-        let went_back = unchecked
+        let went_back = may_set_aside
             && !poor_here
             && self.went_back(
                 &last.pose,
                 &predicted,
                 &matched.pose.compose(&scan.sensor_offset.inverse()),
             );
-        let set_aside = if unchecked && (poor_here || went_back) {
+        let set_aside = if may_set_aside && (poor_here || went_back) {
             let earlier = self.earlier_match(&hits, &scan.sensor_offset, &information);
             if went_back {
                 Some(
