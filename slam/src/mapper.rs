@@ -820,6 +820,8 @@ impl Mapper {
                 }
             }
         }
+        // The robot's pose by the match.
+        let mut pose = matched.pose.compose(&scan.sensor_offset.inverse());
         // A poor match may be a scan logged out of order: taken earlier, where the robot was. So
         // may a good one that went back against the prediction to where the robot was a few
         // scans ago: it fits there, but the next scan is to be predicted from the last pose in
@@ -827,13 +829,8 @@ impl Mapper {
         let may_set_aside =
             !gated && !from_odometry && self.out_of_order_in_a_row < MAX_OUT_OF_ORDER_IN_A_ROW;
         let poor_here = matched.score < normal;
-        let went_back = may_set_aside
-            && !poor_here
-            && self.went_back(
-                &last.pose,
-                &predicted,
-                &matched.pose.compose(&scan.sensor_offset.inverse()),
-            );
+        let went_back =
+            may_set_aside && !poor_here && self.went_back(&last.pose, &predicted, &pose);
         let set_aside = if may_set_aside && (poor_here || went_back) {
             let earlier = self.earlier_match(&hits, &scan.sensor_offset, &information);
             if went_back {
@@ -850,14 +847,14 @@ impl Mapper {
         };
         if let Some(earlier) = set_aside {
             self.out_of_order_in_a_row += 1;
-            let pose = earlier.pose.compose(&scan.sensor_offset.inverse());
+            let taken_at = earlier.pose.compose(&scan.sensor_offset.inverse());
             let floor = self.config.covariance.matrix();
             let fit = self.scaled(earlier.fit);
-            let covariance = scan_alone(&fit, &floor, &earlier.pose, &pose);
+            let covariance = scan_alone(&fit, &floor, &earlier.pose, &taken_at);
             return ScanResult {
                 time: reference,
-                pose,
-                matched: pose,
+                pose: taken_at,
+                matched: taken_at,
                 standing: false,
                 predicted,
                 velocity: last.velocity,
@@ -869,7 +866,6 @@ impl Mapper {
                 out_of_order: true,
             };
         }
-        let mut pose = matched.pose.compose(&scan.sensor_offset.inverse());
         let mut hits = hits;
         if timed && dt > 0.0 {
             // De-skew again with the motion the match found, and match again.
