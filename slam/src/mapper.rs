@@ -518,8 +518,9 @@ pub struct Mapper {
     /// [`MotionConfig::velocity_window`] before the last, and at least the last
     /// [`MotionConfig::out_of_order_poses`].
     recent_poses: VecDeque<(f64, Pose2)>,
-    /// Scans set aside as out of order since the last one that was not.
-    out_of_order_in_a_row: usize,
+    /// Where the scans set aside as out of order since the last one that was not were taken,
+    /// oldest first: a log's late lines come in bursts, each taken beside the one before.
+    set_aside: Vec<Pose2>,
     /// How well each velocity clock has predicted the recent matches.
     clock_errors: ClockErrors,
 }
@@ -580,7 +581,7 @@ impl Mapper {
             standstill: Standstill::default(),
             recent_score: None,
             recent_poses: VecDeque::new(),
-            out_of_order_in_a_row: 0,
+            set_aside: Vec::new(),
             clock_errors: ClockErrors::default(),
         }
     }
@@ -827,11 +828,11 @@ impl Mapper {
         // scans ago: it fits there, but the next scan is to be predicted from the last pose in
         // order, not from it.
         let may_set_aside =
-            !gated && !from_odometry && self.out_of_order_in_a_row < MAX_OUT_OF_ORDER_IN_A_ROW;
+            !gated && !from_odometry && self.set_aside.len() < MAX_OUT_OF_ORDER_IN_A_ROW;
         let poor_here = matched.score < normal;
         let went_back =
             may_set_aside && !poor_here && self.went_back(&last.pose, &predicted, &pose);
-        let set_aside = if may_set_aside && (poor_here || went_back) {
+        let late = if may_set_aside && (poor_here || went_back) {
             let earlier = self.earlier_match(&hits, &scan.sensor_offset, &information);
             if went_back {
                 Some(
@@ -845,9 +846,9 @@ impl Mapper {
         } else {
             None
         };
-        if let Some(earlier) = set_aside {
-            self.out_of_order_in_a_row += 1;
+        if let Some(earlier) = late {
             let taken_at = earlier.pose.compose(&scan.sensor_offset.inverse());
+            self.set_aside.push(taken_at);
             let floor = self.config.covariance.matrix();
             let fit = self.scaled(earlier.fit);
             let covariance = scan_alone(&fit, &floor, &earlier.pose, &taken_at);
@@ -1023,9 +1024,10 @@ impl Mapper {
             .is_some_and(|to_last| recent.any(|to_earlier| to_earlier < to_last))
     }
 
-    /// The best match of `hits` started at each of the earlier poses (not the last), each with
-    /// the prediction's `information` around it; poses within 5 cm and 0.03 rad of one already
-    /// tried are skipped. `None` when there is none to try.
+    /// The best match of `hits` started where the scans just set aside were taken, then at each
+    /// of the earlier poses (not the last), each with the prediction's `information` around it;
+    /// poses within 5 cm and 0.03 rad of one already tried are skipped. `None` when there is
+    /// none to try.
     fn earlier_match(
         &self,
         hits: &[(f64, f64)],
@@ -1034,11 +1036,14 @@ impl Mapper {
     ) -> Option<Match> {
         let mut tried: Vec<Pose2> = Vec::new();
         let mut best: Option<Match> = None;
+        // A late line in a burst was taken beside the one set aside before it.
         let earlier_poses = self.recent_poses.iter().rev().map(|(_, pose)| pose);
-        for earlier in earlier_poses
-            .take(self.config.motion.out_of_order_poses)
-            .skip(1)
-        {
+        let candidates = self.set_aside.iter().rev().chain(
+            earlier_poses
+                .take(self.config.motion.out_of_order_poses)
+                .skip(1),
+        );
+        for earlier in candidates {
             let near = |t: &Pose2| {
                 (t.x - earlier.x).hypot(t.y - earlier.y) < 0.05
                     && wrap_angle(t.theta - earlier.theta).abs() < 0.03
@@ -1092,7 +1097,7 @@ impl Mapper {
             covariance,
         });
         self.recent_poses.clear();
-        self.out_of_order_in_a_row = 0;
+        self.set_aside.clear();
         self.remember(time, pose);
     }
 
@@ -1257,7 +1262,7 @@ impl Mapper {
 
     /// Keeps `pose` at `time` among the recent poses, and drops those no longer needed.
     fn remember(&mut self, time: f64, pose: Pose2) {
-        self.out_of_order_in_a_row = 0;
+        self.set_aside.clear();
         self.recent_poses.push_back((time, pose));
         let window = self.config.motion.velocity_window;
         let kept = self.config.motion.out_of_order_poses.max(1);
@@ -1935,6 +1940,47 @@ mod tests {
         assert!(!mapper.went_back(&last, &predicted, &swung));
         let returned = Pose2::new(0.01, 0.0, 0.0);
         assert!(mapper.went_back(&last, &predicted, &returned));
+    }
+
+    #[test]
+    fn a_late_line_in_a_burst_is_looked_for_beside_the_one_set_aside_before_it() {
+        let mut config = MapperConfig::default();
+        config.motion.use_odometry = false;
+        let mut mapper = Mapper::new(config);
+        let mapped: Vec<Pose2> = (0..3)
+            .map(|k| Pose2::new(-1.0, 0.1, 0.3 * f64::from(k)))
+            .collect();
+        for (scan, pose) in scans(&mapped).iter().zip(&mapped) {
+            assert!(mapper.integrate_at(scan, pose));
+        }
+        // The robot has turned on to 1.5-2.4 rad; a line taken at 0.40 rad is logged now.
+        for k in 0..4 {
+            let heading = 1.5 + 0.3 * f64::from(k);
+            mapper.remember(0.1 * f64::from(k), Pose2::new(-1.0, 0.1, heading));
+        }
+        let taken = Pose2::new(-1.0, 0.1, 0.40);
+        let hits = cast(&room(), &taken, 720);
+        let information = [[400.0, 0.0, 0.0], [0.0, 400.0, 0.0], [0.0, 0.0, 400.0]];
+        let heading_error = |m: &Match| wrap_angle(m.pose.theta - taken.theta).abs();
+        // From the recent poses alone it is not found: none is near where it was taken.
+        let alone = mapper
+            .earlier_match(&hits, &Pose2::default(), &information)
+            .expect("recent poses to try");
+        assert!(heading_error(&alone) > 0.3, "{:?}", alone.pose);
+        // The line before it in the burst was set aside at 0.35 rad: this one is found there.
+        mapper.set_aside.push(Pose2::new(-1.0, 0.1, 0.35));
+        let beside = mapper
+            .earlier_match(&hits, &Pose2::default(), &information)
+            .expect("poses to try");
+        assert!(heading_error(&beside) < 0.005, "{:?}", beside.pose);
+        let off = (beside.pose.x - taken.x).hypot(beside.pose.y - taken.y);
+        assert!(off < 0.03, "{off} {:?}", beside.pose);
+        assert!(
+            beside.score > alone.score + 0.2,
+            "{} {}",
+            beside.score,
+            alone.score
+        );
     }
 
     #[test]
