@@ -134,7 +134,8 @@ const MAX_RECENT_POSES: usize = 256;
 const RECENT_SCORE_WEIGHT: f64 = 0.1;
 
 /// At most this many scans in a row are set aside as logged out of order
-/// ([`MotionConfig::out_of_order_poses`]): a robot that really moved is then followed.
+/// ([`MotionConfig::out_of_order_poses`]): a robot that really moved is then followed, and one
+/// whose scans keep fitting an earlier pose better is taken back there.
 const MAX_OUT_OF_ORDER_IN_A_ROW: usize = 2;
 
 /// A predicted step shorter than this (m) has no direction to go back against
@@ -202,7 +203,8 @@ pub struct MotionConfig {
     /// is also tried at each of this many last poses. If one of them fits it better, and not
     /// poorly, the scan was logged out of order (taken there, earlier): it takes that pose, and
     /// is neither integrated nor carried into the velocity (Intel holds about 215 such lines;
-    /// docs/slam.md). 0: off. At most two scans in a row are set aside this way.
+    /// docs/slam.md). 0: off. At most two scans in a row are set aside this way; a third that
+    /// fits an earlier pose better takes it as the pose in order, its velocity from standing.
     pub out_of_order_poses: usize,
     /// ...and so is a match, however good, that went back from the last pose against the
     /// prediction by more than this (m, along the predicted motion) to nearer one of those
@@ -846,6 +848,24 @@ impl Mapper {
         } else {
             None
         };
+        // Late lines set aside as many times in a row as allowed, and this one fits poorly
+        // where predicted too but well at an earlier pose: the track in order is what went
+        // wrong. The robot is back there, standing: it carries on from that pose, the velocity
+        // started again (a jump is not a motion to extrapolate).
+        let stuck = !gated && !from_odometry && !may_set_aside && poor_here;
+        let back_there = stuck
+            .then(|| self.earlier_match(&hits, &scan.sensor_offset, &information))
+            .flatten()
+            .filter(|e| e.score >= normal && e.score > matched.score);
+        let relocalised = back_there.is_some();
+        if let Some(earlier) = back_there {
+            prior = Prior {
+                pose: earlier.pose,
+                information,
+            };
+            pose = earlier.pose.compose(&scan.sensor_offset.inverse());
+            matched = earlier;
+        }
         if let Some(earlier) = late {
             let taken_at = earlier.pose.compose(&scan.sensor_offset.inverse());
             self.set_aside.push(taken_at);
@@ -938,6 +958,10 @@ impl Mapper {
                 velocity = Velocity2::default();
                 (held, held_covariance, Pose2::default())
             }
+            None if relocalised => {
+                velocity = Velocity2::default();
+                (pose, covariance, Pose2::default())
+            }
             None => (pose, covariance, last.pose.between(&pose)),
         };
         if trusted {
@@ -946,7 +970,7 @@ impl Mapper {
                 None => matched.score,
             });
         }
-        if trusted && self.without_odometry(scan) {
+        if trusted && !relocalised && self.without_odometry(scan) {
             let recent = self.recent_motion(&last);
             self.clock_errors.observe(
                 &recent.predict(dt, VelocityClock::Time).0,
@@ -965,6 +989,9 @@ impl Mapper {
             velocity,
             covariance,
         });
+        if relocalised {
+            self.recent_poses.clear();
+        }
         self.remember(reference, pose);
         ScanResult {
             time: reference,
@@ -1981,6 +2008,44 @@ mod tests {
             beside.score,
             alone.score
         );
+    }
+
+    #[test]
+    fn after_as_many_late_lines_as_allowed_a_scan_that_fits_where_the_robot_was_takes_it_back() {
+        let mut config = MapperConfig::default();
+        config.motion.use_odometry = false;
+        let mut mapper = Mapper::new(config);
+        let standing = Pose2::new(-1.0, 0.1, 0.3);
+        let mapped = [Pose2::new(-1.0, 0.1, 0.0), standing];
+        for (scan, pose) in scans(&mapped).iter().zip(&mapped) {
+            assert!(mapper.integrate_at(scan, pose));
+        }
+        // The robot stood at `standing`, but the track in order went on to a wrong pose, beyond
+        // the window around it; the last two scans were set aside at `standing`.
+        mapper.start_at(0.0, standing, [[0.0; 3]; 3]);
+        let wrong = Pose2::new(-0.5, 0.1, 0.9);
+        mapper.remember(0.1, wrong);
+        if let Some(last) = mapper.last.as_mut() {
+            last.pose = wrong;
+            last.time = 0.1;
+        }
+        mapper.recent_score = Some(0.8);
+        mapper.set_aside = vec![standing; MAX_OUT_OF_ORDER_IN_A_ROW];
+        let scan = Scan {
+            time: 0.2,
+            hits: cast(&room(), &standing, 720),
+            ..Scan::default()
+        };
+        let result = mapper.add_scan(&scan);
+        assert!(!result.out_of_order);
+        assert_within_3_cm_and_10_mrad(0, &result.pose, &standing);
+        let v = result.velocity;
+        assert!(v.x == 0.0 && v.y == 0.0 && v.theta == 0.0, "{v:?}");
+        // The next scan is predicted from there, standing.
+        let next = Scan { time: 0.3, ..scan };
+        let result = mapper.add_scan(&next);
+        assert_within_3_cm_and_10_mrad(1, &result.predicted, &standing);
+        assert_within_3_cm_and_10_mrad(1, &result.pose, &standing);
     }
 
     #[test]
