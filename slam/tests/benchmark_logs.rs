@@ -151,3 +151,31 @@ fn aces_with_odometry_and_no_loop_closure_is_within_8_cm() {
         );
     }
 }
+
+/// Without odometry (the trolley's case) on Intel's first 5,200 scans (1,115 s, its first
+/// stretches of out-of-order laser lines among them): a constant-velocity prior, the window
+/// search and the late lines set aside hold the median and the worst over map-update distances
+/// (docs/slam.md, "After two late lines, the track taken back").
+#[test]
+fn intel_without_odometry_holds_its_median_and_worst_over_map_update_distances() {
+    let (log, relations) = load("intel");
+    let (log, relations) = excerpt(&log, &relations, 5200);
+    let runs: Vec<(EvalReport, OdometrySource)> = [0.3, 0.4, 0.5]
+        .iter()
+        .map(|&d| {
+            let mut config = MapperConfig {
+                map_update_distance: d,
+                ..MapperConfig::default()
+            };
+            config.motion.use_odometry = false;
+            score(&log, &relations, &config, None)
+        })
+        .collect();
+    let (median, worst) = median_and_worst(&runs);
+    let errors: Vec<f64> = runs.iter().map(|r| r.0.all.abs_trans_m.mean).collect();
+    println!("Intel's first 5,200 scans without odometry: {errors:.4?} m");
+    assert!(
+        median <= 0.05 && worst <= 0.10,
+        "median {median:.4} worst {worst:.4}"
+    );
+}
