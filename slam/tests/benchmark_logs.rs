@@ -63,19 +63,22 @@ fn the_first_800_intel_scans_beat_odometry_on_their_relations() {
     );
 }
 
-/// The errors at map-update distances 0.3 / 0.4 (the default) / 0.5, in that order: one run is
-/// one draw of a chaotic system, so the tests bound the median and the worst of the three.
+/// The errors at map-update distances 0.3 / 0.4 (the default) / 0.5, in that order, with the
+/// log's odometry or without: one run is one draw of a chaotic system, so the tests bound the
+/// median and the worst of the three.
 fn over_map_update_distances(
     log: &CarmenLog,
     relations: &Relations,
+    use_odometry: bool,
 ) -> Vec<(EvalReport, OdometrySource)> {
     [0.3, 0.4, 0.5]
         .iter()
         .map(|&d| {
-            let config = MapperConfig {
+            let mut config = MapperConfig {
                 map_update_distance: d,
                 ..MapperConfig::default()
             };
+            config.motion.use_odometry = use_odometry;
             score(log, relations, &config, None)
         })
         .collect()
@@ -95,7 +98,7 @@ fn median_and_worst(runs: &[(EvalReport, OdometrySource)]) -> (f64, f64) {
 #[test]
 fn intel_with_odometry_and_no_loop_closure_is_within_5_cm_at_the_median() {
     let (log, relations) = load("intel");
-    let runs = over_map_update_distances(&log, &relations);
+    let runs = over_map_update_distances(&log, &relations, true);
     let (report, odometry) = &runs[1];
     assert_eq!(report.all.used, 2984);
     // Intel's laser lines carry odometry for their own time: its ODOM lines agree less at
@@ -119,7 +122,7 @@ fn aces_with_odometry_and_no_loop_closure_is_within_8_cm() {
     // re-attaches to the older map when it comes back: map-update distances of 0.35–0.5 m give
     // 3.8–8.9 cm (README, "2D scan matching"); the default gives 3.8 cm.
     let (log, relations) = load("aces");
-    let runs = over_map_update_distances(&log, &relations);
+    let runs = over_map_update_distances(&log, &relations, true);
     let (report, odometry) = &runs[1];
     assert_eq!(report.all.used, 1279);
     // ACES's laser lines carry the last ODOM pose, and its laser stamps run 0.09 s late.
@@ -160,17 +163,7 @@ fn aces_with_odometry_and_no_loop_closure_is_within_8_cm() {
 fn intel_without_odometry_holds_its_median_and_worst_over_map_update_distances() {
     let (log, relations) = load("intel");
     let (log, relations) = excerpt(&log, &relations, 5200);
-    let runs: Vec<(EvalReport, OdometrySource)> = [0.3, 0.4, 0.5]
-        .iter()
-        .map(|&d| {
-            let mut config = MapperConfig {
-                map_update_distance: d,
-                ..MapperConfig::default()
-            };
-            config.motion.use_odometry = false;
-            score(&log, &relations, &config, None)
-        })
-        .collect();
+    let runs = over_map_update_distances(&log, &relations, false);
     let (median, worst) = median_and_worst(&runs);
     let errors: Vec<f64> = runs.iter().map(|r| r.0.all.abs_trans_m.mean).collect();
     println!("Intel's first 5,200 scans without odometry: {errors:.4?} m");
