@@ -829,8 +829,8 @@ impl Mapper {
         // may a good one that went back against the prediction to where the robot was a few
         // scans ago: it fits there, but the next scan is to be predicted from the last pose in
         // order, not from it.
-        let may_set_aside =
-            !gated && !from_odometry && self.set_aside.len() < MAX_OUT_OF_ORDER_IN_A_ROW;
+        let unaided = !gated && !from_odometry;
+        let may_set_aside = unaided && self.set_aside.len() < MAX_OUT_OF_ORDER_IN_A_ROW;
         let poor_here = matched.score < normal;
         let went_back =
             may_set_aside && !poor_here && self.went_back(&last.pose, &predicted, &pose);
@@ -852,7 +852,7 @@ impl Mapper {
         // where predicted too but well at an earlier pose: the track in order is what went
         // wrong. The robot is back there, standing: it carries on from that pose, the velocity
         // started again (a jump is not a motion to extrapolate).
-        let stuck = !gated && !from_odometry && !may_set_aside && poor_here;
+        let stuck = unaided && !may_set_aside && poor_here;
         let back_there = stuck
             .then(|| self.earlier_match(&hits, &scan.sensor_offset, &information))
             .flatten()
