@@ -25,6 +25,7 @@ pub mod map_image;
 pub mod mapper;
 pub mod matcher;
 pub mod odometry;
+pub mod odometry_bias;
 pub mod offline;
 pub mod pose;
 pub mod relations;

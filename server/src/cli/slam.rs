@@ -9,10 +9,12 @@ use std::time::Instant;
 use anyhow::{Context, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 use scan3d_slam::carmen::{ReadOptions, read_log};
+use scan3d_slam::grid::MAX_CELLS;
 use scan3d_slam::map_image::{Thresholds, write_pgm, write_png_with_trajectory, write_yaml};
 use scan3d_slam::mapper::{Mapper, MapperConfig};
 use scan3d_slam::matcher::Loss;
 use scan3d_slam::odometry::{Calibration, MAX_LATENCY, OdometrySource};
+use scan3d_slam::odometry_bias::{Slips, WheelError, distort_odometry};
 use scan3d_slam::offline::{RangeLimits, map_log, map_log_calibrated, raster};
 use scan3d_slam::pose::Pose2;
 use scan3d_slam::relations::{
@@ -20,6 +22,7 @@ use scan3d_slam::relations::{
     write_trajectory,
 };
 
+use super::map::parse_finite_numbers;
 use crate::pose::scan_matching::map_session;
 
 /// The largest `--laser-offset` accepted (m): a laser further than this from the robot's
@@ -67,6 +70,16 @@ pub struct SlamArgs {
     /// Overrides the log's `PARAM robot_frontlaser_offset`; `ROBOTLASER1` lines keep their own.
     #[arg(long, value_name = "M", allow_negative_numbers = true)]
     pub laser_offset: Option<f64>,
+    /// Distort a log's odometry before matching, to test the matcher against worse wheels:
+    /// every step's turn grows by PER_RAD of itself plus PER_M radians per metre driven, its
+    /// distance by SCALE of itself (e.g. `0,0.02,0.05`: 1.1° per metre, 5 % long).
+    #[arg(long, value_name = "PER_RAD,PER_M,SCALE", value_parser = parse_wheel_error,
+          allow_negative_numbers = true, allow_hyphen_values = true)]
+    pub odometry_error: Option<WheelError>,
+    /// Put slips into a log's odometry: every EVERY seconds one step jumps M metres forward
+    /// and RAD radians, the signs alternating (e.g. `60,0.3,0.15`).
+    #[arg(long, value_name = "EVERY,M,RAD", value_parser = parse_slips)]
+    pub odometry_slips: Option<Slips>,
     /// Every mapper parameter (see `deploy/slam.toml` for the keys and defaults).
     #[arg(long, value_name = "slam.toml")]
     pub config: Option<PathBuf>,
@@ -90,6 +103,46 @@ pub struct SlamArgs {
     /// source against: prints each source's yaw RMSE and writes `DIR/fig5.svg` and `fig5.png`.
     #[arg(long, value_name = "TRUTH.tum", requires = "fused")]
     pub truth: Option<PathBuf>,
+}
+
+/// The longest memory `motion.odometry_bias_window` may have (steps): a day of scans.
+const MAX_BIAS_WINDOW: f64 = 1e6;
+
+/// The largest distortion `--odometry-error` puts in, per term (a correction beyond it would
+/// not be a test of the matcher but of a broken robot).
+const MAX_WHEEL_ERROR: f64 = 0.5;
+
+/// `PER_RAD,PER_M,SCALE` for `--odometry-error`.
+fn parse_wheel_error(text: &str) -> Result<WheelError, String> {
+    let [per_rad, per_m, scale] = parse_finite_numbers(text, "PER_RAD,PER_M,SCALE")?;
+    if [per_rad, per_m, scale]
+        .iter()
+        .any(|v| v.abs() > MAX_WHEEL_ERROR)
+    {
+        return Err(format!(
+            "each term must be within ±{MAX_WHEEL_ERROR}, got {text:?}"
+        ));
+    }
+    Ok(WheelError {
+        per_rad,
+        per_m,
+        scale,
+    })
+}
+
+/// `EVERY,M,RAD` for `--odometry-slips`.
+fn parse_slips(text: &str) -> Result<Slips, String> {
+    let [every, translation, rotation] = parse_finite_numbers(text, "EVERY,M,RAD")?;
+    if every < 1.0 || translation.abs() > 10.0 || rotation.abs() > std::f64::consts::PI {
+        return Err(format!(
+            "slips need EVERY ≥ 1 s, |M| ≤ 10 m and |RAD| ≤ π, got {text:?}"
+        ));
+    }
+    Ok(Slips {
+        every,
+        translation,
+        rotation,
+    })
 }
 
 /// Reads `slam.toml`: every key optional, unknown keys refused with their line.
@@ -188,6 +241,12 @@ fn validate(config: &MapperConfig) -> anyhow::Result<()> {
         bail!(
             "motion.velocity_window must be 0 to 10 s, not {}",
             config.motion.velocity_window
+        );
+    }
+    if !(0.0..=MAX_BIAS_WINDOW).contains(&config.motion.odometry_bias_window) {
+        bail!(
+            "motion.odometry_bias_window must be 0 to {MAX_BIAS_WINDOW} steps, not {}",
+            config.motion.odometry_bias_window
         );
     }
     if config.motion.out_of_order_poses > MAX_OUT_OF_ORDER_POSES {
@@ -372,6 +431,22 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
             }
             log.set_front_laser_offset(Pose2::new(forward, 0.0, 0.0));
         }
+        if args.odometry_error.is_some() || args.odometry_slips.is_some() {
+            let error = args.odometry_error.unwrap_or_default();
+            distort_odometry(&mut log, &error, args.odometry_slips.as_ref());
+            writeln!(
+                out,
+                "odometry distorted: {:+} rad per rad turned, {:+} rad per m driven, {:+} of \
+                 every distance{}",
+                error.per_rad,
+                error.per_m,
+                error.scale,
+                args.odometry_slips.map_or(String::new(), |s| format!(
+                    "; a slip of {} m and {} rad every {} s",
+                    s.translation, s.rotation, s.every
+                ))
+            )?;
+        }
         let limits = RangeLimits::for_log(&log, args.min_range, args.max_range);
         let fixed = match (args.odometry_latency, args.laser_odometry) {
             (Some(latency), _) => {
@@ -468,6 +543,16 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
              keeps that pose, is not mapped, and the next scan is predicted from the last pose \
              in order"
         )?;
+    }
+    let refused = mapper.refused_integrations();
+    if refused > 0 {
+        tracing::warn!(
+            scans = refused,
+            cells = MAX_CELLS,
+            side_m = %format_args!("{:.0}", (MAX_CELLS as f64).sqrt() * config.resolution),
+            "the map reached its size limit: those scans were not mapped, and where the map \
+             has nothing the trajectory follows the prior alone"
+        );
     }
     if let Some(stem) = &args.map {
         write_map(mapper, trajectory, stem)?;
@@ -780,6 +865,10 @@ mod tests {
             (
                 "[motion]\nvelocity_window = -1.0\n",
                 "motion.velocity_window",
+            ),
+            (
+                "[motion]\nodometry_bias_window = -5.0\n",
+                "motion.odometry_bias_window",
             ),
             (
                 "[motion]\nout_of_order_poses = 100000\n",

@@ -29,6 +29,7 @@ use serde::Serialize;
 use std::collections::VecDeque;
 
 use scan3d_protocol::{Body, Frame, ImuSample, LidarRevolution, PassEvent, SensorId, SensorMounts};
+use scan3d_slam::grid::MAX_CELLS;
 use scan3d_slam::map_image::{Thresholds, write_pgm, write_png_with_trajectory, write_yaml};
 use scan3d_slam::mapper::{Mapper, MapperConfig, RotationPrior, ScanResult};
 use scan3d_slam::offline::{RangeLimits, raster};
@@ -316,7 +317,16 @@ impl PoseTracker {
                 self.falling_back = true;
             }
         }
+        let refused = self.mapper.refused_integrations();
         let result = self.mapper.add_scan(&scan);
+        if refused == 0 && self.mapper.refused_integrations() > 0 {
+            tracing::warn!(
+                at_s = reference,
+                cells = MAX_CELLS,
+                "the map reached its size limit: revolutions beyond it are matched but not \
+                 mapped, and where the map has nothing the pose follows the prior alone"
+            );
+        }
         self.gyro.revolution(result.time, result.standing);
         Some(result)
     }
