@@ -15,7 +15,8 @@
 # restricts the modes (default "odometry no-odometry"); SLAM_MATRIX_RANGES the ranges (default
 # "full 6"); SLAM_MATRIX_DISTANCES the map_update_distances (default "0.3 0.4 0.5");
 # SLAM_MATRIX_CONFIG names a slam.toml whose keys every run takes too (it must not
-# set map_update_distance).
+# set map_update_distance); SLAM_MATRIX_ARGS adds arguments to every `scan3d slam` run (e.g.
+# "--odometry-error 0,0.02,0" to test the matcher against wheels that drift 1.1° per metre).
 set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
 bin="${1:-$here/target/release/scan3d}"
@@ -37,6 +38,8 @@ for log in "${logs[@]}"; do
         traj="$out/${log}_${odo}_${range}_$d.txt"
         args=(slam "$clf" --out "$traj" --config "$cfg" --quiet "--$odo")
         [ "$range" = 6 ] && args+=(--max-range 6)
+        # shellcheck disable=SC2206 # the extra arguments are split on purpose
+        [ -z "${SLAM_MATRIX_ARGS:-}" ] || args+=(${SLAM_MATRIX_ARGS})
         start=$(date +%s.%N)
         "$bin" "${args[@]}" > /dev/null
         wall=$(echo "$(date +%s.%N) - $start" | bc)

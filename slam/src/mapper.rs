@@ -214,6 +214,10 @@ pub struct MotionConfig {
     pub out_of_order_back: f64,
     /// ...or that turned against the predicted turn by more than this (rad). 0: off.
     pub out_of_order_turn_back: f64,
+    /// With odometry, a match still poor after the window search is searched again over a
+    /// window this many times longer (its translation; ≤ 1: not): wheels that slip 0.3 m put
+    /// the robot beyond the first window, and every scan after it fits poorly there.
+    pub wider_search: f64,
     /// With odometry, its systematic error (rotation per radian turned and per metre driven,
     /// translation scale) is learned from the matches over about this many steps and each
     /// odometry step is corrected by it before predicting ([`crate::odometry_bias`]): wheels
@@ -242,6 +246,7 @@ impl Default for MotionConfig {
             out_of_order_back: 0.05,
             out_of_order_turn_back: 0.15,
             odometry_bias_window: 0.0,
+            wider_search: 3.0,
         }
     }
 }
@@ -784,7 +789,17 @@ impl Mapper {
             let below = matched.score < self.config.motion.velocity_search_below;
             (below, matched.score)
         };
-        if search_wanted {
+        // With odometry, a match still poor after the window is searched again over a window
+        // `wider_search` times as long: a slip or a shove beyond the first one's reach.
+        let reaches = [1.0, self.config.motion.wider_search];
+        for (attempt, reach) in reaches.into_iter().enumerate() {
+            let wanted = match attempt {
+                0 => search_wanted,
+                _ => search_wanted && from_odometry && reach > 1.0 && matched.score < normal,
+            };
+            if !wanted {
+                continue;
+            }
             // A poor fit from the prediction: the trolley may have turned, the odometry may
             // have slipped. Search a window on the coarsest grid around the prediction and
             // keep whichever match fits better (with odometry: only one that is not poor).
@@ -793,10 +808,12 @@ impl Mapper {
                 .levels()
                 .last()
                 .expect("at least one level");
-            let window = &self.config.motion.velocity_search.around(
+            let mut window = self.config.motion.velocity_search.around(
                 1.0 / information[0][0].sqrt(),
                 1.0 / information[2][2].sqrt(),
             );
+            window.translation *= reach;
+            let window = &window;
             let loose = no_tighter_than(&information, coarsest.resolution(), window.angle_step);
             let found = search(coarsest, &hits, start, window, Some(&loose));
             // The prediction was wrong here: the prior is centred where the search found the
@@ -2182,6 +2199,38 @@ mod tests {
         // Each step's odometry turns 16 mrad too far; learned, the prediction is within a few.
         assert!(off > 0.012, "without the correction: {off}");
         assert!(on < 0.004, "with it: {on}");
+    }
+
+    /// Standing, then one quick step of 0.3 m along x, then standing again, while the wheels
+    /// slip 0.35 m further on that step: the last pose's error, with `wider_search`.
+    fn after_a_long_slip(wider_search: f64) -> f64 {
+        let truth: Vec<Pose2> = (0..12)
+            .map(|k| Pose2::new(if k < 6 { -1.0 } else { -0.7 }, 0.1, 0.05))
+            .collect();
+        let mut scans = scans(&truth);
+        for (k, scan) in scans.iter_mut().enumerate() {
+            let slip = if k < 6 { 0.0 } else { 0.35 };
+            scan.odometry = Some(truth[k].compose(&Pose2::new(slip, 0.0, 0.0)));
+        }
+        let mut config = MapperConfig::default();
+        config.motion.wider_search = wider_search;
+        let mut mapper = Mapper::new(config);
+        let last = scans
+            .iter()
+            .map(|s| mapper.add_scan(s))
+            .last()
+            .expect("scans");
+        let truth = truth.last().expect("poses");
+        (last.pose.x - truth.x).hypot(last.pose.y - truth.y)
+    }
+
+    #[test]
+    fn a_slip_beyond_the_window_is_found_by_the_wider_search() {
+        // The first window reaches 0.2 m from the odometry's prediction, the wider one 0.6 m.
+        let wider = after_a_long_slip(MotionConfig::default().wider_search);
+        assert!(wider < 0.03, "with the wider search: {wider}");
+        let narrow = after_a_long_slip(1.0);
+        assert!(narrow > 0.1, "without it: {narrow}");
     }
 
     #[test]

@@ -105,6 +105,9 @@ pub struct SlamArgs {
     pub truth: Option<PathBuf>,
 }
 
+/// The most `motion.wider_search` may widen the window search (its cost grows with the square).
+const MAX_WIDER_SEARCH: f64 = 10.0;
+
 /// The longest memory `motion.odometry_bias_window` may have (steps): a day of scans.
 const MAX_BIAS_WINDOW: f64 = 1e6;
 
@@ -241,6 +244,12 @@ fn validate(config: &MapperConfig) -> anyhow::Result<()> {
         bail!(
             "motion.velocity_window must be 0 to 10 s, not {}",
             config.motion.velocity_window
+        );
+    }
+    if !(0.0..=MAX_WIDER_SEARCH).contains(&config.motion.wider_search) {
+        bail!(
+            "motion.wider_search must be 0 to {MAX_WIDER_SEARCH}, not {}",
+            config.motion.wider_search
         );
     }
     if !(0.0..=MAX_BIAS_WINDOW).contains(&config.motion.odometry_bias_window) {
@@ -811,6 +820,26 @@ mod tests {
     use super::*;
 
     #[test]
+    fn odometry_distortions_are_read_and_bounded() {
+        let error = parse_wheel_error("0.05, -0.02,0.1").expect("three terms");
+        assert_eq!(
+            (error.per_rad, error.per_m, error.scale),
+            (0.05, -0.02, 0.1)
+        );
+        for bad in ["0,0.02", "0,0.6,0", "0,nan,0", "a,b,c"] {
+            assert!(parse_wheel_error(bad).is_err(), "{bad}");
+        }
+        let slips = parse_slips("60,0.3,-0.15").expect("a slip");
+        assert_eq!(
+            (slips.every, slips.translation, slips.rotation),
+            (60.0, 0.3, -0.15)
+        );
+        for bad in ["0.5,0.3,0.1", "60,11,0", "60,0,4", "60,0.3"] {
+            assert!(parse_slips(bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
     fn the_nearest_rank_quantile_is_a_value_of_the_list() {
         let values: Vec<f64> = (1..=100).map(f64::from).collect();
         assert_eq!(nearest_rank(&values, 0.5), 50.0);
@@ -866,6 +895,7 @@ mod tests {
                 "[motion]\nvelocity_window = -1.0\n",
                 "motion.velocity_window",
             ),
+            ("[motion]\nwider_search = 50.0\n", "motion.wider_search"),
             (
                 "[motion]\nodometry_bias_window = -5.0\n",
                 "motion.odometry_bias_window",
