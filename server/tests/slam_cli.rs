@@ -416,3 +416,44 @@ fn slam_says_which_odometry_it_used_and_refuses_a_latency_it_cannot_apply() {
         "{said}"
     );
 }
+
+#[test]
+fn slam_distorts_the_odometry_when_asked_and_says_how() {
+    let dir = tempfile::tempdir().unwrap();
+    let (log, _, _) = intel_excerpt(dir.path(), 200);
+    let slam = |out: &str, extra: &[&str]| {
+        let traj = dir.path().join(out);
+        let mut args = vec!["slam", arg(&log), "--out", arg(&traj), "--quiet"];
+        args.extend_from_slice(extra);
+        run_cli(&args).map(|said| (said, std::fs::read_to_string(&traj).unwrap()))
+    };
+    let (said, clean) = slam("clean.txt", &["--laser-odometry"]).expect("clean");
+    assert!(!said.contains("distorted"), "{said}");
+    let (said, distorted) = slam(
+        "distorted.txt",
+        &[
+            "--laser-odometry",
+            "--odometry-error",
+            "0,0.02,0.05",
+            "--odometry-slips",
+            "30,0.1,0.05",
+        ],
+    )
+    .expect("distorted");
+    assert!(
+        said.contains(
+            "odometry distorted: +0 rad per rad turned, +0.02 rad per m driven, +0.05 of every \
+             distance; a slip of 0.1 m and 0.05 rad every 30 s\n"
+        ),
+        "{said}"
+    );
+    // The matcher saw other odometry: the same scans, other poses.
+    assert_eq!(clean.lines().count(), distorted.lines().count());
+    assert_ne!(clean, distorted);
+
+    let error = format!(
+        "{:#}",
+        slam("bad.txt", &["--odometry-error", "0,0.9,0"]).unwrap_err()
+    );
+    assert!(error.contains("each term must be within ±0.5"), "{error}");
+}
