@@ -251,6 +251,14 @@ impl Default for MotionConfig {
     }
 }
 
+impl MotionConfig {
+    /// The rotation standard deviation (rad) the odometry model gives an odometry `step`.
+    fn odometry_rotation_sigma(&self, step: &Pose2) -> f64 {
+        self.odometry_rotation_per_rad * step.theta.abs()
+            + self.odometry_rotation_per_m * step.x.hypot(step.y)
+    }
+}
+
 /// What a constant-velocity prediction scales the recent motion by ([`MotionConfig::velocity_clock`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -1012,9 +1020,7 @@ impl Mapper {
             if let (Some(step), Some(bias)) =
                 (self.odometry_step(&last, scan), self.odometry_bias.as_mut())
             {
-                let sigma = (m.odometry_rotation_per_rad * step.theta.abs()
-                    + m.odometry_rotation_per_m * step.x.hypot(step.y))
-                .max(m.min_rotation_sigma);
+                let sigma = m.odometry_rotation_sigma(&step).max(m.min_rotation_sigma);
                 bias.observe(&step, &last.pose.between(&matched_pose), sigma);
             }
         }
@@ -1250,8 +1256,7 @@ impl Mapper {
                 (
                     delta,
                     m.odometry_translation_per_m * distance,
-                    m.odometry_rotation_per_rad * delta.theta.abs()
-                        + m.odometry_rotation_per_m * distance,
+                    m.odometry_rotation_sigma(&delta),
                 )
             }
             None => {
