@@ -456,4 +456,21 @@ fn slam_distorts_the_odometry_when_asked_and_says_how() {
         slam("bad.txt", &["--odometry-error", "0,0.9,0"]).unwrap_err()
     );
     assert!(error.contains("each term must be within ±0.5"), "{error}");
+
+    // A session has no wheel odometry to distort: refused, not ignored.
+    let session = tempfile::tempdir().unwrap();
+    let traj = dir.path().join("session.txt");
+    let error = format!(
+        "{:#}",
+        run_cli(&[
+            "slam",
+            arg(session.path()),
+            "--out",
+            arg(&traj),
+            "--odometry-slips",
+            "60,0.3,0.15",
+        ])
+        .unwrap_err()
+    );
+    assert!(error.contains("is a session, which has none"), "{error}");
 }

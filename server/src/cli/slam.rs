@@ -111,8 +111,8 @@ const MAX_WIDER_SEARCH: f64 = 10.0;
 /// The longest memory `motion.odometry_bias_window` may have (steps): a day of scans.
 const MAX_BIAS_WINDOW: f64 = 1e6;
 
-/// The largest distortion `--odometry-error` puts in, per term (a correction beyond it would
-/// not be a test of the matcher but of a broken robot).
+/// The largest distortion `--odometry-error` puts in, per term (wheels worse than that are not
+/// a test of the matcher but a broken robot).
 const MAX_WHEEL_ERROR: f64 = 0.5;
 
 /// `PER_RAD,PER_M,SCALE` for `--odometry-error`.
@@ -366,6 +366,13 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
     }
     let started = Instant::now();
     let (run, source) = if args.input.is_dir() {
+        if args.odometry_error.is_some() || args.odometry_slips.is_some() {
+            bail!(
+                "--odometry-error and --odometry-slips distort a CARMEN log's wheel odometry; {} \
+                 is a session, which has none",
+                args.input.display()
+            );
+        }
         let limits = RangeLimits {
             min_range: args.min_range,
             max_range: args.max_range,
