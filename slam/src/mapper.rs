@@ -801,12 +801,11 @@ impl Mapper {
         // `wider_search` times as long: a slip or a shove beyond the first one's reach.
         let reaches = [1.0, self.config.motion.wider_search];
         for (attempt, reach) in reaches.into_iter().enumerate() {
-            let wanted = match attempt {
-                0 => search_wanted,
-                _ => search_wanted && from_odometry && reach > 1.0 && matched.score < normal,
-            };
-            if !wanted {
-                continue;
+            let again = attempt > 0;
+            if !search_wanted
+                || (again && (!from_odometry || reach <= 1.0 || matched.score >= normal))
+            {
+                break;
             }
             // A poor fit from the prediction: the trolley may have turned, the odometry may
             // have slipped. Search a window on the coarsest grid around the prediction and

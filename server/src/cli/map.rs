@@ -25,25 +25,7 @@ use scan3d_map::octree::{
 
 /// A point `x,y,z` on the command line (clap value parser).
 pub fn parse_xyz_arg(text: &str) -> Result<[f64; 3], String> {
-    parse_finite_numbers(text, "x,y,z")
-}
-
-/// `N` comma-separated finite numbers on the command line; `what` names them in the error.
-pub fn parse_finite_numbers<const N: usize>(text: &str, what: &str) -> Result<[f64; N], String> {
-    let values: Vec<f64> = text
-        .split(',')
-        .map(|v| {
-            v.trim()
-                .parse::<f64>()
-                .map_err(|_| format!("{v:?} is not a number"))
-        })
-        .collect::<Result<_, _>>()?;
-    match <[f64; N]>::try_from(values) {
-        Ok(values) if values.iter().all(|v| v.is_finite()) => Ok(values),
-        _ => Err(format!(
-            "expected {what} ({N} finite numbers), got {text:?}"
-        )),
-    }
+    super::parse_finite_numbers(text, "x,y,z")
 }
 
 /// Two probabilities `MIN,MAX` on the command line.

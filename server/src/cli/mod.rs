@@ -98,6 +98,24 @@ impl DataDirArgs {
     }
 }
 
+/// `N` comma-separated finite numbers on the command line; `what` names them in the error.
+pub fn parse_finite_numbers<const N: usize>(text: &str, what: &str) -> Result<[f64; N], String> {
+    let values: Vec<f64> = text
+        .split(',')
+        .map(|v| {
+            v.trim()
+                .parse::<f64>()
+                .map_err(|_| format!("{v:?} is not a number"))
+        })
+        .collect::<Result<_, _>>()?;
+    match <[f64; N]>::try_from(values) {
+        Ok(values) if values.iter().all(|v| v.is_finite()) => Ok(values),
+        _ => Err(format!(
+            "expected {what} ({N} finite numbers), got {text:?}"
+        )),
+    }
+}
+
 /// Runs a parsed command line, writing its output to `out`.
 pub fn execute(cli: Cli, out: &mut dyn Write) -> anyhow::Result<()> {
     match cli.command {

@@ -22,7 +22,7 @@ use scan3d_slam::relations::{
     write_trajectory,
 };
 
-use super::map::parse_finite_numbers;
+use super::parse_finite_numbers;
 use crate::pose::scan_matching::map_session;
 
 /// The largest `--laser-offset` accepted (m): a laser further than this from the robot's
