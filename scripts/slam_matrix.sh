@@ -16,7 +16,8 @@
 # "full 6"); SLAM_MATRIX_DISTANCES the map_update_distances (default "0.3 0.4 0.5");
 # SLAM_MATRIX_CONFIG names a slam.toml whose keys every run takes too (it must not
 # set map_update_distance); SLAM_MATRIX_ARGS adds arguments to every `scan3d slam` run (e.g.
-# "--odometry-error 0,0.02,0" to test the matcher against wheels that drift 1.1° per metre).
+# "--odometry-error 0,0.02,0" to test the matcher against wheels that drift 1.1° per metre, or
+# "--every 2" against a log written half as often).
 set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
 bin="${1:-$here/target/release/scan3d}"

@@ -429,6 +429,21 @@ fn slam_distorts_the_odometry_when_asked_and_says_how() {
     };
     let (said, clean) = slam("clean.txt", &["--laser-odometry"]).expect("clean");
     assert!(!said.contains("distorted"), "{said}");
+    // Every third laser line: a third of the poses, at the kept lines' times.
+    let (said, sparse) = slam("sparse.txt", &["--laser-odometry", "--every", "3"]).expect("every");
+    assert!(
+        said.contains("kept 1 laser line in 3: 67 scans\n"),
+        "{said}"
+    );
+    let times = |t: &str| -> Vec<String> {
+        t.lines()
+            .map(|l| l.split(' ').next().unwrap().to_string())
+            .collect()
+    };
+    let expected: Vec<String> = times(&clean).into_iter().step_by(3).collect();
+    assert_eq!(times(&sparse), expected);
+    let error = format!("{:#}", slam("bad.txt", &["--every", "0"]).unwrap_err());
+    assert!(error.contains("--every"), "{error}");
     let (said, distorted) = slam(
         "distorted.txt",
         &[
@@ -472,5 +487,18 @@ fn slam_distorts_the_odometry_when_asked_and_says_how() {
         ])
         .unwrap_err()
     );
-    assert!(error.contains("is a session, which has none"), "{error}");
+    assert!(error.contains("is a session, which has neither"), "{error}");
+    let error = format!(
+        "{:#}",
+        run_cli(&[
+            "slam",
+            arg(session.path()),
+            "--out",
+            arg(&traj),
+            "--every",
+            "2"
+        ])
+        .unwrap_err()
+    );
+    assert!(error.contains("is a session, which has neither"), "{error}");
 }

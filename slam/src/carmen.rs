@@ -157,6 +157,19 @@ impl CarmenLog {
         }
     }
 
+    /// Keeps the first laser line and every `every`-th after it (1 or 0: all), the `ODOM`
+    /// lines untouched: the same run with scans `every` times sparser, to test the matcher
+    /// against logs written less often than the ones its defaults were chosen on.
+    pub fn keep_every(&mut self, every: usize) {
+        if every > 1 {
+            let mut index = 0;
+            self.scans.retain(|_| {
+                index += 1;
+                (index - 1) % every == 0
+            });
+        }
+    }
+
     /// One odometry pose per scan: the laser line's own odometry triple. This is what the
     /// reference script's `--carmen-to-traj` writes (its default `--pose odom`), so the raw
     /// odometry baselines of the benchmark notes are reproduced from it.
@@ -673,5 +686,21 @@ mod tests {
         assert_eq!(track.at(9.0), a);
         let no_odom = strict(&flaser(2, "1 2", "9 8 0.1 7 6 0.2 1.0")).unwrap();
         assert!(no_odom.odometry_track().is_none());
+    }
+
+    #[test]
+    fn keeping_every_third_scan_keeps_the_first_and_each_third_after_and_the_odom_lines() {
+        let mut text = String::from("ODOM 0 0 0 0 0 0 0.5\n");
+        for i in 0..8 {
+            text += &flaser(2, "1 2", &format!("{i} 0 0 {i} 0 0 {i}.0"));
+            text.push('\n');
+        }
+        let mut log = strict(&text).unwrap();
+        log.keep_every(1);
+        assert_eq!(log.scans.len(), 8);
+        log.keep_every(3);
+        let kept: Vec<f64> = log.scans.iter().map(|s| s.timestamp.seconds).collect();
+        assert_eq!(kept, vec![0.0, 3.0, 6.0]);
+        assert_eq!(log.odometry.len(), 1);
     }
 }

@@ -80,6 +80,12 @@ pub struct SlamArgs {
     /// and RAD radians, the signs alternating (e.g. `60,0.3,0.15`).
     #[arg(long, value_name = "EVERY,M,RAD", value_parser = parse_slips)]
     pub odometry_slips: Option<Slips>,
+    /// Match only the first laser line and every N-th after it: the log as if written N times
+    /// less often (e.g. 2 on FR079: 0.19 m between scans instead of 0.09), to test the
+    /// matcher against sparser logs. Score the trajectory with the relations whose two scans
+    /// were kept (`slam-eval`'s default) or `--interpolate --max-dt`.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..=1000))]
+    pub every: Option<u16>,
     /// Every mapper parameter (see `deploy/slam.toml` for the keys and defaults).
     #[arg(long, value_name = "slam.toml")]
     pub config: Option<PathBuf>,
@@ -366,10 +372,10 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
     }
     let started = Instant::now();
     let (run, source) = if args.input.is_dir() {
-        if args.odometry_error.is_some() || args.odometry_slips.is_some() {
+        if args.every.is_some() || args.odometry_error.is_some() || args.odometry_slips.is_some() {
             bail!(
-                "--odometry-error and --odometry-slips distort a CARMEN log's wheel odometry; {} \
-                 is a session, which has none",
+                "--every, --odometry-error and --odometry-slips change a CARMEN log's laser \
+                 lines or wheel odometry; {} is a session, which has neither",
                 args.input.display()
             );
         }
@@ -446,6 +452,14 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
                 bail!("--laser-offset must be within ±{MAX_LASER_OFFSET} m, not {forward}");
             }
             log.set_front_laser_offset(Pose2::new(forward, 0.0, 0.0));
+        }
+        if let Some(every) = args.every.filter(|&n| n > 1) {
+            log.keep_every(usize::from(every));
+            writeln!(
+                out,
+                "kept 1 laser line in {every}: {} scans",
+                log.scans.len()
+            )?;
         }
         if args.odometry_error.is_some() || args.odometry_slips.is_some() {
             let error = args.odometry_error.unwrap_or_default();
