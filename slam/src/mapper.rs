@@ -2228,6 +2228,42 @@ mod tests {
         (last.pose.x - truth.x).hypot(last.pose.y - truth.y)
     }
 
+    /// Without odometry: the robot stands for five scans 0.1 s apart, then the next scan comes
+    /// a second later, turned 0.6 rad and 0.1 m along (a log written less often than the robot
+    /// turns); the error of that scan's pose with the window searched over `sigmas` of the
+    /// prediction's standard deviations (0: the fixed ±0.35 rad), translation (m) plus heading
+    /// (rad).
+    fn after_a_turn_beyond_the_fixed_window(sigmas: f64) -> f64 {
+        let mut truth = vec![Pose2::new(-0.5, 0.1, 0.05); 5];
+        truth.push(Pose2::new(-0.4, 0.1, 0.65));
+        let mut scans = scans(&truth);
+        scans[5].time = 1.4;
+        let mut config = MapperConfig::default();
+        config.motion.use_odometry = false;
+        config.motion.velocity_search.sigmas = sigmas;
+        let mut mapper = Mapper::new(config);
+        let last = scans
+            .iter()
+            .map(|s| mapper.add_scan(s))
+            .last()
+            .expect("scans");
+        // Without odometry the first scan's pose is the map's origin.
+        let truth = truth[0].between(&truth[5]);
+        (last.pose.x - truth.x).hypot(last.pose.y - truth.y)
+            + wrap_angle(last.pose.theta - truth.theta).abs()
+    }
+
+    #[test]
+    fn without_odometry_the_window_grows_with_the_time_since_the_last_scan() {
+        // A second without a scan: the prediction's heading sigma is 1 rad (1 rad/s), and the
+        // default window reaches one sigma.
+        let grown =
+            after_a_turn_beyond_the_fixed_window(MotionConfig::default().velocity_search.sigmas);
+        assert!(grown < 0.01, "the window grown: {grown}");
+        let fixed = after_a_turn_beyond_the_fixed_window(0.0);
+        assert!(fixed > 0.1, "the fixed window: {fixed}");
+    }
+
     #[test]
     fn a_slip_beyond_the_window_is_found_by_the_wider_search() {
         // The first window reaches 0.2 m from the odometry's prediction, the wider one 0.6 m.

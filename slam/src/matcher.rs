@@ -315,9 +315,9 @@ impl Default for SearchWindow {
             angle_step: 0.01,
             translation: 0.2,
             prior_weight: 0.01,
-            sigmas: 0.0,
+            sigmas: 1.0,
             max_angle: std::f64::consts::PI,
-            max_translation: 1.0,
+            max_translation: 0.5,
         }
     }
 }
@@ -743,7 +743,10 @@ mod tests {
 
     #[test]
     fn a_window_grows_with_the_prediction_within_its_limits() {
-        let fixed = SearchWindow::default();
+        let fixed = SearchWindow {
+            sigmas: 0.0,
+            ..SearchWindow::default()
+        };
         assert_eq!(
             fixed.around(5.0, 5.0),
             fixed,
