@@ -2207,6 +2207,16 @@ mod tests {
 
     /// Standing, then one quick step of 0.3 m along x, then standing again, while the wheels
     /// slip 0.35 m further on that step: the last pose's error, with `wider_search`.
+    /// A new mapper with `config` fed `scans`; the last scan's result.
+    fn last_result(config: MapperConfig, scans: &[Scan]) -> ScanResult {
+        let mut mapper = Mapper::new(config);
+        scans
+            .iter()
+            .map(|s| mapper.add_scan(s))
+            .last()
+            .expect("scans")
+    }
+
     fn after_a_long_slip(wider_search: f64) -> f64 {
         let truth: Vec<Pose2> = (0..12)
             .map(|k| Pose2::new(if k < 6 { -1.0 } else { -0.7 }, 0.1, 0.05))
@@ -2218,12 +2228,7 @@ mod tests {
         }
         let mut config = MapperConfig::default();
         config.motion.wider_search = wider_search;
-        let mut mapper = Mapper::new(config);
-        let last = scans
-            .iter()
-            .map(|s| mapper.add_scan(s))
-            .last()
-            .expect("scans");
+        let last = last_result(config, &scans);
         let truth = truth.last().expect("poses");
         (last.pose.x - truth.x).hypot(last.pose.y - truth.y)
     }
@@ -2241,12 +2246,7 @@ mod tests {
         let mut config = MapperConfig::default();
         config.motion.use_odometry = false;
         config.motion.velocity_search.sigmas = sigmas;
-        let mut mapper = Mapper::new(config);
-        let last = scans
-            .iter()
-            .map(|s| mapper.add_scan(s))
-            .last()
-            .expect("scans");
+        let last = last_result(config, &scans);
         // Without odometry the first scan's pose is the map's origin.
         let truth = truth[0].between(&truth[5]);
         (last.pose.x - truth.x).hypot(last.pose.y - truth.y)
