@@ -162,11 +162,8 @@ impl CarmenLog {
     /// against logs written less often than the ones its defaults were chosen on.
     pub fn keep_every(&mut self, every: usize) {
         if every > 1 {
-            let mut index = 0;
-            self.scans.retain(|_| {
-                index += 1;
-                (index - 1) % every == 0
-            });
+            let scans = std::mem::take(&mut self.scans);
+            self.scans = scans.into_iter().step_by(every).collect();
         }
     }
 
