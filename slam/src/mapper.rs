@@ -2205,8 +2205,6 @@ mod tests {
         assert!(on < 0.004, "with it: {on}");
     }
 
-    /// Standing, then one quick step of 0.3 m along x, then standing again, while the wheels
-    /// slip 0.35 m further on that step: the last pose's error, with `wider_search`.
     /// A new mapper with `config` fed `scans`; the last scan's result.
     fn last_result(config: MapperConfig, scans: &[Scan]) -> ScanResult {
         let mut mapper = Mapper::new(config);
@@ -2217,6 +2215,8 @@ mod tests {
             .expect("scans")
     }
 
+    /// Standing, then one quick step of 0.3 m along x, then standing again, while the wheels
+    /// slip 0.35 m further on that step: the last pose's error, with `wider_search`.
     fn after_a_long_slip(wider_search: f64) -> f64 {
         let truth: Vec<Pose2> = (0..12)
             .map(|k| Pose2::new(if k < 6 { -1.0 } else { -0.7 }, 0.1, 0.05))
