@@ -10,6 +10,7 @@
 //! - [`surface`]: the endpoints each cell has seen, and a sub-cell refinement of a grid match.
 //! - [`mapper`]: the incremental front end (motion prior, de-skew, map-update rule).
 //! - [`odometry`]: which odometry a log's scans get, and how late its laser stamps run.
+//! - [`odometry_agreement`]: how well the odometry has agreed with the scans lately.
 //! - [`offline`]: the mapper over a whole log, and its grid as a raster.
 //! - [`map_image`]: occupancy rasters as ROS `map_server` PGM + YAML and as PNG.
 //! - [`text`]: what those text formats share: [`text::Timestamp`] (kept as written, so a
@@ -25,6 +26,7 @@ pub mod map_image;
 pub mod mapper;
 pub mod matcher;
 pub mod odometry;
+pub mod odometry_agreement;
 pub mod odometry_bias;
 pub mod offline;
 pub mod pose;

@@ -19,6 +19,7 @@ use std::collections::VecDeque;
 
 use crate::grid::{GridPyramid, UpdateModel};
 use crate::matcher::{Fit, Match, MatchConfig, Matrix3, Prior, SearchWindow, match_scan, search};
+use crate::odometry_agreement::{OdometryAgreement, StepSigmas};
 use crate::odometry_bias::OdometryBias;
 use crate::pose::{Pose2, Velocity2, wrap_angle};
 use crate::surface::{RefineConfig, Refinement, Surfaces, Sweep, refine};
@@ -218,6 +219,16 @@ pub struct MotionConfig {
     /// window this many times longer (its translation; ≤ 1: not): wheels that slip 0.3 m put
     /// the robot beyond the first window, and every scan after it fits poorly there.
     pub wider_search: f64,
+    /// With odometry, its motion over the last this many seconds is compared with the
+    /// matches' ([`crate::odometry_agreement`]): where the two disagree, the odometry's
+    /// prediction is widened for the next scan (per scan: a stretch of wrong odometry cannot pull
+    /// the matches off the map, right odometry keeps its weight). 0: off.
+    pub odometry_check_window: f64,
+    /// ...where their mean squared error per degree of freedom, in the odometry model's
+    /// standard deviations, exceeds this: by the square root of the ratio of the two...
+    pub odometry_check_threshold: f64,
+    /// ...up to this factor on its standard deviations.
+    pub odometry_max_widening: f64,
     /// With odometry, its systematic error (rotation per radian turned and per metre driven,
     /// translation scale) is learned from the matches over about this many steps and each
     /// odometry step is corrected by it before predicting ([`crate::odometry_bias`]): wheels
@@ -247,6 +258,9 @@ impl Default for MotionConfig {
             out_of_order_turn_back: 0.15,
             odometry_bias_window: 0.0,
             wider_search: 3.0,
+            odometry_check_window: 2.0,
+            odometry_check_threshold: 5.0,
+            odometry_max_widening: 4.0,
         }
     }
 }
@@ -256,6 +270,17 @@ impl MotionConfig {
     fn odometry_rotation_sigma(&self, step: &Pose2) -> f64 {
         self.odometry_rotation_per_rad * step.theta.abs()
             + self.odometry_rotation_per_m * step.x.hypot(step.y)
+    }
+}
+
+impl StepSigmas for MotionConfig {
+    fn step_sigmas(&self, step: &Pose2) -> (f64, f64) {
+        let translation = self.odometry_translation_per_m * step.x.hypot(step.y);
+        (
+            translation.max(self.min_translation_sigma),
+            self.odometry_rotation_sigma(step)
+                .max(self.min_rotation_sigma),
+        )
     }
 }
 
@@ -548,6 +573,9 @@ pub struct Mapper {
     /// The odometry's systematic error as the matches show it
     /// ([`MotionConfig::odometry_bias_window`]; `None`: off).
     odometry_bias: Option<OdometryBias>,
+    /// How well the odometry has agreed with the matches lately
+    /// ([`MotionConfig::odometry_check_window`]).
+    odometry_agreement: OdometryAgreement,
 }
 
 /// When a revolution's endpoints were seen: per endpoint, its time from the reference time
@@ -610,6 +638,7 @@ impl Mapper {
             clock_errors: ClockErrors::default(),
             odometry_bias: (config.motion.odometry_bias_window > 0.0)
                 .then(|| OdometryBias::new(config.motion.odometry_bias_window)),
+            odometry_agreement: OdometryAgreement::default(),
         }
     }
 
@@ -768,6 +797,8 @@ impl Mapper {
         let poor = gated && matched.score < normal;
         // A replacement must gain this much on the current match and not be poor itself.
         let needed = |current: f64| (current + self.config.motion.poor_match_gain).max(normal);
+        // Whether the constant-velocity candidate or the window search replaced the match.
+        let mut replaced = false;
         if poor && from_odometry {
             // Try the constant-velocity prediction too (what the scans alone say the robot
             // was doing), with its own, looser prior.
@@ -787,6 +818,7 @@ impl Mapper {
             if second.score > matched.score && second.score >= needed(matched.score) {
                 matched = second;
                 prior = guess_prior;
+                replaced = true;
             }
         }
         let (search_wanted, needed) = if from_odometry {
@@ -854,6 +886,7 @@ impl Mapper {
             };
             if weighed(&second) > weighed(&matched) && second.score >= needed {
                 matched = second;
+                replaced = true;
                 if from_odometry || scan.rotation.is_none() {
                     prior = wide;
                 }
@@ -1013,6 +1046,26 @@ impl Mapper {
                 &recent.predict(dt, VelocityClock::Scans).0,
                 &last.pose.between(&matched_pose),
             );
+        }
+        if from_odometry {
+            let window = self.config.motion.odometry_check_window;
+            match scan.odometry {
+                Some(odometry) if trusted && !relocalised && window > 0.0 => {
+                    // A match the gate's candidates replaced (a slip, a shove) has dealt with
+                    // the odometry's error at this scan: it is not held against the next ones.
+                    if replaced {
+                        self.odometry_agreement.restart();
+                    }
+                    self.odometry_agreement.observe(
+                        reference,
+                        matched_pose,
+                        odometry,
+                        window,
+                        &self.config.motion,
+                    );
+                }
+                _ => self.odometry_agreement.pause(),
+            }
         }
         if from_odometry && trusted && !relocalised && matched.score >= normal {
             let m = &self.config.motion;
@@ -1251,12 +1304,12 @@ impl Mapper {
             });
         let (motion, sigma_t, sigma_r) = match odometry {
             Some(delta) => {
-                let distance = delta.x.hypot(delta.y);
-                (
-                    delta,
-                    m.odometry_translation_per_m * distance,
-                    m.odometry_rotation_sigma(&delta),
-                )
+                // Widened where the odometry has lately disagreed with the scans.
+                let widening = self
+                    .odometry_agreement
+                    .widening(m.odometry_check_threshold, m.odometry_max_widening);
+                let (translation, rotation) = m.step_sigmas(&delta);
+                (delta, widening * translation, widening * rotation)
             }
             None => {
                 // With odometry at hand (the gate's constant-velocity candidate), the last
@@ -1655,14 +1708,14 @@ impl Standstill {
     }
 }
 
-/// `(a − b)ᵀ C⁻¹ (a − b)` over x, y and the wrapped heading difference; infinite when `C` is
-/// singular.
 /// The robot pose's covariance from the scan alone: `fit`'s plus the `floor`, at the `sensor`
 /// pose, carried to the robot's `pose`.
 fn scan_alone(fit: &Fit, floor: &Matrix3, sensor: &Pose2, pose: &Pose2) -> Matrix3 {
     carry(&add(&fit.covariance(), floor), sensor, pose)
 }
 
+/// `(a − b)ᵀ C⁻¹ (a − b)` over x, y and the wrapped heading difference; infinite when `C` is
+/// singular.
 fn mahalanobis(a: &Pose2, b: &Pose2, covariance: &Matrix3) -> f64 {
     let e = nalgebra::Vector3::new(a.x - b.x, a.y - b.y, wrap_angle(a.theta - b.theta));
     let c = nalgebra::Matrix3::from_fn(|i, j| covariance[i][j]);
@@ -1671,7 +1724,6 @@ fn mahalanobis(a: &Pose2, b: &Pose2, covariance: &Matrix3) -> f64 {
     })
 }
 
-/// `a + b`.
 /// `information` (diagonal) loosened so that no standard deviation is below `translation` (m)
 /// or `rotation` (rad): a prior centred on a search's result is no surer than its steps.
 fn no_tighter_than(information: &Matrix3, translation: f64, rotation: f64) -> Matrix3 {
@@ -1683,6 +1735,7 @@ fn no_tighter_than(information: &Matrix3, translation: f64, rotation: f64) -> Ma
     loose
 }
 
+/// `a + b`.
 fn add(a: &Matrix3, b: &Matrix3) -> Matrix3 {
     [0, 1, 2].map(|i| [0, 1, 2].map(|j| a[i][j] + b[i][j]))
 }

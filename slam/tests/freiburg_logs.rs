@@ -67,23 +67,28 @@ fn median_and_worst(
     offset: Option<Pose2>,
     max_range: Option<f64>,
 ) -> (f64, f64, usize) {
-    median_and_worst_with(name, scans, offset, max_range, true)
+    median_and_worst_with(name, scans, offset, max_range, true, 1)
 }
 
-/// [`median_and_worst`], with or without the log's odometry.
+/// [`median_and_worst`], with or without the log's odometry, matching the first laser line and
+/// every `every`-th after it (`CarmenLog::keep_every`; the relations counted are those whose two
+/// scans were kept).
 fn median_and_worst_with(
     name: &str,
     scans: usize,
     offset: Option<Pose2>,
     max_range: Option<f64>,
     use_odometry: bool,
+    every: usize,
 ) -> (f64, f64, usize) {
     let (mut log, relations) = load(name);
     if let Some(offset) = offset {
         log.set_front_laser_offset(offset);
     }
-    let (log, relations) = excerpt(&log, &relations, scans);
+    let (mut log, relations) = excerpt(&log, &relations, scans);
+    log.keep_every(every);
     let limits = RangeLimits::for_log(&log, 0.1, max_range);
+    let mut used = 0;
     let mut errors: Vec<f64> = [0.3, 0.4, 0.5]
         .iter()
         .map(|&d| {
@@ -94,13 +99,16 @@ fn median_and_worst_with(
             config.motion.use_odometry = use_odometry;
             let run = map_log_calibrated(&log, &config, &limits, |_| {}).run;
             let report = evaluate(&run.trajectory, &relations, &EvalOptions::default());
-            assert_eq!(report.all.used, relations.relations.len());
+            if every <= 1 {
+                assert_eq!(report.all.used, relations.relations.len());
+            }
+            used = report.all.used;
             report.all.abs_trans_m.mean
         })
         .collect();
     errors.sort_by(f64::total_cmp);
-    println!("{name}, first {scans} scans: errors {errors:.4?}");
-    (errors[1], errors[2], relations.relations.len())
+    println!("{name}, first {scans} scans, one in {every}: errors {errors:.4?}");
+    (errors[1], errors[2], used)
 }
 
 #[test]
@@ -116,16 +124,34 @@ fn the_hospital_excerpt_with_its_laser_offset_stays_near_its_odometry() {
 /// The whole FR079 log, with odometry. Before the per-scan odometry gate (a poor match tries
 /// the constant-velocity prediction and a window search, `MotionConfig::poor_match_ratio`) the
 /// matcher lost the map near 183 s, led by the odometry, and never found it again: 1.07 / 0.95
-/// / 1.48 m at 0.4 / 0.3 / 0.5. The median is bound by the goal for FR079; one draw of
-/// three may slip (at 0.3, with the 30 m range limit: 0.66 m; with joined endpoints none of the
-/// three does, but 0.45 does: 0.53 m), so the worst is bound only below the old failure's.
+/// / 1.48 m at 0.4 / 0.3 / 0.5. After it one draw in a few still slipped (0.3 with the 30 m
+/// range limit: 0.66 m; 0.45 with joined endpoints: 0.53 m). With the odometry widened where it
+/// disagrees with the matches (`MotionConfig::odometry_check_window`) every draw from 0.3 to 0.5
+/// is 0.040 m, and both bounds are the goals for FR079.
 #[test]
 fn fr079_with_odometry_keeps_the_map_over_map_update_distances() {
     let log = load("fr079").0;
     let (median, worst, used) = median_and_worst("fr079", log.scans.len(), None, None);
     assert!(used > 1000, "{used} relations");
     assert!(
-        median <= 0.10 && worst <= 0.90,
+        median <= 0.10 && worst <= 0.20,
+        "median {median:.4} worst {worst:.4}"
+    );
+}
+
+/// FR079 with one scan in two (0.19 m and 0.43 s apart, as the held-out log's), with odometry.
+/// For seconds near 1515 s its odometry reads forward while the robot backs up; trusted as its error model says, it pulled the matches there between itself and the
+/// scans and the map was lost at 0.4: 0.043 / 0.303 / 0.044 m. Widened where it disagrees with
+/// the matches over the last seconds (`MotionConfig::odometry_check_window`): 0.043 / 0.044 /
+/// 0.044 m.
+#[test]
+fn fr079_with_one_scan_in_two_keeps_the_map_where_its_odometry_is_wrong() {
+    let log = load("fr079").0;
+    let (median, worst, used) =
+        median_and_worst_with("fr079", log.scans.len(), None, None, true, 2);
+    assert!(used > 300, "{used} relations");
+    assert!(
+        median <= 0.10 && worst <= 0.15,
         "median {median:.4} worst {worst:.4}"
     );
 }
@@ -161,7 +187,7 @@ fn the_mapper_reports_the_robot_not_the_laser_that_sits_ahead_of_it() {
 /// too (`MotionConfig::out_of_order_turn_back`) 0.0125 / 0.0128 / 0.0150 m.
 #[test]
 fn intel_without_odometry_follows_its_first_corridors_over_map_update_distances() {
-    let (median, worst, used) = median_and_worst_with("intel", 450, None, None, false);
+    let (median, worst, used) = median_and_worst_with("intel", 450, None, None, false, 1);
     assert!(used > 20, "{used} relations");
     assert!(
         median <= 0.15 && worst <= 0.30,

@@ -272,6 +272,12 @@ fn validate(config: &MapperConfig) -> anyhow::Result<()> {
     }
     for (key, value, limit, unit) in [
         (
+            "odometry_check_window",
+            config.motion.odometry_check_window,
+            60.0,
+            "s",
+        ),
+        (
             "out_of_order_back",
             config.motion.out_of_order_back,
             1.0,
@@ -287,6 +293,18 @@ fn validate(config: &MapperConfig) -> anyhow::Result<()> {
         if !(0.0..=limit).contains(&value) {
             bail!("motion.{key} must be 0 to {limit:.2} {unit}, not {value}");
         }
+    }
+    if !(0.0..=1e6).contains(&config.motion.odometry_check_threshold) {
+        bail!(
+            "motion.odometry_check_threshold must be 0 to 1e6, not {}",
+            config.motion.odometry_check_threshold
+        );
+    }
+    if !(1.0..=100.0).contains(&config.motion.odometry_max_widening) {
+        bail!(
+            "motion.odometry_max_widening must be 1 to 100, not {}",
+            config.motion.odometry_max_widening
+        );
     }
     if !(0.0..=1.0).contains(&config.motion.poor_match_ratio) {
         bail!(
@@ -920,6 +938,18 @@ mod tests {
             (
                 "[motion]\nodometry_bias_window = -5.0\n",
                 "motion.odometry_bias_window",
+            ),
+            (
+                "[motion]\nodometry_check_window = 600.0\n",
+                "motion.odometry_check_window",
+            ),
+            (
+                "[motion]\nodometry_check_threshold = -1.0\n",
+                "motion.odometry_check_threshold",
+            ),
+            (
+                "[motion]\nodometry_max_widening = 0.5\n",
+                "motion.odometry_max_widening",
             ),
             (
                 "[motion]\nout_of_order_poses = 100000\n",
