@@ -225,7 +225,8 @@ pub struct MotionConfig {
     /// the matches off the map, right odometry keeps its weight). 0: off.
     pub odometry_check_window: f64,
     /// ...where their mean squared error per degree of freedom, in the odometry model's
-    /// standard deviations, exceeds this: by the square root of the ratio of the two...
+    /// standard deviations (translation and heading apart), exceeds this: that standard
+    /// deviation by the square root of the ratio of the two...
     pub odometry_check_threshold: f64,
     /// ...up to this factor on its standard deviations.
     pub odometry_max_widening: f64,
@@ -1309,7 +1310,11 @@ impl Mapper {
                     .odometry_agreement
                     .widening(m.odometry_check_threshold, m.odometry_max_widening);
                 let (translation, rotation) = m.step_sigmas(&delta);
-                (delta, widening * translation, widening * rotation)
+                (
+                    delta,
+                    widening.translation * translation,
+                    widening.rotation * rotation,
+                )
             }
             None => {
                 // With odometry at hand (the gate's constant-velocity candidate), the last
