@@ -226,7 +226,7 @@ pub struct MotionConfig {
     pub odometry_check_window: f64,
     /// ...where their mean squared error per degree of freedom, in the odometry model's
     /// standard deviations (translation and heading apart), exceeds this: that standard
-    /// deviation by the square root of the ratio of the two...
+    /// deviation by the square root of the ratio of the two (0: never)...
     pub odometry_check_threshold: f64,
     /// ...up to this factor on its standard deviations.
     pub odometry_max_widening: f64,
@@ -1073,7 +1073,7 @@ impl Mapper {
             if let (Some(step), Some(bias)) =
                 (self.odometry_step(&last, scan), self.odometry_bias.as_mut())
             {
-                let sigma = m.odometry_rotation_sigma(&step).max(m.min_rotation_sigma);
+                let (_, sigma) = m.step_sigmas(&step);
                 bias.observe(&step, &last.pose.between(&matched_pose), sigma);
             }
         }

@@ -37,7 +37,9 @@ pub struct OdometryAgreement {
 /// freedom: translation (x and y) and heading, apart.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct Widening {
+    /// Along x and y.
     pub translation: f64,
+    /// In heading.
     pub rotation: f64,
 }
 
