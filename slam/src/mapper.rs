@@ -266,21 +266,16 @@ impl Default for MotionConfig {
     }
 }
 
-impl MotionConfig {
-    /// The rotation standard deviation (rad) the odometry model gives an odometry `step`.
-    fn odometry_rotation_sigma(&self, step: &Pose2) -> f64 {
-        self.odometry_rotation_per_rad * step.theta.abs()
-            + self.odometry_rotation_per_m * step.x.hypot(step.y)
-    }
-}
-
+/// The odometry model's standard deviations for a step: translation per metre driven,
+/// rotation per radian turned and per metre driven, none below the configured smallest.
 impl StepSigmas for MotionConfig {
     fn step_sigmas(&self, step: &Pose2) -> (f64, f64) {
-        let translation = self.odometry_translation_per_m * step.x.hypot(step.y);
+        let distance = step.x.hypot(step.y);
+        let rotation = self.odometry_rotation_per_rad * step.theta.abs()
+            + self.odometry_rotation_per_m * distance;
         (
-            translation.max(self.min_translation_sigma),
-            self.odometry_rotation_sigma(step)
-                .max(self.min_rotation_sigma),
+            (self.odometry_translation_per_m * distance).max(self.min_translation_sigma),
+            rotation.max(self.min_rotation_sigma),
         )
     }
 }

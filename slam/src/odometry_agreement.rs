@@ -10,8 +10,9 @@
 //! matches' over the same span, in the odometry model's standard deviations, translation and
 //! heading apart. Where the mean squared error per degree of freedom exceeds `threshold`, it
 //! widens that standard deviation of the next prediction by the square root of their ratio, up
-//! to `max_widening` (an adaptive filter scaling its process noise by the innovations it sees). Over a window, one late stamp
-//! (a step off one way and the next back) cancels out; a stretch of wrong odometry adds up.
+//! to `max_widening` (an adaptive filter scaling its process noise by the innovations it
+//! sees). Over a window, one late stamp (a step off one way and the next back) cancels out; a
+//! stretch of wrong odometry adds up.
 
 use std::collections::VecDeque;
 
@@ -28,14 +29,19 @@ pub struct OdometryAgreement {
     /// `(time, matched pose, odometry pose)`, oldest first: back to the newest one at least a
     /// window before the last.
     track: VecDeque<(f64, Pose2, Pose2)>,
-    /// The last window's mean squared error per degree of freedom, in the odometry model's
-    /// standard deviations (0 before a whole window).
-    disagreement: Widening,
+    /// The last window's error (0 before a whole window).
+    disagreement: Disagreement,
 }
 
-/// A factor on each of the odometry's standard deviations, or a squared error per degree of
-/// freedom: translation (x and y) and heading, apart.
+/// Mean squared error per degree of freedom, in the odometry model's standard deviations.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
+struct Disagreement {
+    translation: f64,
+    rotation: f64,
+}
+
+/// A factor on each of the odometry's standard deviations: translation (x and y) and heading.
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Widening {
     /// Along x and y.
     pub translation: f64,
@@ -76,14 +82,14 @@ impl OdometryAgreement {
             self.track.pop_front();
         }
         let (then, matched_then, odometry_then) = self.track[0];
-        self.disagreement = Widening::default();
+        self.disagreement = Disagreement::default();
         if time - then >= window {
             let by_odometry = odometry_then.between(&odometry);
             let by_scans = matched_then.between(&matched);
             let (translation, rotation) = model.step_sigmas(&by_odometry);
             let moved = (by_scans.x - by_odometry.x).hypot(by_scans.y - by_odometry.y);
             let turned = wrap_angle(by_scans.theta - by_odometry.theta);
-            self.disagreement = Widening {
+            self.disagreement = Disagreement {
                 translation: (moved / translation).powi(2) / 2.0,
                 rotation: (turned / rotation).powi(2),
             };
@@ -95,13 +101,13 @@ impl OdometryAgreement {
     /// it.
     pub fn restart(&mut self) {
         self.track.clear();
-        self.disagreement = Widening::default();
+        self.pause();
     }
 
     /// Forgets the last window's disagreement (a match not to be compared: untrusted, or a
     /// relocalisation); the track is kept.
     pub fn pause(&mut self) {
-        self.disagreement = Widening::default();
+        self.disagreement = Disagreement::default();
     }
 
     /// The factors (1 to `max_widening`) by which the next odometry prediction's translation
