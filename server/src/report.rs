@@ -24,23 +24,13 @@ pub struct MetricBox {
     pub max: [f64; 3],
 }
 
-/// Parses `x0,y0,z0,x1,y1,z1`.
+/// Parses `x0,y0,z0,x1,y1,z1` (metres), as `--bbox` takes it.
 pub fn parse_bbox(s: &str) -> Result<MetricBox, String> {
-    let v: Vec<f64> = s
-        .split(',')
-        .map(|t| t.trim().parse::<f64>())
-        .collect::<Result<_, _>>()
-        .map_err(|e| format!("bbox: {e} (want x0,y0,z0,x1,y1,z1 in metres)"))?;
-    match v.as_slice() {
-        &[x0, y0, z0, x1, y1, z1] => Ok(MetricBox {
-            min: [x0, y0, z0],
-            max: [x1, y1, z1],
-        }),
-        _ => Err(format!(
-            "bbox: {} numbers given, want 6: x0,y0,z0,x1,y1,z1",
-            v.len()
-        )),
-    }
+    let [x0, y0, z0, x1, y1, z1] = crate::cli::parse_finite_numbers(s, "bbox x0,y0,z0,x1,y1,z1")?;
+    Ok(MetricBox {
+        min: [x0, y0, z0],
+        max: [x1, y1, z1],
+    })
 }
 
 /// Reads a `.bt` / `.ot` map for evaluation (OctoMap's default sensor model).
@@ -750,6 +740,28 @@ mod tests {
             );
         }
         map.to_octree().to_bt_bytes()
+    }
+
+    #[test]
+    fn a_bbox_needs_six_finite_numbers_and_says_what_it_got() {
+        assert_eq!(
+            parse_bbox(" -1, -2,0 ,3,4,2.5"),
+            Ok(MetricBox {
+                min: [-1.0, -2.0, 0.0],
+                max: [3.0, 4.0, 2.5],
+            })
+        );
+        assert_eq!(
+            parse_bbox("0,0,0,1,1"),
+            Err(
+                "expected bbox x0,y0,z0,x1,y1,z1 (6 finite numbers), got 5 in \"0,0,0,1,1\"".into()
+            )
+        );
+        // NaN parses as a float; a box with it would select nothing without saying why.
+        assert_eq!(
+            parse_bbox("0,0,0,1,1,NaN"),
+            Err("\"NaN\" is not a finite number".into())
+        );
     }
 
     #[test]

@@ -98,22 +98,26 @@ impl DataDirArgs {
     }
 }
 
-/// `N` comma-separated finite numbers on the command line; `what` names them in the error.
-pub fn parse_finite_numbers<const N: usize>(text: &str, what: &str) -> Result<[f64; N], String> {
-    let values: Vec<f64> = text
-        .split(',')
+/// Comma-separated finite numbers on the command line, as many as given: the one parser behind
+/// every `X,Y,...` option, so they all accept and reject the same text.
+pub fn parse_finite_list(text: &str) -> Result<Vec<f64>, String> {
+    text.split(',')
         .map(|v| {
             v.trim()
                 .parse::<f64>()
-                .map_err(|_| format!("{v:?} is not a number"))
+                .ok()
+                .filter(|v| v.is_finite())
+                .ok_or_else(|| format!("{v:?} is not a finite number"))
         })
-        .collect::<Result<_, _>>()?;
-    match <[f64; N]>::try_from(values) {
-        Ok(values) if values.iter().all(|v| v.is_finite()) => Ok(values),
-        _ => Err(format!(
-            "expected {what} ({N} finite numbers), got {text:?}"
-        )),
-    }
+        .collect()
+}
+
+/// `N` comma-separated finite numbers on the command line; `what` names them in the error.
+pub fn parse_finite_numbers<const N: usize>(text: &str, what: &str) -> Result<[f64; N], String> {
+    let values = parse_finite_list(text)?;
+    let given = values.len();
+    <[f64; N]>::try_from(values)
+        .map_err(|_| format!("expected {what} ({N} finite numbers), got {given} in {text:?}"))
 }
 
 /// Runs a parsed command line, writing its output to `out`.

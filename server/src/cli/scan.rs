@@ -37,16 +37,7 @@ impl FromStr for At {
     type Err = String;
 
     fn from_str(text: &str) -> Result<Self, Self::Err> {
-        let values: Vec<f64> = text
-            .split(',')
-            .map(|v| {
-                v.trim()
-                    .parse::<f64>()
-                    .ok()
-                    .filter(|v| v.is_finite())
-                    .ok_or_else(|| format!("{v:?} is not a finite number"))
-            })
-            .collect::<Result<_, _>>()?;
+        let values = super::parse_finite_list(text)?;
         match values[..] {
             [x_m, y_m] => Ok(At {
                 x_m,
