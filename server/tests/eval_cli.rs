@@ -122,7 +122,11 @@ fn eval_table_and_errors() {
         )
     );
     let e = run_cli(&["eval", "--reference", &ot, &ot, "--bbox", "1,2,3"]).unwrap_err();
-    assert!(e.to_string().contains("want 6"), "{e}");
+    assert!(
+        e.to_string()
+            .contains("(6 finite numbers), got 3 in \"1,2,3\""),
+        "{e}"
+    );
     let e = run_cli(&[
         "eval",
         "--reference",
