@@ -20,9 +20,12 @@ if ! cargo +nightly fuzz --version >/dev/null 2>&1; then
   cargo install cargo-fuzz --locked
 fi
 
-echo "== seeds (fuzz/seedgen, stable, sharing the workspace's target directory)"
-CARGO_TARGET_DIR=${CARGO_TARGET_DIR:-$fuzz_dir/../target} \
-  cargo run --quiet --manifest-path seedgen/Cargo.toml -- "$fuzz_dir/corpus"
+# A workspace test (tests/tests/fuzz_seeds.rs), run with `--workspace` so that it shares the
+# workspace's test build (features and profile): after `cargo test --workspace` it builds nothing.
+echo "== seeds (tests/tests/fuzz_seeds.rs, stable, the workspace's test build)"
+FUZZ_CORPUS_DIR="$fuzz_dir/corpus" \
+  cargo test --quiet --manifest-path "$fuzz_dir/../Cargo.toml" --workspace --test fuzz_seeds -- \
+  --ignored --exact write_fuzz_seeds --nocapture
 
 if [ $# -gt 0 ]; then
   targets=("$@")

@@ -3,11 +3,14 @@
 //! driver ↔ emulator sessions in the drivers' session layout, small maps, clouds in every
 //! format and encoding, a recorded mini session, the shipped configs and control requests.
 //!
-//! `cargo run --manifest-path fuzz/seedgen/Cargo.toml -- [out]` (fuzz/ci.sh runs it).
+//! `FUZZ_CORPUS_DIR=DIR cargo test --workspace --test fuzz_seeds -- --ignored` writes them into
+//! DIR (default `fuzz/corpus`); `fuzz/ci.sh` runs it so, sharing the workspace's test build. The
+//! test that is not ignored writes them into a temporary directory and checks that every fuzz
+//! target gets seeds, so a change that breaks an encoder fails `cargo test`, not the fuzz run.
 
 // The fuzz targets read this layout; the generator only writes it.
 #[allow(dead_code)]
-#[path = "../../src/stream.rs"]
+#[path = "../../fuzz/src/stream.rs"]
 mod stream;
 
 use std::error::Error;
@@ -31,7 +34,11 @@ use scan3d_map::cloud::ply::write_ply_bundles;
 use scan3d_map::cloud::scans_file::write_scans;
 use scan3d_map::octree::{Resolution, SensorModel, VoxelMap};
 use scan3d_protocol::{
-    Ack, Body, Command, DeviceStatus, Frame, Heartbeat, Hello, ImuSample, LidarRevolution, MountInfo, PassEvent, PassMarker, SensorId, SensorMount, SensorMounts, SensorInfo, StaticScan, StaticScanEnd, StaticScanOutcome, StaticScanProblem, StaticScanStart, StaticScanWarning, StaticScanYaws, StatusEvent, StepperState, TimePing, TimePong, YawRun, encode, ClockModel, CommandOutcome, CommandReply,
+    Ack, Body, ClockModel, Command, CommandOutcome, CommandReply, DeviceStatus, Frame, Heartbeat,
+    Hello, ImuSample, LidarRevolution, MountInfo, PassEvent, PassMarker, SensorId, SensorInfo,
+    SensorMount, SensorMounts, StaticScan, StaticScanEnd, StaticScanOutcome, StaticScanProblem,
+    StaticScanStart, StaticScanWarning, StaticScanYaws, StatusEvent, StepperState, TimePing,
+    TimePong, YawRun, encode,
 };
 use scan3d_server::ingest::control::ControlRequest;
 use scan3d_server::recording::{ServerRecord, SessionRecorder};
@@ -40,7 +47,7 @@ type Result<T> = std::result::Result<T, Box<dyn Error>>;
 
 const MS: u64 = 1_000_000;
 /// The repository root (for the shipped example configs).
-const ROOT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../..");
+const ROOT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/..");
 
 struct Corpus {
     root: PathBuf,
@@ -598,9 +605,18 @@ fn text_seeds(c: &Corpus) -> Result<()> {
         b"# comment\nROBOTLASER1 0 -1.5708 3.1416 0.0175 81.9 0.01 0 3 1.0 2.0 81.9 0 0.1 0 0 0 0 0 0 0 0 0 0 1.000000 host 1.0\nODOM 0 0 0 0 0 0 1.5 host 1.5\n",
     )?;
     let relations = fs::read_to_string(root.join("testdata/slam/intel.relations"))?;
-    let relations: String = relations.lines().take(6).map(|l| format!("{l}\n")).collect();
-    let trajectory = "976052905.167303 0 0 0\n976052911.885496 -0.05 -0.12 -1.68\n976052913.712702 0.3 0 0\n";
-    c.put("slam_text", "intel", format!("{trajectory}\0{relations}").as_bytes())?;
+    let relations: String = relations
+        .lines()
+        .take(6)
+        .map(|l| format!("{l}\n"))
+        .collect();
+    let trajectory =
+        "976052905.167303 0 0 0\n976052911.885496 -0.05 -0.12 -1.68\n976052913.712702 0.3 0 0\n";
+    c.put(
+        "slam_text",
+        "intel",
+        format!("{trajectory}\0{relations}").as_bytes(),
+    )?;
     for (i, (_, frame)) in frames()
         .into_iter()
         .filter(|(_, f)| matches!(f.body, Body::Command(_)))
@@ -622,10 +638,7 @@ fn text_seeds(c: &Corpus) -> Result<()> {
     Ok(())
 }
 
-fn main() -> Result<()> {
-    let root = std::env::args_os()
-        .nth(1)
-        .map_or_else(|| PathBuf::from(ROOT).join("fuzz/corpus"), PathBuf::from);
+fn write_all(root: PathBuf) -> Result<()> {
     let c = Corpus { root };
     frame_seeds(&c)?;
     driver_seeds(&c)?;
@@ -634,5 +647,45 @@ fn main() -> Result<()> {
     session_seeds(&c)?;
     text_seeds(&c)?;
     println!("seeds written to {}", c.root.display());
+    Ok(())
+}
+
+/// The fuzz targets, as `fuzz/Cargo.toml` names its `[[bin]]`s.
+fn fuzz_targets() -> Vec<String> {
+    let manifest =
+        fs::read_to_string(Path::new(ROOT).join("fuzz/Cargo.toml")).expect("fuzz/Cargo.toml");
+    let mut targets = Vec::new();
+    let mut in_bin = false;
+    for line in manifest.lines().map(str::trim) {
+        if line.starts_with('[') {
+            in_bin = line == "[[bin]]";
+        } else if in_bin && let Some(name) = line.strip_prefix("name = ") {
+            targets.push(name.trim_matches('"').to_string());
+        }
+    }
+    targets
+}
+
+/// Writes the seed corpora into `$FUZZ_CORPUS_DIR` (default `fuzz/corpus`) for `fuzz/ci.sh`.
+#[test]
+#[ignore = "writes fuzz/corpus; fuzz/ci.sh runs it"]
+fn write_fuzz_seeds() -> Result<()> {
+    let root = std::env::var_os("FUZZ_CORPUS_DIR")
+        .map_or_else(|| PathBuf::from(ROOT).join("fuzz/corpus"), PathBuf::from);
+    write_all(root)
+}
+
+#[test]
+fn every_fuzz_target_gets_seeds() -> Result<()> {
+    let dir = tempfile::tempdir()?;
+    write_all(dir.path().to_path_buf())?;
+    let targets = fuzz_targets();
+    assert!(targets.len() >= 15, "fuzz/Cargo.toml lists {targets:?}");
+    for target in &targets {
+        let seeds = fs::read_dir(dir.path().join(target))
+            .map(|entries| entries.count())
+            .unwrap_or(0);
+        assert!(seeds > 0, "no seeds for the fuzz target {target}");
+    }
     Ok(())
 }
