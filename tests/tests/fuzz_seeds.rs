@@ -654,16 +654,14 @@ fn write_all(root: PathBuf) -> Result<()> {
 fn fuzz_targets() -> Vec<String> {
     let manifest =
         fs::read_to_string(Path::new(ROOT).join("fuzz/Cargo.toml")).expect("fuzz/Cargo.toml");
-    let mut targets = Vec::new();
-    let mut in_bin = false;
-    for line in manifest.lines().map(str::trim) {
-        if line.starts_with('[') {
-            in_bin = line == "[[bin]]";
-        } else if in_bin && let Some(name) = line.strip_prefix("name = ") {
-            targets.push(name.trim_matches('"').to_string());
-        }
-    }
-    targets
+    let manifest: toml::Table = toml::from_str(&manifest).expect("fuzz/Cargo.toml is TOML");
+    manifest
+        .get("bin")
+        .and_then(toml::Value::as_array)
+        .expect("fuzz/Cargo.toml has [[bin]]s")
+        .iter()
+        .filter_map(|bin| bin.get("name")?.as_str().map(String::from))
+        .collect()
 }
 
 /// Writes the seed corpora into `$FUZZ_CORPUS_DIR` (default `fuzz/corpus`) for `fuzz/ci.sh`.
