@@ -537,10 +537,10 @@ fn cloud_seeds(c: &Corpus) -> Result<()> {
 /// A recorded mini session: the MCAP file `SessionRecorder` writes for a few frames, a
 /// command and a server-made record (a clock model), committed in two chunks and closed.
 fn session_seeds(c: &Corpus) -> Result<()> {
-    let tmp = std::env::temp_dir().join(format!("scan3d-seedgen-{}", std::process::id()));
-    let _ = fs::remove_dir_all(&tmp);
+    // Its own directory: the two tests of this file may run at once in one process.
+    let tmp = tempfile::tempdir()?;
     let session_id = 0x5eed_0001;
-    let mut rec = SessionRecorder::open(&tmp, "edge-pi-01", session_id)?;
+    let mut rec = SessionRecorder::open(tmp.path(), "edge-pi-01", session_id)?;
     let dir = rec.session_dir().to_path_buf();
     let mut committed = 0;
     for (_, frame) in frames() {
@@ -566,7 +566,6 @@ fn session_seeds(c: &Corpus) -> Result<()> {
             c.put("mcap_session", &name.unwrap_or_default(), &fs::read(&path)?)?;
         }
     }
-    fs::remove_dir_all(&tmp)?;
     Ok(())
 }
 
