@@ -1,10 +1,13 @@
 //! Occupancy grids that grow as the robot explores, read by the matcher as a continuous function.
 //!
-//! A [`Grid`] keeps log-odds per cell in a dense row-major array that reallocates (with a
-//! margin) when an update lands outside it: no size to configure, and a lookup is two multiplies
-//! and an index. Cell `(i, j)` covers `[i·r, (i+1)·r) × [j·r, (j+1)·r)` in the map frame; its
-//! value is taken to sit at the cell centre, and [`Grid::interpolate`] reads the occupancy
-//! probability between centres bilinearly, with its gradient (Hector SLAM's M(P) and ∇M(P)).
+//! A [`Grid`] keeps log-odds per cell in square tiles of 64 × 64 cells, allocated when an update
+//! first lands in them and found through a small directory over the tiles' bounding box: no size
+//! to configure, memory in proportion to the area seen rather than to its bounding box (an
+//! L-shaped building 400 m × 180 m across, or two rooms a kilometre apart), and a lookup is a
+//! directory read, two shifts and an index. Cell `(i, j)` covers `[i·r, (i+1)·r) × [j·r,
+//! (j+1)·r)` in the map frame; its value is taken to sit at the cell centre, and
+//! [`Grid::interpolate`] reads the occupancy probability between centres bilinearly, with its
+//! gradient (Hector SLAM's M(P) and ∇M(P)).
 //!
 //! Updates follow Hector's rule: per scan, each cell a beam passes through gets one free update
 //! and each endpoint cell one occupied update, even if several beams touch it; an endpoint
@@ -65,10 +68,14 @@ pub(crate) fn cell_containing(resolution: f64, x: f64, y: f64) -> (i32, i32) {
 #[derive(Debug, Clone)]
 pub struct Grid {
     resolution: f64,
-    /// World cell index of array column 0 / row 0.
-    origin: (i32, i32),
-    width: usize,
-    height: usize,
+    /// Tile coordinates of directory column 0 / row 0.
+    tile_origin: (i32, i32),
+    tiles_wide: usize,
+    tiles_high: usize,
+    /// Per tile of the bounding box, row-major, where its cells start in the pools below
+    /// (in tiles), or [`NO_TILE`] while nothing landed in it.
+    directory: Vec<u32>,
+    /// Log-odds per cell, tile after tile, [`TILE_CELLS`] per tile, row-major within a tile.
     log_odds: Vec<f32>,
     /// Occupancy probability per cell, kept beside the log-odds so lookups need no `exp`.
     probability: Vec<f32>,
@@ -81,20 +88,36 @@ pub struct Grid {
     clamp: f32,
     /// [`UpdateModel::join_endpoints_within`]: how far apart [`Grid::integrate`] joins.
     join_within: f64,
+    /// The most cells the grid may hold: [`MAX_CELLS`] (smaller in tests).
+    cell_limit: usize,
 }
+
+/// A tile is `2^TILE_BITS` cells wide.
+const TILE_BITS: u32 = 6;
+/// Cells along a tile's edge.
+const TILE: i32 = 1 << TILE_BITS;
+/// Cells in a tile.
+const TILE_CELLS: usize = 1 << (2 * TILE_BITS);
+/// A directory entry whose tile was never allocated.
+const NO_TILE: u32 = u32::MAX;
 
 /// Three consecutive endpoints are in line when the second segment turns from the first by
 /// less than this (rad): a surface's samples, not a foreground edge against a background.
 const JOIN_ANGLE: f64 = 0.2;
 
-/// Cells added on every side when the grid grows, so a robot driving along an edge does not
-/// reallocate on every scan.
-const GROWTH_MARGIN: i32 = 64;
+/// Tiles added on every side when the directory grows, so a robot driving along its edge does
+/// not copy it on every scan.
+const GROWTH_MARGIN: i32 = 4;
 
-/// A grid never grows beyond this many cells (600 MB at 12 bytes per cell: 350 m × 350 m at
-/// 5 cm). A trajectory that diverges would otherwise grow the map until memory runs out;
-/// updates beyond the limit are dropped and counted ([`crate::mapper::Mapper::refused_integrations`]).
+/// A grid never holds more than this many cells (600 MB at 12 bytes per cell: 12 km² at 5 cm).
+/// A trajectory that diverges would otherwise grow the map until memory runs out; a scan that
+/// could take the grid past it is not integrated, and counted
+/// ([`crate::mapper::Mapper::refused_integrations`]).
 pub const MAX_CELLS: usize = 50_000_000;
+
+/// The tiles' bounding box never spans more than this many tiles (a 16 MB directory: 6.5 km
+/// square at 5 cm), however few of them hold cells.
+const MAX_DIRECTORY_TILES: usize = 1 << 22;
 
 /// The value at, and the gradient of, the interpolated occupancy at a point.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -114,9 +137,10 @@ impl Grid {
         );
         Self {
             resolution,
-            origin: (0, 0),
-            width: 0,
-            height: 0,
+            tile_origin: (0, 0),
+            tiles_wide: 0,
+            tiles_high: 0,
+            directory: Vec::new(),
             log_odds: Vec::new(),
             probability: Vec::new(),
             mark: Vec::new(),
@@ -125,6 +149,7 @@ impl Grid {
             miss: log_odds(model.miss_probability),
             clamp: model.clamp_log_odds,
             join_within: f64::from(model.join_endpoints_within.max(0.0)),
+            cell_limit: MAX_CELLS,
         }
     }
 
@@ -133,14 +158,20 @@ impl Grid {
         self.resolution
     }
 
-    /// Width and height of the allocated area, in cells.
+    /// Width and height of the area the grid's tiles may cover, in cells: the bounding box of
+    /// everything integrated, with a margin.
     pub fn size(&self) -> (usize, usize) {
-        (self.width, self.height)
+        (self.tiles_wide << TILE_BITS, self.tiles_high << TILE_BITS)
     }
 
-    /// World cell index of the allocated area's lower-left cell.
+    /// World cell index of that area's lower-left cell.
     pub fn origin_cell(&self) -> (i32, i32) {
-        self.origin
+        (self.tile_origin.0 * TILE, self.tile_origin.1 * TILE)
+    }
+
+    /// Cells held in memory: those of the tiles anything landed in.
+    pub fn allocated_cells(&self) -> usize {
+        self.log_odds.len()
     }
 
     /// Number of scans integrated so far.
@@ -168,13 +199,35 @@ impl Grid {
         cell_containing(self.resolution, x, y)
     }
 
-    fn index(&self, (i, j): (i32, i32)) -> Option<usize> {
-        let col = i.checked_sub(self.origin.0)?;
-        let row = j.checked_sub(self.origin.1)?;
-        if col < 0 || row < 0 || col as usize >= self.width || row as usize >= self.height {
+    /// The directory slot of the tile holding cell `(i, j)`, if the directory covers it.
+    fn slot(&self, (i, j): (i32, i32)) -> Option<usize> {
+        let col = (i >> TILE_BITS).checked_sub(self.tile_origin.0)?;
+        let row = (j >> TILE_BITS).checked_sub(self.tile_origin.1)?;
+        if col < 0 || row < 0 || col as usize >= self.tiles_wide || row as usize >= self.tiles_high
+        {
             return None;
         }
-        Some(row as usize * self.width + col as usize)
+        Some(row as usize * self.tiles_wide + col as usize)
+    }
+
+    /// Where cell `(i, j)` is in the pools, if its tile was allocated.
+    fn index(&self, cell: (i32, i32)) -> Option<usize> {
+        let tile = self.directory[self.slot(cell)?];
+        (tile != NO_TILE).then(|| tile as usize * TILE_CELLS + within_tile(cell))
+    }
+
+    /// Where cell `(i, j)` is in the pools, allocating its tile (unknown cells) if needed. The
+    /// directory must cover the cell ([`Grid::cover`]).
+    fn index_allocating(&mut self, cell: (i32, i32)) -> usize {
+        let slot = self.slot(cell).expect("covered");
+        if self.directory[slot] == NO_TILE {
+            self.directory[slot] = (self.log_odds.len() / TILE_CELLS) as u32;
+            self.log_odds.resize(self.log_odds.len() + TILE_CELLS, 0.0);
+            self.probability
+                .resize(self.probability.len() + TILE_CELLS, 0.5);
+            self.mark.resize(self.mark.len() + TILE_CELLS, 0);
+        }
+        self.directory[slot] as usize * TILE_CELLS + within_tile(cell)
     }
 
     /// The occupancy probability and its gradient at the point (m), bilinear between the four
@@ -186,13 +239,11 @@ impl Grid {
         let (u0, v0) = (u.floor(), v.floor());
         let (fu, fv) = (u - u0, v - v0);
         let (i, j) = (u0 as i32, v0 as i32);
-        let (p00, p10, p01, p11) = match self.index((i, j)) {
-            // Fast path: all four inside the array.
-            Some(k)
-                if (i - self.origin.0 + 1) < self.width as i32
-                    && (j - self.origin.1 + 1) < self.height as i32 =>
-            {
-                let w = self.width;
+        let inside_one_tile = (i & (TILE - 1)) != TILE - 1 && (j & (TILE - 1)) != TILE - 1;
+        let (p00, p10, p01, p11) = match inside_one_tile.then(|| self.index((i, j))) {
+            // Fast path: all four in one tile...
+            Some(Some(k)) => {
+                let w = TILE as usize;
                 (
                     self.probability[k],
                     self.probability[k + 1],
@@ -200,7 +251,9 @@ impl Grid {
                     self.probability[k + w + 1],
                 )
             }
-            _ => (
+            // ...which nothing landed in.
+            Some(None) => (0.5, 0.5, 0.5, 0.5),
+            None => (
                 self.probability((i, j)),
                 self.probability((i + 1, j)),
                 self.probability((i, j + 1)),
@@ -224,22 +277,28 @@ impl Grid {
         }
     }
 
-    /// Makes the array cover the cells `[lo, hi]` (inclusive), growing it with a margin.
-    /// Returns false (and changes nothing) if that would exceed [`MAX_CELLS`].
+    /// Makes the directory cover the cells `[lo, hi]` (inclusive), growing it with a margin, and
+    /// checks that the grid may allocate every tile of that box it has not yet. Returns false
+    /// (and changes nothing) if that could exceed [`MAX_CELLS`] or the directory
+    /// [`MAX_DIRECTORY_TILES`]: a scan whose box has more tiles than it touches may be refused
+    /// a few hundred tiles early, never let past the limit.
     fn cover(&mut self, lo: (i32, i32), hi: (i32, i32)) -> bool {
-        let (x1, y1) = (
-            self.origin.0 + self.width as i32 - 1,
-            self.origin.1 + self.height as i32 - 1,
+        let (lo, hi) = (
+            (lo.0 >> TILE_BITS, lo.1 >> TILE_BITS),
+            (hi.0 >> TILE_BITS, hi.1 >> TILE_BITS),
         );
-        if self.width > 0
-            && lo.0 >= self.origin.0
-            && lo.1 >= self.origin.1
+        let (x1, y1) = (
+            self.tile_origin.0 + self.tiles_wide as i32 - 1,
+            self.tile_origin.1 + self.tiles_high as i32 - 1,
+        );
+        let covered = self.tiles_wide > 0
+            && lo.0 >= self.tile_origin.0
+            && lo.1 >= self.tile_origin.1
             && hi.0 <= x1
-            && hi.1 <= y1
-        {
-            return true;
-        }
-        let (nx0, ny0, nx1, ny1) = if self.width == 0 {
+            && hi.1 <= y1;
+        let (nx0, ny0, nx1, ny1) = if covered {
+            (self.tile_origin.0, self.tile_origin.1, x1, y1)
+        } else if self.tiles_wide == 0 {
             (
                 lo.0 - GROWTH_MARGIN,
                 lo.1 - GROWTH_MARGIN,
@@ -248,15 +307,15 @@ impl Grid {
             )
         } else {
             (
-                if lo.0 < self.origin.0 {
+                if lo.0 < self.tile_origin.0 {
                     lo.0 - GROWTH_MARGIN
                 } else {
-                    self.origin.0
+                    self.tile_origin.0
                 },
-                if lo.1 < self.origin.1 {
+                if lo.1 < self.tile_origin.1 {
                     lo.1 - GROWTH_MARGIN
                 } else {
-                    self.origin.1
+                    self.tile_origin.1
                 },
                 if hi.0 > x1 { hi.0 + GROWTH_MARGIN } else { x1 },
                 if hi.1 > y1 { hi.1 + GROWTH_MARGIN } else { y1 },
@@ -264,29 +323,40 @@ impl Grid {
         };
         let width = (i64::from(nx1) - i64::from(nx0) + 1) as usize;
         let height = (i64::from(ny1) - i64::from(ny0) + 1) as usize;
-        if width.saturating_mul(height) > MAX_CELLS {
+        if width.saturating_mul(height) > MAX_DIRECTORY_TILES {
             return false;
         }
-        let mut log_odds = vec![0.0; width * height];
-        let mut probability = vec![0.5; width * height];
-        let mut mark = vec![0; width * height];
-        let (dx, dy) = (
-            (self.origin.0 - nx0) as usize,
-            (self.origin.1 - ny0) as usize,
-        );
-        for row in 0..self.height {
-            let from = row * self.width..(row + 1) * self.width;
-            let to = (row + dy) * width + dx;
-            log_odds[to..to + self.width].copy_from_slice(&self.log_odds[from.clone()]);
-            probability[to..to + self.width].copy_from_slice(&self.probability[from.clone()]);
-            mark[to..to + self.width].copy_from_slice(&self.mark[from]);
+        // The box's tiles not allocated yet: more than the scan can touch, never fewer.
+        let held = |ti: i32, tj: i32| {
+            self.slot((ti * TILE, tj * TILE))
+                .is_some_and(|k| self.directory[k] != NO_TILE)
+        };
+        let mut missing = 0;
+        for tj in lo.1..=hi.1 {
+            for ti in lo.0..=hi.0 {
+                missing += usize::from(!held(ti, tj));
+            }
         }
-        self.origin = (nx0, ny0);
-        self.width = width;
-        self.height = height;
-        self.log_odds = log_odds;
-        self.probability = probability;
-        self.mark = mark;
+        if self.log_odds.len() + missing * TILE_CELLS > self.cell_limit {
+            return false;
+        }
+        if covered {
+            return true;
+        }
+        let mut directory = vec![NO_TILE; width * height];
+        let (dx, dy) = (
+            (self.tile_origin.0 - nx0) as usize,
+            (self.tile_origin.1 - ny0) as usize,
+        );
+        for row in 0..self.tiles_high {
+            let from = row * self.tiles_wide..(row + 1) * self.tiles_wide;
+            let to = (row + dy) * width + dx;
+            directory[to..to + self.tiles_wide].copy_from_slice(&self.directory[from]);
+        }
+        self.tile_origin = (nx0, ny0);
+        self.tiles_wide = width;
+        self.tiles_high = height;
+        self.directory = directory;
         true
     }
 
@@ -370,7 +440,7 @@ impl Grid {
     /// undoes the scan's free update of the cell if there was one: the endpoint wins.
     fn hit_once(&mut self, cell: (i32, i32), free_mark: u32) {
         let hit_mark = free_mark + 1;
-        let k = self.index(cell).expect("covered");
+        let k = self.index_allocating(cell);
         if self.mark[k] != hit_mark {
             if self.mark[k] == free_mark {
                 self.apply(k, -self.miss);
@@ -383,19 +453,22 @@ impl Grid {
     /// Free updates along the cells from `start` to `end`, both excluded from nothing but the
     /// end cell (Bresenham, integer arithmetic).
     fn trace(&mut self, start: (i32, i32), end: (i32, i32), free_mark: u32) {
-        let w = self.width as i32;
-        let base = -(self.origin.1 * w + self.origin.0);
-        bresenham(start, end, |(i, j)| {
-            if (i, j) == end {
+        bresenham(start, end, |cell| {
+            if cell == end {
                 return;
             }
-            let k = (base + j * w + i) as usize;
+            let k = self.index_allocating(cell);
             if self.mark[k] < free_mark {
                 self.mark[k] = free_mark;
                 self.apply(k, self.miss);
             }
         });
     }
+}
+
+/// Where cell `(i, j)` is within its tile (row-major).
+fn within_tile((i, j): (i32, i32)) -> usize {
+    (((j & (TILE - 1)) << TILE_BITS) | (i & (TILE - 1))) as usize
 }
 
 /// Visits the cells of the line from `start` to `end`, both included (Bresenham, integer
@@ -644,9 +717,100 @@ mod tests {
 
     #[test]
     fn a_grid_refuses_to_grow_past_its_cell_limit_and_stays_usable() {
+        // A bounding box too large for the directory, though one beam touches few tiles.
         let mut g = Grid::new(0.001, &UpdateModel::default());
         assert!(!g.integrate((0.0, 0.0), &[(100_000.0, 100_000.0)], &[]));
         assert_eq!(g.scans(), 0);
         assert!(g.integrate((0.0, 0.0), &[(0.01, 0.0)], &[]));
+        // More cells than the grid may hold: five tiles' worth, at 1 m per cell.
+        let mut g = Grid::new(1.0, &UpdateModel::default());
+        g.cell_limit = 5 * TILE_CELLS;
+        assert!(g.integrate((0.5, 0.5), &[(10.5, 0.5)], &[]));
+        assert_eq!(g.allocated_cells(), TILE_CELLS);
+        // A beam across three more tiles: its box holds four, which would make five.
+        assert!(g.integrate((0.5, 0.5), &[(200.5, 0.5)], &[]));
+        assert_eq!(g.allocated_cells(), 4 * TILE_CELLS);
+        // A beam whose box holds more tiles than remain is refused, and nothing changes.
+        assert!(!g.integrate((0.5, 0.5), &[(0.5, 200.5)], &[]));
+        assert_eq!(g.allocated_cells(), 4 * TILE_CELLS);
+        assert_eq!(g.scans(), 2);
+        assert!(g.probability((200, 0)) > 0.5);
+        assert!(!g.is_known((0, 200)));
+    }
+
+    #[test]
+    fn memory_follows_the_area_seen_not_its_bounding_box() {
+        // Two rooms 2.5 km apart at 5 cm: their bounding box is 1.7 billion cells.
+        let mut g = Grid::new(0.05, &UpdateModel::default());
+        let room: Vec<(f64, f64)> = (0..360)
+            .map(|k| {
+                let a = f64::from(k).to_radians();
+                (3.0 * a.cos(), 3.0 * a.sin())
+            })
+            .collect();
+        for (x0, y0) in [(0.0, 0.0), (2000.0, -1500.0)] {
+            let hits: Vec<_> = room.iter().map(|&(x, y)| (x0 + x, y0 + y)).collect();
+            assert!(g.integrate((x0, y0), &hits, &[]));
+            assert!(g.probability(g.cell_of(x0 + 3.0, y0)) > 0.5);
+            assert!(g.probability(g.cell_of(x0 + 1.5, y0)) < 0.5);
+        }
+        // Each room (6 m across) touches at most 3 × 3 tiles of 3.2 m.
+        assert!(
+            g.allocated_cells() <= 2 * 9 * TILE_CELLS,
+            "{}",
+            g.allocated_cells()
+        );
+        assert!(!g.is_known(g.cell_of(1000.0, -750.0)));
+        assert_eq!(g.probability(g.cell_of(1000.0, -750.0)), 0.5);
+    }
+
+    #[test]
+    fn interpolation_across_tile_edges_reads_each_cell_where_it_is() {
+        let mut g = grid();
+        // Beams from inside tile (0, 0) across the edges at cells 0 / −1 and 63 / 64, both ways.
+        for k in 0..72 {
+            let a = f64::from(k) * 5.0f64.to_radians();
+            let end = (0.3 + 7.0 * a.cos(), 0.2 + 7.0 * a.sin());
+            g.integrate((0.3, 0.2), &[end], &[]);
+        }
+        let cells_at = |x: f64, y: f64| {
+            let (u, v) = (x / 0.1 - 0.5, y / 0.1 - 0.5);
+            let (i, j) = (u.floor() as i32, v.floor() as i32);
+            let (fu, fv) = (u - u.floor(), v - v.floor());
+            let p = |c| f64::from(g.probability(c));
+            let bottom = p((i, j)) + fu * (p((i + 1, j)) - p((i, j)));
+            let top = p((i, j + 1)) + fu * (p((i + 1, j + 1)) - p((i, j + 1)));
+            bottom + fv * (top - bottom)
+        };
+        let mut straddling = 0;
+        for n in 0..400 {
+            // Points around x = 0 and x = 6.4 m, y = 0 and y = 6.4 m.
+            let x = [-0.13, 6.31][n % 2] + 0.0007 * n as f64;
+            let y = [-0.11, 6.33][(n / 2) % 2] + 0.0005 * n as f64;
+            let (i, j) = (
+                (x / 0.1 - 0.5).floor() as i32,
+                (y / 0.1 - 0.5).floor() as i32,
+            );
+            straddling +=
+                usize::from(i.rem_euclid(TILE) == TILE - 1 || j.rem_euclid(TILE) == TILE - 1);
+            assert!(
+                (g.interpolate(x, y).value - cells_at(x, y)).abs() < 1e-9,
+                "({x}, {y})"
+            );
+        }
+        assert!(straddling > 100, "{straddling}");
+        // Cells seen on both sides of each edge, so the reads compared were not all unknown.
+        for cell in [
+            (-1, 2),
+            (0, 2),
+            (63, 2),
+            (64, 2),
+            (3, -1),
+            (3, 0),
+            (3, 63),
+            (3, 64),
+        ] {
+            assert!(g.is_known(cell), "{cell:?}");
+        }
     }
 }

@@ -597,7 +597,10 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         tracing::warn!(
             scans = refused,
             cells = MAX_CELLS,
-            side_m = %format_args!("{:.0}", (MAX_CELLS as f64).sqrt() * config.resolution),
+            area_seen_km2 = %format_args!(
+                "{:.1}",
+                MAX_CELLS as f64 * config.resolution * config.resolution / 1e6
+            ),
             "the map reached its size limit: those scans were not mapped, and where the map \
              has nothing the trajectory follows the prior alone"
         );
