@@ -453,11 +453,19 @@ impl Grid {
     /// Free updates along the cells from `start` to `end`, both excluded from nothing but the
     /// end cell (Bresenham, integer arithmetic).
     fn trace(&mut self, start: (i32, i32), end: (i32, i32), free_mark: u32) {
+        // A beam crosses a tile in up to 128 cells: look each tile up once.
+        let mut tile = None;
+        let mut first_cell = 0;
         bresenham(start, end, |cell| {
             if cell == end {
                 return;
             }
-            let k = self.index_allocating(cell);
+            let here = (cell.0 >> TILE_BITS, cell.1 >> TILE_BITS);
+            if tile != Some(here) {
+                tile = Some(here);
+                first_cell = self.index_allocating((here.0 * TILE, here.1 * TILE));
+            }
+            let k = first_cell + within_tile(cell);
             if self.mark[k] < free_mark {
                 self.mark[k] = free_mark;
                 self.apply(k, self.miss);
