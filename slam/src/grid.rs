@@ -158,15 +158,36 @@ impl Grid {
         self.resolution
     }
 
-    /// Width and height of the area the grid's tiles may cover, in cells: the bounding box of
-    /// everything integrated, with a margin.
-    pub fn size(&self) -> (usize, usize) {
-        (self.tiles_wide << TILE_BITS, self.tiles_high << TILE_BITS)
-    }
-
-    /// World cell index of that area's lower-left cell.
-    pub fn origin_cell(&self) -> (i32, i32) {
-        (self.tile_origin.0 * TILE, self.tile_origin.1 * TILE)
+    /// The lowest and highest world cell indices of the cells ever updated (the smallest box
+    /// holding all of them), or `None` while the grid is empty.
+    pub fn known_bounds(&self) -> Option<((i32, i32), (i32, i32))> {
+        let mut bounds: Option<((i32, i32), (i32, i32))> = None;
+        for (slot, &tile) in self.directory.iter().enumerate() {
+            if tile == NO_TILE {
+                continue;
+            }
+            let corner = (
+                (self.tile_origin.0 + (slot % self.tiles_wide) as i32) * TILE,
+                (self.tile_origin.1 + (slot / self.tiles_wide) as i32) * TILE,
+            );
+            let first = tile as usize * TILE_CELLS;
+            for (n, _) in self.mark[first..first + TILE_CELLS]
+                .iter()
+                .enumerate()
+                .filter(|(_, mark)| **mark != 0)
+            {
+                let n = n as i32;
+                let cell = (corner.0 + (n & (TILE - 1)), corner.1 + (n >> TILE_BITS));
+                bounds = Some(match bounds {
+                    None => (cell, cell),
+                    Some((lo, hi)) => (
+                        (lo.0.min(cell.0), lo.1.min(cell.1)),
+                        (hi.0.max(cell.0), hi.1.max(cell.1)),
+                    ),
+                });
+            }
+        }
+        bounds
     }
 
     /// Cells held in memory: those of the tiles anything landed in.
@@ -655,8 +676,9 @@ mod tests {
         assert_eq!(g.probability(g.cell_of(1.0, 1.0)), before);
         assert!(g.probability(g.cell_of(-30.0, -12.0)) > 0.5);
         assert!(g.probability(g.cell_of(24.9, 39.8)) < 0.5);
-        let (w, h) = g.size();
-        assert!(w >= 550 && h >= 520, "{w}×{h}");
+        // From the hit at (−30, −12) to the last cell freed towards (25, 40), the endpoint's
+        // own cell not freed.
+        assert_eq!(g.known_bounds(), Some(((-300, -120), (249, 399))));
     }
 
     #[test]

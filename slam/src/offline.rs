@@ -157,10 +157,11 @@ pub fn map_log_calibrated(
     }
 }
 
-/// The grid's known area as a raster for the image writers: unknown cells stay unknown.
+/// The grid's known area (the smallest box holding every cell seen) as a raster for the image
+/// writers: unknown cells stay unknown.
 pub fn raster(grid: &Grid) -> Result<OccupancyRaster, RasterError> {
-    let (width, height) = grid.size();
-    let (i0, j0) = grid.origin_cell();
+    let ((i0, j0), (i1, j1)) = grid.known_bounds().unwrap_or(((0, 0), (-1, -1)));
+    let (width, height) = ((i1 - i0 + 1) as usize, (j1 - j0 + 1) as usize);
     let mut cells = Vec::with_capacity(width * height);
     for row in 0..height as i32 {
         for column in 0..width as i32 {
@@ -201,13 +202,16 @@ mod tests {
     fn a_raster_of_the_grid_keeps_unknown_cells_unknown_and_its_origin() {
         let mut grid = Grid::new(0.5, &crate::grid::UpdateModel::default());
         grid.integrate((0.25, 0.25), &[(2.25, 0.25)], &[]);
+        grid.integrate((0.25, 0.25), &[(0.25, 1.25)], &[]);
         let raster = raster(&grid).expect("raster");
-        let (i0, j0) = grid.origin_cell();
-        assert_eq!(raster.origin(), (f64::from(i0) * 0.5, f64::from(j0) * 0.5));
-        let hit = raster
-            .cell((4 - i0) as usize, (0 - j0) as usize)
-            .expect("seen");
-        assert!(hit > 0.5);
-        assert_eq!(raster.cell((4 - i0) as usize, (3 - j0) as usize), None);
+        // Cells (0, 0) to (4, 2): the beams' cells, and nothing around them.
+        assert_eq!(raster.origin(), (0.0, 0.0));
+        assert_eq!((raster.width(), raster.height()), (5, 3));
+        assert!(raster.cell(4, 0).expect("seen") > 0.5);
+        assert!(raster.cell(0, 2).expect("seen") > 0.5);
+        assert!(raster.cell(2, 0).expect("seen") < 0.5);
+        assert_eq!(raster.cell(4, 2), None);
+        let empty = Grid::new(0.5, &crate::grid::UpdateModel::default());
+        assert!(super::raster(&empty).is_err());
     }
 }
