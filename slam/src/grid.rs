@@ -109,7 +109,8 @@ const JOIN_ANGLE: f64 = 0.2;
 /// not copy it on every scan.
 const GROWTH_MARGIN: i32 = 4;
 
-/// A grid never holds more than this many cells (600 MB at 12 bytes per cell: 12 km² at 5 cm).
+/// A grid never holds more than this many cells (600 MB at 12 bytes per cell; at 5 cm, 12.5 ha
+/// of cells seen, as much as a 353 m square).
 /// A trajectory that diverges would otherwise grow the map until memory runs out; a scan that
 /// could take the grid past it is not integrated, and counted
 /// ([`crate::mapper::Mapper::refused_integrations`]).

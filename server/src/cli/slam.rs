@@ -597,9 +597,9 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         tracing::warn!(
             scans = refused,
             cells = MAX_CELLS,
-            area_seen_km2 = %format_args!(
-                "{:.1}",
-                MAX_CELLS as f64 * config.resolution * config.resolution / 1e6
+            area_seen_m2 = %format_args!(
+                "{:.0}",
+                MAX_CELLS as f64 * config.resolution * config.resolution
             ),
             "the map reached its size limit: those scans were not mapped, and where the map \
              has nothing the trajectory follows the prior alone"
