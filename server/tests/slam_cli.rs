@@ -93,6 +93,25 @@ fn slam_writes_one_pose_per_scan_with_the_logs_timestamps_and_a_map_server_map()
     }
     let pgm = std::fs::read(dir.path().join("intel.pgm")).unwrap();
     assert!(pgm.starts_with(b"P5\n"));
+    // The image is the extent of the cells seen, as the summary says.
+    let map_line = said
+        .lines()
+        .find(|l| l.starts_with("map: "))
+        .unwrap_or_else(|| panic!("no map line in {said}"));
+    let cells = map_line
+        .split_once(" m (")
+        .and_then(|(_, rest)| rest.split_once(" cells of 0.05 m)"))
+        .map(|(cells, _)| cells.replace(" × ", " "))
+        .unwrap_or_else(|| panic!("{map_line}"));
+    let header = String::from_utf8_lossy(&pgm[..pgm.len().min(80)]).into_owned();
+    assert!(
+        header.contains(&format!("\n{cells}\n255\n")),
+        "{header:?} vs {map_line}"
+    );
+    assert!(
+        map_line.contains(" cells held over 2 grid(s) ("),
+        "{map_line}"
+    );
     // Occupied (0), free (254) and unknown (205) cells are all there.
     for value in [0u8, 254, 205] {
         assert!(pgm[20..].contains(&value), "no pixel of value {value}");

@@ -196,6 +196,12 @@ impl Grid {
         self.log_odds.len()
     }
 
+    /// Bytes the cells and the directory take (12 a cell, 4 a tile of the bounding box).
+    pub fn allocated_bytes(&self) -> usize {
+        self.log_odds.len() * (size_of::<f32>() * 2 + size_of::<u32>())
+            + self.directory.len() * size_of::<u32>()
+    }
+
     /// Number of scans integrated so far.
     pub fn scans(&self) -> u32 {
         self.scans

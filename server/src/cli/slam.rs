@@ -9,7 +9,7 @@ use std::time::Instant;
 use anyhow::{Context, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 use scan3d_slam::carmen::{ReadOptions, read_log};
-use scan3d_slam::grid::MAX_CELLS;
+use scan3d_slam::grid::{Grid, GridPyramid, MAX_CELLS};
 use scan3d_slam::map_image::{Thresholds, write_pgm, write_png_with_trajectory, write_yaml};
 use scan3d_slam::mapper::{Mapper, MapperConfig};
 use scan3d_slam::matcher::Loss;
@@ -582,6 +582,7 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
         },
         args.out.display()
     )?;
+    writeln!(out, "{}", describe_map(mapper.map()))?;
     let out_of_order = run.results.iter().filter(|r| r.out_of_order).count();
     if out_of_order > 0 {
         writeln!(
@@ -731,6 +732,32 @@ fn span(trajectory: &Trajectory) -> f64 {
         (Some(a), Some(b)) => b.timestamp.seconds - a.timestamp.seconds,
         _ => 0.0,
     }
+}
+
+/// One line on the map's size: the cells its grids hold (tiles where scans landed), their
+/// memory, and the extent of the cells seen on the finest grid (what `--map` writes).
+fn describe_map(map: &GridPyramid) -> String {
+    let held: usize = map.levels().iter().map(Grid::allocated_cells).sum();
+    let bytes: usize = map.levels().iter().map(Grid::allocated_bytes).sum();
+    let finest = map.finest();
+    let r = finest.resolution();
+    let extent = finest.known_bounds().map_or_else(
+        || "nothing seen".to_owned(),
+        |((i0, j0), (i1, j1))| {
+            let (w, h) = (i1 - i0 + 1, j1 - j0 + 1);
+            format!(
+                "the cells seen span {:.1} × {:.1} m ({w} × {h} cells of {r} m)",
+                f64::from(w) * r,
+                f64::from(h) * r
+            )
+        },
+    );
+    format!(
+        "map: {:.2} M cells held over {} grid(s) ({:.0} MB); {extent}",
+        held as f64 / 1e6,
+        map.levels().len(),
+        bytes as f64 / 1e6
+    )
 }
 
 /// Writes `STEM.pgm` + `STEM.yaml` (map_server) and `STEM.png` (with the trajectory).
