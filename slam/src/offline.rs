@@ -201,16 +201,16 @@ mod tests {
     #[test]
     fn a_raster_of_the_grid_keeps_unknown_cells_unknown_and_its_origin() {
         let mut grid = Grid::new(0.5, &crate::grid::UpdateModel::default());
-        grid.integrate((0.25, 0.25), &[(2.25, 0.25)], &[]);
-        grid.integrate((0.25, 0.25), &[(0.25, 1.25)], &[]);
+        grid.integrate((-0.75, 0.25), &[(2.25, 0.25)], &[]);
+        grid.integrate((-0.75, 0.25), &[(-0.75, 1.25)], &[]);
         let raster = raster(&grid).expect("raster");
-        // Cells (0, 0) to (4, 2): the beams' cells, and nothing around them.
-        assert_eq!(raster.origin(), (0.0, 0.0));
-        assert_eq!((raster.width(), raster.height()), (5, 3));
-        assert!(raster.cell(4, 0).expect("seen") > 0.5);
+        // Cells (−2, 0) to (4, 2): the beams' cells, and nothing around them.
+        assert_eq!(raster.origin(), (-1.0, 0.0));
+        assert_eq!((raster.width(), raster.height()), (7, 3));
+        assert!(raster.cell(6, 0).expect("seen") > 0.5);
         assert!(raster.cell(0, 2).expect("seen") > 0.5);
-        assert!(raster.cell(2, 0).expect("seen") < 0.5);
-        assert_eq!(raster.cell(4, 2), None);
+        assert!(raster.cell(3, 0).expect("seen") < 0.5);
+        assert_eq!(raster.cell(6, 2), None);
         let empty = Grid::new(0.5, &crate::grid::UpdateModel::default());
         assert!(super::raster(&empty).is_err());
     }
