@@ -100,6 +100,8 @@ const TILE: i32 = 1 << TILE_BITS;
 const TILE_CELLS: usize = 1 << (2 * TILE_BITS);
 /// A directory entry whose tile was never allocated.
 const NO_TILE: u32 = u32::MAX;
+/// The occupancy probability of a cell nothing was seen in.
+const UNKNOWN: f32 = 0.5;
 
 /// Three consecutive endpoints are in line when the second segment turns from the first by
 /// less than this (rad): a surface's samples, not a foreground edge against a background.
@@ -214,7 +216,7 @@ impl Grid {
 
     /// Occupancy probability of the world cell `(i, j)`; ½ where nothing was seen.
     pub fn probability(&self, cell: (i32, i32)) -> f32 {
-        self.index(cell).map_or(0.5, |k| self.probability[k])
+        self.index(cell).map_or(UNKNOWN, |k| self.probability[k])
     }
 
     /// Whether the cell was ever updated.
@@ -252,7 +254,7 @@ impl Grid {
             self.directory[slot] = (self.log_odds.len() / TILE_CELLS) as u32;
             self.log_odds.resize(self.log_odds.len() + TILE_CELLS, 0.0);
             self.probability
-                .resize(self.probability.len() + TILE_CELLS, 0.5);
+                .resize(self.probability.len() + TILE_CELLS, UNKNOWN);
             self.mark.resize(self.mark.len() + TILE_CELLS, 0);
         }
         self.directory[slot] as usize * TILE_CELLS + within_tile(cell)
@@ -268,25 +270,25 @@ impl Grid {
         let (fu, fv) = (u - u0, v - v0);
         let (i, j) = (u0 as i32, v0 as i32);
         let inside_one_tile = (i & (TILE - 1)) != TILE - 1 && (j & (TILE - 1)) != TILE - 1;
-        let (p00, p10, p01, p11) = match inside_one_tile.then(|| self.index((i, j))) {
-            // Fast path: all four in one tile...
-            Some(Some(k)) => {
-                let w = TILE as usize;
-                (
-                    self.probability[k],
-                    self.probability[k + 1],
-                    self.probability[k + w],
-                    self.probability[k + w + 1],
-                )
-            }
-            // ...which nothing landed in.
-            Some(None) => (0.5, 0.5, 0.5, 0.5),
-            None => (
+        let (p00, p10, p01, p11) = if inside_one_tile {
+            // Fast path: all four in one tile, all unknown if nothing landed in it.
+            self.index((i, j))
+                .map_or((UNKNOWN, UNKNOWN, UNKNOWN, UNKNOWN), |k| {
+                    let w = TILE as usize;
+                    (
+                        self.probability[k],
+                        self.probability[k + 1],
+                        self.probability[k + w],
+                        self.probability[k + w + 1],
+                    )
+                })
+        } else {
+            (
                 self.probability((i, j)),
                 self.probability((i + 1, j)),
                 self.probability((i, j + 1)),
                 self.probability((i + 1, j + 1)),
-            ),
+            )
         };
         let (p00, p10, p01, p11) = (
             f64::from(p00),
