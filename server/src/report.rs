@@ -24,15 +24,6 @@ pub struct MetricBox {
     pub max: [f64; 3],
 }
 
-/// Parses `x0,y0,z0,x1,y1,z1` (metres), as `--bbox` takes it.
-pub fn parse_bbox(s: &str) -> Result<MetricBox, String> {
-    let [x0, y0, z0, x1, y1, z1] = crate::cli::parse_finite_numbers(s, "bbox x0,y0,z0,x1,y1,z1")?;
-    Ok(MetricBox {
-        min: [x0, y0, z0],
-        max: [x1, y1, z1],
-    })
-}
-
 /// Reads a `.bt` / `.ot` map for evaluation (OctoMap's default sensor model).
 pub fn load_map(path: &Path) -> anyhow::Result<LeafMap> {
     let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
@@ -743,28 +734,6 @@ mod tests {
     }
 
     #[test]
-    fn a_bbox_needs_six_finite_numbers_and_says_what_it_got() {
-        assert_eq!(
-            parse_bbox(" -1, -2,0 ,3,4,2.5"),
-            Ok(MetricBox {
-                min: [-1.0, -2.0, 0.0],
-                max: [3.0, 4.0, 2.5],
-            })
-        );
-        assert_eq!(
-            parse_bbox("0,0,0,1,1"),
-            Err(
-                "expected bbox x0,y0,z0,x1,y1,z1 (6 finite numbers), got 5 in \"0,0,0,1,1\"".into()
-            )
-        );
-        // NaN parses as a float; a box with it would select nothing without saying why.
-        assert_eq!(
-            parse_bbox("0,0,0,1,1,NaN"),
-            Err("\"NaN\" is not a finite number".into())
-        );
-    }
-
-    #[test]
     fn a_map_without_3d_data_is_reported_with_the_reason() {
         let dir = tempfile::tempdir().unwrap();
         let (reference, empty) = (dir.path().join("ref.bt"), dir.path().join("map2.bt"));
@@ -840,7 +809,7 @@ mod tests {
              --bbox -0.2,-0.2,-0.2,8.05,5.9,3.2 --out out"
         );
         assert_eq!(
-            parse_bbox(&options.bbox.unwrap().to_string()),
+            crate::cli::parse_bbox(&options.bbox.unwrap().to_string()),
             Ok(options.bbox.unwrap())
         );
     }

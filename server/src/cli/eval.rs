@@ -7,7 +7,8 @@ use std::path::{Path, PathBuf};
 
 use scan3d_map::eval::Metrics;
 
-pub use crate::report::{MetricBox, evaluate_maps, key_box, load_map, opt, parse_bbox};
+use super::parse_bbox;
+pub use crate::report::{MetricBox, evaluate_maps, key_box, load_map, opt};
 
 /// Options of `scan3d eval`.
 #[derive(Debug, clap::Args)]

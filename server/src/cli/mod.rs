@@ -120,6 +120,15 @@ pub fn parse_finite_numbers<const N: usize>(text: &str, what: &str) -> Result<[f
         .map_err(|_| format!("expected {what} ({N} finite numbers), got {given} in {text:?}"))
 }
 
+/// Parses `x0,y0,z0,x1,y1,z1` (metres), as `--bbox` takes it.
+pub fn parse_bbox(s: &str) -> Result<crate::report::MetricBox, String> {
+    let [x0, y0, z0, x1, y1, z1] = parse_finite_numbers(s, "bbox x0,y0,z0,x1,y1,z1")?;
+    Ok(crate::report::MetricBox {
+        min: [x0, y0, z0],
+        max: [x1, y1, z1],
+    })
+}
+
 /// Runs a parsed command line, writing its output to `out`.
 pub fn execute(cli: Cli, out: &mut dyn Write) -> anyhow::Result<()> {
     match cli.command {
@@ -141,5 +150,33 @@ pub fn execute(cli: Cli, out: &mut dyn Write) -> anyhow::Result<()> {
         Command::Slam(args) => slam::run(&args, out),
         Command::SlamEval(args) => slam::run_eval(&args, out),
         Command::TrajEval(args) => slam::run_traj_eval(&args, out),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::parse_bbox;
+    use crate::report::MetricBox;
+
+    #[test]
+    fn a_bbox_needs_six_finite_numbers_and_says_what_it_got() {
+        assert_eq!(
+            parse_bbox(" -1, -2,0 ,3,4,2.5"),
+            Ok(MetricBox {
+                min: [-1.0, -2.0, 0.0],
+                max: [3.0, 4.0, 2.5],
+            })
+        );
+        assert_eq!(
+            parse_bbox("0,0,0,1,1"),
+            Err(
+                "expected bbox x0,y0,z0,x1,y1,z1 (6 finite numbers), got 5 in \"0,0,0,1,1\"".into()
+            )
+        );
+        // NaN parses as a float; a box with it would select nothing without saying why.
+        assert_eq!(
+            parse_bbox("0,0,0,1,1,NaN"),
+            Err("\"NaN\" is not a finite number".into())
+        );
     }
 }

@@ -5,7 +5,8 @@
 use std::io::Write;
 use std::path::PathBuf;
 
-use crate::report::{MetricBox, parse_bbox, write_report};
+use super::parse_bbox;
+use crate::report::{MetricBox, write_report};
 
 /// Options of `scan3d report`.
 #[derive(Debug, clap::Args)]
