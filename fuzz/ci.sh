@@ -15,7 +15,7 @@ runs=${FUZZ_RUNS:-20000}
 # checks on: the build flags of every cargo-fuzz command below must be the same, or it rebuilds.
 flags=(--sanitizer none --debug-assertions)
 # The smoke run checks for crashes, not speed: the fuzz profile at opt-level 1 with line tables
-# only builds in 259 s cold instead of 292 s (2 cores, 7 December 2026), and the 20 000 runs per
+# only builds in 259–268 s cold instead of 292 s (2 cores, 7 December 2026), and the 20 000 runs per
 # target take the same 0–4 s. `long.sh` keeps Cargo.toml's opt-level 3.
 export CARGO_PROFILE_RELEASE_OPT_LEVEL=1 CARGO_PROFILE_RELEASE_DEBUG=line-tables-only
 
