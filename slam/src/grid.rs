@@ -356,19 +356,24 @@ impl Grid {
         if width.saturating_mul(height) > MAX_DIRECTORY_TILES {
             return false;
         }
-        // The box's tiles not allocated yet: more than the scan can touch, never fewer.
-        let held = |ti: i32, tj: i32| {
-            self.slot((ti * TILE, tj * TILE))
-                .is_some_and(|k| self.directory[k] != NO_TILE)
-        };
-        let mut missing = 0;
-        for tj in lo.1..=hi.1 {
-            for ti in lo.0..=hi.0 {
-                missing += usize::from(!held(ti, tj));
+        // The box's tiles not allocated yet: more than the scan can touch, never fewer. Counted
+        // only when the whole box could take the grid past its limit (rarely: per scan, the
+        // box's tiles are a few hundred).
+        let box_tiles = ((hi.0 - lo.0 + 1) as usize) * ((hi.1 - lo.1 + 1) as usize);
+        if self.log_odds.len() + box_tiles * TILE_CELLS > self.cell_limit {
+            let held = |ti: i32, tj: i32| {
+                self.slot((ti * TILE, tj * TILE))
+                    .is_some_and(|k| self.directory[k] != NO_TILE)
+            };
+            let mut missing = 0;
+            for tj in lo.1..=hi.1 {
+                for ti in lo.0..=hi.0 {
+                    missing += usize::from(!held(ti, tj));
+                }
             }
-        }
-        if self.log_odds.len() + missing * TILE_CELLS > self.cell_limit {
-            return false;
+            if self.log_odds.len() + missing * TILE_CELLS > self.cell_limit {
+                return false;
+            }
         }
         if covered {
             return true;

@@ -5,6 +5,8 @@ use std::path::PathBuf;
 
 use clap::{Parser, Subcommand};
 
+use crate::report::MetricBox;
+
 pub mod assemble;
 pub mod assemble_moving;
 pub mod convert;
@@ -121,9 +123,9 @@ pub fn parse_finite_numbers<const N: usize>(text: &str, what: &str) -> Result<[f
 }
 
 /// Parses `x0,y0,z0,x1,y1,z1` (metres), as `--bbox` takes it.
-pub fn parse_bbox(s: &str) -> Result<crate::report::MetricBox, String> {
+pub fn parse_bbox(s: &str) -> Result<MetricBox, String> {
     let [x0, y0, z0, x1, y1, z1] = parse_finite_numbers(s, "bbox x0,y0,z0,x1,y1,z1")?;
-    Ok(crate::report::MetricBox {
+    Ok(MetricBox {
         min: [x0, y0, z0],
         max: [x1, y1, z1],
     })
