@@ -9,6 +9,7 @@
 //! - [`matcher`]: Gauss–Newton scan-to-map matching, coarse to fine, with a robust loss.
 //! - [`surface`]: the endpoints each cell has seen, and a sub-cell refinement of a grid match.
 //! - [`mapper`]: the incremental front end (motion prior, de-skew, map-update rule).
+//! - [`reentry`]: a scan returning to a place mapped long ago, fitted to the old map there.
 //! - [`odometry`]: which odometry a log's scans get, and how late its laser stamps run.
 //! - [`odometry_agreement`]: how well the odometry has agreed with the scans lately.
 //! - [`offline`]: the mapper over a whole log, and its grid as a raster.
@@ -30,6 +31,7 @@ pub mod odometry_agreement;
 pub mod odometry_bias;
 pub mod offline;
 pub mod pose;
+pub mod reentry;
 pub mod relations;
 pub mod surface;
 pub mod text;

@@ -335,8 +335,33 @@ fn validate(config: &MapperConfig) -> anyhow::Result<()> {
             bail!("{name} must be a non-negative number, not {v}");
         }
     }
+    let e = &config.reentry;
+    for (key, value, limit, unit) in [
+        ("min_age", e.min_age, 1e6, " s"),
+        ("radius", e.radius, 50.0, " m"),
+        ("window", e.window, MAX_SEARCH_TRANSLATION, " m"),
+        ("angle", e.angle, 0.35, " rad"),
+        ("spacing", e.spacing, 1e3, " m"),
+        ("min_score", e.min_score, 1.0, ""),
+        ("score_gain", e.score_gain, 1.0, ""),
+        ("min_contradicted", e.min_contradicted, 1.0, ""),
+        ("contradicted_ratio", e.contradicted_ratio, 1.0, ""),
+        ("free_below", f64::from(e.free_below), 0.5, ""),
+    ] {
+        if !(0.0..=limit).contains(&value) {
+            bail!("reentry.{key} must be 0 to {limit}{unit}, not {value}");
+        }
+    }
+    if !(1..=MAX_REENTRY_SCANS).contains(&e.max_scans) || !(0..=10).contains(&e.clearance) {
+        bail!(
+            "reentry.max_scans must be 1 to {MAX_REENTRY_SCANS} and reentry.clearance 0 to 10 cells"
+        );
+    }
     Ok(())
 }
+
+/// Most integrated scans a re-entry check builds its old map from (each is integrated anew).
+const MAX_REENTRY_SCANS: usize = 500;
 
 /// Most earlier poses a poor match may be tried at (each costs a match, on a poor scan).
 const MAX_OUT_OF_ORDER_POSES: usize = 256;
@@ -591,6 +616,31 @@ pub fn run(args: &SlamArgs, out: &mut dyn Write) -> anyhow::Result<()> {
              better than the predicted one, or went back to one against the prediction; it \
              keeps that pose, is not mapped, and the next scan is predicted from the last pose \
              in order"
+        )?;
+    }
+    let reentries: Vec<f64> = run
+        .results
+        .iter()
+        .filter(|r| r.reentered)
+        .map(|r| r.time)
+        .collect();
+    if !reentries.is_empty() {
+        let mut times: Vec<String> = reentries
+            .iter()
+            .take(10)
+            .map(|t| format!("{:.1}", t - run.results[0].time))
+            .collect();
+        if reentries.len() > times.len() {
+            times.push("…".into());
+        }
+        writeln!(
+            out,
+            "{} re-entr{} onto the old map (back at a place mapped over {:.0} s before, the scan \
+             contradicted it where it stood) at {} s into the log",
+            reentries.len(),
+            if reentries.len() == 1 { "y" } else { "ies" },
+            config.reentry.min_age,
+            times.join(", ")
         )?;
     }
     let refused = mapper.refused_integrations();
@@ -956,6 +1006,8 @@ mod tests {
                 "update.join_endpoints_within_without_odometry",
             ),
             ("[refine.loss]\nkind = \"cauchy\"\nc = 0.0\n", "refine.loss"),
+            ("[reentry]\nwindow = 5.0\n", "reentry.window"),
+            ("[reentry]\nmax_scans = 0\n", "reentry.max_scans"),
             (
                 "[motion]\npoor_match_ratio = 1.5\n",
                 "motion.poor_match_ratio",
