@@ -735,12 +735,8 @@ impl Mapper {
                 .odometry
                 .filter(|_| self.config.motion.use_odometry)
                 .unwrap_or_default();
-            if self.integrate(scan, &pose, &scan.hits) {
+            if self.integrate(scan, reference, &pose, &scan.hits) {
                 self.standstill.integrated(&pose, &[[0.0; 3]; 3]);
-                if self.config.reentry.enabled {
-                    self.keyframes
-                        .add(reference, pose.compose(&scan.sensor_offset), &scan.hits);
-                }
             }
             self.last = Some(Last {
                 time: reference,
@@ -1089,20 +1085,12 @@ impl Mapper {
             }
         }
         // Back at a place mapped long ago: the old map there may say the scan is misplaced.
-        let reentry = (trusted && held.is_none() && self.due(&pose))
-            .then(|| {
-                self.keyframes.check(
-                    &self.config.reentry,
-                    &hits,
-                    pose.compose(&scan.sensor_offset),
-                    reference,
-                    self.config.resolution,
-                    self.config.levels,
-                    &self.config.update,
-                    &self.config.matcher,
-                )
-            })
-            .flatten();
+        let reentry = if trusted && held.is_none() && self.due(&pose) {
+            let sensor = pose.compose(&scan.sensor_offset);
+            self.keyframes.check(&self.config, &hits, sensor, reference)
+        } else {
+            None
+        };
         let reentered = reentry.is_some();
         if let Some(reentry) = reentry {
             let moved = reentry.sensor.compose(&scan.sensor_offset.inverse());
@@ -1115,12 +1103,10 @@ impl Mapper {
             self.odometry_agreement.restart();
             pose = moved;
         }
-        let integrated =
-            trusted && held.is_none() && self.due(&pose) && self.integrate(scan, &pose, &hits);
-        if integrated && self.config.reentry.enabled {
-            self.keyframes
-                .add(reference, pose.compose(&scan.sensor_offset), &hits);
-        }
+        let integrated = trusted
+            && held.is_none()
+            && self.due(&pose)
+            && self.integrate(scan, reference, &pose, &hits);
         self.last = Some(Last {
             time: reference,
             pose,
@@ -1470,8 +1456,15 @@ impl Mapper {
         })
     }
 
-    fn integrate(&mut self, scan: &Scan, pose: &Pose2, hits: &[(f64, f64)]) -> bool {
-        self.integrate_joining(scan, pose, hits, self.join_within(scan))
+    /// Integrates `hits` of `scan` (taken at `time`) at the robot's `pose`, and keeps the scan
+    /// for the re-entry check when it went in.
+    fn integrate(&mut self, scan: &Scan, time: f64, pose: &Pose2, hits: &[(f64, f64)]) -> bool {
+        let integrated = self.integrate_joining(scan, pose, hits, self.join_within(scan));
+        if integrated && self.config.reentry.enabled {
+            self.keyframes
+                .add(time, pose.compose(&scan.sensor_offset), hits);
+        }
+        integrated
     }
 
     /// How far apart `scan`'s endpoints are joined when it is integrated: wider when its pose

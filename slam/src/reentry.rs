@@ -15,8 +15,9 @@
 //! Only the pose from then on moves: the poses before keep their drift. Spreading the
 //! correction back along the loop is loop closure's work, on the same keyframes.
 
-use crate::grid::{Grid, GridPyramid, UpdateModel};
-use crate::matcher::{MatchConfig, SearchWindow, match_scan, score, search};
+use crate::grid::{Grid, GridPyramid};
+use crate::mapper::MapperConfig;
+use crate::matcher::{SearchWindow, match_scan, score, search};
 use crate::pose::Pose2;
 
 /// When and how far a scan returning to an old place is moved onto the old map.
@@ -131,20 +132,16 @@ impl Keyframes {
     }
 
     /// Checks a scan about to be integrated from `sensor` at `time` against the old map around
-    /// it; returns where the old map puts it when it has to move. `resolution`, `levels` and
-    /// `model` build the old map as the mapper builds its own; `matcher` refines the pose found.
-    #[allow(clippy::too_many_arguments)]
+    /// it; returns where the old map puts it when it has to move. The old map is built and
+    /// matched as `mapper` builds and matches its own, under `mapper.reentry`.
     pub fn check(
         &mut self,
-        config: &ReentryConfig,
+        mapper: &MapperConfig,
         hits: &[(f64, f64)],
         sensor: Pose2,
         time: f64,
-        resolution: f64,
-        levels: usize,
-        model: &UpdateModel,
-        matcher: &MatchConfig,
     ) -> Option<Reentry> {
+        let config = &mapper.reentry;
         if !config.enabled || hits.is_empty() {
             return None;
         }
@@ -168,7 +165,7 @@ impl Keyframes {
         self.last_check = Some((sensor.x, sensor.y));
         near.sort_by(|a, b| a.0.total_cmp(&b.0));
         near.truncate(config.max_scans.max(3));
-        let mut old = GridPyramid::new(resolution, levels, model);
+        let mut old = GridPyramid::new(mapper.resolution, mapper.levels, &mapper.update);
         for &(_, i) in &near {
             let frame = &self.frames[i];
             old.integrate(&frame.sensor, &frame.hits, &[]);
@@ -184,7 +181,7 @@ impl Keyframes {
             max_translation: config.window,
         };
         let start = search(coarsest, hits, sensor, &window, None);
-        let found = match_scan(&old, hits, start, None, matcher);
+        let found = match_scan(&old, hits, start, None, &mapper.matcher);
         // Gauss–Newton without a prior may slide beyond the window (along a corridor): that is
         // no place the search vouched for.
         let moved = sensor.between(&found.pose);
@@ -266,16 +263,7 @@ mod tests {
         sensor: Pose2,
         time: f64,
     ) -> Option<Reentry> {
-        keyframes.check(
-            &ReentryConfig::default(),
-            hits,
-            sensor,
-            time,
-            0.05,
-            2,
-            &UpdateModel::default(),
-            &MatchConfig::default(),
-        )
+        keyframes.check(&MapperConfig::default(), hits, sensor, time)
     }
 
     #[test]
@@ -321,26 +309,20 @@ mod tests {
         let nearby = Pose2::new(drifted.x + 0.5, drifted.y, drifted.theta);
         assert_eq!(check(&mut keyframes, &hits, nearby, 101.0), None);
         // Switched off.
-        let off = ReentryConfig {
-            enabled: false,
-            ..ReentryConfig::default()
+        let off = MapperConfig {
+            reentry: ReentryConfig {
+                enabled: false,
+                ..ReentryConfig::default()
+            },
+            ..MapperConfig::default()
         };
-        let found = first_pass().check(
-            &off,
-            &hits,
-            drifted,
-            100.0,
-            0.05,
-            2,
-            &UpdateModel::default(),
-            &MatchConfig::default(),
-        );
+        let found = first_pass().check(&off, &hits, drifted, 100.0);
         assert_eq!(found, None);
     }
 
     #[test]
     fn endpoints_in_seen_free_space_contradict_the_map_and_those_at_its_walls_do_not() {
-        let mut map = GridPyramid::new(0.05, 1, &UpdateModel::default());
+        let mut map = GridPyramid::new(0.05, 1, &crate::grid::UpdateModel::default());
         let from = Pose2::new(4.5, 3.0, 0.0);
         for _ in 0..3 {
             map.integrate(&from, &cast(&walls(), &from, 720), &[]);
